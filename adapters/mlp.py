@@ -1,0 +1,237 @@
+"""Plain MLP state dicts (any key prefix) -> a module with exactly the checkpoint's names."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from prop_cli.errors import PropError
+
+from .base import LoadedModel, finish
+
+NAME = "mlp"
+DEFAULT_ACTIVATION = "relu"
+ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "relu": F.relu,
+    "tanh": torch.tanh,
+    "elu": F.elu,
+    "leaky_relu": F.leaky_relu,
+    "gelu": F.gelu,
+}
+ARCH_HINT = "if it is not a plain MLP, pass its class with --arch package.module:factory"
+# Past this many tried orderings we stop and call the chain ambiguous rather than hang.
+_MAX_SEARCH = 100_000
+
+
+class ChainMLP(nn.Module):
+    """Linears applied in a given order with an activation between them (not after the last).
+
+    Layers live at their checkpoint paths ("actor.fc1" is child "fc1" of a plain container
+    "actor"), so ``state_dict()`` names are exactly the checkpoint's.
+    """
+
+    def __init__(self, layers: list[str], sizes: list[int], bias: dict[str, bool], activation: str) -> None:
+        super().__init__()
+        if activation not in ACTIVATIONS:
+            raise PropError(
+                f"unknown activation '{activation}'",
+                f"use one of: {', '.join(ACTIVATIONS)}",
+            )
+        self.activation = activation
+        self.layer_paths = list(layers)
+        for i, path in enumerate(layers):
+            parent = self
+            *containers, leaf = path.split(".")
+            for part in containers:
+                child = parent._modules.get(part)
+                if child is None:
+                    child = nn.Module()
+                    parent.add_module(part, child)
+                elif isinstance(child, nn.Linear):
+                    raise PropError(f"layer '{path}' is nested inside linear layer '{part}'", ARCH_HINT)
+                parent = child
+            if leaf in parent._modules:
+                raise PropError(f"layer '{path}' clashes with another module name", ARCH_HINT)
+            parent.add_module(leaf, nn.Linear(sizes[i], sizes[i + 1], bias=bias[path]))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        act = ACTIVATIONS[self.activation]
+        last = len(self.layer_paths) - 1
+        # Looked up each call (cheap) so copies and swapped submodules are always honoured.
+        for i, p in enumerate(self.layer_paths):
+            x = self.get_submodule(p)(x)
+            if i < last:
+                x = act(x)
+        return x
+
+
+def natural_key(name: str) -> list:
+    """Sort key comparing digit runs as numbers: 'fc2' < 'fc10', 'net.2' < 'net.10'."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", name) if t]
+
+
+def _layers_from_tensors(
+    tensors: dict[str, torch.Tensor], path: str
+) -> tuple[dict[str, tuple[int, int]], dict[str, bool]]:
+    """Group tensors into linear layers {path: (in, out)}; refuse anything that is not one."""
+    weights: dict[str, torch.Tensor] = {}
+    biases: dict[str, torch.Tensor] = {}
+    other: list[str] = []
+    for name, t in tensors.items():
+        prefix, _, leaf = name.rpartition(".")
+        if leaf == "weight" and t.ndim == 2:
+            weights[prefix] = t
+        elif leaf == "bias" and t.ndim == 1:
+            biases[prefix] = t
+        else:
+            other.append(f"{name} {tuple(t.shape)}")
+    if not weights:
+        raise PropError(
+            f"no linear layers in {path} (no 2-D '.weight' tensors)",
+            "prop keys nn.Linear layers; " + ARCH_HINT,
+        )
+    if other:
+        shown = ", ".join(other[:3]) + (f" (+{len(other) - 3} more)" if len(other) > 3 else "")
+        raise PropError(
+            f"{path} is not a plain MLP: tensors {shown} are not linear weights or biases",
+            ARCH_HINT,
+        )
+    orphans = sorted(set(biases) - set(weights))
+    if orphans:
+        raise PropError(
+            f"{path} is not a plain MLP: bias '{orphans[0]}.bias' has no matching weight", ARCH_HINT
+        )
+    if "" in weights:
+        raise PropError(
+            f"{path} holds a bare layer ('weight'/'bias' without a module name)",
+            "save it inside a container, e.g. nn.Sequential(layer).state_dict(), or use --arch",
+        )
+    dims: dict[str, tuple[int, int]] = {}
+    for p, w in weights.items():
+        if not w.is_floating_point():
+            raise PropError(f"{path}: '{p}.weight' has dtype {w.dtype}, not a float", ARCH_HINT)
+        out_f, in_f = w.shape
+        b = biases.get(p)
+        if b is not None and b.shape[0] != out_f:
+            raise PropError(
+                f"{path} is not a plain MLP: '{p}.bias' has {b.shape[0]} entries but "
+                f"'{p}.weight' has {out_f} outputs",
+                ARCH_HINT,
+            )
+        dims[p] = (int(in_f), int(out_f))
+    return dims, {p: p in biases for p in weights}
+
+
+def _is_chain(order: list[str], dims: dict[str, tuple[int, int]]) -> bool:
+    return all(dims[a][1] == dims[b][0] for a, b in zip(order[:-1], order[1:], strict=True))
+
+
+def _find_chains(dims: dict[str, tuple[int, int]], limit: int = 2) -> tuple[list[list[str]], bool]:
+    """Up to ``limit`` orderings that chain all layers, and whether the search was cut short."""
+    # A chain is an Euler trail through the dims: settle the impossible case without searching.
+    balance: dict[int, int] = {}
+    for i, o in dims.values():
+        balance[i] = balance.get(i, 0) + 1
+        balance[o] = balance.get(o, 0) - 1
+    if sorted(v for v in balance.values() if v) not in ([], [-1, 1]):
+        return [], False
+    names = sorted(dims, key=natural_key)
+    found: list[list[str]] = []
+    steps = 0
+
+    def extend(order: list[str], left: list[str]) -> bool:
+        nonlocal steps
+        steps += 1
+        if steps > _MAX_SEARCH:
+            return False
+        if not left:
+            found.append(list(order))
+            return len(found) < limit
+        want = dims[order[-1]][1] if order else None
+        for i, n in enumerate(left):
+            if want is None or dims[n][0] == want:
+                order.append(n)
+                keep_going = extend(order, left[:i] + left[i + 1 :])
+                order.pop()
+                if not keep_going:
+                    return False
+        return True
+
+    extend([], names)
+    return found, steps > _MAX_SEARCH
+
+
+def infer_chain(dims: dict[str, tuple[int, int]], path: str) -> list[str]:
+    """Layer order: natural name order if its dims chain, else the one order the dims allow."""
+    natural = sorted(dims, key=natural_key)
+    if _is_chain(natural, dims):
+        return natural
+    chains, cut = _find_chains(dims)
+    listing = ", ".join(f"{n} {dims[n][0]}->{dims[n][1]}" for n in natural[:8])
+    listing += f", ... ({len(natural)} layers)" if len(natural) > 8 else ""
+    if len(chains) == 1 and not cut:
+        return chains[0]
+    if not chains and not cut:
+        raise PropError(
+            f"{path} is not a plain MLP: its linear layers ({listing}) do not form one chain "
+            "(branches or skip connections?)",
+            ARCH_HINT,
+        )
+    raise PropError(
+        f"the layer chain of {path} is ambiguous: its names are not in layer order and the "
+        f"shapes ({listing}) allow more than one order",
+        "rename the layers so they sort in order (e.g. 0., 1., 2.), or pass the class with "
+        "--arch package.module:factory",
+    )
+
+
+def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    module = ChainMLP(spec["layers"], spec["sizes"], spec["bias"], spec["activation"])
+    try:
+        module.load_state_dict(weights, strict=True)
+    except RuntimeError as e:
+        raise PropError(
+            f"weights in {source} do not match the MLP described by its spec ({e})".replace("\n", " "),
+            "the file was modified or belongs to another model; re-create it",
+        ) from None
+    return LoadedModel(
+        module=finish(module),
+        spec=spec,
+        dtypes={k: v.dtype for k, v in weights.items()},
+        input_shape=(spec["sizes"][0],),
+        source=source,
+    )
+
+
+def from_weights(
+    tensors: dict[str, torch.Tensor],
+    metadata: dict[str, str],
+    path: str | Path,
+    *,
+    activation: str | None = None,
+) -> LoadedModel:
+    path = str(path)
+    dims, bias = _layers_from_tensors(tensors, path)
+    order = infer_chain(dims, path)
+    act = activation if activation is not None else metadata.get("activation", DEFAULT_ACTIVATION)
+    act = act.strip().lower()
+    if act not in ACTIVATIONS:
+        where = "--activation" if activation is not None else f"metadata 'activation' of {path}"
+        raise PropError(f"{where}: unknown activation '{act}'", f"use one of: {', '.join(ACTIVATIONS)}")
+    spec = {
+        "adapter": NAME,
+        "layers": order,
+        "activation": act,
+        "bias": {p: bias[p] for p in order},
+        "sizes": [dims[order[0]][0]] + [dims[p][1] for p in order],
+    }
+    return build(spec, tensors, path)
+
+
+def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    return build(spec, weights, source)

@@ -1,0 +1,135 @@
+"""The user's own module class: ``--arch package.module:factory`` plus JSON keyword arguments."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from prop_cli.errors import PropError
+
+from .base import LoadedModel, finish
+
+NAME = "module"
+ARCH_FORMAT = "give --arch as package.module:factory, e.g. mypolicies.nets:make_policy"
+
+
+def resolve_factory(arch: str):
+    """Import ``package.module:attr.path`` and return the attribute (a class or function)."""
+    mod_name, sep, attr = arch.partition(":")
+    if not sep or not mod_name or not attr:
+        raise PropError(f"--arch '{arch}' is not of the form package.module:factory", ARCH_FORMAT)
+    # A model file next to where the user runs prop should just work, as with `python -m`.
+    cwd = os.getcwd()
+    if cwd not in sys.path:
+        sys.path.insert(0, cwd)
+    try:
+        obj = importlib.import_module(mod_name)
+    except Exception as e:  # ImportError, or any error raised while the user's module runs
+        raise PropError(
+            f"--arch '{arch}': cannot import '{mod_name}' ({type(e).__name__}: {e})",
+            "run prop from the folder holding the module, or install its package",
+        ) from None
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise PropError(
+                f"--arch '{arch}': '{mod_name}' has no attribute '{attr}'",
+                "check the name after the ':'",
+            )
+        obj = getattr(obj, part)
+    if not callable(obj):
+        raise PropError(f"--arch '{arch}': '{attr}' is not callable", ARCH_FORMAT)
+    return obj
+
+
+def make_module(arch: str, arch_kwargs: dict | None) -> nn.Module:
+    kwargs = dict(arch_kwargs or {})
+    try:
+        json.dumps(kwargs)
+    except (TypeError, ValueError) as e:
+        raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
+    factory = resolve_factory(arch)
+    try:
+        module = factory(**kwargs)
+    except Exception as e:
+        raise PropError(
+            f"--arch '{arch}': calling it with --arch-kwargs {json.dumps(kwargs)} failed "
+            f"({type(e).__name__}: {e})",
+            "check the keyword arguments the factory expects",
+        ) from None
+    if not isinstance(module, nn.Module):
+        raise PropError(
+            f"--arch '{arch}' returned a {type(module).__name__}, not a torch.nn.Module",
+            "point --arch at a class or a function that returns the model",
+        )
+    return module
+
+
+def _few(names: list[str]) -> str:
+    shown = ", ".join(names[:5])
+    return shown + (f", ... ({len(names)} in all)" if len(names) > 5 else f" ({len(names)})")
+
+
+def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    arch = spec["arch"]
+    module = make_module(arch, spec.get("arch_kwargs"))
+    expected = set(module.state_dict())
+    missing = sorted(expected - set(weights))
+    unexpected = sorted(set(weights) - expected)
+    if missing or unexpected:
+        parts = []
+        if missing:
+            parts.append(f"missing keys: {_few(missing)}")
+        if unexpected:
+            parts.append(f"unexpected keys: {_few(unexpected)}")
+        raise PropError(
+            f"{source} does not fit --arch '{arch}': " + "; ".join(parts),
+            "check --arch and --arch-kwargs match the model that saved the checkpoint",
+        )
+    own = module.state_dict()
+    wrong = [
+        f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
+        for k, v in own.items()
+        if tuple(weights[k].shape) != tuple(v.shape)
+    ]
+    if wrong:
+        raise PropError(
+            f"{source} does not fit --arch '{arch}': shape mismatch (checkpoint vs model) for " + _few(wrong),
+            "check --arch-kwargs (layer sizes) match the model that saved the checkpoint",
+        )
+    module.load_state_dict(weights, strict=True)
+    shape = getattr(module, "input_shape", None)
+    input_shape = None
+    if shape is not None:
+        try:
+            input_shape = tuple(int(d) for d in shape)
+        except (TypeError, ValueError):
+            input_shape = None
+    return LoadedModel(
+        module=finish(module),
+        spec=spec,
+        dtypes={k: v.dtype for k, v in weights.items()},
+        input_shape=input_shape,
+        source=source,
+    )
+
+
+def from_weights(
+    tensors: dict[str, torch.Tensor],
+    metadata: dict[str, str],
+    path: str | Path,
+    *,
+    arch: str,
+    arch_kwargs: dict | None = None,
+) -> LoadedModel:
+    spec = {"adapter": NAME, "arch": arch, "arch_kwargs": dict(arch_kwargs or {})}
+    return build(spec, tensors, str(path))
+
+
+def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    return build(spec, weights, source)

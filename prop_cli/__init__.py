@@ -1,0 +1,3 @@
+"""prop: add private keys to existing neural-network checkpoints (PRoP)."""
+
+__version__ = "0.1.0"

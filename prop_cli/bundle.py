@@ -1,0 +1,208 @@
+"""The bundle `prop personalize` writes: base weights, encoder weights and a manifest, in a directory.
+
+Written to a temporary sibling directory and renamed into place at the end, so an interrupted run
+never leaves a half bundle at the output path. No key material and no key hash is ever written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+
+import prop_adapters
+from prop_adapters import LoadedModel
+
+from . import __version__
+from . import constants as C
+from .errors import PropError
+from .keyed import KeyedModel, KeyEncoder
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def dump_json(obj: dict) -> str:
+    """The one JSON style of prop's files: sorted keys, indented, newline-terminated."""
+    return json.dumps(obj, sort_keys=True, indent=2) + "\n"
+
+
+def check_output(out: Path, force: bool, what: str = "bundle") -> None:
+    """Refuse to replace what the user owns without --force; fail early if the place is unwritable."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise PropError(f"{what} {out} already exists", "choose another --out or pass --force to replace it")
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise PropError(f"cannot write {what} {out}: folder {parent} does not exist", "create it first")
+    if not os.access(parent, os.W_OK):
+        raise PropError(f"cannot write {what} {out}: folder {parent} is not writable", "choose another --out")
+
+
+def _safetensors_metadata(path: str) -> dict[str, str] | None:
+    if not path.endswith(".safetensors"):
+        return None
+    with safe_open(path, framework="pt") as f:
+        return f.metadata()
+
+
+def write_bundle(
+    out: Path,
+    *,
+    loaded: LoadedModel,
+    keyed: KeyedModel,
+    manifest: dict,
+    force: bool = False,
+    copy_base: bool = False,
+) -> Path:
+    """Write the bundle. ``copy_base`` copies the input checkpoint's bytes (frozen base, safetensors)."""
+    out = Path(out)
+    check_output(out, force)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.resolve().parent))
+    try:
+        base_path = tmp / C.BASE_WEIGHTS
+        if copy_base:
+            shutil.copyfile(loaded.source, base_path)
+        else:
+            state = {
+                k: v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous()
+                for k, v in keyed.module.state_dict().items()
+            }
+            save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+        enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
+        save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
+        full = dict(manifest)
+        full[C.M_FORMAT] = C.FORMAT_VERSION
+        full[C.M_PROP_VERSION] = __version__
+        full[C.M_FILES] = {n: sha256_file(tmp / n) for n in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)}
+        (tmp / C.MANIFEST).write_text(dump_json(full))
+        _replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _replace_dir(new: Path, out: Path) -> None:
+    if not out.exists():
+        os.replace(new, out)
+        return
+    old = new.with_name(new.name + ".old")
+    os.replace(out, old)
+    os.replace(new, out)
+    if old.is_dir():
+        shutil.rmtree(old)
+    else:
+        old.unlink()
+
+
+def update_manifest(path: Path, key: str, value: dict) -> None:
+    """Set one manifest entry (e.g. the audit summary), atomically; weights are untouched."""
+    bundle = Path(path)
+    manifest = read_manifest(bundle)
+    manifest[key] = value
+    tmp = bundle / (C.MANIFEST + ".tmp")
+    tmp.write_text(dump_json(manifest))
+    os.replace(tmp, bundle / C.MANIFEST)
+
+
+def read_manifest(path: Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise PropError(
+            f"bundle {path} does not exist", "check the path (a directory made by prop personalize)"
+        )
+    mpath = path / C.MANIFEST
+    if not path.is_dir() or not mpath.is_file():
+        raise PropError(
+            f"{path} is not a prop bundle (no {C.MANIFEST})",
+            "pass the directory written by prop personalize --out",
+        )
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise PropError(
+            f"bundle {path}: {C.MANIFEST} is not valid JSON ({e})",
+            "the bundle is corrupt; write it again with prop personalize",
+        ) from e
+    version = manifest.get(C.M_FORMAT)
+    if not isinstance(version, int):
+        raise PropError(
+            f"bundle {path}: {C.MANIFEST} has no {C.M_FORMAT}",
+            "the bundle is corrupt; write it again with prop personalize",
+        )
+    if version > C.FORMAT_VERSION:
+        raise PropError(
+            f"bundle {path} has format version {version}; this prop reads up to {C.FORMAT_VERSION}",
+            "upgrade prop: pip install -U prop-cli",
+        )
+    return manifest
+
+
+@dataclass
+class Bundle:
+    path: Path
+    manifest: dict
+    loaded: LoadedModel
+    keyed: KeyedModel
+
+    @property
+    def task(self) -> str:
+        return self.manifest[C.M_TASK]
+
+    @property
+    def key_bits(self) -> int:
+        return int(self.manifest[C.M_KEY]["bits"])
+
+    @property
+    def key_encoding(self) -> str:
+        return self.manifest[C.M_KEY]["encoding"]
+
+
+def load_bundle(path: Path) -> Bundle:
+    """Load and verify (format version, sha256 of every weight file) a bundle."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    files = manifest.get(C.M_FILES, {})
+    for name in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS):
+        f = path / name
+        if not f.is_file():
+            raise PropError(f"bundle {path} is missing {name}", "write the bundle again")
+        if files.get(name) != sha256_file(f):
+            raise PropError(
+                f"bundle {path}: {name} does not match its sha256 in {C.MANIFEST} (modified or corrupt)",
+                "restore the bundle from a trusted copy",
+            )
+    loaded = prop_adapters.rebuild(manifest[C.M_MODEL], load_file(str(path / C.BASE_WEIGHTS)), str(path))
+    enc_meta = manifest[C.M_ENCODER]
+    layers = manifest[C.M_KEYED_LAYERS]
+    encoder = KeyEncoder(
+        code_bits=int(manifest[C.M_KEY]["bits"]),
+        features=[int(layer["features"]) for layer in layers],
+        hidden=list(enc_meta["hidden"]),
+        scale=float(enc_meta["scale"]),
+    )
+    encoder.load_state_dict(load_file(str(path / C.ENCODER_WEIGHTS)))
+    keyed = KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
+    return Bundle(path, manifest, loaded, keyed)
+
+
+def describe_layers(keyed: KeyedModel) -> list[dict]:
+    return [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+
+
+def input_dtype(x: torch.Tensor) -> str:
+    return str(x.dtype).replace("torch.", "")

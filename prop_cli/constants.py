@@ -1,0 +1,40 @@
+"""File names, manifest keys and format versions: the one place they are spelled."""
+
+from __future__ import annotations
+
+# Bundle layout (a directory).
+BASE_WEIGHTS = "base.safetensors"
+ENCODER_WEIGHTS = "encoder.safetensors"
+MANIFEST = "manifest.json"
+
+# Bump on any change a reader of an older version would misread.
+FORMAT_VERSION = 1
+
+# Manifest keys.
+M_FORMAT = "format_version"
+M_PROP_VERSION = "prop_version"
+M_MODEL = "model"  # how to rebuild the module: {"adapter": name, ...adapter spec}
+M_KEYED_LAYERS = "keyed_layers"  # [{"name": str, "features": int}]
+M_KEY = "key"  # {"bits": int, "encoding": str, "source": "file"|"passphrase", "kdf": {...}|None}
+M_ENCODER = "encoder"  # {"hidden": [...], "scale": float, ...}
+M_CONFIG = "config"  # the PersonalizeConfig used, so a run can be repeated
+M_METRICS = "metrics"  # final metrics per user
+M_TASK = "task"  # "regression" | "classification"
+M_IO = "io"  # {"input_shape": [...], "output_shape": [...], "input_dtype": str}
+M_FILES = "files"  # {file name: sha256 hex}
+M_AUDIT = "audit"  # summary written by `prop attack --record`
+
+# Environment variables.
+ENV_PASSPHRASE = "PROP_PASSPHRASE"
+ENV_DEBUG = "PROP_DEBUG"
+
+# Key sizes accepted by keygen.
+KEY_BITS_DEFAULT = 128
+KEY_BITS_MIN = 32
+KEY_BITS_MAX = 1024
+
+# scrypt parameters for --passphrase (memory-hard; ~16 MiB, well under a second).
+SCRYPT_N = 2**14
+SCRYPT_R = 8
+SCRYPT_P = 1
+SALT_BYTES = 16

@@ -1,0 +1,19 @@
+"""The one error type for expected failures.
+
+Everything a user can cause (bad file, bad flag, bad data) raises :class:`PropError`. The CLI catches
+it once and prints one line; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class PropError(Exception):
+    """An expected failure: ``what`` went wrong and ``fix`` says what to do about it."""
+
+    def __init__(self, what: str, fix: str | None = None) -> None:
+        self.what = what
+        self.fix = fix
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        return f"{self.what}; {self.fix}" if self.fix else self.what

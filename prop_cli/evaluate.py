@@ -1,0 +1,68 @@
+"""Running many keys over the same inputs, and the per-user report personalize prints and stores."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import metrics
+from .keyed import KeyedModel, key_codes
+
+# Rows per forward when evaluating many keys: bounded so memory stays flat for any key count.
+MAX_ROWS = 1 << 16
+
+
+@torch.no_grad()
+def outputs_for_codes(km: KeyedModel, x: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """Outputs of every code on every sample, (K, B, ...), in chunks of keys."""
+    per = max(1, MAX_ROWS // max(1, x.shape[0]))
+    outs = [
+        km.run_keys(x, km.layer_deltas(codes[i : i + per].to(x.device))) for i in range(0, len(codes), per)
+    ]
+    return torch.cat(outs)
+
+
+def one_bit_neighbours(bits: np.ndarray) -> np.ndarray:
+    """All keys at Hamming distance exactly 1 from ``bits`` (n, n)."""
+    n = len(bits)
+    keys = np.repeat(bits[None].astype(np.uint8), n, 0)
+    keys[np.arange(n), np.arange(n)] ^= 1
+    return keys
+
+
+def _group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
+    worst_fid = "min" if task == "classification" else "max"
+    return {
+        "leakage": metrics.summarize(metrics.leakage(o, p, b, task), "max"),
+        "fidelity": metrics.summarize(metrics.fidelity(o, b, task), worst_fid),
+    }
+
+
+@torch.no_grad()
+def user_report(
+    km: KeyedModel,
+    original: torch.nn.Module,
+    x: torch.Tensor,
+    p: torch.Tensor,
+    user_bits: np.ndarray,
+    encoding: str,
+    task: str,
+    random_keys: int,
+    rng: np.random.Generator,
+) -> dict:
+    """personalization of the user's key; leakage and fidelity of null, random and 1-bit keys."""
+    km.eval()
+    b = original(x)
+    o_user = outputs_for_codes(km, x, key_codes(user_bits, encoding))[0]
+    o_null = km(x)[None]
+    rand = rng.integers(0, 2, (random_keys, len(user_bits)), dtype=np.uint8)
+    o_rand = outputs_for_codes(km, x, key_codes(rand, encoding))
+    o_ham = outputs_for_codes(km, x, key_codes(one_bit_neighbours(user_bits), encoding))
+    return {
+        "samples": int(x.shape[0]),
+        "personalization": metrics.personalization(o_user, p, b, task),
+        "user_leakage": metrics.leakage(o_user[None], p, b, task).item(),
+        "null": _group(o_null, p, b, task),
+        "random": _group(o_rand, p, b, task),
+        "hamming1": _group(o_ham, p, b, task),
+    }

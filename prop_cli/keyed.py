@@ -1,0 +1,215 @@
+"""The keyed model (paper Eq. 5): ``z -> W diag(delta) z + b`` at chosen linear layers.
+
+The key transform is attached with forward pre-hooks, so the module tree and its state-dict names are
+exactly the loaded checkpoint's. With no key the hooks do nothing: the model *is* the loaded module.
+
+Many (sample, key) rows go through one forward. ``sample_index`` picks, for every row, which input
+sample it uses; the first keyed layer gathers its input by that index, so everything before it runs
+once per distinct sample instead of once per row.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from .errors import PropError
+
+KEY_ENCODINGS = ("hashed", "raw")
+# Domain separation for the hashed key code; changing it changes every trained bundle's meaning.
+_CODE_DOMAIN = b"prop/key-code/v1"
+
+
+def key_codes(bits: np.ndarray, encoding: str) -> torch.Tensor:
+    """Key bits (n,) or (K, n) of 0/1 -> the encoder's input, ±1 float32 of shape (K, n).
+
+    ``raw`` feeds the bits as ±1, as in the paper. ``hashed`` (default) first expands them through
+    SHAKE-256: a key one bit off then gives an unrelated code, so Hamming neighbours of the user's
+    key are, to the encoder, as far away as random keys.
+    """
+    bits = np.atleast_2d(np.asarray(bits, dtype=np.uint8))
+    n = bits.shape[1]
+    if encoding == "raw":
+        out = bits
+    elif encoding == "hashed":
+        packed = np.packbits(bits, axis=1)
+        out = np.stack(
+            [
+                np.unpackbits(
+                    np.frombuffer(
+                        hashlib.shake_256(_CODE_DOMAIN + row.tobytes()).digest(n // 8),
+                        dtype=np.uint8,
+                    )
+                )
+                for row in packed
+            ]
+        )
+    else:
+        raise PropError(f"unknown key encoding {encoding!r}", f"use one of {', '.join(KEY_ENCODINGS)}")
+    return torch.from_numpy(out.astype(np.float32) * 2.0 - 1.0)
+
+
+class KeyEncoder(nn.Module):
+    """MLP from a ±1 key code to one scale vector per keyed layer: ``delta = 1 + scale * tanh(.)``.
+
+    The last layer starts at zero, so before training every key gives delta = 1 (base behaviour).
+    ``scale`` > 1 lets delta change sign, which a hidden feature needs to flip its contribution.
+    """
+
+    def __init__(self, code_bits: int, features: list[int], hidden: list[int], scale: float) -> None:
+        super().__init__()
+        self.code_bits = code_bits
+        self.features = list(features)
+        self.scale = float(scale)
+        dims = [code_bits, *hidden]
+        layers: list[nn.Module] = []
+        for a, b in zip(dims[:-1], dims[1:]):
+            layers += [nn.Linear(a, b), nn.Tanh()]
+        last = nn.Linear(dims[-1], sum(features))
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+        self.net = nn.Sequential(*layers, last)
+
+    def forward(self, codes: torch.Tensor) -> list[torch.Tensor]:
+        return list((1.0 + self.scale * torch.tanh(self.net(codes))).split(self.features, dim=1))
+
+    def latent(self, codes: torch.Tensor) -> torch.Tensor:
+        """All layers' delta concatenated, (K, sum(features))."""
+        return torch.cat(self(codes), dim=1)
+
+
+@dataclass
+class _Rows:
+    deltas: list[torch.Tensor]  # per keyed layer, (N, d) — one row per (sample, key) row
+    sample_index: torch.Tensor | None
+    gathered: bool = False
+
+
+class KeyedModel(nn.Module):
+    """A loaded module plus a key encoder, joined by pre-hooks on the keyed linear layers."""
+
+    def __init__(self, module: nn.Module, encoder: KeyEncoder, layer_names: list[str]) -> None:
+        super().__init__()
+        self.module = module
+        self.encoder = encoder
+        self.layer_names = list(layer_names)
+        mods = dict(module.named_modules())
+        self._rows: _Rows | None = None
+        # None = not probed yet; see _probe_sharing.
+        self.share_prefix: bool | None = None
+        self._hook_ids = {}
+        for i, name in enumerate(self.layer_names):
+            self._hook_ids[name] = mods[name].register_forward_pre_hook(self._make_hook(i)).id
+
+    def _make_hook(self, i: int):
+        def pre(mod: nn.Module, args: tuple):
+            rows = self._rows
+            if rows is None:
+                return None
+            z = args[0]
+            if rows.sample_index is not None and not rows.gathered:
+                z = z.index_select(0, rows.sample_index)
+                rows.gathered = True
+            d = rows.deltas[i]
+            if z.shape[0] != d.shape[0]:
+                raise _RowMismatch()
+            if z.dim() > 2:
+                d = d.view(d.shape[0], *([1] * (z.dim() - 2)), d.shape[1])
+            return (z * d, *args[1:])
+
+        return pre
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """No key: exactly the loaded module."""
+        return self.module(x)
+
+    def layer_deltas(self, codes: torch.Tensor | None, null: int = 0) -> list[torch.Tensor]:
+        """delta per layer for K codes, then ``null`` rows of ones (the null key, delta = 1)."""
+        parts = [] if codes is None or len(codes) == 0 else self.encoder(codes)
+        if not parts:
+            return [torch.ones(null, f, device=self._device()) for f in self.encoder.features]
+        if null:
+            return [torch.cat([p, p.new_ones(null, p.shape[1])]) for p in parts]
+        return parts
+
+    def _device(self) -> torch.device:
+        return next(self.encoder.parameters()).device
+
+    def run_rows(
+        self,
+        x: torch.Tensor,
+        deltas: list[torch.Tensor],
+        key_index: torch.Tensor,
+        sample_index: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Output for rows (sample_index[r], key_index[r]); key_index picks a row of each delta."""
+        row_deltas = [d.index_select(0, key_index) for d in deltas]
+        if sample_index is not None and not self._sharing_ok(x, deltas):
+            x, sample_index = x.index_select(0, sample_index), None
+        self._rows = _Rows(row_deltas, sample_index)
+        try:
+            out = self.module(x)
+        finally:
+            self._rows = None
+        return out
+
+    def run_keys(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> torch.Tensor:
+        """Every key (row of deltas) on every sample: output of shape (K, B, ...)."""
+        k, b = deltas[0].shape[0], x.shape[0]
+        dev = x.device
+        key_index = torch.arange(k, device=dev).repeat_interleave(b)
+        sample_index = torch.arange(b, device=dev).repeat(k)
+        out = self.run_rows(x, deltas, key_index, sample_index)
+        return out.view(k, b, *out.shape[1:])
+
+    def _sharing_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
+        # Gathering at the first keyed layer is only valid if everything after it treats rows
+        # independently. Check once on two samples x two keys against gathering at the input.
+        if self.share_prefix is None:
+            self.share_prefix = self._probe_sharing(x[:2], [d[:2] for d in deltas])
+        return self.share_prefix
+
+    @torch.no_grad()
+    def _probe_sharing(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
+        k, b = deltas[0].shape[0], x.shape[0]
+        key_index = torch.arange(k, device=x.device).repeat_interleave(b)
+        sample_index = torch.arange(b, device=x.device).repeat(k)
+        row_deltas = [d.index_select(0, key_index) for d in deltas]
+        was_training = self.module.training
+        self.module.eval()
+        try:
+            self._rows = _Rows(row_deltas, None)
+            ref = self.module(x.index_select(0, sample_index))
+            self._rows = _Rows(row_deltas, sample_index)
+            got = self.module(x)
+            ok = got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
+        except (_RowMismatch, RuntimeError):
+            ok = False
+        finally:
+            self._rows = None
+            self.module.train(was_training)
+        return bool(ok)
+
+    @torch.no_grad()
+    def fold(self, codes: torch.Tensor) -> nn.Module:
+        """A copy of the module with one key's delta folded into the weights (in memory only).
+
+        A keyed call then costs what a base call costs. Never write the result to disk: it is the
+        personalized policy in the clear.
+        """
+        folded = copy.deepcopy(self.module)
+        mods = dict(folded.named_modules())
+        for name, d in zip(self.layer_names, self.layer_deltas(codes[:1])):
+            # The copy carries our hooks along; drop them so it is a plain module.
+            mods[name]._forward_pre_hooks.pop(self._hook_ids[name], None)
+            mods[name].weight.mul_(d[0].to(mods[name].weight.dtype)[None, :])
+        return folded
+
+
+class _RowMismatch(RuntimeError):
+    """A keyed layer saw a batch that is not one row per (sample, key): sharing is not possible."""

@@ -1,0 +1,178 @@
+"""Key material: key files, passphrase-derived keys, and their ±1 encoding.
+
+Bit order everywhere: for each byte, most significant bit first (``np.unpackbits``). Nothing
+here logs, prints or puts key bits into an error message.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import stat
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from prop_cli.constants import (
+    ENV_PASSPHRASE,
+    KEY_BITS_MAX,
+    KEY_BITS_MIN,
+    SALT_BYTES,
+    SCRYPT_N,
+    SCRYPT_P,
+    SCRYPT_R,
+)
+from prop_cli.errors import PropError
+
+# scrypt needs 128*r*N*p bytes (16 MiB with the defaults); OpenSSL's own cap is 32 MiB, so give
+# it explicit headroom instead of relying on that default.
+_SCRYPT_MAXMEM = 4 * 128 * SCRYPT_R * SCRYPT_N * SCRYPT_P
+
+
+class PropKeyWarning(UserWarning):
+    """A key file others can read (like ssh's 'UNPROTECTED PRIVATE KEY FILE')."""
+
+
+def check_bits(bits: int, flag: str = "--bits") -> int:
+    """Validate a key size: a multiple of 8 in [KEY_BITS_MIN, KEY_BITS_MAX]."""
+    if (
+        isinstance(bits, bool)
+        or not isinstance(bits, int)
+        or bits % 8
+        or not (KEY_BITS_MIN <= bits <= KEY_BITS_MAX)
+    ):
+        raise PropError(
+            f"{flag} {bits} is not a valid key size",
+            f"use a multiple of 8 between {KEY_BITS_MIN} and {KEY_BITS_MAX} (default 128)",
+        )
+    return bits
+
+
+def generate_key_file(path: Path, bits: int = 128, force: bool = False) -> None:
+    """Write ``bits/8`` random bytes to ``path`` with mode 0600; never overwrite without force."""
+    check_bits(bits)
+    path = Path(path)
+    if path.is_dir():
+        raise PropError(f"key file {path} is a directory", "give a file name for the key")
+    if path.exists() and not force:
+        raise PropError(
+            f"key file {path} already exists",
+            "choose another path, or pass --force to replace it (the old key is then lost)",
+        )
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise PropError(f"directory {parent} for key file {path} does not exist", "create it first")
+    data = os.urandom(bits // 8)
+    if not force:
+        # O_EXCL: even a file appearing since the check above is never clobbered.
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            raise PropError(
+                f"key file {path} already exists", "choose another path, or pass --force"
+            ) from None
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+        except BaseException:
+            path.unlink(missing_ok=True)
+            raise
+    else:
+        # mkstemp creates 0600; os.replace makes the swap atomic, so no half-written key.
+        fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    os.chmod(path, 0o600)  # the umask can only remove bits, but be explicit
+
+
+def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:
+    """Key bits (uint8 0/1, length 8*size) from a key file; ``bits`` is what a bundle expects."""
+    path = Path(path)
+    if not path.exists():
+        raise PropError(f"key file {path} does not exist", "check --key, or create one with prop keygen")
+    if path.is_dir():
+        raise PropError(f"key file {path} is a directory", "pass the key file itself to --key")
+    st = path.stat()
+    size = st.st_size
+    if size == 0:
+        raise PropError(f"key file {path} is empty", "pass the key file written by prop keygen")
+    if bits is not None and size * 8 != bits:
+        raise PropError(
+            f"key file {path} has {size} bytes but the bundle expects {bits} bits = {bits // 8} bytes",
+            "use the key the bundle was personalized with",
+        )
+    if bits is None and not (KEY_BITS_MIN // 8 <= size <= KEY_BITS_MAX // 8):
+        raise PropError(
+            f"key file {path} has {size} bytes; key files hold {KEY_BITS_MIN // 8} to "
+            f"{KEY_BITS_MAX // 8} bytes",
+            "check --key points at a key written by prop keygen",
+        )
+    if os.name == "posix" and stat.S_IMODE(st.st_mode) & 0o077:
+        warnings.warn(
+            f"key file {path} is readable by other users (mode {stat.S_IMODE(st.st_mode):o}); "
+            f"run: chmod 600 {path}",
+            PropKeyWarning,
+            stacklevel=2,
+        )
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise PropError(f"key file {path} cannot be read ({e.strerror})", "check its permissions") from None
+    return np.unpackbits(np.frombuffer(data, dtype=np.uint8))
+
+
+def new_salt() -> bytes:
+    """Fresh random salt for a passphrase key (stored in the bundle manifest; not secret)."""
+    return os.urandom(SALT_BYTES)
+
+
+def passphrase_bits(passphrase: str, salt: bytes, bits: int) -> np.ndarray:
+    """Key bits derived from a passphrase with scrypt (memory-hard, so guessing is slow)."""
+    if not passphrase:
+        raise PropError(
+            "the passphrase is empty",
+            f"pass a non-empty --passphrase or set {ENV_PASSPHRASE}",
+        )
+    if bits <= 0 or bits % 8:
+        raise PropError(f"key size {bits} bits is not a positive multiple of 8", "use e.g. 128")
+    if not salt:
+        raise PropError("the passphrase salt is empty", "the bundle manifest is damaged")
+    key = hashlib.scrypt(
+        passphrase.encode("utf-8"),
+        salt=bytes(salt),
+        n=SCRYPT_N,
+        r=SCRYPT_R,
+        p=SCRYPT_P,
+        maxmem=_SCRYPT_MAXMEM,
+        dklen=bits // 8,
+    )
+    return np.unpackbits(np.frombuffer(key, dtype=np.uint8))
+
+
+def to_signs(bits: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """0/1 bits of shape (n,) or (K, n) -> float32 ±1 (bit 1 -> +1, bit 0 -> -1)."""
+    t = torch.as_tensor(np.asarray(bits) if not torch.is_tensor(bits) else bits)
+    if t.ndim not in (1, 2):
+        raise ValueError(f"key bits must have shape (n,) or (K, n), got {tuple(t.shape)}")
+    return t.to(torch.float32) * 2.0 - 1.0
+
+
+def hamming_distance(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor) -> int:
+    """Number of positions where two equal-length bit vectors differ."""
+    a_np = a.detach().cpu().numpy() if torch.is_tensor(a) else np.asarray(a)
+    b_np = b.detach().cpu().numpy() if torch.is_tensor(b) else np.asarray(b)
+    if a_np.shape != b_np.shape:
+        raise ValueError(f"cannot compare keys of shapes {a_np.shape} and {b_np.shape}")
+    return int(np.count_nonzero(a_np != b_np))

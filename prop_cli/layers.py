@@ -1,0 +1,67 @@
+"""Which linear layers get a key transform: matching as in peft (exact name, dotted suffix, regex)."""
+
+from __future__ import annotations
+
+import re
+
+from torch import nn
+
+from .errors import PropError
+
+ALL_LINEAR = "all-linear"
+
+
+def linear_layers(module: nn.Module) -> list[tuple[str, nn.Linear]]:
+    """Every ``nn.Linear`` in module order (the order a chain model applies them)."""
+    return [(name, m) for name, m in module.named_modules() if isinstance(m, nn.Linear)]
+
+
+def default_layers(names: list[str]) -> list[str]:
+    """Every linear layer but the first.
+
+    The first layer's input is the raw observation; scaling it only re-weights input features. Keying
+    the layers whose inputs are hidden features gave the best personalization with fallback intact on
+    the IL and digits examples (see CHANGELOG.md). A model with one linear layer keys that one.
+    """
+    return names[1:] if len(names) > 1 else list(names)
+
+
+def _matches(pattern: str, name: str, all_names: list[str]) -> bool:
+    if pattern == ALL_LINEAR:
+        return name != all_names[-1] or len(all_names) == 1
+    if name == pattern or name.endswith("." + pattern):
+        return True
+    try:
+        return re.fullmatch(pattern, name) is not None
+    except re.error:
+        return False
+
+
+def select_layers(
+    module: nn.Module,
+    patterns: list[str] | None = None,
+    exclude: list[str] | None = None,
+    flag: str = "--layers",
+) -> list[str]:
+    """Names of the linear layers to key, in module order; validated before the model is touched."""
+    names = [n for n, _ in linear_layers(module)]
+    if not names:
+        raise PropError("the model has no nn.Linear layers", "prop keys linear layers only")
+    listing = ", ".join(names[:20]) + (f" (+{len(names) - 20} more)" if len(names) > 20 else "")
+    if not patterns:
+        chosen = default_layers(names)
+    else:
+        for p in patterns:
+            if not any(_matches(p, n, names) for n in names):
+                raise PropError(
+                    f"{flag} {p!r} matches no linear layer",
+                    f"use an exact name, a dotted suffix or a regex; linear layers: {listing}",
+                )
+        chosen = [n for n in names if any(_matches(p, n, names) for p in patterns)]
+    for p in exclude or []:
+        if not any(_matches(p, n, names) for n in names):
+            raise PropError(f"--exclude {p!r} matches no linear layer", f"linear layers: {listing}")
+        chosen = [n for n in chosen if not _matches(p, n, names)]
+    if not chosen:
+        raise PropError(f"{flag}/--exclude leave no layer to key", f"linear layers: {listing}")
+    return chosen

@@ -1,0 +1,63 @@
+"""The shared metrics (DESIGN.md): personalization, leakage, fidelity.
+
+``b`` = the original model's output, ``p`` = the user's target, ``o`` = the bundle's output under a key.
+Regression outputs are (..., B, d) floats; classification uses logits (..., B, C) and labels p (B,).
+Functions taking ``o`` of shape (K, B, ...) return one value per key.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+# Samples where the user's target equals the original's output carry nothing that could leak.
+_EPS = 1e-12
+
+
+def personalization(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> float:
+    """Regression: 1 - mse(o, p) / mse(b, p). Classification: accuracy of o on p."""
+    if task == "classification":
+        return (o.argmax(-1) == p).float().mean().item()
+    return 1.0 - ((o - p) ** 2).mean().item() / max(((b - p) ** 2).mean().item(), _EPS)
+
+
+def leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: how far its outputs move from the original towards the user's behaviour, in [0, 1]."""
+    if task == "classification":
+        differs = p != b.argmax(-1)
+        if not differs.any():
+            return torch.zeros(o.shape[0])
+        return ((o.argmax(-1) == p) & differs).float().sum(-1) / differs.sum()
+    gap = (p - b).flatten(1) if p.dim() > 1 else (p - b)[:, None]
+    move = (o - b).flatten(2) if o.dim() > 2 else (o - b)[..., None]
+    norm = (gap**2).sum(-1)
+    keep = norm > _EPS
+    if not keep.any():
+        return torch.zeros(o.shape[0])
+    frac = ((move * gap).sum(-1) / norm.clamp_min(_EPS)).clamp(0, 1)
+    return frac[:, keep].mean(-1)
+
+
+def fidelity(o: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: agreement with the original (classification) or mse(o, b) (regression)."""
+    if task == "classification":
+        return (o.argmax(-1) == b.argmax(-1)).float().mean(-1)
+    return ((o - b) ** 2).flatten(1).mean(-1)
+
+
+def target_error(o: torch.Tensor, y: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: mse against targets y (regression) or accuracy on labels y (classification)."""
+    if task == "classification":
+        return (o.argmax(-1) == y).float().mean(-1)
+    return ((o - y) ** 2).flatten(1).mean(-1)
+
+
+def summarize(values: torch.Tensor, worst: str) -> dict:
+    """Mean with a 95% interval (normal approximation) and the worst key (``worst`` = max|min)."""
+    v = values.double().flatten()
+    n = v.numel()
+    mean = v.mean().item()
+    half = 1.96 * v.std().item() / math.sqrt(n) if n > 1 else 0.0
+    w = v.max().item() if worst == "max" else v.min().item()
+    return {"n": n, "mean": mean, "ci95": [mean - half, mean + half], "worst": w}
