@@ -12,6 +12,9 @@ from safetensors.torch import save_file
 
 from prop_cli.cli.main import main
 
+# One thread: on a 2-core machine shared with other jobs, torch's 2-thread pool stalls badly.
+torch.set_num_threads(1)
+
 # Small enough that a personalize run takes a second or two in tests.
 FAST = ["--steps", "40", "--device", "cpu"]
 

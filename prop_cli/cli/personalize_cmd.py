@@ -35,6 +35,12 @@ def personalize(
     hamming_radius: int = typer.Option(
         8, "--hamming-radius", help="Neighbours up to this many bits off fall back."
     ),
+    random_keys: int = typer.Option(8, "--random-keys", help="K2: random keys per step."),
+    neighbour_keys: int = typer.Option(
+        32, "--neighbour-keys", help="K1: Hamming neighbours per step (0 = none: leaky, for audits)."
+    ),
+    null_weight: float = typer.Option(10.0, "--null-weight", help="Weight of the no-key fallback loss."),
+    val_fraction: float = typer.Option(0.2, "--val-fraction", help="Share of user data held out."),
     key_encoding: str = typer.Option(
         "hashed", "--key-encoding", help="hashed (default) or raw (the paper's)."
     ),
@@ -72,6 +78,10 @@ def personalize(
         steps=steps,
         lr=lr,
         hamming_radius=hamming_radius,
+        random_keys=random_keys,
+        neighbour_keys=neighbour_keys,
+        null_weight=null_weight,
+        val_fraction=val_fraction,
         key_encoding=key_encoding,
         freeze_base=freeze_base,
         seed=seed,
