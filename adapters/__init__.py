@@ -1,8 +1,13 @@
 """Checkpoint adapters: a weights file -> a ``torch.nn.Module`` with the checkpoint's names.
 
 Installed as ``prop_adapters`` (``adapters`` is an unrelated PyPI package). A new format is one
-new file exposing ``NAME``, ``from_weights(tensors, metadata, path, **options)`` and
+new file exposing ``NAME``, a loader (``from_weights(tensors, metadata, path, **options)`` for a
+weights file, ``load(path, **options)`` for a container: sb3 zips, model folders) and
 ``rebuild(spec, weights, source)``, plus one line in ``ADAPTERS``.
+
+``load_checkpoint`` dispatches on the path: a directory -> ``folder`` (config.json +
+model.safetensors; a folder with only model.safetensors is read as that file), ``.zip`` -> ``sb3``,
+any other file -> ``module`` with ``--arch``, else ``mlp``.
 """
 
 from __future__ import annotations
@@ -14,10 +19,10 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from . import mlp, module
+from . import folder, mlp, module, sb3
 from .base import LoadedModel, read_weights
 
-ADAPTERS = {mlp.NAME: mlp, module.NAME: module}
+ADAPTERS = {mlp.NAME: mlp, module.NAME: module, sb3.NAME: sb3, folder.NAME: folder}
 
 __all__ = ["ADAPTERS", "LoadedModel", "load_checkpoint", "read_weights", "rebuild"]
 
@@ -38,7 +43,24 @@ def load_checkpoint(
     arch_kwargs: dict | None = None,
     activation: str | None = None,
 ) -> LoadedModel:
-    """Load a checkpoint: with ``arch`` through the user's module class, else as a plain MLP."""
+    """Load a checkpoint: an SB3 zip, a model folder, or a weights file (``arch``'s class or a plain MLP)."""
+    path = Path(path)
+    if path.is_dir() and not (path / folder.CONFIG).exists() and (path / folder.WEIGHTS).is_file():
+        path = path / folder.WEIGHTS  # a bare weights folder: read it as the file
+    if path.is_dir():
+        if activation is not None:
+            raise PropError(
+                "--activation does not apply to a model folder",
+                "drop it: the module the builder returns defines its activations",
+            )
+        return _require_linear(folder.load(path, arch=arch, arch_kwargs=arch_kwargs))
+    if path.suffix.lower() == ".zip":
+        if arch or arch_kwargs:
+            raise PropError(
+                "--arch/--arch-kwargs do not apply to a Stable-Baselines3 zip",
+                "drop them: prop rebuilds the policy from the zip itself",
+            )
+        return _require_linear(sb3.load(path, activation=activation))
     tensors, metadata = read_weights(path)
     if arch:
         if activation is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pickle
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -26,6 +26,9 @@ class LoadedModel:
     dtypes: dict[str, torch.dtype]  # original dtype of every checkpoint tensor, by name
     input_shape: tuple[int, ...] | None  # per-sample input shape if known, e.g. (4,)
     source: str  # the path it came from
+    # Checkpoint tensors the module does not use (e.g. an SB3 critic): written back into the bundle's
+    # base file untouched, so the whole original state dict round-trips.
+    extra: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 def _check_file(path: Path) -> None:

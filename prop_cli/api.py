@@ -19,6 +19,7 @@ from .bundle import Bundle, check_output, describe_layers, write_bundle
 from .config import PersonalizeConfig
 from .data import load_npz
 from .errors import PropError
+from .hub import resolve_checkpoint
 from .keyed import key_codes
 from .layers import linear_layers, select_layers
 from .trainer import User, personalize
@@ -57,7 +58,7 @@ def inspect_checkpoint(
 ) -> dict:
     """The linear layers of a checkpoint and which of them would be keyed."""
     loaded = prop_adapters.load_checkpoint(
-        path, arch=opts.arch, arch_kwargs=opts.arch_kwargs, activation=opts.activation
+        resolve_checkpoint(path), arch=opts.arch, arch_kwargs=opts.arch_kwargs, activation=opts.activation
     )
     chosen = set(select_layers(loaded.module, layers, exclude))
     return {
@@ -95,7 +96,10 @@ def personalize_checkpoint(
     cfg.validate()
     check_output(out, force)  # before hours of training, not after
     loaded = prop_adapters.load_checkpoint(
-        checkpoint, arch=opts.arch, arch_kwargs=opts.arch_kwargs, activation=opts.activation
+        resolve_checkpoint(checkpoint),
+        arch=opts.arch,
+        arch_kwargs=opts.arch_kwargs,
+        activation=opts.activation,
     )
     datasets = [load_npz(p) for p, _ in users]
     bits = {len(k.bits) for _, k in users}

@@ -77,10 +77,11 @@ def write_bundle(
         if copy_base:
             shutil.copyfile(loaded.source, base_path)
         else:
-            state = {
-                k: v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous()
+            state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
+            state.update(
+                (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
                 for k, v in keyed.module.state_dict().items()
-            }
+            )
             save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))

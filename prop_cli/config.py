@@ -21,7 +21,7 @@ class PersonalizeConfig:
     samples_per_key: int = 4  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
-    encoder_hidden: list[int] = field(default_factory=lambda: [128])
+    encoder_hidden: list[int] = field(default_factory=lambda: [256])
     delta_scale: float = 2.0  # delta in (1 - scale, 1 + scale)
     key_encoding: str = "hashed"
     freeze_base: bool = False

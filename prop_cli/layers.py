@@ -27,6 +27,10 @@ def default_layers(names: list[str]) -> list[str]:
 
 
 def _matches(pattern: str, name: str, all_names: list[str]) -> bool:
+    """peft's rule: the exact name, a dotted suffix of it, or a regex matching the whole name.
+
+    ``all-linear`` is every linear layer but the output head (the last one in module order).
+    """
     if pattern == ALL_LINEAR:
         return name != all_names[-1] or len(all_names) == 1
     if name == pattern or name.endswith("." + pattern):
@@ -48,19 +52,28 @@ def select_layers(
     if not names:
         raise PropError("the model has no nn.Linear layers", "prop keys linear layers only")
     listing = ", ".join(names[:20]) + (f" (+{len(names) - 20} more)" if len(names) > 20 else "")
+
+    def check(p: str, which: str) -> None:
+        if any(_matches(p, n, names) for n in names):
+            return
+        try:
+            re.compile(p)
+            bad_regex = ""
+        except re.error as e:
+            bad_regex = f" and is not a valid regex ({e})"
+        raise PropError(
+            f"{which} {p!r} matches no linear layer{bad_regex}",
+            f"use an exact name, a dotted suffix, a regex or {ALL_LINEAR}; linear layers: {listing}",
+        )
+
     if not patterns:
         chosen = default_layers(names)
     else:
         for p in patterns:
-            if not any(_matches(p, n, names) for n in names):
-                raise PropError(
-                    f"{flag} {p!r} matches no linear layer",
-                    f"use an exact name, a dotted suffix or a regex; linear layers: {listing}",
-                )
+            check(p, flag)
         chosen = [n for n in names if any(_matches(p, n, names) for p in patterns)]
     for p in exclude or []:
-        if not any(_matches(p, n, names) for n in names):
-            raise PropError(f"--exclude {p!r} matches no linear layer", f"linear layers: {listing}")
+        check(p, "--exclude")
         chosen = [n for n in chosen if not _matches(p, n, names)]
     if not chosen:
         raise PropError(f"{flag}/--exclude leave no layer to key", f"linear layers: {listing}")

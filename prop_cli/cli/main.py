@@ -8,7 +8,7 @@ import warnings
 
 import typer
 
-from . import inspect_cmd, keygen, personalize_cmd, run_cmd
+from . import attack_cmd, export_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
 
 app = typer.Typer(
     name="prop",
@@ -22,6 +22,9 @@ app.command("keygen")(keygen.keygen)
 app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)
 app.command("run")(run_cmd.run)
+app.command("attack")(attack_cmd.attack)
+app.command("export")(export_cmd.export)
+app.command("push")(push_cmd.push)
 
 # Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage.
 EXIT_BAD_INPUT = 2

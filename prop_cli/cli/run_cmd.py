@@ -16,6 +16,10 @@ def run(
     ),
     passphrase: bool = typer.Option(False, "--passphrase", help="Derive the key from your passphrase."),
     force: bool = typer.Option(False, "--force", help="Replace an existing --output."),
+    onnx: bool = typer.Option(
+        False, "--onnx", help="Run the exported ONNX graphs with onnxruntime (see prop export --onnx)."
+    ),
+    onnx_dir: Path = typer.Option(None, "--onnx-dir", help="The ONNX export to run (default: BUNDLE/onnx)."),
 ) -> None:
     """Run a bundle on inputs: with your key your behaviour, without a key the original's."""
     import numpy as np
@@ -27,7 +31,12 @@ def run(
     b = load_bundle(bundle)
     key = key_for_bundle(key_file, passphrase, b.manifest)
     x = load_inputs(input_path, b)
-    y = run_bundle(b, x, key)
+    if onnx or onnx_dir is not None:
+        from prop_cli.export import run_onnx
+
+        y = run_onnx(b, x, key, onnx_dir)
+    else:
+        y = run_bundle(b, x, key)
     tmp = output.with_name(output.name + ".tmp.npy")
     np.save(tmp, y)
     tmp.replace(output)

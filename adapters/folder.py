@@ -1,0 +1,187 @@
+"""A model folder as the Hugging Face hub and LeRobot lay it out: ``config.json`` + ``model.safetensors``.
+
+The module comes from a factory called as ``factory(config, **arch_kwargs)``, where ``config`` is the
+parsed ``config.json`` (a dict). The factory is ``--arch package.module:factory``, or else the one an
+installed package registers for the config's ``type`` (LeRobot) or ``model_type`` (Hugging Face)
+in the entry-point group ``prop.architectures``, e.g. in the package's pyproject.toml::
+
+    [project.entry-points."prop.architectures"]
+    my_policy = "my_pkg.policies:build"
+
+The manifest keeps the config and the factory's import path, so a bundle rebuilds without the
+original folder (the package must still be importable).
+"""
+
+from __future__ import annotations
+
+import json
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from prop_cli.errors import PropError
+
+from .base import LoadedModel, finish, read_weights
+from .module import resolve_factory
+
+NAME = "folder"
+CONFIG = "config.json"
+WEIGHTS = "model.safetensors"
+SHARD_INDEX = "model.safetensors.index.json"
+ENTRY_POINT_GROUP = "prop.architectures"
+TYPE_FIELDS = ("type", "model_type")
+
+
+def read_config(folder: Path) -> dict:
+    path = folder / CONFIG
+    try:
+        config = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise PropError(
+            f"{path} is not readable JSON ({type(e).__name__})", "fix or re-export config.json"
+        ) from None
+    if not isinstance(config, dict):
+        raise PropError(f"{path} is not a JSON object", "config.json must hold an object of settings")
+    return config
+
+
+def read_folder_weights(folder: Path) -> tuple[dict[str, torch.Tensor], str]:
+    """Tensors of ``model.safetensors`` (or of its shards) and the path to name as their source."""
+    single = folder / WEIGHTS
+    if single.is_file():
+        return read_weights(single)[0], str(single)
+    index = folder / SHARD_INDEX
+    if index.is_file():
+        try:
+            shards = sorted(set(json.loads(index.read_text())["weight_map"].values()))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            raise PropError(
+                f"{index} has no readable weight_map", "re-export the sharded checkpoint"
+            ) from None
+        tensors: dict[str, torch.Tensor] = {}
+        for shard in shards:
+            tensors.update(read_weights(folder / shard)[0])
+        return tensors, str(folder)
+    raise PropError(
+        f"folder {folder} has no weights ({WEIGHTS} or {SHARD_INDEX})",
+        f"put the model's weights next to {CONFIG} as {WEIGHTS}",
+    )
+
+
+def config_type(config: dict) -> str | None:
+    for f in TYPE_FIELDS:
+        if isinstance(config.get(f), str) and config[f]:
+            return config[f]
+    return None
+
+
+def registered_builder(type_name: str) -> str | None:
+    """``package.module:factory`` an installed package registers for ``type_name``, if any."""
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.name == type_name:
+            return ep.value
+    return None
+
+
+def _builder(folder: Path, config: dict, arch: str | None) -> tuple[str, str]:
+    if arch:
+        return arch, "--arch"
+    type_name = config_type(config)
+    if type_name is None:
+        raise PropError(
+            f"{folder / CONFIG} has no 'type' or 'model_type', so prop cannot pick a builder",
+            "pass --arch package.module:factory (called as factory(config, **arch_kwargs))",
+        )
+    value = registered_builder(type_name)
+    if value is None:
+        raise PropError(
+            f"{folder}: no builder for config type '{type_name}' (no --arch, and no installed package "
+            f"registers '{type_name}' in entry-point group '{ENTRY_POINT_GROUP}')",
+            "pass --arch package.module:factory, or install the package that provides it",
+        )
+    return value, f"entry point '{type_name}'"
+
+
+def _few(names: list[str]) -> str:
+    return ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+
+
+def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    arch, kwargs = spec["arch"], dict(spec.get("arch_kwargs") or {})
+    factory = resolve_factory(arch)
+    try:
+        module = factory(spec["config"], **kwargs)
+    except Exception as e:
+        raise PropError(
+            f"{arch}: calling it as factory(config, **arch_kwargs) failed ({type(e).__name__}: {e})",
+            "the factory must take the parsed config.json (a dict) as its first argument",
+        ) from None
+    if not isinstance(module, nn.Module):
+        raise PropError(
+            f"{arch} returned a {type(module).__name__}, not a torch.nn.Module", "return the model"
+        )
+    own = module.state_dict()
+    missing, unexpected = sorted(set(own) - set(weights)), sorted(set(weights) - set(own))
+    wrong = [
+        f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in weights and weights[k].shape != v.shape
+    ]
+    if missing or unexpected or wrong:
+        parts = [f"missing keys: {_few(missing)}"] * bool(missing)
+        parts += [f"unexpected keys: {_few(unexpected)}"] * bool(unexpected)
+        parts += [f"shape mismatch (file vs model): {_few(wrong)}"] * bool(wrong)
+        raise PropError(
+            f"{source} does not fit the module {arch} builds: " + "; ".join(parts),
+            "check that config.json, --arch and --arch-kwargs belong to these weights",
+        )
+    module.load_state_dict(weights, strict=True)
+    shape = getattr(module, "input_shape", None)
+    try:
+        input_shape = tuple(int(d) for d in shape) if shape is not None else None
+    except (TypeError, ValueError):
+        input_shape = None
+    return LoadedModel(
+        module=finish(module),
+        spec=spec,
+        dtypes={k: v.dtype for k, v in weights.items()},
+        input_shape=input_shape,
+        source=source,
+    )
+
+
+def load(
+    folder: str | Path,
+    *,
+    arch: str | None = None,
+    arch_kwargs: dict | None = None,
+) -> LoadedModel:
+    """Load ``folder`` (config.json + model.safetensors) through ``--arch`` or a registered builder."""
+    folder = Path(folder)
+    if not (folder / CONFIG).is_file():
+        raise PropError(
+            f"folder {folder} has no {CONFIG}",
+            f"pass a folder with {CONFIG} and {WEIGHTS}, or the weights file itself",
+        )
+    config = read_config(folder)
+    weights, source = read_folder_weights(folder)
+    value, via = _builder(folder, config, arch)
+    kwargs = dict(arch_kwargs or {})
+    try:
+        json.dumps(kwargs)
+    except (TypeError, ValueError) as e:
+        raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
+    spec = {
+        "adapter": NAME,
+        "arch": value,
+        "arch_kwargs": kwargs,
+        "builder": via,
+        "config": config,
+    }
+    return build(spec, weights, source)
+
+
+def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    return build(spec, weights, source)

@@ -1,0 +1,103 @@
+"""Speed of `prop attack` on the IL example's MLP (4-192-192-2): key x sample evaluations per second
+and the default audit's wall time (null, 4096 random, 1..8 x 256 neighbours, 8 restarts x 200 steps
+of each search, 256 samples).
+
+    OMP_NUM_THREADS=2 python -m benchmarks.bench_attack [--workdir DIR] [--threads 1,2]
+
+Goals (issue 3): >= 1,000,000 evaluations/s on 2 cores; the default audit under 60 s.
+Timings on a shared machine are noisy: each figure is the best of --repeat runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def prepare(workdir: Path) -> tuple[Path, Path, Path]:
+    """IL example + key + a default `prop personalize` run (reused when already there)."""
+    from examples.il_task import write_example
+
+    bundle, key = workdir / "il.prop", workdir / "k.bin"
+    if not (workdir / "mine.npz").exists():
+        write_example(workdir)
+    if not key.exists():
+        key.write_bytes(os.urandom(16))
+        key.chmod(0o600)
+    if not bundle.exists():
+        cmd = ["prop", "personalize", str(workdir / "base.safetensors"), "--data", str(workdir / "mine.npz"),
+               "--key-file", str(key), "--out", str(bundle), "--device", "cpu"]  # fmt: skip
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return bundle, workdir / "mine.npz", key
+
+
+def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -> dict[str, float]:
+    from prop_cli.bundle import load_bundle
+    from prop_cli.key_batch import KeyBatch
+    from prop_cli.keyed import key_codes
+
+    km = load_bundle(bundle).keyed
+    x = torch.from_numpy(np.load(data)["x"][:samples])
+    codes = key_codes(np.random.default_rng(0).integers(0, 2, (keys, 128), dtype=np.uint8), "hashed")
+    out = {}
+    with torch.inference_mode(), KeyBatch(km) as kb:
+        deltas = km.layer_deltas(codes)
+        per = kb.chunk(samples)
+        for name, fn in (("KeyBatch (broadcast hooks)", kb.run), ("KeyedModel.run_keys", km.run_keys)):
+            best = float("inf")
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                for i in range(0, keys, per):
+                    fn(x, [d[i : i + per] for d in deltas])
+                best = min(best, time.perf_counter() - t0)
+            out[name] = keys * samples / best
+    return out
+
+
+def default_audit(bundle: Path, data: Path, key: Path) -> dict:
+    from prop_cli.attack import AuditSettings, audit
+    from prop_cli.bundle import load_bundle
+    from prop_cli.data import load_npz
+    from prop_cli.keys import read_key_file
+
+    b = load_bundle(bundle)
+    return audit(b, load_npz(data), [read_key_file(key, b.key_bits)], AuditSettings())
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_attack", description=__doc__)
+    ap.add_argument("--workdir", type=Path, default=None, help="reuse an IL example + bundle here")
+    ap.add_argument("--threads", default="1,2")
+    ap.add_argument("--keys", type=int, default=4096)
+    ap.add_argument("--samples", type=int, default=256)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="bench_attack."))
+    workdir.mkdir(parents=True, exist_ok=True)
+    bundle, data, key = prepare(workdir)
+    print(f"IL bundle {bundle}; cpu count {os.cpu_count()}; load {os.getloadavg()[0]:.2f}")
+    for threads in (int(t) for t in args.threads.split(",")):
+        torch.set_num_threads(threads)
+        for name, rate in throughput(bundle, data, args.keys, args.samples, args.repeat).items():
+            print(f"threads {threads}: {name:28s} {rate / 1e6:6.2f} M key x sample evaluations/s")
+        rep = default_audit(bundle, data, key)
+        sp = rep["speed"]
+        stages = ", ".join(f"{k} {v:.1f}s" for k, v in sp["stage_seconds"].items())
+        print(
+            f"threads {threads}: default audit {sp['wall_seconds']:.1f} s wall "
+            f"({sp['key_sample_evaluations']:,} probe evaluations at "
+            f"{sp['evaluations_per_second'] / 1e6:.2f} M/s; {stages})"
+        )
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,249 @@
+"""prop attack: probe keys, the audit's verdicts on a leaky and a well-trained bundle, its outputs."""
+
+from __future__ import annotations
+
+import builtins
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli import constants as C
+from prop_cli.api import KeySource, personalize_checkpoint
+from prop_cli.attack import AuditSettings, audit, hamming_keys, parse_hamming, parse_search
+from prop_cli.bundle import load_bundle, sha256_file
+from prop_cli.config import PersonalizeConfig
+from prop_cli.data import load_npz
+from prop_cli.errors import PropError
+from prop_cli.key_batch import KeyBatch
+from prop_cli.keyed import key_codes
+from prop_cli.keys import read_key_file
+from tests.conftest import make_mlp_checkpoint
+
+# Small audits: the verdicts below do not need the default 4096 random keys or 200 search steps.
+QUICK = ["--random", "128", "--per-distance", "128", "--search-steps", "30", "--restarts", "4"]
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory) -> Path:
+    """A leaky bundle (raw key bits, no neighbour negatives) and a well-trained one, same user."""
+    d = tmp_path_factory.mktemp("attack")
+    make_mlp_checkpoint(d / "model.safetensors")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
+    np.savez(d / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    np.savez(d / "public.npz", x=rng.uniform(-1, 1, (50, 4)).astype(np.float32))
+    for name in ("k.bin", "k2.bin"):
+        (d / name).write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+        (d / name).chmod(0o600)
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    ckpt = str(d / "model.safetensors")
+    leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0)
+    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "leaky.prop", leaky)
+    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "good.prop", PersonalizeConfig(steps=300))
+    return d
+
+
+# --- parsing and probe keys -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "spec,want",
+    [("1..8", list(range(1, 9))), ("1,2,4", [1, 2, 4]), ("3", [3]), ("4,1..2", [1, 2, 4])],
+)
+def test_parse_hamming(spec, want):
+    assert parse_hamming(spec) == want
+
+
+@pytest.mark.parametrize("spec", ["", "0", "3..1", "a", "1..x", "1,,-2", "1...3"])
+def test_parse_hamming_rejects_bad_specs(spec):
+    with pytest.raises(PropError, match="--hamming"):
+        parse_hamming(spec)
+
+
+def test_parse_search():
+    assert parse_search("relaxed,latent") == ["relaxed", "latent"]
+    assert parse_search("latent") == ["latent"]
+    assert parse_search("none") == []
+    with pytest.raises(PropError, match="--search"):
+        parse_search("gradient")
+
+
+def test_hamming_keys_exact_distance_distinct_and_exhaustive():
+    rng = np.random.default_rng(1)
+    user = rng.integers(0, 2, 64).astype(np.uint8)
+    ones = hamming_keys(user, 1, 256, rng)
+    assert len(ones) == 64  # the whole 1-bit neighbourhood, each once
+    assert len(np.unique(ones, axis=0)) == 64
+    for d in (2, 5):
+        keys = hamming_keys(user, d, 100, rng)
+        assert len(keys) == 100 and len(np.unique(keys, axis=0)) == 100
+        assert set((keys != user).sum(1)) == {d}
+    assert len(hamming_keys(user[:32], 2, 10_000, rng)) == math.comb(32, 2)
+
+
+def test_key_batch_matches_run_keys(bundles):
+    b = load_bundle(bundles / "good.prop")
+    x = torch.from_numpy(np.load(bundles / "mine.npz")["x"][:7])
+    codes = key_codes(np.random.default_rng(0).integers(0, 2, (5, 128), dtype=np.uint8), "hashed")
+    with torch.no_grad(), KeyBatch(b.keyed) as kb:
+        deltas = b.keyed.layer_deltas(codes)
+        assert torch.allclose(kb.run(x, deltas), b.keyed.run_keys(x, deltas), atol=1e-6)
+    with torch.no_grad():  # hooks removed: no key is the plain module again
+        assert torch.equal(b.keyed(x), b.keyed.module(x))
+
+
+# --- it must be able to fail ----------------------------------------------------------------------
+
+
+def test_leaky_bundle_fails_the_audit(bundles, cli):
+    d = bundles
+    r = cli(
+        "attack", d / "leaky.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1,2", "--search", "none", *QUICK, "--max-leak", "0.5", "--json", d / "leaky.json",
+    )  # fmt: skip
+    assert r.code == 1, r.err
+    assert "leak check failed" in r.err and "hamming" in r.err and "--max-leak 0.5" in r.err
+    assert r.err.strip().splitlines()[-1].startswith("prop: leak check failed")
+    report = json.loads((d / "leaky.json").read_text())
+    ham1 = next(g for g in report["groups"] if g["name"] == "hamming 1")
+    assert ham1["keys"] == 128  # every 1-bit neighbour
+    assert ham1["leakage"]["mean"] > 0.5  # the 1-bit neighbours unlock most of the behaviour
+    assert report["max_leak"] == {"threshold": 0.5, "passed": False, "failing": ["hamming 1", "hamming 2"]}
+    assert "T0 hamming 1" in r.out and "FAILED" in r.out
+
+
+def test_well_trained_bundle_passes_the_black_box_audit(bundles, cli):
+    d = bundles
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1..3", "--search", "none", *QUICK, "--max-leak", "0.5", "--json", d / "good.json",
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    report = json.loads((d / "good.json").read_text())
+    assert report["user"]["personalization"] > 0.8  # the key works: passing is not vacuous
+    assert report["max_leak"]["passed"] is True
+    ham = [g for g in report["groups"] if g["distance"]]
+    assert [g["distance"] for g in ham] == [1, 2, 3]
+    assert all(g["leakage"]["mean"] < 0.1 for g in ham)
+
+
+# --- the report -----------------------------------------------------------------------------------
+
+
+def test_json_report_schema(bundles, cli):
+    d = bundles
+    out = d / "full.json"
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", "--key-file",
+        d / "k2.bin", "--hamming", "1", *QUICK, "--samples", "64", "--seed", "3", "--json", out,
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    rep = json.loads(out.read_text())
+    assert rep["schema"] == "prop-audit/1" and rep["mode"] == "owner"
+    assert rep["bundle"]["manifest_sha256"] == sha256_file(d / "good.prop" / C.MANIFEST)
+    assert rep["settings"]["seed"] == 3 and rep["settings"]["hamming"] == [1]
+    assert rep["data"]["samples"] == 64
+    names = [g["name"] for g in rep["groups"]]
+    assert names == ["null", "random", "hamming 1", "relaxed", "relaxed-rounded", "latent", "user 2"]
+    for g in rep["groups"]:
+        assert set(g["leakage"]) == {"n", "mean", "ci95", "worst"}
+        assert g["leakage"]["ci95"][0] <= g["leakage"]["mean"] <= g["leakage"]["ci95"][1]
+        assert 0 <= g["leakage"]["worst"] <= 1 and g["leakage"]["n"] == g["keys"]
+    relaxed = rep["groups"][names.index("relaxed-rounded")]["search"]
+    assert relaxed["restarts"] == 4 and len(relaxed["divergence"]) == 4
+    assert relaxed["best_divergence"] == max(relaxed["divergence"])
+    assert len(relaxed["code_distance"]) == 4
+    assert rep["groups"][names.index("user 2")]["leakage"]["worst"] < 0.2  # another user's key
+    assert "T1 relaxed" in r.out and "T2 latent" in r.out and "personalization" in r.out
+
+
+def test_latent_search_moves_further_than_random_keys(bundles):
+    d = bundles
+    b = load_bundle(d / "good.prop")
+    s = AuditSettings(hamming=[], random=64, search=["latent"], restarts=2, search_steps=25)
+    rep = audit(b, load_npz(d / "mine.npz"), [read_key_file(d / "k.bin")], s)
+    g = {x["name"]: x for x in rep["groups"]}
+    assert g["latent"]["search"]["best_fidelity"] > 10 * g["random"]["fidelity"]["mean"]
+
+
+def test_no_key_audit_reports_reachable_divergence(bundles, cli):
+    d = bundles
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", *QUICK, "--json", "-")
+    assert r.code == 0, r.err
+    rep = json.loads(r.out)
+    assert rep["mode"] == "no-key" and rep["user"] is None
+    assert [g["name"] for g in rep["groups"]] == ["null", "random", "relaxed", "relaxed-rounded", "latent"]
+    assert all(g["leakage"] is None for g in rep["groups"])
+    assert rep["groups"][-1]["fidelity"]["mean"] > 0  # the search moves the output
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--max-leak", "0.1")
+    assert r.code == 2 and "--max-leak" in r.err
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--hamming", "1")
+    assert r.code == 2 and "--hamming" in r.err
+
+
+def test_usage_errors_exit_2(bundles, cli):
+    d = bundles
+    base = ["attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin"]
+    r = cli(*base, "--hamming", "2..1")
+    assert r.code == 2 and "--hamming" in r.err
+    r = cli(*base, "--search", "bogus")
+    assert r.code == 2 and "--search" in r.err
+    r = cli(*base, "--hamming", "200")
+    assert r.code == 2 and "--hamming" in r.err
+    (d / "exists.json").write_text("{}")
+    r = cli(*base, "--json", d / "exists.json")
+    assert r.code == 2 and "--force" in r.err
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--key-file", d / "k.bin")
+    assert r.code == 2 and "'y'" in r.err
+
+
+def test_record_writes_summary_and_bundle_still_verifies(bundles, cli, tmp_path):
+    import shutil
+
+    bundle = tmp_path / "rec.prop"
+    shutil.copytree(bundles / "good.prop", bundle)
+    weights = sha256_file(bundle / C.BASE_WEIGHTS)
+    r = cli(
+        "attack", bundle, "--data", bundles / "mine.npz", "--key-file", bundles / "k.bin",
+        "--hamming", "1", "--search", "none", *QUICK, "--record", "--max-leak", "0.5",
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    manifest = json.loads((bundle / C.MANIFEST).read_text())
+    rec = manifest[C.M_AUDIT]
+    assert rec["schema"] == "prop-audit/1" and rec["max_leak"]["passed"] is True
+    assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1"]
+    assert load_bundle(bundle).manifest[C.M_AUDIT] == rec  # hashes of the weights still match
+    assert sha256_file(bundle / C.BASE_WEIGHTS) == weights
+    key_hex = (bundles / "k.bin").read_bytes().hex()
+    assert key_hex not in (bundle / C.MANIFEST).read_text()
+
+
+def test_plot_writes_png(bundles, cli):
+    pytest.importorskip("matplotlib")
+    d = bundles
+    png = d / "audit.png"
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1,2", *QUICK, "--plot", png,
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_plot_without_matplotlib_says_how_to_install(monkeypatch, tmp_path):
+    from prop_cli import audit_report
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *args, **kwargs):
+        if name.startswith("matplotlib"):
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    with pytest.raises(PropError, match=r"pip install prop-cli\[plot\]"):
+        audit_report.plot({"bundle": {"task": "regression"}, "user": None, "groups": []}, tmp_path / "x.png")
