@@ -64,7 +64,12 @@ class AuditSettings:
         need(self.search_steps >= 1, "--search-steps", self.search_steps, "at least 1")
         need(self.search_lr > 0, "--search-lr", self.search_lr, "positive")
         need(self.samples >= 2, "--samples", self.samples, "at least 2")
-        need(all(s in SEARCHES for s in self.search), "--search", ",".join(self.search), "relaxed,latent or none")
+        need(
+            all(s in SEARCHES for s in self.search),
+            "--search",
+            ",".join(self.search),
+            "relaxed,latent or none",
+        )
         if self.hamming:
             if not has_key:
                 raise PropError(
@@ -105,7 +110,9 @@ def parse_search(spec: str) -> list[str]:
     if parts == ["none"]:
         return []
     if not parts or any(p not in SEARCHES for p in parts):
-        raise PropError(f"--search {spec!r} is not a search list", "use relaxed, latent, relaxed,latent or none")
+        raise PropError(
+            f"--search {spec!r} is not a search list", "use relaxed, latent, relaxed,latent or none"
+        )
     return [s for s in SEARCHES if s in parts]
 
 
@@ -234,7 +241,16 @@ def _relaxed_search(
     def codes() -> torch.Tensor:
         return torch.tanh(theta / 2)  # = 2 * sigmoid(theta) - 1: the relaxed key u mapped to ±1
 
-    _optimise([theta], lambda: kb.km.layer_deltas(codes()), kb, ref, s.search_steps, s.search_lr, "relaxed", progress)
+    _optimise(
+        [theta],
+        lambda: kb.km.layer_deltas(codes()),
+        kb,
+        ref,
+        s.search_steps,
+        s.search_lr,
+        "relaxed",
+        progress,
+    )
     relaxed = codes().detach()
     return relaxed, torch.where(relaxed >= 0, 1.0, -1.0)
 
@@ -380,7 +396,9 @@ def audit(
             groups.append(_group("null", "T0", null, task, is_key=True))
             if s.random:
                 rand = rng.integers(0, 2, (s.random, bundle.key_bits), dtype=np.uint8)
-                v = timed("random", lambda: _probe_codes(kb, ref, key_codes(rand, enc), "random", progress, count))
+                v = timed(
+                    "random", lambda: _probe_codes(kb, ref, key_codes(rand, enc), "random", progress, count)
+                )
                 groups.append(_group("random", "T0", v, task, is_key=True))
             for d in s.hamming:
                 near = hamming_keys(keys[0], d, s.per_distance, rng)

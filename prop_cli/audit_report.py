@@ -127,7 +127,9 @@ def plot(report: dict, path: Path) -> Path:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise PropError("--plot needs matplotlib, which is not installed", "pip install prop-cli[plot]") from None
+        raise PropError(
+            "--plot needs matplotlib, which is not installed", "pip install prop-cli[plot]"
+        ) from None
 
     task = report["bundle"]["task"]
     owner = report["user"] is not None
@@ -142,8 +144,13 @@ def plot(report: dict, path: Path) -> Path:
         if ham:
             d = [g["distance"] for g in ham]
             mean = [g[m]["mean"] for g in ham]
-            err = [[g[m]["mean"] - g[m]["ci95"][0] for g in ham], [g[m]["ci95"][1] - g[m]["mean"] for g in ham]]
-            ax.errorbar(d, mean, yerr=err, fmt="o-", color="black", capsize=3, label="Hamming d: mean, 95% CI")
+            err = [
+                [g[m]["mean"] - g[m]["ci95"][0] for g in ham],
+                [g[m]["ci95"][1] - g[m]["mean"] for g in ham],
+            ]
+            ax.errorbar(
+                d, mean, yerr=err, fmt="o-", color="black", capsize=3, label="Hamming d: mean, 95% CI"
+            )
             ax.plot(d, [g[m]["worst"] for g in ham], "x--", color="grey", label="Hamming d: worst key")
             ax.set_xticks(d)
             ax.set_xlabel("Hamming distance from the user's key (bits)")
@@ -159,12 +166,14 @@ def plot(report: dict, path: Path) -> Path:
             ax.axhline(value, color=colour, linestyle=style, linewidth=1.6, label=label_)
             if g["name"] == "random":
                 w = g[m]["worst"]
-                ax.axhline(w, color=colour, linestyle=":", linewidth=1.2, label=f"T0 random worst key: {w:.3g}")
+                ax.axhline(
+                    w, color=colour, linestyle=":", linewidth=1.2, label=f"T0 random worst key: {w:.3g}"
+                )
         if owner and m == "leakage":
             ax.set_ylim(-0.03, 1.03)
         elif task == "regression":
             ax.set_yscale("symlog", linthresh=1e-4)
-            ax.set_ylim(bottom=0)
+            ax.set_ylim(0, max([*ax.get_ylim(), 1e-3]) * 3)  # headroom: top lines stay visible
         else:
             ax.set_ylim(-0.03, 1.03)
         ax.set_ylabel(label)

@@ -27,7 +27,9 @@ class KeyBatch:
         self._state: dict | None = None
         self._ok: bool | None = None
         mods = dict(km.module.named_modules())
-        self._handles = [mods[n].register_forward_pre_hook(self._hook(i)) for i, n in enumerate(km.layer_names)]
+        self._handles = [
+            mods[n].register_forward_pre_hook(self._hook(i)) for i, n in enumerate(km.layer_names)
+        ]
 
     def close(self) -> None:
         for h in self._handles:

@@ -17,11 +17,14 @@ def linear_layers(module: nn.Module) -> list[tuple[str, nn.Linear]]:
 
 
 def default_layers(names: list[str]) -> list[str]:
-    """Every linear layer but the first.
+    """Every linear layer but the first; a model with one linear layer keys that one.
 
-    The first layer's input is the raw observation; scaling it only re-weights input features. Keying
-    the layers whose inputs are hidden features gave the best personalization with fallback intact on
-    the IL and digits examples (see CHANGELOG.md). A model with one linear layer keys that one.
+    The first layer's input is the raw observation: scaling it only re-weights input features. Measured
+    by ``examples/layer_choice.py`` (default settings, 2 seeds) against first only, last only,
+    all-linear and all: on IL, all-but-first ties the best personalization (0.9991) with the lowest
+    leakage (1-bit neighbours mean 0.0033 / worst 0.0093, worst random key 0.021; first only reaches
+    0.92 personalization); on digits, last only personalizes 3/144 samples better (0.972 vs 0.951) but
+    leaks (0.007) where all-but-first leaks nothing. Figures in CHANGELOG.md.
     """
     return names[1:] if len(names) > 1 else list(names)
 

@@ -134,7 +134,7 @@ def personalize(
     if cfg.freeze_base:
         module.requires_grad_(False)
     params = [p for p in km.parameters() if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=cfg.lr)
+    opt = torch.optim.Adam(params, lr=cfg.lr, foreach=True)  # one kernel per op, not per tensor
     floor = cfg.lr_floor
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))

@@ -10,7 +10,9 @@ from .common import err, fail, key_for_bundle, out, print_json
 
 def attack(
     bundle: Path = typer.Argument(..., help="Bundle directory written by prop personalize."),
-    data: Path = typer.Option(..., "--data", help="The audited user's data .npz (x, y); x alone without a key."),
+    data: Path = typer.Option(
+        ..., "--data", help="The audited user's data .npz (x, y); x alone without a key."
+    ),
     key_file: list[Path] = typer.Option(
         None, "--key-file", help="The audited user's key; repeat for other users' keys (cross-user)."
     ),
@@ -22,7 +24,9 @@ def attack(
     ),
     per_distance: int = typer.Option(256, "--per-distance", help="Keys per distance (all if fewer exist)."),
     random_keys: int = typer.Option(4096, "--random", help="Uniform random keys to probe."),
-    search: str = typer.Option("relaxed,latent", "--search", help="White-box searches: relaxed,latent or none."),
+    search: str = typer.Option(
+        "relaxed,latent", "--search", help="White-box searches: relaxed,latent or none."
+    ),
     restarts: int = typer.Option(8, "--restarts", help="Restarts of each search."),
     search_steps: int = typer.Option(200, "--search-steps", help="Adam steps of each search."),
     samples: int = typer.Option(256, "--samples", help="Samples of --data to audit on."),
@@ -31,7 +35,9 @@ def attack(
     ),
     seed: int = typer.Option(0, "--seed", help="Seed for probe keys, samples and search restarts."),
     device: str = typer.Option("cpu", "--device", help="cpu, auto or cuda[:N]."),
-    json_path: Path = typer.Option(None, "--json", help="Write the report (schema prop-audit/1); - = stdout."),
+    json_path: Path = typer.Option(
+        None, "--json", help="Write the report (schema prop-audit/1); - = stdout."
+    ),
     plot_path: Path = typer.Option(None, "--plot", help="Write a PNG of leakage/fidelity vs distance."),
     max_leak: float = typer.Option(
         None, "--max-leak", help="Exit 1 if any probe group's worst-key leakage exceeds this."
@@ -41,7 +47,14 @@ def attack(
 ) -> None:
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
     from prop_cli import audit_report
-    from prop_cli.attack import AuditSettings, apply_max_leak, audit, load_original, parse_hamming, parse_search
+    from prop_cli.attack import (
+        AuditSettings,
+        apply_max_leak,
+        audit,
+        load_original,
+        parse_hamming,
+        parse_search,
+    )
     from prop_cli.bundle import check_output, load_bundle
     from prop_cli.data import load_npz
     from prop_cli.keys import read_key_file
@@ -90,7 +103,8 @@ def attack(
         name, worst = max(failing, key=lambda f: f[1])
         more = f" (and {len(failing) - 1} more groups)" if len(failing) > 1 else ""
         print(
-            f"prop: leak check failed: worst-key leakage {worst:.4f} in '{name}'{more} exceeds --max-leak {max_leak}",
+            f"prop: leak check failed: worst-key leakage {worst:.4f} in '{name}'{more} "
+            f"exceeds --max-leak {max_leak}",
             file=sys.stderr,
         )
         raise typer.Exit(1)

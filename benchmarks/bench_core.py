@@ -1,0 +1,192 @@
+"""Speed of the core path, as ratios against baselines measured in the same run.
+
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_core
+
+1. A training step at default settings vs a plain fine-tuning step of the same model and batch rows.
+2. `prop run` per call at batch 1: with a key (delta folded in memory) vs without a key.
+3. `prop personalize` on the IL example, end to end (process start included), in seconds.
+4. `prop --help` vs a bare `python -c pass`.
+"""
+
+from __future__ import annotations
+
+import copy
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from examples.il_task import write_example
+from prop_adapters import load_checkpoint
+from prop_cli.config import PersonalizeConfig
+from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.layers import select_layers
+from prop_cli.objective import KeySampler, prop_loss
+from prop_cli.trainer import _batch
+
+
+def interleaved(fns: dict, rounds: int = 7, reps: int = 50) -> dict[str, float]:
+    """Median seconds per call of each fn, alternating between them so drift hits all alike."""
+    times = {k: [] for k in fns}
+    for _ in range(rounds):
+        for k, fn in fns.items():
+            t = time.perf_counter()
+            for _ in range(reps):
+                fn()
+            times[k].append((time.perf_counter() - t) / reps)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
+def wide_example(tmp: Path, width: int = 1024) -> dict:
+    """A wider MLP (4-W-W-W-2) on the IL data: shows how the encoder's fixed cost amortises."""
+    from safetensors.torch import save_file
+
+    g = torch.Generator().manual_seed(0)
+    sizes = [4, width, width, width, 2]
+    tensors = {}
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        tensors[f"{2 * i}.weight"] = torch.randn(b, a, generator=g) / a**0.5
+        tensors[f"{2 * i}.bias"] = torch.zeros(b)
+    save_file(tensors, str(tmp / "wide.safetensors"))
+    return {"base": tmp / "wide.safetensors"}
+
+
+def train_steps(paths: dict, data: Path | None = None) -> dict[str, float]:
+    cfg = PersonalizeConfig()
+    rng = np.random.default_rng(0)
+    loaded = load_checkpoint(str(paths["base"]))
+    mine = np.load(data or paths["mine"])
+    x, y = torch.from_numpy(mine["x"]), torch.from_numpy(mine["y"])
+    rows = cfg.batch_rows
+
+    plain = copy.deepcopy(loaded.module).train()
+    popt = torch.optim.Adam(plain.parameters(), cfg.lr)
+
+    def plain_step() -> None:
+        idx = torch.from_numpy(rng.integers(0, len(x), rows))
+        loss = ((plain(x[idx]) - y[idx]) ** 2).mean()
+        popt.zero_grad(set_to_none=True)
+        loss.backward()
+        popt.step()
+
+    module = copy.deepcopy(loaded.module)
+    names = select_layers(module)
+    mods = dict(module.named_modules())
+    enc = KeyEncoder(128, [mods[n].in_features for n in names], cfg.encoder_hidden, cfg.delta_scale)
+    km = KeyedModel(module, enc, names)
+    kopt = torch.optim.Adam(km.parameters(), cfg.lr, foreach=True)  # as the trainer does
+    key = rng.integers(0, 2, 128, dtype=np.uint8)
+    sampler = KeySampler([key], cfg.hamming_radius, rng)
+    ucodes = key_codes(key, cfg.key_encoding)
+    with torch.no_grad():
+        pool_t = loaded.module(x)
+
+    def prop_step() -> None:
+        batch = _batch(cfg, rng, sampler, ucodes, [x], [y], x, pool_t)
+        out = km.run_rows(batch.x, km.layer_deltas(batch.codes, null=1), batch.key_index, batch.sample_index)
+        loss, _ = prop_loss(out, batch, "regression", cfg.null_weight)
+        kopt.zero_grad(set_to_none=True)
+        loss.backward()
+        kopt.step()
+
+    torch.set_flush_denormal(True)
+    return interleaved({"plain fine-tuning step": plain_step, "PRoP step": prop_step}, reps=20)
+
+
+def run_calls(paths: dict) -> dict[str, float]:
+    loaded = load_checkpoint(str(paths["base"]))
+    module = loaded.module
+    names = select_layers(module)
+    mods = dict(module.named_modules())
+    enc = KeyEncoder(128, [mods[n].in_features for n in names], [256], 2.0)
+    torch.nn.init.normal_(enc.net[-1].weight, std=0.1)  # a trained-looking, non-trivial delta
+    km = KeyedModel(module, enc, names).eval()
+    folded = km.fold(key_codes(np.ones(128, np.uint8), "hashed"))
+    x1 = torch.from_numpy(np.load(paths["mine"])["x"][:1])
+
+    def base() -> None:
+        with torch.no_grad():
+            module(x1)
+
+    def keyed() -> None:
+        with torch.no_grad():
+            folded(x1)
+
+    return interleaved({"run, no key": base, "run, with key (folded)": keyed}, reps=2000)
+
+
+def timed(cmd: list[str]) -> float:
+    t = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    return time.perf_counter() - t
+
+
+def main() -> None:
+    torch.manual_seed(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        paths = write_example(tmp / "il", seed=0)
+        steps = train_steps(paths)
+        print(f"training step, {PersonalizeConfig().batch_rows} rows, IL MLP 4-192-192-2:")
+        for k, v in steps.items():
+            print(f"  {k:28s} {v * 1e3:8.2f} ms")
+        print(
+            f"  ratio PRoP / plain          {steps['PRoP step'] / steps['plain fine-tuning step']:8.2f}x"
+            "   (goal <= 1.5x)"
+        )
+        wide = wide_example(tmp)
+        n = sum(t.numel() for t in load_checkpoint(str(wide["base"])).module.parameters())
+        steps = train_steps(wide, data=paths["mine"])
+        print(f"training step, same rows, wider MLP 4-1024-1024-1024-2 ({n:,} parameters):")
+        for k, v in steps.items():
+            print(f"  {k:28s} {v * 1e3:8.2f} ms")
+        print(f"  ratio PRoP / plain          {steps['PRoP step'] / steps['plain fine-tuning step']:8.2f}x")
+
+        calls = run_calls(paths)
+        print("prop run per call, batch 1 (after loading):")
+        for k, v in calls.items():
+            print(f"  {k:28s} {v * 1e6:8.1f} us")
+        ratio = calls["run, with key (folded)"] / calls["run, no key"]
+        print(f"  ratio keyed / no key        {ratio:8.3f}x   (goal <= 1.05x)")
+
+        key = tmp / "k.bin"
+        key.write_bytes(bytes(range(16)))
+        key.chmod(0o600)
+        prop = [sys.executable, "-m", "prop_cli.cli.main"]
+        secs = timed(
+            [
+                *prop,
+                "personalize",
+                str(paths["base"]),
+                "--data",
+                str(paths["mine"]),
+                "--general-data",
+                str(paths["general"]),
+                "--key-file",
+                str(key),
+                "--out",
+                str(tmp / "m.prop"),
+                "--device",
+                "cpu",
+            ]
+        )
+        print(
+            f"prop personalize, IL example, defaults: {secs:.1f} s end to end "
+            "(the core issue quotes ~28 s for the paper's code on this machine; goal < 14 s)"
+        )
+
+        bare = statistics.median(timed([sys.executable, "-c", "pass"]) for _ in range(5))
+        helps = statistics.median(timed([*prop, "--help"]) for _ in range(5))
+        print(
+            f"prop --help: {helps:.3f} s; bare python start {bare:.3f} s; ratio {helps / bare:.1f}x "
+            "(goal < 0.5 s)"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Set up, then run the imitation-learning example end to end through the `prop` CLI (~1 minute).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+. .venv/bin/activate
+# One thread: these models are small, and a 2-thread pool stalls when the machine is shared.
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+python -m examples.demo "$@"
