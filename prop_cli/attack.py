@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -329,7 +329,7 @@ def audit(
     started = time.perf_counter()
     task = bundle.task
     has_key = bool(keys)
-    s = settings
+    s = replace(settings)  # the caller's settings stay as given
     if s.hamming is None:
         s.hamming = parse_hamming(DEFAULT_HAMMING) if has_key else []
     s.validate(bundle.key_bits, has_key)
