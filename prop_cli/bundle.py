@@ -14,7 +14,6 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
@@ -203,7 +202,3 @@ def load_bundle(path: Path) -> Bundle:
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:
     return [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
-
-
-def input_dtype(x: torch.Tensor) -> str:
-    return str(x.dtype).replace("torch.", "")

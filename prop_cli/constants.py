@@ -20,7 +20,7 @@ M_ENCODER = "encoder"  # {"hidden": [...], "scale": float, ...}
 M_CONFIG = "config"  # the PersonalizeConfig used, so a run can be repeated
 M_METRICS = "metrics"  # final metrics per user
 M_TASK = "task"  # "regression" | "classification"
-M_IO = "io"  # {"input_shape": [...], "output_shape": [...], "input_dtype": str}
+M_IO = "io"  # {"input_shape": [...], "checkpoint": str}
 M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
 
