@@ -47,7 +47,7 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict | None = None) ->
     else:
         from examples.digits_task import write_example
     paths = write_example(work / f"{task}-{seed}", seed=seed)
-    rng = np.random.default_rng(10_000 + seed)
+    rng = np.random.default_rng((seed, 2))
     key = rng.integers(0, 2, 128, dtype=np.uint8)  # stands in for `prop keygen`; seeded so reruns match
     t0 = time.perf_counter()
     personalize_checkpoint(

@@ -56,6 +56,7 @@ def user_report(
     o_user = outputs_for_codes(km, x, key_codes(user_bits, encoding))[0]
     o_null = km(x)[None]
     rand = rng.integers(0, 2, (random_keys, len(user_bits)), dtype=np.uint8)
+    rand[(rand == user_bits).all(1), 0] ^= 1  # "random" means other than the user's key
     o_rand = outputs_for_codes(km, x, key_codes(rand, encoding))
     o_ham = outputs_for_codes(km, x, key_codes(one_bit_neighbours(user_bits), encoding))
     return {

@@ -22,8 +22,8 @@ def default_layers(names: list[str]) -> list[str]:
     The first layer's input is the raw observation: scaling it only re-weights input features. Measured
     by ``examples/layer_choice.py`` (default settings, 2 seeds) against first only, last only,
     all-linear and all: on IL, all-but-first ties the best personalization (0.9991) with the lowest
-    leakage (1-bit neighbours mean 0.0033 / worst 0.0093, worst random key 0.021; first only reaches
-    0.92 personalization); on digits, last only personalizes 3/144 samples better (0.972 vs 0.951) but
+    leakage (1-bit neighbours mean 0.0037 / worst 0.0084, worst random key 0.023; first only reaches
+    0.87 personalization); on digits, last only personalizes 2/144 samples better (0.972 vs 0.958) but
     leaks (0.007) where all-but-first leaks nothing. Figures in CHANGELOG.md.
     """
     return names[1:] if len(names) > 1 else list(names)

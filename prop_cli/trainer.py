@@ -20,6 +20,8 @@ from .keyed import KeyedModel, KeyEncoder, key_codes
 from .layers import select_layers
 from .objective import Batch, KeySampler, check_user_keys, prop_loss
 
+# A seed stream of its own for evaluation keys, so they cannot replay a caller's seeded user key.
+_EVAL_STREAM = 0x5EED_E7A1
 # Inputs per forward when caching the original's outputs.
 _CHUNK = 8192
 
@@ -176,7 +178,7 @@ def personalize(
                 cfg.key_encoding,
                 task,
                 cfg.eval_random_keys,
-                np.random.default_rng(cfg.seed + 10_000 + i),
+                np.random.default_rng((cfg.seed, _EVAL_STREAM, i)),
             )
         )
     return Personalized(km, original, task, reports, losses)
