@@ -23,8 +23,8 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from .base import LoadedModel, finish, read_weights
-from .module import resolve_factory
+from .base import LoadedModel, read_weights
+from .module import load_strict, resolve_factory
 
 NAME = "folder"
 CONFIG = "config.json"
@@ -122,33 +122,13 @@ def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedMo
         raise PropError(
             f"{arch} returned a {type(module).__name__}, not a torch.nn.Module", "return the model"
         )
-    own = module.state_dict()
-    missing, unexpected = sorted(set(own) - set(weights)), sorted(set(weights) - set(own))
-    wrong = [
-        f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
-        for k, v in own.items()
-        if k in weights and weights[k].shape != v.shape
-    ]
-    if missing or unexpected or wrong:
-        parts = [f"missing keys: {_few(missing)}"] * bool(missing)
-        parts += [f"unexpected keys: {_few(unexpected)}"] * bool(unexpected)
-        parts += [f"shape mismatch (file vs model): {_few(wrong)}"] * bool(wrong)
-        raise PropError(
-            f"{source} does not fit the module {arch} builds: " + "; ".join(parts),
-            "check that config.json, --arch and --arch-kwargs belong to these weights",
-        )
-    module.load_state_dict(weights, strict=True)
-    shape = getattr(module, "input_shape", None)
-    try:
-        input_shape = tuple(int(d) for d in shape) if shape is not None else None
-    except (TypeError, ValueError):
-        input_shape = None
-    return LoadedModel(
-        module=finish(module),
-        spec=spec,
-        dtypes={k: v.dtype for k, v in weights.items()},
-        input_shape=input_shape,
-        source=source,
+    return load_strict(
+        module,
+        weights,
+        spec,
+        source,
+        what=f"the module {arch} builds",
+        fix="check that config.json, --arch and --arch-kwargs belong to these weights",
     )
 
 

@@ -75,47 +75,49 @@ def _few(names: list[str]) -> str:
     return shown + (f", ... ({len(names)} in all)" if len(names) > 5 else f" ({len(names)})")
 
 
-def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    arch = spec["arch"]
-    module = make_module(arch, spec.get("arch_kwargs"))
-    expected = set(module.state_dict())
-    missing = sorted(expected - set(weights))
-    unexpected = sorted(set(weights) - expected)
-    if missing or unexpected:
-        parts = []
-        if missing:
-            parts.append(f"missing keys: {_few(missing)}")
-        if unexpected:
-            parts.append(f"unexpected keys: {_few(unexpected)}")
-        raise PropError(
-            f"{source} does not fit --arch '{arch}': " + "; ".join(parts),
-            "check --arch and --arch-kwargs match the model that saved the checkpoint",
-        )
+def load_strict(
+    module: nn.Module, weights: dict[str, torch.Tensor], spec: dict, source: str, what: str, fix: str
+) -> LoadedModel:
+    """Load ``weights`` into a user-built module, listing missing/unexpected keys and shape mismatches.
+
+    Shared by every adapter whose module comes from user code (``--arch``, model folders).
+    """
     own = module.state_dict()
+    missing, unexpected = sorted(set(own) - set(weights)), sorted(set(weights) - set(own))
     wrong = [
         f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
         for k, v in own.items()
-        if tuple(weights[k].shape) != tuple(v.shape)
+        if k in weights and weights[k].shape != v.shape
     ]
-    if wrong:
-        raise PropError(
-            f"{source} does not fit --arch '{arch}': shape mismatch (checkpoint vs model) for " + _few(wrong),
-            "check --arch-kwargs (layer sizes) match the model that saved the checkpoint",
-        )
+    if missing or unexpected or wrong:
+        parts = [f"missing keys: {_few(missing)}"] * bool(missing)
+        parts += [f"unexpected keys: {_few(unexpected)}"] * bool(unexpected)
+        parts += [f"shape mismatch (checkpoint vs model): {_few(wrong)}"] * bool(wrong)
+        raise PropError(f"{source} does not fit {what}: " + "; ".join(parts), fix)
     module.load_state_dict(weights, strict=True)
     shape = getattr(module, "input_shape", None)
-    input_shape = None
-    if shape is not None:
-        try:
-            input_shape = tuple(int(d) for d in shape)
-        except (TypeError, ValueError):
-            input_shape = None
+    try:
+        input_shape = tuple(int(d) for d in shape) if shape is not None else None
+    except (TypeError, ValueError):
+        input_shape = None
     return LoadedModel(
         module=finish(module),
         spec=spec,
         dtypes={k: v.dtype for k, v in weights.items()},
         input_shape=input_shape,
         source=source,
+    )
+
+
+def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    arch = spec["arch"]
+    return load_strict(
+        make_module(arch, spec.get("arch_kwargs")),
+        weights,
+        spec,
+        source,
+        what=f"--arch '{arch}'",
+        fix="check --arch and --arch-kwargs match the model that saved the checkpoint",
     )
 
 

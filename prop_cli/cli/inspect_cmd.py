@@ -8,7 +8,9 @@ from .common import out, parse_json_option, print_json
 
 
 def inspect(
-    checkpoint: str = typer.Argument(..., help="Checkpoint (.safetensors, .pt/.pth state dict)."),
+    checkpoint: str = typer.Argument(
+        ..., help="Checkpoint: .safetensors, .pt/.pth, SB3 .zip, model folder, or hf://org/name/file."
+    ),
     arch: str = typer.Option(None, "--arch", help="Your module: package.module:factory."),
     arch_kwargs: str = typer.Option(None, "--arch-kwargs", help="JSON keyword arguments for --arch."),
     activation: str = typer.Option(None, "--activation", help="Plain MLP activation (default relu)."),

@@ -8,7 +8,9 @@ from .common import err, fail, out, parse_json_option, print_json, read_passphra
 
 
 def personalize(
-    checkpoint: str = typer.Argument(..., help="Checkpoint to personalize (.safetensors or .pt/.pth)."),
+    checkpoint: str = typer.Argument(
+        ..., help="Checkpoint: .safetensors, .pt/.pth, SB3 .zip, model folder, or hf://org/name/file."
+    ),
     data: list[Path] = typer.Option(..., "--data", help="User data .npz (x, y); repeat per user."),
     key_file: list[Path] = typer.Option(None, "--key-file", help="User key file; repeat per user."),
     passphrase: int = typer.Option(
