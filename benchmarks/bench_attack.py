@@ -41,17 +41,22 @@ def prepare(workdir: Path) -> tuple[Path, Path, Path]:
 
 def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -> dict[str, float]:
     from prop_cli.bundle import load_bundle
-    from prop_cli.key_batch import KeyBatch
-    from prop_cli.keyed import key_codes
+    from prop_cli.keyed import key_codes, keys_per_forward
 
     km = load_bundle(bundle).keyed
     x = torch.from_numpy(np.load(data)["x"][:samples])
     codes = key_codes(np.random.default_rng(0).integers(0, 2, (keys, 128), dtype=np.uint8), "hashed")
+    per = keys_per_forward(samples)
+
+    def rows(x: torch.Tensor, deltas: list[torch.Tensor]) -> torch.Tensor:
+        # The per-row path: one delta row per (key, sample) row, prefix gathered by sample index.
+        k, b = deltas[0].shape[0], x.shape[0]
+        return km.run_rows(x, deltas, torch.arange(k).repeat_interleave(b), torch.arange(b).repeat(k))
+
     out = {}
-    with torch.inference_mode(), KeyBatch(km) as kb:
+    with torch.inference_mode():
         deltas = km.layer_deltas(codes)
-        per = kb.chunk(samples)
-        for name, fn in (("KeyBatch (broadcast hooks)", kb.run), ("KeyedModel.run_keys", km.run_keys)):
+        for name, fn in (("run_keys (broadcast)", km.run_keys), ("run_rows (row per key x sample)", rows)):
             best = float("inf")
             for _ in range(repeat):
                 t0 = time.perf_counter()

@@ -31,8 +31,7 @@ from . import constants as C
 from .bundle import Bundle, sha256_file
 from .data import Dataset
 from .errors import PropError
-from .key_batch import KeyBatch
-from .keyed import key_codes
+from .keyed import KeyedModel, key_codes, keys_per_forward
 
 AUDIT_SCHEMA = "prop-audit/1"
 SEARCHES = ("relaxed", "latent")
@@ -185,15 +184,15 @@ class _Counter:
 
 @torch.inference_mode()
 def _probe_codes(
-    kb: KeyBatch, ref: _Ref, codes: torch.Tensor, stage: str, progress: Progress | None, count: _Counter
+    km: KeyedModel, ref: _Ref, codes: torch.Tensor, stage: str, progress: Progress | None, count: _Counter
 ) -> dict[str, torch.Tensor]:
     """Score every code (K, n) on every sample, all keys of a chunk in one forward."""
     t0 = time.perf_counter()
-    per = kb.chunk(ref.x.shape[0])
+    per = keys_per_forward(ref.x.shape[0])
     parts = []
     for i in range(0, len(codes), per):
-        deltas = kb.km.layer_deltas(codes[i : i + per].to(ref.x.device))
-        parts.append(_scores(kb.run(ref.x, deltas), ref))
+        deltas = km.layer_deltas(codes[i : i + per].to(ref.x.device))
+        parts.append(_scores(km.run_keys(ref.x, deltas), ref))
         if progress:
             progress(stage, min(i + per, len(codes)), len(codes))
     count.evals += len(codes) * ref.x.shape[0]
@@ -202,8 +201,8 @@ def _probe_codes(
 
 
 @torch.inference_mode()
-def _probe_deltas(kb: KeyBatch, ref: _Ref, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-    return _cat([_scores(kb.run(ref.x, deltas), ref)])
+def _probe_deltas(km: KeyedModel, ref: _Ref, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+    return _cat([_scores(km.run_keys(ref.x, deltas), ref)])
 
 
 # --- white-box searches --------------------------------------------------------------------------
@@ -212,7 +211,7 @@ def _probe_deltas(kb: KeyBatch, ref: _Ref, deltas: list[torch.Tensor]) -> dict[s
 def _optimise(
     params: list[torch.Tensor],
     make_deltas: Callable[[], list[torch.Tensor]],
-    kb: KeyBatch,
+    km: KeyedModel,
     ref: _Ref,
     steps: int,
     lr: float,
@@ -222,7 +221,7 @@ def _optimise(
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     opt = torch.optim.Adam(params, lr=lr)
     for step in range(steps):
-        div = _divergence(kb.run(ref.x, make_deltas()), ref.b, ref.task)
+        div = _divergence(km.run_keys(ref.x, make_deltas()), ref.b, ref.task)
         opt.zero_grad(set_to_none=True)
         (-div.sum()).backward()  # restarts are independent: the sum's gradient is each one's own
         opt.step()
@@ -231,10 +230,10 @@ def _optimise(
 
 
 def _relaxed_search(
-    kb: KeyBatch, ref: _Ref, s: AuditSettings, gen: torch.Generator, progress: Progress | None
+    km: KeyedModel, ref: _Ref, s: AuditSettings, gen: torch.Generator, progress: Progress | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """T1: relaxed codes (R, n) in (-1, 1) and their rounding to ±1."""
-    n = kb.km.encoder.code_bits
+    n = km.encoder.code_bits
     u = torch.rand(s.restarts, n, generator=gen).clamp(0.02, 0.98)
     theta = torch.logit(u).to(ref.x.device).requires_grad_(True)
 
@@ -243,8 +242,8 @@ def _relaxed_search(
 
     _optimise(
         [theta],
-        lambda: kb.km.layer_deltas(codes()),
-        kb,
+        lambda: km.layer_deltas(codes()),
+        km,
         ref,
         s.search_steps,
         s.search_lr,
@@ -256,19 +255,19 @@ def _relaxed_search(
 
 
 def _latent_search(
-    kb: KeyBatch, ref: _Ref, s: AuditSettings, gen: torch.Generator, progress: Progress | None
+    km: KeyedModel, ref: _Ref, s: AuditSettings, gen: torch.Generator, progress: Progress | None
 ) -> list[torch.Tensor]:
     """T2: delta per keyed layer (R, d_i) optimised directly, within the encoder's range."""
-    scale = kb.km.encoder.scale
+    scale = km.encoder.scale
     phis = [
         torch.randn(s.restarts, d, generator=gen).to(ref.x.device).requires_grad_(True)
-        for d in kb.km.encoder.features
+        for d in km.encoder.features
     ]
 
     def deltas() -> list[torch.Tensor]:
         return [1.0 + scale * torch.tanh(p) for p in phis]
 
-    _optimise(phis, deltas, kb, ref, s.search_steps, s.search_lr, "latent", progress)
+    _optimise(phis, deltas, km, ref, s.search_steps, s.search_lr, "latent", progress)
     return [d.detach() for d in deltas()]
 
 
@@ -379,52 +378,51 @@ def audit(
         return r
 
     try:
-        with KeyBatch(km) as kb:
-            user = None
-            if has_key:
-                with torch.inference_mode():
-                    o_user = kb.run(x, km.layer_deltas(key_codes(keys[0], enc).to(dev)))
-                    v = _scores(o_user, ref)
-                user = {
-                    "personalization": metrics.personalization(o_user[0], p, b, task),
-                    "leakage": float(v["leakage"][0]),
-                    "fidelity": float(v["fidelity"][0]),
-                }
+        user = None
+        if has_key:
             with torch.inference_mode():
-                ones = [torch.ones(1, f, device=dev) for f in km.encoder.features]
-                null = timed("null", lambda: _probe_deltas(kb, ref, ones))
-            groups.append(_group("null", "T0", null, task, is_key=True))
-            if s.random:
-                rand = rng.integers(0, 2, (s.random, bundle.key_bits), dtype=np.uint8)
-                v = timed(
-                    "random", lambda: _probe_codes(kb, ref, key_codes(rand, enc), "random", progress, count)
-                )
-                groups.append(_group("random", "T0", v, task, is_key=True))
-            for d in s.hamming:
-                near = hamming_keys(keys[0], d, s.per_distance, rng)
-                v = timed(
-                    "hamming",
-                    lambda near=near, d=d: _probe_codes(
-                        kb, ref, key_codes(near, enc), f"hamming {d}", progress, count
-                    ),
-                )
-                groups.append(_group(f"hamming {d}", "T0", v, task, is_key=True, distance=d))
-            if "relaxed" in s.search:
-                relaxed, rounded = timed("relaxed", lambda: _relaxed_search(kb, ref, s, gen, progress))
-                v = _probe_codes(kb, ref, relaxed, "relaxed", None, count)
-                groups.append(_search_group("relaxed", "T1", v, task, s, is_key=False))
-                v = _probe_codes(kb, ref, rounded, "relaxed", None, count)
-                g = _search_group("relaxed-rounded", "T1", v, task, s, is_key=enc == "raw")
-                if has_key:  # 0 = the search found the user's own code (for raw encoding: the key)
-                    user_code = key_codes(keys[0], enc).to(rounded.device)
-                    g["search"]["code_distance"] = [int(c) for c in (rounded != user_code).sum(1)]
-                groups.append(g)
-            if "latent" in s.search:
-                deltas = timed("latent", lambda: _latent_search(kb, ref, s, gen, progress))
-                groups.append(_search_group("latent", "T2", _probe_deltas(kb, ref, deltas), task, s, False))
-            for j, k in enumerate(keys[1:], start=2):
-                v = _probe_codes(kb, ref, key_codes(k, enc), f"user {j}", None, count)
-                groups.append(_group(f"user {j}", "cross-user", v, task, is_key=True))
+                o_user = km.run_keys(x, km.layer_deltas(key_codes(keys[0], enc).to(dev)))
+                v = _scores(o_user, ref)
+            user = {
+                "personalization": metrics.personalization(o_user[0], p, b, task),
+                "leakage": float(v["leakage"][0]),
+                "fidelity": float(v["fidelity"][0]),
+            }
+        with torch.inference_mode():
+            ones = [torch.ones(1, f, device=dev) for f in km.encoder.features]
+            null = timed("null", lambda: _probe_deltas(km, ref, ones))
+        groups.append(_group("null", "T0", null, task, is_key=True))
+        if s.random:
+            rand = rng.integers(0, 2, (s.random, bundle.key_bits), dtype=np.uint8)
+            v = timed(
+                "random", lambda: _probe_codes(km, ref, key_codes(rand, enc), "random", progress, count)
+            )
+            groups.append(_group("random", "T0", v, task, is_key=True))
+        for d in s.hamming:
+            near = hamming_keys(keys[0], d, s.per_distance, rng)
+            v = timed(
+                "hamming",
+                lambda near=near, d=d: _probe_codes(
+                    km, ref, key_codes(near, enc), f"hamming {d}", progress, count
+                ),
+            )
+            groups.append(_group(f"hamming {d}", "T0", v, task, is_key=True, distance=d))
+        if "relaxed" in s.search:
+            relaxed, rounded = timed("relaxed", lambda: _relaxed_search(km, ref, s, gen, progress))
+            v = _probe_codes(km, ref, relaxed, "relaxed", None, count)
+            groups.append(_search_group("relaxed", "T1", v, task, s, is_key=False))
+            v = _probe_codes(km, ref, rounded, "relaxed", None, count)
+            g = _search_group("relaxed-rounded", "T1", v, task, s, is_key=enc == "raw")
+            if has_key:  # 0 = the search found the user's own code (for raw encoding: the key)
+                user_code = key_codes(keys[0], enc).to(rounded.device)
+                g["search"]["code_distance"] = [int(c) for c in (rounded != user_code).sum(1)]
+            groups.append(g)
+        if "latent" in s.search:
+            deltas = timed("latent", lambda: _latent_search(km, ref, s, gen, progress))
+            groups.append(_search_group("latent", "T2", _probe_deltas(km, ref, deltas), task, s, False))
+        for j, k in enumerate(keys[1:], start=2):
+            v = _probe_codes(km, ref, key_codes(k, enc), f"user {j}", None, count)
+            groups.append(_group(f"user {j}", "cross-user", v, task, is_key=True))
     finally:
         for prm, flag in zip(km.parameters(), grad_flags):
             prm.requires_grad_(flag)

@@ -6,16 +6,13 @@ import numpy as np
 import torch
 
 from . import metrics
-from .keyed import KeyedModel, key_codes
-
-# Rows per forward when evaluating many keys: bounded so memory stays flat for any key count.
-MAX_ROWS = 1 << 16
+from .keyed import KeyedModel, key_codes, keys_per_forward
 
 
 @torch.no_grad()
 def outputs_for_codes(km: KeyedModel, x: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
     """Outputs of every code on every sample, (K, B, ...), in chunks of keys."""
-    per = max(1, MAX_ROWS // max(1, x.shape[0]))
+    per = keys_per_forward(x.shape[0])
     outs = [
         km.run_keys(x, km.layer_deltas(codes[i : i + per].to(x.device))) for i in range(0, len(codes), per)
     ]

@@ -83,11 +83,28 @@ class KeyEncoder(nn.Module):
         return torch.cat(self(codes), dim=1)
 
 
+# (key, sample) rows per forward when evaluating many keys: activations stay in cache (best on the IL MLP).
+KEY_ROWS = 4096
+
+
+def keys_per_forward(samples: int) -> int:
+    return max(1, KEY_ROWS // max(1, samples))
+
+
 @dataclass
 class _Rows:
-    deltas: list[torch.Tensor]  # per keyed layer, (N, d) — one row per (sample, key) row
+    """What the hooks apply during one forward.
+
+    rows mode: ``deltas`` (N, d) per layer, one per (sample, key) row; the first keyed layer gathers its
+    input by ``sample_index``. grid mode: ``deltas`` (K, d) and every key on every sample; the first
+    keyed layer broadcasts (B, d) -> (K*B, d) in one multiply, later ones multiply a (K, B, d) view.
+    """
+
+    deltas: list[torch.Tensor]
     sample_index: torch.Tensor | None
+    grid: bool = False
     gathered: bool = False
+    samples: int = 0
 
 
 class KeyedModel(nn.Module):
@@ -112,6 +129,8 @@ class KeyedModel(nn.Module):
             if rows is None:
                 return None
             z = args[0]
+            if rows.grid:
+                return (self._grid(rows, i, z), *args[1:])
             if rows.sample_index is not None and not rows.gathered:
                 z = z.index_select(0, rows.sample_index)
                 rows.gathered = True
@@ -123,6 +142,19 @@ class KeyedModel(nn.Module):
             return (z * d, *args[1:])
 
         return pre
+
+    @staticmethod
+    def _grid(rows: _Rows, i: int, z: torch.Tensor) -> torch.Tensor:
+        d = rows.deltas[i]
+        k = d.shape[0]
+        shape = (k, 1, *([1] * (z.dim() - 2)), d.shape[1])
+        if not rows.gathered:
+            rows.gathered, rows.samples = True, z.shape[0]
+            return (z.unsqueeze(0) * d.view(shape)).reshape(k * z.shape[0], *z.shape[1:])
+        b = rows.samples
+        if z.shape[0] != k * b:
+            raise _RowMismatch()
+        return (z.view(k, b, *z.shape[1:]) * d.view(shape)).reshape(k * b, *z.shape[1:])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """No key: exactly the loaded module."""
@@ -159,17 +191,23 @@ class KeyedModel(nn.Module):
         return out
 
     def run_keys(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> torch.Tensor:
-        """Every key (row of deltas) on every sample: output of shape (K, B, ...)."""
+        """Every key (row of deltas) on every sample, one forward: output of shape (K, B, ...)."""
         k, b = deltas[0].shape[0], x.shape[0]
-        dev = x.device
-        key_index = torch.arange(k, device=dev).repeat_interleave(b)
-        sample_index = torch.arange(b, device=dev).repeat(k)
-        out = self.run_rows(x, deltas, key_index, sample_index)
+        if self._sharing_ok(x, deltas):
+            self._rows = _Rows(deltas, None, grid=True)
+            try:
+                out = self.module(x)
+            finally:
+                self._rows = None
+        else:
+            # Rows interact after the first keyed layer: run each key on its own batch, as a user would.
+            zeros = torch.zeros(b, dtype=torch.long, device=x.device)
+            out = torch.cat([self.run_rows(x, [d[i : i + 1] for d in deltas], zeros) for i in range(k)])
         return out.view(k, b, *out.shape[1:])
 
     def _sharing_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
-        # Gathering at the first keyed layer is only valid if everything after it treats rows
-        # independently. Check once on two samples x two keys against gathering at the input.
+        # Gathering or broadcasting at the first keyed layer is only valid if everything after it treats
+        # rows independently. Check once, on two samples x two keys, against one forward per key.
         if self.share_prefix is None:
             self.share_prefix = self._probe_sharing(x[:2], [d[:2] for d in deltas])
         return self.share_prefix
@@ -183,11 +221,19 @@ class KeyedModel(nn.Module):
         was_training = self.module.training
         self.module.eval()
         try:
-            self._rows = _Rows(row_deltas, None)
-            ref = self.module(x.index_select(0, sample_index))
+            refs = []
+            for i in range(k):  # the truth: each key on its own batch, as a user would run it
+                self._rows = _Rows([d[i : i + 1].expand(b, -1) for d in deltas], None)
+                refs.append(self.module(x))
+            ref = torch.cat(refs)
             self._rows = _Rows(row_deltas, sample_index)
-            got = self.module(x)
-            ok = got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
+            gathered = self.module(x)
+            self._rows = _Rows(deltas, None, grid=True)
+            grid = self.module(x)
+            ok = all(
+                got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
+                for got in (gathered, grid)
+            )
         except (_RowMismatch, RuntimeError):
             ok = False
         finally:

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from prop_cli import constants as C
 from prop_cli.api import KeySource, personalize_checkpoint
@@ -18,8 +17,6 @@ from prop_cli.bundle import load_bundle, sha256_file
 from prop_cli.config import PersonalizeConfig
 from prop_cli.data import load_npz
 from prop_cli.errors import PropError
-from prop_cli.key_batch import KeyBatch
-from prop_cli.keyed import key_codes
 from prop_cli.keys import read_key_file
 from tests.conftest import make_mlp_checkpoint
 
@@ -83,17 +80,6 @@ def test_hamming_keys_exact_distance_distinct_and_exhaustive():
         assert len(keys) == 100 and len(np.unique(keys, axis=0)) == 100
         assert set((keys != user).sum(1)) == {d}
     assert len(hamming_keys(user[:32], 2, 10_000, rng)) == math.comb(32, 2)
-
-
-def test_key_batch_matches_run_keys(bundles):
-    b = load_bundle(bundles / "good.prop")
-    x = torch.from_numpy(np.load(bundles / "mine.npz")["x"][:7])
-    codes = key_codes(np.random.default_rng(0).integers(0, 2, (5, 128), dtype=np.uint8), "hashed")
-    with torch.no_grad(), KeyBatch(b.keyed) as kb:
-        deltas = b.keyed.layer_deltas(codes)
-        assert torch.allclose(kb.run(x, deltas), b.keyed.run_keys(x, deltas), atol=1e-6)
-    with torch.no_grad():  # hooks removed: no key is the plain module again
-        assert torch.equal(b.keyed(x), b.keyed.module(x))
 
 
 # --- it must be able to fail ----------------------------------------------------------------------
