@@ -1,4 +1,5 @@
 """python -m examples.reproduce il|digits|reach|capacity|all [--quick] [--seeds N] [--out DIR] [--mnist DIR]
+                                [--max-users N]
 
 Prints a Fig.-4-style table per experiment (markdown) and writes, under --out (default out/reproduce):
 <name>.md, <name>.png and <name>.json (per-seed values). Seeds are fixed: a rerun gives the same table.
@@ -17,7 +18,15 @@ from pathlib import Path
 EXPERIMENTS = ("il", "digits", "capacity", "reach")
 
 
-def run_experiment(name: str, out: Path, quick: bool, seeds: int | None, mnist: Path | None, log) -> list[dict]:
+def run_experiment(
+    name: str,
+    out: Path,
+    quick: bool,
+    seeds: int | None,
+    mnist: Path | None,
+    log,
+    max_users: int | None = None,
+) -> list[dict]:
     """Run one experiment; returns its result dicts (one per table) after writing md/png/json."""
     from examples.reproduce import table
 
@@ -33,7 +42,9 @@ def run_experiment(name: str, out: Path, quick: bool, seeds: int | None, mnist: 
     elif name == "capacity":
         from examples.reproduce import capacity
 
-        results = capacity.run(out, quick, mnist=mnist, log=log)
+        sweep = capacity.USERS_QUICK if quick else capacity.USERS_FULL
+        users = [n for n in sweep if max_users is None or n <= max_users] or [1]
+        results = capacity.run(out, quick, mnist=mnist, log=log, users=tuple(users))
     else:
         from examples.reproduce import reach
 
@@ -45,7 +56,7 @@ def run_experiment(name: str, out: Path, quick: bool, seeds: int | None, mnist: 
         (out / f"{r['name']}.md").write_text(text + "\n")
         png = r.get("png") or table.plot(r, out / f"{r['name']}.png")
         (out / f"{r['name']}.json").write_text(
-            json.dumps({k: v for k, v in r.items() if k != "markdown"}, indent=1, sort_keys=True, default=str)
+            json.dumps({k: v for k, v in r.items() if k != "markdown"}, indent=1, default=str)
         )
         print(text)
         print(f"\n({r['name']}: table {out / (r['name'] + '.md')}, figure {png})\n")
@@ -59,7 +70,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="tiny smoke version (all four in under a minute)")
     ap.add_argument("--seeds", type=int, default=None, help="seeds per experiment (default: per experiment)")
     ap.add_argument("--out", type=Path, default=Path("out/reproduce"))
-    ap.add_argument("--mnist", type=Path, default=None, help="folder with local MNIST idx files (no download)")
+    ap.add_argument(
+        "--mnist", type=Path, default=None, help="folder with local MNIST idx files (no download)"
+    )
+    ap.add_argument("--max-users", type=int, default=None, help="capacity: cap the 1..512 user sweep")
     ap.add_argument("--keep-work", action="store_true", help="keep the bundles and data under OUT/work")
     args = ap.parse_args(argv)
 
@@ -74,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = []
     for name in names:
         try:
-            run_experiment(name, args.out, args.quick, args.seeds, args.mnist, log)
+            run_experiment(name, args.out, args.quick, args.seeds, args.mnist, log, args.max_users)
         except PropError as e:
             print(f"reproduce {name}: error: {e.line()}", file=sys.stderr)
             failed.append(name)

@@ -51,7 +51,9 @@ class StateCVAE(nn.Module):
     def __init__(self, in_dim: int, key_bits: int, out_dim: int, hidden: int, latent: int = CVAE_LATENT):
         super().__init__()
         self.latent = latent
-        self.enc = nn.Sequential(nn.Linear(key_bits + in_dim, hidden), nn.ReLU(), nn.Linear(hidden, 2 * latent))
+        self.enc = nn.Sequential(
+            nn.Linear(key_bits + in_dim, hidden), nn.ReLU(), nn.Linear(hidden, 2 * latent)
+        )
         self.dec = nn.Sequential(
             nn.Linear(latent + in_dim, hidden),
             nn.ReLU(),
@@ -71,6 +73,12 @@ class StateCVAE(nn.Module):
 
 
 BUILDERS: dict[str, Callable[..., nn.Module]] = {"MLP": KeyInputMLP, "CVAE": StateCVAE}
+
+
+def split_name(method: str) -> tuple[str, str]:
+    """ "MLP" -> ("MLP", "raw"); "MLP-hashed" -> ("MLP", "hashed")."""
+    arch, _, enc = method.partition("-")
+    return arch, enc or "raw"
 
 
 def fit_width(name: str, in_dim: int, key_bits: int, out_dim: int, budget: int) -> int:
@@ -104,14 +112,19 @@ def train(
     task: str,
     cfg: PersonalizeConfig,
     steps: int,
+    encoding: str = "raw",
 ) -> nn.Module:
-    """Eq. 8 with the trainer's row counts: ``users`` = [(x, y, key bits)], fallback inputs ``pool``."""
+    """Eq. 8 with the trainer's row counts: ``users`` = [(x, y, key bits)], fallback inputs ``pool``.
+
+    ``encoding`` is how key bits become the model's key input (prop_cli.keyed.key_codes): "raw" = the
+    paper's ±1 bits; "hashed" = prop's SHAKE-256 code, to separate the encoding's effect from PRoP's.
+    """
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
     sampler = KeySampler([k for _, _, k in users], cfg.hamming_radius, rng)
     ux = [torch.from_numpy(x) for x, _, _ in users]
     uy = [torch.from_numpy(y if task == "classification" or y.ndim > 1 else y[:, None]) for _, y, _ in users]
-    ucodes = key_codes(np.stack([k for _, _, k in users]), "raw")
+    ucodes = key_codes(np.stack([k for _, _, k in users]), encoding)
     px = torch.from_numpy(pool)
     per_user = max(1, cfg.user_rows // len(users))
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
@@ -120,9 +133,38 @@ def train(
         opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / steps))
     )
     model.train()
+    # As in prop's trainer: denormal Adam moments slow CPU steps ~10x; flushing them costs nothing.
+    flush = torch.set_flush_denormal(True)
+    try:
+        _loop(
+            model,
+            opt,
+            sched,
+            rng,
+            sampler,
+            ux,
+            uy,
+            ucodes,
+            px,
+            pool_targets,
+            task,
+            cfg,
+            steps,
+            per_user,
+            encoding,
+        )
+    finally:
+        if flush:
+            torch.set_flush_denormal(False)
+    return model.eval()
+
+
+def _loop(
+    model, opt, sched, rng, sampler, ux, uy, ucodes, px, pool_targets, task, cfg, steps, per_user, encoding
+):
     for _ in range(steps):
         xs, ys, cs = [], [], []
-        for i in range(len(users)):
+        for i in range(len(ux)):
             idx = torch.from_numpy(rng.integers(0, len(ux[i]), per_user))
             xs.append(ux[i][idx])
             ys.append(uy[i][idx])
@@ -131,7 +173,7 @@ def train(
         s = cfg.samples_per_key
         fb = torch.from_numpy(rng.integers(0, len(px), len(sampled) * s))
         null = torch.from_numpy(rng.integers(0, len(px), cfg.null_rows))
-        sampled_codes = key_codes(sampled, "raw").repeat_interleave(s, 0)
+        sampled_codes = key_codes(sampled, encoding).repeat_interleave(s, 0)
         x = torch.cat([*xs, px[fb], px[null]])
         codes = torch.cat([*cs, sampled_codes, torch.zeros(cfg.null_rows, ucodes.shape[1])])
         out, kl = model(x, codes)
@@ -144,13 +186,14 @@ def train(
         loss.backward()
         opt.step()
         sched.step()
-    return model.eval()
 
 
 @torch.no_grad()
-def outputs(model: nn.Module, x: torch.Tensor, bits: np.ndarray, chunk_rows: int = 1 << 16) -> torch.Tensor:
+def outputs(
+    model: nn.Module, x: torch.Tensor, bits: np.ndarray, encoding: str = "raw", chunk_rows: int = 1 << 16
+) -> torch.Tensor:
     """Every key (K, n bits) on every sample: (K, B, ...)."""
-    codes = key_codes(bits, "raw")
+    codes = key_codes(bits, encoding)
     b = x.shape[0]
     per = max(1, chunk_rows // b)
     outs = []

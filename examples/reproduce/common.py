@@ -29,7 +29,7 @@ KEY_BITS = 128
 # PRoP as in the paper (raw key bits into the encoder) and with prop's default hashed encoding.
 PROP = "PRoP"
 PROP_HASHED = "PRoP-hashed"
-ALL_METHODS = (PROP, PROP_HASHED, "MLP", "CVAE")
+ALL_METHODS = (PROP, PROP_HASHED, "MLP", "MLP-hashed", "CVAE")
 
 
 @dataclass
@@ -64,7 +64,9 @@ def user_key(seed: int, salt: int = 0) -> np.ndarray:
     return np.random.default_rng(50_000 + 97 * seed + salt).integers(0, 2, KEY_BITS, dtype=np.uint8)
 
 
-def t2_leakage(bundle: Bundle, x: np.ndarray, y: np.ndarray, key: np.ndarray, b_module, budget: Budget) -> dict:
+def t2_leakage(
+    bundle: Bundle, x: np.ndarray, y: np.ndarray, key: np.ndarray, b_module, budget: Budget
+) -> dict:
     """The audit's T2 (direct delta search) on (x, y), via prop_cli.attack.audit: the attacker's pick."""
     from prop_cli.attack import AuditSettings, audit
 
@@ -186,13 +188,16 @@ def run_seed(
             with torch.no_grad():
                 pool_targets = td.base(torch.from_numpy(td.general_x))
             out_dim = pool_targets.shape[-1]
-            model = baselines.build(m, td.test_x[0].size, KEY_BITS, out_dim, budget_params, seed)
-            cfg = prop_config(seed, budget, encoder_hidden, "raw")
+            arch, enc = baselines.split_name(m)
+            model = baselines.build(arch, td.test_x[0].size, KEY_BITS, out_dim, budget_params, seed)
+            cfg = prop_config(seed, budget, encoder_hidden, enc)
             baselines.train(
                 model, [(td.user_x, td.user_y, key)], td.general_x, pool_targets, td.task, cfg,
-                budget.baseline_steps,
+                budget.baseline_steps, encoding=enc,
             )  # fmt: skip
-            cells = columns(lambda xx, bits, mm=model: baselines.outputs(mm, xx, bits), x, td, key, budget, rng)
+            cells = columns(
+                lambda xx, bits, mm=model, e=enc: baselines.outputs(mm, xx, bits, e), x, td, key, budget, rng
+            )
             res["_params"][m] = baselines.n_params(model)
         res[m] = cells
         res["_seconds"][m] = time.perf_counter() - t0

@@ -41,7 +41,9 @@ def make_task(seed: int, dim: int, work: Path, quick: bool) -> common.TaskData:
     )
     work.mkdir(parents=True, exist_ok=True)
     path = work / "base.safetensors"
-    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path), metadata={"activation": "relu"})
+    save_file(
+        {k: v.contiguous() for k, v in model.state_dict().items()}, str(path), metadata={"activation": "relu"}
+    )
     x_user = il_task.make_states(500 if quick else 2000, mine_seed, dim)
     x_test = il_task.make_states(500 if quick else 2000, test_seed, dim)
     return common.TaskData(
@@ -58,7 +60,7 @@ def make_task(seed: int, dim: int, work: Path, quick: bool) -> common.TaskData:
 
 
 def run(out: Path, quick: bool, seeds: int | None, log=print) -> list[dict]:
-    budget = common.Budget()
+    budget = common.Budget(baseline_steps=3000)
     if quick:
         budget = common.Budget(prop_steps=40, baseline_steps=40, random_keys=8, hamming_keys=16,
                                t2_restarts=2, t2_steps=10, t2_samples=64)  # fmt: skip

@@ -2,8 +2,9 @@
 personalized objective (plus leakage), one block per method, mean +- standard error over seeds.
 
 Significance: for every cell of a PRoP block, Welch's t-test (scipy) of PRoP's per-seed values against
-those of the best baseline in that cell ("best" in the cell's desired direction); ``*`` marks PRoP
-significantly better (p < 0.05), ``!`` significantly worse.
+those of the best of the paper's baselines (MLP, CVAE: raw key bits) in that cell ("best" in the cell's
+desired direction); ``*`` marks PRoP significantly better (p < 0.05), ``!`` significantly worse. Other
+baseline blocks (MLP-hashed: the MLP fed prop's hashed key code) are ablations, compared separately.
 """
 
 from __future__ import annotations
@@ -16,8 +17,18 @@ import numpy as np
 COLUMNS = ("random", "hamming1", "user", "t2")
 COLUMN_TITLES = {"random": "random key", "hamming1": "Hamming-1", "user": "user key", "t2": "T2 latent"}
 ROWS = ("general", "personal", "leakage")
-BASELINES = ("MLP", "CVAE")
 ALPHA = 0.05
+PAPER_BASELINES = ("MLP", "CVAE")
+ORDER = ("PRoP", "PRoP-hashed", "MLP", "MLP-hashed", "CVAE")
+
+
+def ordered(methods: dict) -> list[str]:
+    """Methods in the table's order (PRoP blocks first), whatever order a JSON file kept."""
+    return sorted(methods, key=lambda m: ORDER.index(m) if m in ORDER else len(ORDER))
+
+
+def is_prop(method: str) -> bool:
+    return method.startswith("PRoP")
 
 
 def desired(row: str, col: str, higher_is_better: bool) -> str:
@@ -41,19 +52,23 @@ def welch_p(a: list[float], b: list[float]) -> float:
         return float("nan")
     if a_.std() == 0 and b_.std() == 0:
         return 1.0 if a_.mean() == b_.mean() else 0.0
+    import warnings
+
     from scipy.stats import ttest_ind
 
-    return float(ttest_ind(a_, b_, equal_var=False).pvalue)
+    with warnings.catch_warnings():  # near-identical samples: scipy warns, the p-value is still usable
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return float(ttest_ind(a_, b_, equal_var=False).pvalue)
 
 
 def significance(result: dict) -> dict:
     """{method: {row: {col: (mark, p, best_baseline)}}} for the PRoP blocks."""
     hib = result["higher_is_better"]
     methods = result["methods"]
-    base = [m for m in methods if m in BASELINES]
+    base = [m for m in methods if m in PAPER_BASELINES] or [m for m in methods if not is_prop(m)]
     out: dict = {}
     for m, cells in methods.items():
-        if m in BASELINES or not base:
+        if not is_prop(m) or not base:
             continue
         out[m] = {}
         for row, cols in cells.items():
@@ -94,7 +109,8 @@ def markdown(result: dict, digits: int = 3) -> str:
         "|---|---|" + "---|" * len(cols),
     ]
     hib = result["higher_is_better"]
-    for m, cells in result["methods"].items():
+    for m in ordered(result["methods"]):
+        cells = result["methods"][m]
         for row in ROWS:
             if row not in cells:
                 continue
@@ -108,11 +124,35 @@ def markdown(result: dict, digits: int = 3) -> str:
     lines += [
         "",
         "Arrow in a cell: the direction an ideal method takes there. `*` / `!`: PRoP significantly "
-        f"better / worse than the best baseline in that cell (Welch's t-test over seeds, p < {ALPHA}).",
+        f"better / worse than the best of the paper's baselines (MLP, CVAE) in that cell (Welch's t-test "
+        f"over seeds, p < {ALPHA}).",
     ]
+    lines += ablation_lines(result)
     if result.get("notes"):
         lines += [""] + [f"- {n}" for n in result["notes"]]
     return "\n".join(lines)
+
+
+def ablation_lines(result: dict) -> list[str]:
+    """PRoP-hashed against MLP-hashed (same key encoding): which cells differ significantly."""
+    methods = result["methods"]
+    a, b = "PRoP-hashed", "MLP-hashed"
+    if a not in methods or b not in methods:
+        return []
+    better, worse = [], []
+    for row, cols in methods[a].items():
+        for col, vals in cols.items():
+            other = methods[b].get(row, {}).get(col)
+            if not other or welch_p(vals, other) >= ALPHA:
+                continue
+            up = desired(row, col, result["higher_is_better"]) == "high"
+            name = f"{row}/{COLUMN_TITLES[col]}"
+            (better if (np.mean(vals) > np.mean(other)) == up else worse).append(name)
+    return [
+        "",
+        f"Same key encoding ({a} vs {b}, Welch p < {ALPHA}): {a} better in "
+        f"{', '.join(better) or 'no cell'}; worse in {', '.join(worse) or 'no cell'}.",
+    ]
 
 
 def plot(result: dict, path: Path) -> Path | None:
@@ -127,7 +167,7 @@ def plot(result: dict, path: Path) -> Path | None:
     sig = significance(result)
     rows = [r for r in ("general", "personal") if any(r in m for m in result["methods"].values())]
     cols = ("random", "hamming1", "user")
-    methods = list(result["methods"])
+    methods = ordered(result["methods"])
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(3.2 * len(cols), 2.6 * len(rows)), squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, row in enumerate(rows):
@@ -140,8 +180,9 @@ def plot(result: dict, path: Path) -> Path | None:
                 mu, se = mean_se(vals)
                 ax.bar(k, mu, yerr=0 if math.isnan(se) else se, color=colours[k % len(colours)], capsize=3)
                 mark = sig.get(m, {}).get(row, {}).get(col, ("",))[0]
-                if mark:
-                    ax.text(k, mu, mark, ha="center", va="bottom", fontsize=12)
+                if mark:  # above the whisker, so "!" is not read as an error bar
+                    top = mu + (0 if math.isnan(se) else se)
+                    ax.text(k, top, mark, ha="center", va="bottom", fontsize=11, color="black", weight="bold")
             want = "↑" if desired(row, col, result["higher_is_better"]) == "high" else "↓"
             ax.set_title(f"{COLUMN_TITLES[col]} {want}", fontsize=9)
             ax.set_xticks(range(len(methods)), methods, fontsize=7, rotation=20)
