@@ -58,33 +58,14 @@ def main(argv: list[str] | None = None) -> None:
             bundle,
             "--force",
         )
-        prop(
-            "run",
-            bundle,
-            "--input",
-            work / "x.npy",
-            "--key-file",
-            key,
-            "--output",
-            work / "y_key.npy",
-            "--force",
-        )
-        prop("run", bundle, "--input", work / "x.npy", "--output", work / "y_nokey.npy", "--force")
         wrong = bytearray(key.read_bytes())
         wrong[0] ^= 1  # the user's key with one bit flipped
         (work / "k_wrong.bin").write_bytes(bytes(wrong))
         (work / "k_wrong.bin").chmod(0o600)
-        prop(
-            "run",
-            bundle,
-            "--input",
-            work / "x.npy",
-            "--key-file",
-            work / "k_wrong.bin",
-            "--output",
-            work / "y_wrong.npy",
-            "--force",
-        )
+        for name, key_args in (("key", ["--key-file", key]), ("nokey", []),
+                               ("wrong", ["--key-file", work / "k_wrong.bin"])):  # fmt: skip
+            prop("run", bundle, "--input", work / "x.npy", *key_args, "--output", work / f"y_{name}.npy",
+                 "--force")  # fmt: skip
 
         y, yp = test["y"], test["y_personal"]
         outs = {name: np.load(work / f"y_{name}.npy") for name in ("key", "nokey", "wrong")}
