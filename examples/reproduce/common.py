@@ -218,6 +218,17 @@ def encoder_width(td: TaskData, total: int) -> int:
     return min(range(8, 1025), key=lambda e: abs(prop_budget(td, e) - total))
 
 
+def seed_fields(per_seed: list[dict], params: dict[str, int], methods: tuple[str, ...] | None = None) -> dict:
+    """The fields every experiment's result shares: seeds, parameter counts, time and the aggregate."""
+    methods = methods or tuple(params)
+    return {
+        "seeds": len(per_seed),
+        "params": params,
+        "seconds": {m: float(np.sum([r["_seconds"][m] for r in per_seed])) for m in params},
+        "methods": aggregate([{m: r[m] for m in methods} for r in per_seed], methods),
+    }
+
+
 def aggregate(per_seed: list[dict], methods: tuple[str, ...]) -> dict:
     """{method: {row: {col: [per-seed values]}}}."""
     out: dict = {}

@@ -150,10 +150,7 @@ def run(out: Path, quick: bool, seeds: int | None, mnist: Path | None = None, lo
                 "personal": "personalized (rate on offset labels)",
                 "leakage": "leakage (shared metric)",
             },
-            "seeds": n_seeds,
-            "params": params,
-            "seconds": {m: float(np.sum([r["_seconds"][m] for r in per_seed])) for m in params},
-            "methods": common.aggregate(per_seed, tuple(params)),
+            **common.seed_fields(per_seed, params),
             "notes": [
                 "PRoP personalizes a pretrained MLP classifier; baselines are trained from scratch on the "
                 f"same data ({budget.baseline_steps} steps), fallback targets = the base's outputs.",

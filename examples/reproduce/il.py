@@ -86,10 +86,7 @@ def run(out: Path, quick: bool, seeds: int | None, log=print) -> list[dict]:
                     "personal": "personalized (MSE vs personal expert)",
                     "leakage": "leakage (shared metric)",
                 },
-                "seeds": n_seeds,
-                "params": params,
-                "seconds": {m: float(np.sum([r["_seconds"][m] for r in per_seed])) for m in params},
-                "methods": common.aggregate(per_seed, tuple(params)),
+                **common.seed_fields(per_seed, params),
                 "notes": [
                     "PRoP personalizes a behaviour-cloned base (prop's use case); the paper's Fig. 4 trains "
                     "every method from scratch. Baselines here are trained from scratch on the same data "

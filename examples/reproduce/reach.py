@@ -417,11 +417,8 @@ def run(out: Path, quick: bool, seeds: int | None, log=print) -> list[dict]:
                 "personal": "personalized (reward towards A g + c)",
                 "leakage": "leakage (shared metric)",
             },
-            "seeds": n_seeds,
-            "params": params,
+            **common.seed_fields(per_seed, params, METHODS),
             "pretrain_curves": curves,
-            "seconds": {m: float(np.sum([r["_seconds"][m] for r in per_seed])) for m in params},
-            "methods": common.aggregate([{m: r[m] for m in METHODS} for r in per_seed], METHODS),
             "notes": [
                 f"Pretrained PPO policy (no key, one for all seeds), {pre_iters} x {cfg.rollout} env steps: "
                 "deterministic normalised reward "
