@@ -1,13 +1,8 @@
-"""Checkpoint adapters: a weights file -> a ``torch.nn.Module`` with the checkpoint's names.
+"""Checkpoint adapters: a checkpoint -> a ``torch.nn.Module`` with the checkpoint's own names.
 
-Installed as ``prop_adapters`` (``adapters`` is an unrelated PyPI package). A new format is one
-new file exposing ``NAME``, a loader (``from_weights(tensors, metadata, path, **options)`` for a
-weights file, ``load(path, **options)`` for a container: sb3 zips, model folders) and
-``rebuild(spec, weights, source)``, plus one line in ``ADAPTERS``.
-
-``load_checkpoint`` dispatches on the path: a directory -> ``folder`` (config.json +
-model.safetensors; a folder with only model.safetensors is read as that file), ``.zip`` -> ``sb3``,
-any other file -> ``module`` with ``--arch``, else ``mlp``.
+Installed as ``prop_adapters`` (``adapters`` is an unrelated PyPI package). The contract is
+``base.Adapter``; ``ADAPTERS`` is the registry, in the order formats are tried: the first adapter
+whose ``recognise`` accepts a path loads it. A new format is one new file and one line here.
 """
 
 from __future__ import annotations
@@ -19,12 +14,41 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from . import folder, mlp, module, sb3
-from .base import LoadedModel, read_weights
+from .base import Adapter, CheckpointOptions, LoadedModel, check_exists
+from .folder import CONFIG, WEIGHTS, FolderAdapter
+from .mlp import MLPAdapter
+from .module import ModuleAdapter
+from .sb3 import SB3Adapter
+from .weights import read_weights
 
-ADAPTERS = {mlp.NAME: mlp, module.NAME: module, sb3.NAME: sb3, folder.NAME: folder}
+ADAPTERS: list[Adapter] = [
+    FolderAdapter(),
+    SB3Adapter(),
+    ModuleAdapter(),
+    MLPAdapter(),
+]
 
-__all__ = ["ADAPTERS", "LoadedModel", "load_checkpoint", "read_weights", "rebuild"]
+__all__ = [
+    "ADAPTERS",
+    "Adapter",
+    "CheckpointOptions",
+    "LoadedModel",
+    "adapter_named",
+    "describe",
+    "load_checkpoint",
+    "read_weights",
+    "rebuild",
+]
+
+
+def adapter_named(name: str | None, source: str) -> Adapter:
+    for a in ADAPTERS:
+        if a.name == name:
+            return a
+    raise PropError(
+        f"{source}: unknown model adapter '{name}' (known: {', '.join(a.name for a in ADAPTERS)})",
+        "the bundle was written by a newer prop; upgrade prop",
+    )
 
 
 def _require_linear(loaded: LoadedModel) -> LoadedModel:
@@ -36,58 +60,51 @@ def _require_linear(loaded: LoadedModel) -> LoadedModel:
     return loaded
 
 
+def _check_options(adapter: Adapter, options: CheckpointOptions, path: Path) -> None:
+    for name in options.given():
+        if name not in adapter.options:
+            flag = CheckpointOptions.FLAGS[name]
+            uses = " and ".join(CheckpointOptions.FLAGS[o] for o in adapter.options) or "no options"
+            raise PropError(
+                f"{flag} does not apply to {adapter.summary.split(':')[0]} ({path})",
+                f"drop {flag}: that format takes {uses}",
+            )
+
+
 def load_checkpoint(
     path: str | Path,
+    options: CheckpointOptions | None = None,
     *,
     arch: str | None = None,
     arch_kwargs: dict | None = None,
     activation: str | None = None,
 ) -> LoadedModel:
-    """Load a checkpoint: an SB3 zip, a model folder, or a weights file (``arch``'s class or a plain MLP)."""
+    """Load a checkpoint with the first registered adapter that recognises it."""
+    options = options or CheckpointOptions(arch, arch_kwargs, activation)
     path = Path(path)
-    if path.is_dir() and not (path / folder.CONFIG).exists() and (path / folder.WEIGHTS).is_file():
-        path = path / folder.WEIGHTS  # a bare weights folder: read it as the file
-    if path.is_dir():
-        if activation is not None:
-            raise PropError(
-                "--activation does not apply to a model folder",
-                "drop it: the module the builder returns defines its activations",
-            )
-        return _require_linear(folder.load(path, arch=arch, arch_kwargs=arch_kwargs))
-    if path.suffix.lower() == ".zip":
-        if arch or arch_kwargs:
-            raise PropError(
-                "--arch/--arch-kwargs do not apply to a Stable-Baselines3 zip",
-                "drop them: prop rebuilds the policy from the zip itself",
-            )
-        return _require_linear(sb3.load(path, activation=activation))
-    tensors, metadata = read_weights(path)
-    if arch:
-        if activation is not None:
-            raise PropError(
-                "--activation only applies to plain MLP checkpoints",
-                "drop --activation when using --arch (the class defines its activations)",
-            )
-        loaded = module.from_weights(tensors, metadata, path, arch=arch, arch_kwargs=arch_kwargs)
-    else:
-        if arch_kwargs:
-            raise PropError("--arch-kwargs was given without --arch", "add --arch or drop it")
-        loaded = mlp.from_weights(tensors, metadata, path, activation=activation)
-    return _require_linear(loaded)
+    check_exists(path)
+    if path.is_dir() and not (path / CONFIG).exists() and (path / WEIGHTS).is_file():
+        path = path / WEIGHTS  # a bare weights folder: read it as the file
+    for adapter in ADAPTERS:
+        if adapter.recognise(path, options):
+            _check_options(adapter, options, path)
+            loaded = adapter.load(path, options)
+            return _require_linear(loaded)
+    read_weights(path)  # names what is wrong with the file (extension, content)
+    raise PropError(f"checkpoint {path} is in no format prop reads", "`prop formats` lists them")
 
 
 def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
     """Rebuild the module a bundle describes (``spec`` from its manifest) with ``weights``."""
-    name = spec.get("adapter") if isinstance(spec, dict) else None
-    adapter = ADAPTERS.get(name)  # type: ignore[arg-type]
-    if adapter is None:
-        raise PropError(
-            f"{source}: unknown model adapter '{name}' (known: {', '.join(ADAPTERS)})",
-            "the bundle was written by a newer prop; upgrade prop",
-        )
+    adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
     try:
         return _require_linear(adapter.rebuild(spec, weights, str(source)))
     except KeyError as e:
         raise PropError(
             f"{source}: model spec lacks field {e}", "the manifest is damaged; re-create the bundle"
         ) from None
+
+
+def describe(loaded: LoadedModel) -> dict:
+    """What the checkpoint's adapter knows about it (algorithm, spaces, bounds, activation, ...)."""
+    return adapter_named(loaded.spec.get("adapter"), loaded.source).describe(loaded)

@@ -1,20 +1,40 @@
-"""What every adapter returns, and reading a weights file without unpickling anything."""
+"""The adapter contract: what a checkpoint format provides, and what it returns (``LoadedModel``).
+
+An adapter turns one checkpoint format into a ``torch.nn.Module`` whose state-dict names are the
+checkpoint's own. It is one file holding a subclass of :class:`Adapter`, plus one line in the
+registry (``prop_adapters.ADAPTERS``); dispatch, option checks, help text and ``prop formats`` come
+from the registry.
+"""
 
 from __future__ import annotations
 
-import pickle
-import re
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
 from prop_cli.errors import PropError
 
-SAFETENSORS_EXTS = (".safetensors",)
-TORCH_EXTS = (".pt", ".pth", ".bin")
-# Wrappers that training scripts commonly put around the state dict.
-STATE_DICT_ENTRIES = ("state_dict", "model_state_dict")
+
+@dataclass
+class CheckpointOptions:
+    """What the user may say about a checkpoint (``--arch``, ``--arch-kwargs``, ``--activation``)."""
+
+    arch: str | None = None
+    arch_kwargs: dict | None = None
+    activation: str | None = None
+
+    FLAGS: ClassVar[dict[str, str]] = {
+        "arch": "--arch",
+        "arch_kwargs": "--arch-kwargs",
+        "activation": "--activation",
+    }
+
+    def given(self) -> list[str]:
+        """Names of the options that are set."""
+        return [name for name in self.FLAGS if getattr(self, name) not in (None, {})]
 
 
 @dataclass
@@ -29,97 +49,57 @@ class LoadedModel:
     # Checkpoint tensors the module does not use (e.g. an SB3 critic): written back into the bundle's
     # base file untouched, so the whole original state dict round-trips.
     extra: dict[str, torch.Tensor] = field(default_factory=dict)
+    # What the outputs are, where the format says: True = continuous actions/targets (regression),
+    # False = a discrete choice over the outputs (classification: logits), None = not known.
+    continuous: bool | None = None
+    # Bounds of a continuous action space (one value per output), where the checkpoint records them.
+    action_low: tuple[float, ...] | None = None
+    action_high: tuple[float, ...] | None = None
 
 
-def _check_file(path: Path) -> None:
-    if not path.exists():
-        raise PropError(f"checkpoint {path} does not exist", "check the path")
-    if path.is_dir():
-        raise PropError(
-            f"checkpoint {path} is a directory",
-            "pass the weights file itself (.safetensors, .pt, .pth or .bin)",
-        )
-    if path.stat().st_size == 0:
-        raise PropError(f"checkpoint {path} is empty", "re-export the checkpoint")
+class Adapter(ABC):
+    """One checkpoint format. Subclasses set ``name``, ``summary`` and ``options`` and implement
+    ``recognise``, ``load`` and ``rebuild``; ``describe`` has a default."""
 
+    name: ClassVar[str]  # stored in the manifest as model.adapter: never rename
+    summary: ClassVar[str]  # one line for `prop formats`, help texts and the README
+    options: ClassVar[tuple[str, ...]] = ()  # the CheckpointOptions fields this format uses
 
-def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    from safetensors import SafetensorError, safe_open
+    @abstractmethod
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        """Cheap: is ``path`` in this format (suffix, files present, a peek at a header)?"""
 
-    try:
-        with safe_open(str(path), framework="pt", device="cpu") as f:
-            metadata = dict(f.metadata() or {})
-            tensors = {name: f.get_tensor(name) for name in f.keys()}
-    except (SafetensorError, OSError, ValueError, RuntimeError, KeyError) as e:
-        raise PropError(
-            f"checkpoint {path} is not a readable safetensors file ({e})",
-            "re-export it with safetensors.torch.save_file",
-        ) from None
-    return tensors, metadata
+    @abstractmethod
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        """Read the checkpoint; every problem is a one-line PropError naming the file."""
 
+    @abstractmethod
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        """The module a bundle describes (``spec`` from its manifest) with ``weights`` (its base file)."""
 
-def _corrupt(path: Path, e: Exception) -> PropError:
-    return PropError(
-        f"checkpoint {path} is corrupt or not a torch file ({type(e).__name__})",
-        "re-export it with torch.save(model.state_dict(), path) or as .safetensors",
-    )
+    def weights(self, path: Path) -> dict[str, torch.Tensor]:
+        """The checkpoint's tensors by name, as ``rebuild`` takes them (``--original`` is read so)."""
+        from .weights import read_weights
 
+        return read_weights(path)[0]
 
-def _read_torch(path: Path) -> dict[str, torch.Tensor]:
-    try:
-        obj = torch.load(str(path), weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError as e:
-        text = str(e)
-        if "Weights only load failed" not in text:
-            raise _corrupt(path, e) from None
-        # weights_only refused an arbitrary object: that is the point, never retry without it.
-        m = re.search(r"Unsupported global: GLOBAL (\S+)", text)
-        what = f"it pickles {m.group(1)}" if m else "it pickles objects other than tensors"
-        raise PropError(
-            f"checkpoint {path} was refused: {what}, and prop never unpickles code",
-            "save only the state dict: torch.save(model.state_dict(), path), or use .safetensors",
-        ) from None
-    except Exception as e:  # torch raises many types (KeyError, RuntimeError, EOFError) on junk
-        raise _corrupt(path, e) from None
-    if isinstance(obj, dict):
-        for entry in STATE_DICT_ENTRIES:
-            if isinstance(obj.get(entry), dict):
-                obj = obj[entry]
-                break
-    if not isinstance(obj, dict):
-        raise PropError(
-            f"checkpoint {path} holds a {type(obj).__name__}, not a state dict",
-            "save a flat dict name -> tensor: torch.save(model.state_dict(), path)",
-        )
-    bad = [str(k) for k, v in obj.items() if not isinstance(k, str) or not torch.is_tensor(v)]
-    if bad:
-        shown = ", ".join(bad[:3]) + (f" (+{len(bad) - 3} more)" if len(bad) > 3 else "")
-        raise PropError(
-            f"checkpoint {path} is not a flat state dict: entries {shown} are not tensors",
-            "save only model.state_dict(), or put it under a 'state_dict' entry",
-        )
-    return dict(obj)
-
-
-def read_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Tensors by name plus safetensors metadata ({} for torch files). Never unpickles."""
-    path = Path(path)
-    _check_file(path)
-    suffix = path.suffix.lower()
-    if suffix in SAFETENSORS_EXTS:
-        tensors, metadata = _read_safetensors(path)
-    elif suffix in TORCH_EXTS:
-        tensors, metadata = _read_torch(path), {}
-    else:
-        raise PropError(
-            f"checkpoint {path} has unsupported extension '{path.suffix}'",
-            "use .safetensors, .pt, .pth or .bin",
-        )
-    if not tensors:
-        raise PropError(f"checkpoint {path} contains no tensors", "check that it is the right file")
-    return tensors, metadata
+    def describe(self, loaded: LoadedModel) -> dict:
+        """What this adapter knows about the model, for `prop inspect` (JSON-serialisable)."""
+        info: dict = {"adapter": self.name}
+        if loaded.continuous is not None:
+            info["outputs"] = "continuous" if loaded.continuous else "discrete (logits)"
+        if loaded.action_low is not None and loaded.action_high is not None:
+            info["action_low"], info["action_high"] = list(loaded.action_low), list(loaded.action_high)
+        if "activation" in loaded.spec:
+            info["activation"] = loaded.spec["activation"]
+        return info
 
 
 def finish(module: torch.nn.Module) -> torch.nn.Module:
     """Common last step of every adapter: float32, eval mode, no autograd surprises."""
     return module.float().eval()
+
+
+def check_exists(path: Path) -> None:
+    if not path.exists():
+        raise PropError(f"checkpoint {path} does not exist", "check the path")

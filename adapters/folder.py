@@ -23,10 +23,10 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from .base import LoadedModel, read_weights
+from .base import Adapter, CheckpointOptions, LoadedModel
 from .module import load_strict, resolve_factory
+from .weights import read_weights
 
-NAME = "folder"
 CONFIG = "config.json"
 WEIGHTS = "model.safetensors"
 SHARD_INDEX = "model.safetensors.index.json"
@@ -104,10 +104,6 @@ def _builder(folder: Path, config: dict, arch: str | None) -> tuple[str, str]:
     return value, f"entry point '{type_name}'"
 
 
-def _few(names: list[str]) -> str:
-    return ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
-
-
 def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
     arch, kwargs = spec["arch"], dict(spec.get("arch_kwargs") or {})
     factory = resolve_factory(arch)
@@ -132,36 +128,41 @@ def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedMo
     )
 
 
-def load(
-    folder: str | Path,
-    *,
-    arch: str | None = None,
-    arch_kwargs: dict | None = None,
-) -> LoadedModel:
-    """Load ``folder`` (config.json + model.safetensors) through ``--arch`` or a registered builder."""
-    folder = Path(folder)
-    if not (folder / CONFIG).is_file():
-        raise PropError(
-            f"folder {folder} has no {CONFIG}",
-            f"pass a folder with {CONFIG} and {WEIGHTS}, or the weights file itself",
-        )
-    config = read_config(folder)
-    weights, source = read_folder_weights(folder)
-    value, via = _builder(folder, config, arch)
-    kwargs = dict(arch_kwargs or {})
-    try:
-        json.dumps(kwargs)
-    except (TypeError, ValueError) as e:
-        raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
-    spec = {
-        "adapter": NAME,
-        "arch": value,
-        "arch_kwargs": kwargs,
-        "builder": via,
-        "config": config,
-    }
-    return build(spec, weights, source)
+class FolderAdapter(Adapter):
+    name = "folder"
+    options = ("arch", "arch_kwargs")
+    summary = (
+        "a model folder: config.json + model.safetensors (Hugging Face / LeRobot layout, sharded too), "
+        "built by factory(config, **arch_kwargs) from --arch or a package's 'prop.architectures' entry point"
+    )
 
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        return path.is_dir()
 
-def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    return build(spec, weights, source)
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        if not (path / CONFIG).is_file():
+            raise PropError(
+                f"folder {path} has no {CONFIG}",
+                f"pass a folder with {CONFIG} and {WEIGHTS}, or the weights file itself",
+            )
+        config = read_config(path)
+        weights, source = read_folder_weights(path)
+        value, via = _builder(path, config, options.arch)
+        kwargs = dict(options.arch_kwargs or {})
+        try:
+            json.dumps(kwargs)
+        except (TypeError, ValueError) as e:
+            raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
+        spec = {"adapter": self.name, "arch": value, "arch_kwargs": kwargs, "builder": via, "config": config}
+        return build(spec, weights, source)
+
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        return build(spec, weights, source)
+
+    def weights(self, path: Path) -> dict[str, torch.Tensor]:
+        return read_folder_weights(path)[0] if path.is_dir() else read_weights(path)[0]
+
+    def describe(self, loaded: LoadedModel) -> dict:
+        info = super().describe(loaded)
+        info.update(builder=loaded.spec.get("builder"), type=config_type(loaded.spec.get("config", {})))
+        return info

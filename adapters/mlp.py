@@ -1,28 +1,24 @@
-"""Plain MLP state dicts (any key prefix) -> a module with exactly the checkpoint's names."""
+"""Plain MLP state dicts (any key prefix) -> a module with exactly the checkpoint's names.
+
+The layer order is inferred from the names and shapes; the activation comes from ``--activation``,
+else the file's ``activation`` metadata, else relu (a state dict does not record it).
+"""
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from prop_cli.errors import PropError
 
-from .base import LoadedModel, finish
+from . import activations
+from .base import Adapter, CheckpointOptions, LoadedModel, finish
+from .weights import is_weights_file, read_weights
 
-NAME = "mlp"
 DEFAULT_ACTIVATION = "relu"
-ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
-    "relu": F.relu,
-    "tanh": torch.tanh,
-    "elu": F.elu,
-    "leaky_relu": F.leaky_relu,
-    "gelu": F.gelu,
-}
 ARCH_HINT = "if it is not a plain MLP, pass its class with --arch package.module:factory"
 # Past this many tried orderings we stop and call the chain ambiguous rather than hang.
 _MAX_SEARCH = 100_000
@@ -37,12 +33,7 @@ class ChainMLP(nn.Module):
 
     def __init__(self, layers: list[str], sizes: list[int], bias: dict[str, bool], activation: str) -> None:
         super().__init__()
-        if activation not in ACTIVATIONS:
-            raise PropError(
-                f"unknown activation '{activation}'",
-                f"use one of: {', '.join(ACTIVATIONS)}",
-            )
-        self.activation = activation
+        self.activation = activations.check(activation, "model spec")
         self.layer_paths = list(layers)
         for i, path in enumerate(layers):
             parent = self
@@ -60,13 +51,12 @@ class ChainMLP(nn.Module):
             parent.add_module(leaf, nn.Linear(sizes[i], sizes[i + 1], bias=bias[path]))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        act = ACTIVATIONS[self.activation]
         last = len(self.layer_paths) - 1
         # Looked up each call (cheap) so copies and swapped submodules are always honoured.
         for i, p in enumerate(self.layer_paths):
             x = self.get_submodule(p)(x)
             if i < last:
-                x = act(x)
+                x = activations.apply(self.activation, x)
         return x
 
 
@@ -208,30 +198,35 @@ def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedMo
     )
 
 
-def from_weights(
-    tensors: dict[str, torch.Tensor],
-    metadata: dict[str, str],
-    path: str | Path,
-    *,
-    activation: str | None = None,
-) -> LoadedModel:
-    path = str(path)
-    dims, bias = _layers_from_tensors(tensors, path)
-    order = infer_chain(dims, path)
-    act = activation if activation is not None else metadata.get("activation", DEFAULT_ACTIVATION)
-    act = act.strip().lower()
-    if act not in ACTIVATIONS:
-        where = "--activation" if activation is not None else f"metadata 'activation' of {path}"
-        raise PropError(f"{where}: unknown activation '{act}'", f"use one of: {', '.join(ACTIVATIONS)}")
-    spec = {
-        "adapter": NAME,
-        "layers": order,
-        "activation": act,
-        "bias": {p: bias[p] for p in order},
-        "sizes": [dims[order[0]][0]] + [dims[p][1] for p in order],
-    }
-    return build(spec, tensors, path)
+class MLPAdapter(Adapter):
+    name = "mlp"
+    summary = (
+        "a plain MLP state dict: .safetensors or .pt/.pth/.bin, layer order inferred, "
+        "activation from --activation or the file's metadata (default relu)"
+    )
+    options = ("activation",)
 
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        return options.arch is None and is_weights_file(path)
 
-def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    return build(spec, weights, source)
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        tensors, metadata = read_weights(path)
+        dims, bias = _layers_from_tensors(tensors, str(path))
+        order = infer_chain(dims, str(path))
+        if options.activation is not None:
+            act = activations.check(options.activation, "--activation")
+        else:
+            act = activations.check(
+                metadata.get("activation", DEFAULT_ACTIVATION), f"metadata 'activation' of {path}"
+            )
+        spec = {
+            "adapter": self.name,
+            "layers": order,
+            "activation": act,
+            "bias": {p: bias[p] for p in order},
+            "sizes": [dims[order[0]][0]] + [dims[p][1] for p in order],
+        }
+        return build(spec, tensors, str(path))
+
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        return build(spec, weights, source)

@@ -13,9 +13,9 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from .base import LoadedModel, finish
+from .base import Adapter, CheckpointOptions, LoadedModel, finish
+from .weights import is_weights_file, read_weights
 
-NAME = "module"
 ARCH_FORMAT = "give --arch as package.module:factory, e.g. mypolicies.nets:make_policy"
 
 
@@ -121,17 +121,21 @@ def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedMo
     )
 
 
-def from_weights(
-    tensors: dict[str, torch.Tensor],
-    metadata: dict[str, str],
-    path: str | Path,
-    *,
-    arch: str,
-    arch_kwargs: dict | None = None,
-) -> LoadedModel:
-    spec = {"adapter": NAME, "arch": arch, "arch_kwargs": dict(arch_kwargs or {})}
-    return build(spec, tensors, str(path))
+class ModuleAdapter(Adapter):
+    name = "module"
+    summary = (
+        "a state dict of your own module: .safetensors or .pt/.pth/.bin with "
+        "--arch package.module:factory [--arch-kwargs JSON]"
+    )
+    options = ("arch", "arch_kwargs")
 
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        return options.arch is not None and is_weights_file(path)
 
-def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    return build(spec, weights, source)
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        tensors, _ = read_weights(path)
+        spec = {"adapter": self.name, "arch": options.arch, "arch_kwargs": dict(options.arch_kwargs or {})}
+        return build(spec, tensors, str(path))
+
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        return build(spec, weights, source)

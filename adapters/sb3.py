@@ -1,11 +1,7 @@
 """Stable-Baselines3 model zips -> the policy's deterministic actor, with SB3's state-dict names.
 
-Nothing is unpickled and stable-baselines3 is not needed. An SB3 zip holds ``data`` (JSON; fields
-that are not JSON-serialisable are cloudpickled, and next to each blob SB3 writes the object's plain
-attributes and ``str()`` of the rest: we read only those plain values) and ``policy.pth`` (a state
-dict, read with ``weights_only=True``).
-
-What the module computes, per family (``spec["family"]``):
+The zip is read by ``sb3_zip`` (no unpickling, no SB3 needed). What the module computes, per family
+(``spec["family"]``):
 
 - ``actor_critic`` (PPO, A2C ``MlpPolicy``): ``action_net(mlp_extractor.policy_net(obs))``: the
   Gaussian mean for Box actions (``model.predict(obs, deterministic=True)`` before it clips to the
@@ -22,12 +18,7 @@ file is a complete SB3 policy state dict (``model.policy.load_state_dict(load_fi
 
 from __future__ import annotations
 
-import io
-import json
 import math
-import pickle
-import re
-import zipfile
 from pathlib import Path
 
 import torch
@@ -35,30 +26,10 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-from .base import LoadedModel, finish
+from . import activations, sb3_zip
+from .base import Adapter, CheckpointOptions, LoadedModel, finish
+from .sb3_zip import unsupported
 
-NAME = "sb3"
-SUPPORTED = (
-    "PPO and A2C MlpPolicy (Box or Discrete actions), SAC MlpPolicy, TD3 and DDPG MlpPolicy "
-    "(Box actions), all with Box observations and without gSDE"
-)
-ACTIVATIONS: dict[str, type[nn.Module]] = {
-    "tanh": nn.Tanh,
-    "relu": nn.ReLU,
-    "elu": nn.ELU,
-    "leaky_relu": nn.LeakyReLU,
-    "gelu": nn.GELU,
-    "silu": nn.SiLU,
-}
-# torch class name (as SB3 writes str(activation_fn)) -> our name.
-_TORCH_NAMES = {cls.__name__: name for name, cls in ACTIVATIONS.items()}
-
-# The module SB3 defines each policy family in, and the class that is its MlpPolicy.
-_FAMILIES = {
-    "stable_baselines3.common.policies": ("actor_critic", "ActorCriticPolicy"),
-    "stable_baselines3.sac.policies": ("sac", "SACPolicy"),
-    "stable_baselines3.td3.policies": ("td3", "TD3Policy"),
-}
 # SB3's default activation_fn per family: ActorCriticPolicy uses Tanh, SAC and TD3 use ReLU.
 DEFAULT_ACTIVATION = {"actor_critic": "tanh", "sac": "relu", "td3": "relu"}
 # policy.pth prefixes: (the deterministic actor's, the rest SB3 keeps for training).
@@ -70,163 +41,27 @@ _PREFIXES = {
     "sac": (("actor.latent_pi.", "actor.mu."), ("actor.log_std.", "critic.", "critic_target.")),
     "td3": (("actor.mu.",), ("actor_target.", "critic.", "critic_target.")),
 }
-_SAVE_HINT = "pass the .zip written by model.save() of a Stable-Baselines3 model"
-
-
-def _unsupported(path: str, what: str) -> PropError:
-    return PropError(f"{path}: {what} is not supported", f"prop reads {SUPPORTED}")
-
-
-# ---- reading the zip -------------------------------------------------------------------------
-
-
-def read_zip(path: Path) -> tuple[dict, dict[str, torch.Tensor], str | None]:
-    """``data`` as JSON, the ``policy.pth`` state dict and the SB3 version string; never unpickles."""
-    if not path.is_file():
-        raise PropError(f"checkpoint {path} does not exist", "check the path")
-    try:
-        with zipfile.ZipFile(path) as z:
-            names = set(z.namelist())
-            if "data" not in names or "policy.pth" not in names:
-                raise PropError(
-                    f"{path} is a zip but not a Stable-Baselines3 model (no 'data' and 'policy.pth' entries)",
-                    _SAVE_HINT,
-                )
-            raw_data = z.read("data")
-            raw_policy = z.read("policy.pth")
-            version = None
-            if "_stable_baselines3_version" in names:
-                version = z.read("_stable_baselines3_version").decode(errors="replace").strip() or None
-    except (zipfile.BadZipFile, OSError) as e:
-        raise PropError(f"{path} is not a readable zip archive ({e})", _SAVE_HINT) from None
-    try:
-        data = json.loads(raw_data)
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        data = None
-    if not isinstance(data, dict):
-        raise PropError(
-            f"{path} is a zip but not a Stable-Baselines3 model (its 'data' entry is not a JSON object)",
-            _SAVE_HINT,
-        )
-    try:
-        state = torch.load(io.BytesIO(raw_policy), weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError:
-        raise PropError(
-            f"{path}: policy.pth pickles objects other than tensors, and prop never unpickles code",
-            "save the model again with Stable-Baselines3's model.save()",
-        ) from None
-    except Exception as e:  # torch raises many types on junk
-        raise PropError(f"{path}: policy.pth is corrupt ({type(e).__name__})", _SAVE_HINT) from None
-    if not isinstance(state, dict) or not all(
-        isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()
-    ):
-        raise PropError(f"{path}: policy.pth is not a state dict of tensors", _SAVE_HINT)
-    return data, dict(state), version
-
-
-def _policy_class(data: dict, path: str) -> tuple[str, str]:
-    """(family, class name) from the plain fields SB3 writes beside the pickled policy class."""
-    pc = data.get("policy_class")
-    if not isinstance(pc, dict):
-        raise PropError(
-            f"{path} is a zip but not a Stable-Baselines3 model ('data' has no policy_class)", _SAVE_HINT
-        )
-    module = str(pc.get("__module__", "?"))
-    # The class's own __init__ is written as "<function ActorCriticCnnPolicy.__init__ at 0x...>".
-    m = re.match(r"<function (\w+)\.__init__", str(pc.get("__init__", "")))
-    name = m.group(1) if m else "a subclass"
-    family, mlp_class = _FAMILIES.get(module, (None, None))
-    if family is None or name != mlp_class:
-        raise _unsupported(path, f"policy {name} from {module}")
-    return family, name
-
-
-def _algorithm(family: str, data: dict) -> str:
-    """The algorithm's name, for the manifest; the actor is the same across each family."""
-    if family == "actor_critic":
-        return "PPO" if "clip_range" in data else "A2C"
-    if family == "sac":
-        return "SAC"
-    ddpg = data.get("policy_delay") == 1 and data.get("target_noise_clip") == 0.0
-    return "DDPG" if ddpg else "TD3"
-
-
-def _space(data: dict, field: str, path: str) -> tuple[str, dict]:
-    space = data.get(field)
-    kind = str(space.get(":type:", "")) if isinstance(space, dict) else ""
-    m = re.search(r"gymnasium\.spaces\.\w+\.(\w+)'|gym\.spaces\.\w+\.(\w+)'", kind)
-    if not m:
-        raise PropError(f"{path}: 'data' has no readable {field}", _SAVE_HINT)
-    return m.group(1) or m.group(2), space
-
-
-def _numbers(text: object, count: int) -> list[float] | None:
-    """Parse numpy's repr of a float array ('[-1. -1. -8.]'); None if it is truncated or odd."""
-    if not isinstance(text, str) or "..." in text:
-        return None
-    try:
-        values = [float(t) for t in text.replace("[", " ").replace("]", " ").split()]
-    except ValueError:
-        return None
-    if len(values) == 1 and count > 1:
-        values = values * count
-    return values if len(values) == count else None
-
-
-def _observation_shape(data: dict, path: str) -> list[int]:
-    kind, space = _space(data, "observation_space", path)
-    shape = space.get("_shape")
-    if kind != "Box" or not isinstance(shape, list) or not shape:
-        raise _unsupported(path, f"a {kind} observation space")
-    if space.get("dtype") == "uint8" and len(shape) == 3:
-        raise _unsupported(path, "an image observation space (CnnPolicy)")
-    return [int(d) for d in shape]
-
-
-def _action(family: str, data: dict, path: str) -> dict:
-    kind, space = _space(data, "action_space", path)
-    if kind == "Discrete" and family == "actor_critic":
-        return {"space": "Discrete", "n": int(space["n"])}
-    shape = space.get("_shape")
-    if kind != "Box" or not isinstance(shape, list) or len(shape) != 1:
-        raise _unsupported(path, f"a {kind} action space for {family.replace('_', '-')} policies")
-    action = {"space": "Box", "shape": [int(shape[0])]}
-    if family != "actor_critic":  # squashed policies: we rescale to the bounds as predict() does
-        n = int(shape[0])
-        low = _numbers(space.get("low"), n) or _numbers(space.get("low_repr"), n)
-        high = _numbers(space.get("high"), n) or _numbers(space.get("high_repr"), n)
-        if low is None or high is None or not all(map(math.isfinite, low + high)):
-            raise PropError(
-                f"{path}: cannot read finite action bounds (low/high) from 'data'",
-                "save the model with a bounded Box action space, as SAC and TD3 require",
-            )
-        action.update(low=low, high=high)
-    return action
 
 
 def _activation(family: str, data: dict, override: str | None, path: str) -> str:
-    if override is not None:
-        act = override.strip().lower()
-        if act not in ACTIVATIONS:
-            raise PropError(
-                f"--activation: unknown activation '{act}'", f"use one of: {', '.join(ACTIVATIONS)}"
-            )
-        return act
-    kwargs = data.get("policy_kwargs")
-    # Plain dict, or a pickled one with str(activation_fn) beside it: "<class '...activation.ReLU'>".
-    text = kwargs.get("activation_fn") if isinstance(kwargs, dict) else None
-    if text is None:
-        return DEFAULT_ACTIVATION[family]
-    name = re.sub(r"^<class '(.*)'>$", r"\1", str(text)).rpartition(".")[2]
-    if name not in _TORCH_NAMES:
+    """The activation SB3 built the actor with; never a guess (a wrong one changes the network)."""
+    recorded = sb3_zip.activation_class(data)
+    if recorded is None:
+        act = DEFAULT_ACTIVATION[family]  # SB3 wrote no activation_fn: it used its default
+    elif recorded in activations.BY_CLASS_NAME:
+        act = activations.BY_CLASS_NAME[recorded]
+    else:
         raise PropError(
-            f"{path}: policy_kwargs activation_fn {name} is not one prop rebuilds",
-            f"pass --activation with the closest of: {', '.join(ACTIVATIONS)}",
+            f"{path}: policy_kwargs activation_fn {recorded} is not one prop can rebuild, and any other "
+            "would change the network",
+            "prop rebuilds " + ", ".join(cls.__name__ for cls in activations.ACTIVATIONS.values()),
         )
-    return _TORCH_NAMES[name]
-
-
-# ---- the module ------------------------------------------------------------------------------
+    if override is not None and activations.check(override, "--activation") != act:
+        raise PropError(
+            f"--activation {override} contradicts {path}, whose actor uses {act}",
+            "drop --activation: prop reads the activation from the zip",
+        )
+    return act
 
 
 def _mlp(
@@ -239,23 +74,23 @@ def _mlp(
         if k.startswith(prefix) and k.endswith(".weight") and k[len(prefix) :].split(".")[0].isdigit()
     )
     if idx != list(range(0, 2 * len(idx), 2)):
-        raise _unsupported(path, f"a network '{prefix[:-1]}' that is not SB3's MLP layout")
+        raise unsupported(path, f"a network '{prefix[:-1]}' that is not SB3's MLP layout")
     layers: list[nn.Module] = []
     for j, i in enumerate(idx):
         out_f, in_f = weights[f"{prefix}{i}.weight"].shape
         layers.append(nn.Linear(in_f, out_f, bias=f"{prefix}{i}.bias" in weights))
         final = j == len(idx) - 1
         if not final:
-            layers.append(ACTIVATIONS[act]())
+            layers.append(activations.make(act))
         elif last is not None:
-            layers.append(ACTIVATIONS[last]())
+            layers.append(activations.make(last))
     return nn.Sequential(*layers)
 
 
 def _linear(weights: dict[str, torch.Tensor], name: str, path: str) -> nn.Linear:
     w = weights.get(name + ".weight")
     if w is None or w.ndim != 2:
-        raise _unsupported(path, f"a policy without a linear '{name}'")
+        raise unsupported(path, f"a policy without a linear '{name}'")
     return nn.Linear(w.shape[1], w.shape[0], bias=name + ".bias" in weights)
 
 
@@ -312,9 +147,9 @@ def split_state(family: str, state: dict[str, torch.Tensor], path: str):
     rest = {k: v for k, v in state.items() if k.startswith(rest_pre)}
     other = sorted(set(state) - set(actor) - set(rest))
     if other:
-        raise _unsupported(path, f"a policy with tensors beyond MlpPolicy's ({', '.join(other[:3])})")
+        raise unsupported(path, f"a policy with tensors beyond MlpPolicy's ({', '.join(other[:3])})")
     if not actor:
-        raise _unsupported(path, "a policy.pth without the actor's tensors")
+        raise unsupported(path, "a policy.pth without the actor's tensors")
     return actor, rest
 
 
@@ -353,9 +188,17 @@ def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Mo
     return module
 
 
+def _bounds(spec: dict) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    action = spec["action"]
+    if "low" in action and "high" in action:
+        return tuple(action["low"]), tuple(action["high"])
+    return None, None
+
+
 def _loaded(spec: dict, state: dict[str, torch.Tensor], path: str) -> LoadedModel:
     actor, rest = split_state(spec["family"], state, path)
     module = build_module(spec, actor, path)
+    low, high = _bounds(spec)
     return LoadedModel(
         module=finish(module),
         spec=spec,
@@ -363,29 +206,54 @@ def _loaded(spec: dict, state: dict[str, torch.Tensor], path: str) -> LoadedMode
         input_shape=tuple(spec["observation_shape"]),
         source=path,
         extra=rest,
+        continuous=spec["action"]["space"] == "Box",
+        action_low=low,
+        action_high=high,
     )
 
 
-def load(path: str | Path, *, activation: str | None = None) -> LoadedModel:
-    """Read an SB3 zip (no unpickling, no SB3 needed) into its deterministic actor."""
-    path = Path(path)
-    data, state, version = read_zip(path)
-    src = str(path)
-    family, policy = _policy_class(data, src)
-    if data.get("use_sde") is True:
-        raise _unsupported(src, "gSDE (use_sde=True)")
-    spec = {
-        "adapter": NAME,
-        "algorithm": _algorithm(family, data),
-        "family": family,
-        "policy": policy,
-        "activation": _activation(family, data, activation, src),
-        "observation_shape": _observation_shape(data, src),
-        "action": _action(family, data, src),
-        "sb3_version": version,
-    }
-    return _loaded(spec, state, src)
+class SB3Adapter(Adapter):
+    name = "sb3"
+    summary = "a Stable-Baselines3 zip: model.save() of " + sb3_zip.SUPPORTED + "; its deterministic actor"
+    options = ("activation",)
 
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        return path.suffix.lower() == ".zip"
 
-def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    return _loaded(spec, weights, source)
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        data, state, version = sb3_zip.read_zip(path)
+        src = str(path)
+        family, policy = sb3_zip.policy_class(data, src)
+        if data.get("use_sde") is True:
+            raise unsupported(src, "gSDE (use_sde=True)")
+        spec = {
+            "adapter": self.name,
+            "algorithm": sb3_zip.algorithm(family, data),
+            "family": family,
+            "policy": policy,
+            "activation": _activation(family, data, options.activation, src),
+            "observation_shape": sb3_zip.observation_shape(data, src),
+            "action": sb3_zip.action_space(family, data, src),
+            "sb3_version": version,
+        }
+        return _loaded(spec, state, src)
+
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        return _loaded(spec, weights, source)
+
+    def weights(self, path: Path) -> dict[str, torch.Tensor]:
+        return sb3_zip.read_zip(path)[1]
+
+    def describe(self, loaded: LoadedModel) -> dict:
+        spec = loaded.spec
+        info = super().describe(loaded)
+        info.update(
+            algorithm=spec["algorithm"],
+            policy=spec["policy"],
+            observation_shape=spec["observation_shape"],
+            action_space=spec["action"]["space"],
+            sb3_version=spec.get("sb3_version"),
+        )
+        if spec["action"]["space"] == "Discrete":
+            info["actions"] = spec["action"]["n"]
+        return info

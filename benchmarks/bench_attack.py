@@ -68,13 +68,14 @@ def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -
 
 
 def default_audit(bundle: Path, data: Path, key: Path) -> dict:
-    from prop_cli.attack import AuditSettings, audit
+    from prop_cli.audit import audit
     from prop_cli.bundle import load_bundle
-    from prop_cli.data import load_npz
+    from prop_cli.config import AuditSettings
+    from prop_cli.datasources import load_data
     from prop_cli.keys import read_key_file
 
     b = load_bundle(bundle)
-    return audit(b, load_npz(data), [read_key_file(key, b.key_bits)], AuditSettings())
+    return audit(b, load_data(data), [read_key_file(key, b.key_bits)], AuditSettings())
 
 
 def main(argv: list[str] | None = None) -> None:

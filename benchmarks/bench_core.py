@@ -25,9 +25,10 @@ from examples.il_task import write_example
 from prop_adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.keyspace import KeySampler
 from prop_cli.layers import select_layers
-from prop_cli.objective import KeySampler, prop_loss
-from prop_cli.trainer import _batch
+from prop_cli.objective import prop_loss
+from prop_cli.trainer import FallbackPool, make_batch
 
 
 def interleaved(fns: dict, rounds: int = 7, reps: int = 50) -> dict[str, float]:
@@ -83,11 +84,10 @@ def train_steps(paths: dict, data: Path | None = None) -> dict[str, float]:
     key = rng.integers(0, 2, 128, dtype=np.uint8)
     sampler = KeySampler([key], cfg.hamming_radius, rng)
     ucodes = key_codes(key, cfg.key_encoding)
-    with torch.no_grad():
-        pool_t = loaded.module(x)
+    pool = FallbackPool(x, loaded.module, cfg.fallback_noise, cfg.fallback_sigma)
 
     def prop_step() -> None:
-        batch = _batch(cfg, rng, sampler, ucodes, [x], [y], x, pool_t)
+        batch = make_batch(cfg, rng, sampler, ucodes, [x], [y], pool)
         out = km.run_rows(batch.x, km.layer_deltas(batch.codes, null=1), batch.key_index, batch.sample_index)
         loss, _ = prop_loss(out, batch, "regression", cfg.null_weight)
         kopt.zero_grad(set_to_none=True)

@@ -31,8 +31,10 @@ from examples.il_task import write_example
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.export import KEYED_GRAPH, OnnxPolicy, _session, export_onnx
+from prop_cli.constants import KEYED_GRAPH
+from prop_cli.export import export_onnx
 from prop_cli.keyed import key_codes
+from prop_cli.onnx_runtime import OnnxPolicy, session
 
 
 def _per_step_us(fn, x: np.ndarray, steps: int) -> float:
@@ -67,7 +69,7 @@ def main() -> None:
         print(f"exported {res.out.name}/: max abs diff onnxruntime vs torch {worst:.2e}")
         code = key_codes(key, bundle.key_encoding)
 
-        keyed_sess = _session(res.out / KEYED_GRAPH, threads=1)
+        keyed_sess = session(res.out / KEYED_GRAPH, threads=1)
         code_np = code.numpy()
         ort_base = OnnxPolicy(res.out, None, threads=1)  # base.onnx
         split = OnnxPolicy(res.out, code_np, threads=1)  # delta computed once, here; policy.onnx

@@ -1,6 +1,7 @@
 """The library's front door: one function per CLI command, usable from Python as well.
 
-Data path: checkpoint -> adapter -> keyed model -> trainer -> bundle (-> attack | export).
+Data path (docs/design.md): checkpoint -> adapter -> keyed model -> trainer -> bundle -> attack | export.
+The CLI parses, calls one function here and prints; everything else lives in the modules named below.
 """
 
 from __future__ import annotations
@@ -10,34 +11,49 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 import prop_adapters
+from prop_adapters import CheckpointOptions
 
 from . import constants as C
-from .bundle import Bundle, check_output, describe_layers, write_bundle
-from .config import PersonalizeConfig
-from .data import load_npz
+from .audit import apply_max_leak, audit, load_original
+from .bundle import Bundle, describe_layers, load_bundle, write_bundle
+from .config import AuditSettings, ExportSettings, PersonalizeConfig
+from .datasources import SOURCES, load_data
 from .errors import PropError
+from .files import check_output, write_file
 from .hub import resolve_checkpoint
 from .keyed import key_codes
+from .keys import KeySource, kdf_record, key_for_bundle, read_key_file
 from .layers import linear_layers, select_layers
+from .policy import KeyedPolicy
+from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from .trainer import User, personalize
 
-
-@dataclass
-class KeySource:
-    """How one user's key was given; ``bits`` never leaves memory."""
-
-    bits: np.ndarray
-    kind: str  # "file" | "passphrase"
-
-
-@dataclass
-class CheckpointOptions:
-    arch: str | None = None
-    arch_kwargs: dict | None = None
-    activation: str | None = None
+__all__ = [
+    "AuditSettings",
+    "CheckpointOptions",
+    "ExportSettings",
+    "KeySource",
+    "KeyedPolicy",
+    "PersonalizeConfig",
+    "apply_max_leak",
+    "audit",
+    "audit_bundle",
+    "export_bundle",
+    "formats",
+    "inspect_checkpoint",
+    "key_codes",
+    "key_for_bundle",
+    "load_bundle",
+    "load_inputs",
+    "personalize_checkpoint",
+    "push_bundle",
+    "read_key_file",
+    "record_audit",
+    "run_bundle",
+    "run_file",
+]
 
 
 @dataclass
@@ -50,29 +66,35 @@ class PersonalizeResult:
     manifest: dict = field(repr=False, default_factory=dict)
 
 
+def formats() -> dict:
+    """The checkpoint formats and data formats prop reads, from their registries (`prop formats`)."""
+    return {
+        "checkpoints": [{"name": a.name, "summary": a.summary} for a in prop_adapters.ADAPTERS],
+        "data": [{"name": s.name, "summary": s.summary} for s in SOURCES],
+    }
+
+
+def _load(path: str, opts: CheckpointOptions | None) -> prop_adapters.LoadedModel:
+    return prop_adapters.load_checkpoint(resolve_checkpoint(path), opts or CheckpointOptions())
+
+
 def inspect_checkpoint(
     path: str,
-    opts: CheckpointOptions,
+    opts: CheckpointOptions | None = None,
     layers: list[str] | None = None,
     exclude: list[str] | None = None,
 ) -> dict:
-    """The linear layers of a checkpoint and which of them would be keyed."""
-    loaded = prop_adapters.load_checkpoint(
-        resolve_checkpoint(path), arch=opts.arch, arch_kwargs=opts.arch_kwargs, activation=opts.activation
-    )
+    """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
+    loaded = _load(path, opts)
     chosen = set(select_layers(loaded.module, layers, exclude))
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
+        "model": prop_adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
         "parameters": sum(p.numel() for p in loaded.module.parameters()),
         "layers": [
-            {
-                "name": n,
-                "in_features": m.in_features,
-                "out_features": m.out_features,
-                "keyed": n in chosen,
-            }
+            {"name": n, "in_features": m.in_features, "out_features": m.out_features, "keyed": n in chosen}
             for n, m in linear_layers(loaded.module)
         ],
     }
@@ -91,21 +113,19 @@ def personalize_checkpoint(
     force: bool = False,
     progress: Callable[[int, dict[str, float]], None] | None = None,
 ) -> PersonalizeResult:
-    """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle."""
-    opts = opts or CheckpointOptions()
-    cfg.validate()
-    check_output(out, force)  # before hours of training, not after
-    loaded = prop_adapters.load_checkpoint(
-        resolve_checkpoint(checkpoint),
-        arch=opts.arch,
-        arch_kwargs=opts.arch_kwargs,
-        activation=opts.activation,
-    )
-    datasets = [load_npz(p) for p, _ in users]
+    """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
+
+    ``users`` pairs each user's data file with their key (``keys.user_keys`` builds them from key files
+    and passphrases; ``salt`` is the passphrase salt it returns).
+    """
     bits = {len(k.bits) for _, k in users}
-    if len(bits) != 1:
+    if len(bits) > 1:
         raise PropError("the users' keys have different sizes", "give every user a key of the same size")
-    general_ds = load_npz(general, require_y=False) if general is not None else None
+    cfg.validate(key_bits=min(bits) if bits else None)
+    check_output(out, force)  # before hours of training, not after
+    loaded = _load(checkpoint, opts)
+    datasets = [load_data(p) for p, _ in users]
+    general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None
     result = personalize(
         loaded,
         [User(d, k.bits) for d, (_, k) in zip(datasets, users)],
@@ -115,26 +135,17 @@ def personalize_checkpoint(
         progress=progress,
     )
     kinds = sorted({k.kind for _, k in users})
-    key_meta = {
-        "bits": bits.pop(),
-        "encoding": cfg.key_encoding,
-        "users": len(users),
-        "source": kinds[0] if len(kinds) == 1 else "mixed",
-        "kdf": None
-        if salt is None
-        else {
-            "name": "scrypt",
-            "n": C.SCRYPT_N,
-            "r": C.SCRYPT_R,
-            "p": C.SCRYPT_P,
-            "salt": salt.hex(),
-        },
-    }
     keyed = result.keyed
     manifest = {
         C.M_MODEL: loaded.spec,
         C.M_KEYED_LAYERS: describe_layers(keyed),
-        C.M_KEY: key_meta,
+        C.M_KEY: {
+            "bits": bits.pop(),
+            "encoding": cfg.key_encoding,
+            "users": len(users),
+            "source": kinds[0] if len(kinds) == 1 else "mixed",
+            "kdf": kdf_record(salt),
+        },
         C.M_ENCODER: {
             "hidden": list(cfg.encoder_hidden),
             "scale": cfg.delta_scale,
@@ -154,44 +165,126 @@ def personalize_checkpoint(
     )
 
 
-def load_inputs(path: Path, bundle: Bundle) -> np.ndarray:
-    """Inputs for `prop run`: a .npy array, or the ``x`` of an .npz; checked against the bundle."""
+def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
+    """Inputs for `prop run`: a .npy array, or the ``x`` of a data file; checked against the bundle."""
     path = Path(path)
-    if path.suffix == ".npz":
-        x = load_npz(path, require_y=False, min_samples=1).x
-    else:
+    if path.suffix == ".npy":
         if not path.is_file():
-            raise PropError(f"--input {path} does not exist", "give a .npy or .npz file")
+            raise PropError(f"{flag} {path} does not exist", "give a .npy or .npz file")
         try:
             x = np.load(path, allow_pickle=False)
         except (ValueError, OSError) as e:
             raise PropError(
-                f"--input {path} is not a readable .npy file ({e})", "save inputs with numpy.save"
+                f"{flag} {path} is not a readable .npy file ({e})", "save inputs with numpy.save"
             ) from e
         if x.dtype.kind not in "fiu" or not np.isfinite(x).all():
-            raise PropError(f"--input {path} must hold finite numbers", "check the array")
+            raise PropError(f"{flag} {path} must hold finite numbers", "check the array")
         x = x.astype(np.float32)
+    else:
+        x = load_data(path, require_y=False, min_samples=1, flag=flag).x
     want = tuple(bundle.manifest[C.M_IO]["input_shape"])
     if x.shape[1:] != want:
         if x.shape == want:
             x = x[None]  # a single sample
         else:
             raise PropError(
-                f"--input {path}: samples have shape {x.shape[1:]}, the bundle expects {want}",
+                f"{flag} {path}: samples have shape {x.shape[1:]}, the bundle expects {want}",
                 "give an array of shape (N, " + ", ".join(map(str, want)) + ")",
             )
     return x
 
 
 def run_bundle(bundle: Bundle, x: np.ndarray, key: np.ndarray | None) -> np.ndarray:
-    """The bundle's outputs: with a key, that key's behaviour (delta folded in memory); without, base."""
-    module = bundle.keyed.module
-    if key is not None:
-        if len(key) != bundle.key_bits:
-            raise PropError(
-                f"the key has {len(key)} bits but the bundle expects {bundle.key_bits}",
-                "use the key the bundle was personalized with",
-            )
-        module = bundle.keyed.fold(key_codes(key, bundle.key_encoding))
-    with torch.no_grad():
-        return module(torch.from_numpy(x)).numpy()
+    """The bundle's raw outputs on ``x``: with a key, that key's behaviour; without, the base's.
+
+    One call folds the key once; in a control loop keep a ``KeyedPolicy(bundle, key)`` instead.
+    """
+    return KeyedPolicy(bundle, key)(x)
+
+
+@dataclass
+class RunResult:
+    output: Path
+    shape: tuple[int, ...]
+    keyed: bool
+    onnx: bool
+
+
+def run_file(
+    bundle_path: Path,
+    input_path: Path,
+    output: Path,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    onnx: bool = False,
+    onnx_dir: Path | None = None,
+    force: bool = False,
+) -> RunResult:
+    """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
+    check_output(output, force, what="output", flag="--output")
+    bundle = load_bundle(bundle_path)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    x = load_inputs(input_path, bundle)
+    if onnx or onnx_dir is not None:
+        from .onnx_runtime import run_onnx
+
+        y = run_onnx(bundle, x, key, onnx_dir)
+    else:
+        y = run_bundle(bundle, x, key)
+
+    def save(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.save(f, y)
+
+    write_file(output, save, what="output", flag="--output")
+    return RunResult(Path(output), tuple(y.shape), key is not None, onnx or onnx_dir is not None)
+
+
+def audit_bundle(
+    bundle_path: Path,
+    data_path: Path,
+    settings: AuditSettings,
+    *,
+    key_files: list[Path] = (),
+    passphrase: str | None = None,
+    original: str | None = None,
+    device: str = "cpu",
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict:
+    """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
+    is the passphrase's if given, else the first key file; further key files are other users'."""
+    bundle = load_bundle(bundle_path)
+    keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
+    keys += [read_key_file(p, bundle.key_bits) for p in key_files]
+    data = load_data(data_path, require_y=bool(keys))
+    ref = load_original(bundle, original) if original else None
+    return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
+
+
+def record_audit(bundle_path: Path, report: dict) -> dict:
+    """Store the audit's summary in the bundle's manifest (``audit``); weights and hashes untouched."""
+    from .audit_report import record
+
+    return record(Path(bundle_path), report)
+
+
+def export_bundle(
+    bundle_path: Path,
+    out: Path | None = None,
+    settings: ExportSettings | None = None,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    input_path: Path | None = None,
+    force: bool = False,
+):
+    """`prop export --onnx`: the four graphs, verified against torch (``export.export_onnx``)."""
+    from .export import export_onnx
+    from .onnx_runtime import require_onnx
+
+    require_onnx()
+    bundle = load_bundle(bundle_path)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    x = load_inputs(input_path, bundle) if input_path is not None else None
+    return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)

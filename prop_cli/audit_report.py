@@ -1,4 +1,4 @@
-"""Presenting an audit report (schema ``prop-audit/1``): the table, the plot, the manifest summary."""
+"""Presenting an audit report (schema ``prop-audit/2``): the table, the plot, the manifest summary."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 from . import constants as C
 from .bundle import update_manifest
 from .errors import PropError
+from .files import write_file
 
 # Line styles of the reference lines, so overlapping searches stay distinguishable.
 _STYLES = {"relaxed": "--", "relaxed-rounded": (0, (2, 3)), "latent": "-."}
@@ -39,6 +40,15 @@ def _probe_name(g: dict) -> str:
     return g["name"] if g["threat"] == "cross-user" else f"{g['threat']} {g['name']}"
 
 
+def _control_cell(g: dict, key: str, fmt: str) -> str:
+    c = g.get("control")
+    if c is None:
+        return ""
+    if not c.get("available"):
+        return "n/a"
+    return f"{c[key]['worst']:{fmt}}"
+
+
 def table(report: dict):
     """A rich Table: one row per probe group."""
     from rich import box
@@ -51,9 +61,9 @@ def table(report: dict):
     t.add_column("probe", no_wrap=True)
     t.add_column("keys", justify="right", no_wrap=True)
     if owner:
-        cols = ["leakage ± 95% CI", "worst", "pick", "fidelity"]
+        cols = ["leakage ± 95% CI", "worst", "pick", "control", "beyond", "fidelity"]
     else:
-        cols = ["fidelity ± 95% CI", "worst", "pick"]
+        cols = ["fidelity ± 95% CI", "worst", "pick", "control"]
     for c in cols:
         t.add_column(c, justify="right", no_wrap=True)
     for g in report["groups"]:
@@ -61,17 +71,23 @@ def table(report: dict):
         if owner:
             lk = g["leakage"]
             pick = f"{srch['best_leakage']:.4f}" if srch else ""
-            row = [_ci(lk), f"{lk['worst']:.4f}", pick, f"{g['fidelity']['mean']:{ffmt}}"]
+            beyond = "" if g["beyond"] is None else f"{g['beyond']:.4f}"
+            row = [_ci(lk), f"{lk['worst']:.4f}", pick, _control_cell(g, "leakage", ".4f"), beyond,
+                   f"{g['fidelity']['mean']:{ffmt}}"]  # fmt: skip
         else:
             fd = g["fidelity"]
             pick = f"{srch['best_fidelity']:{ffmt}}" if srch else ""
-            row = [_ci(fd, ffmt), f"{fd['worst']:{ffmt}}", pick]
+            row = [_ci(fd, ffmt), f"{fd['worst']:{ffmt}}", pick, _control_cell(g, "fidelity", ffmt)]
         t.add_row(_probe_name(g), str(g["keys"]), *row)
     notes = [
         f"fidelity: {'agreement' if task == 'classification' else 'mse'} with the reference output, "
         "mean over keys; worst: the group's worst key",
         "pick: the search restart with the largest divergence (the attacker's choice)",
+        "control: the same probe's worst key where the bundle gives nothing (n/a: no original checkpoint, "
+        "pass --original); beyond: worst - control, what --max-leak gates searches on when a control exists",
     ]
+    if report.get("control_model"):
+        notes.append(f"control model: {report['control_model']}")
     if any(g["name"] == "relaxed-rounded" and not g["is_key"] for g in report["groups"]):
         notes.append("T1 relaxed-rounded probes encoder codes; with hashed keys no known key maps to them")
     verdict = report.get("max_leak")
@@ -100,16 +116,28 @@ def summary(report: dict) -> dict:
         "groups": [
             {
                 "name": g["name"],
+                "probe": g["probe"],
                 "threat": g["threat"],
+                "kind": g["kind"],
                 "keys": g["keys"],
                 "leakage": g["leakage"],
                 "fidelity_mean": g["fidelity"]["mean"],
                 "search_pick_leakage": (g.get("search") or {}).get("best_leakage"),
+                "control_worst_leakage": _control_worst(g),
+                "beyond": g["beyond"],
+                "gate": g["gate"],
             }
             for g in report["groups"]
         ],
         "max_leak": report.get("max_leak"),
     }
+
+
+def _control_worst(g: dict) -> float | None:
+    c = g.get("control")
+    if not c or not c.get("available") or c.get("leakage") is None:
+        return None
+    return c["leakage"]["worst"]
 
 
 def record(bundle_path: Path, report: dict) -> dict:
@@ -164,6 +192,11 @@ def plot(report: dict, path: Path) -> Path:
             name = f"{g['threat']} {g['name']}" if g["threat"] != "cross-user" else g["name"]
             label_ = f"{name} {what}".strip() + f": {value:.3g}"
             ax.axhline(value, color=colour, linestyle=style, linewidth=1.6, label=label_)
+            c = g.get("control")
+            if c and c.get("available"):
+                cv = c["search"][f"best_{m}"] if c.get("search") else c[m]["mean"]
+                ax.axhline(cv, color=colour, linestyle=":", linewidth=1.0, alpha=0.7,
+                           label=f"{name} control (original): {cv:.3g}")  # fmt: skip
             if g["name"] == "random":
                 w = g[m]["worst"]
                 ax.axhline(
@@ -182,7 +215,9 @@ def plot(report: dict, path: Path) -> Path:
         ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
     fig.suptitle(title(report), fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    try:
+        return write_file(
+            Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"), "--plot file", "--plot"
+        )
+    finally:
+        plt.close(fig)

@@ -6,14 +6,12 @@ never leaves a half bundle at the output path. No key material and no key hash i
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
@@ -23,32 +21,8 @@ from prop_adapters import LoadedModel
 from . import __version__
 from . import constants as C
 from .errors import PropError
+from .files import check_output, dump_json, sha256_file, staged_dir, write_text
 from .keyed import KeyedModel, KeyEncoder
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def dump_json(obj: dict) -> str:
-    """The one JSON style of prop's files: sorted keys, indented, newline-terminated."""
-    return json.dumps(obj, sort_keys=True, indent=2) + "\n"
-
-
-def check_output(out: Path, force: bool, what: str = "bundle") -> None:
-    """Refuse to replace what the user owns without --force; fail early if the place is unwritable."""
-    out = Path(out)
-    if out.exists() and not force:
-        raise PropError(f"{what} {out} already exists", "choose another --out or pass --force to replace it")
-    parent = out.resolve().parent
-    if not parent.is_dir():
-        raise PropError(f"cannot write {what} {out}: folder {parent} does not exist", "create it first")
-    if not os.access(parent, os.W_OK):
-        raise PropError(f"cannot write {what} {out}: folder {parent} is not writable", "choose another --out")
 
 
 def _safetensors_metadata(path: str) -> dict[str, str] | None:
@@ -70,8 +44,7 @@ def write_bundle(
     """Write the bundle. ``copy_base`` copies the input checkpoint's bytes (frozen base, safetensors)."""
     out = Path(out)
     check_output(out, force)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.resolve().parent))
-    try:
+    with staged_dir(out) as tmp:
         base_path = tmp / C.BASE_WEIGHTS
         if copy_base:
             shutil.copyfile(loaded.source, base_path)
@@ -89,24 +62,7 @@ def write_bundle(
         full[C.M_PROP_VERSION] = __version__
         full[C.M_FILES] = {n: sha256_file(tmp / n) for n in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)}
         (tmp / C.MANIFEST).write_text(dump_json(full))
-        _replace_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
-
-
-def _replace_dir(new: Path, out: Path) -> None:
-    if not out.exists():
-        os.replace(new, out)
-        return
-    old = new.with_name(new.name + ".old")
-    os.replace(out, old)
-    os.replace(new, out)
-    if old.is_dir():
-        shutil.rmtree(old)
-    else:
-        old.unlink()
 
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
@@ -114,9 +70,7 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     bundle = Path(path)
     manifest = read_manifest(bundle)
     manifest[key] = value
-    tmp = bundle / (C.MANIFEST + ".tmp")
-    tmp.write_text(dump_json(manifest))
-    os.replace(tmp, bundle / C.MANIFEST)
+    write_text(bundle / C.MANIFEST, dump_json(manifest), what="manifest", flag="BUNDLE")
 
 
 def read_manifest(path: Path) -> dict:
@@ -170,6 +124,14 @@ class Bundle:
     @property
     def key_encoding(self) -> str:
         return self.manifest[C.M_KEY]["encoding"]
+
+    def check_key(self, key: np.ndarray, what: str = "the key") -> np.ndarray:
+        if len(key) != self.key_bits:
+            raise PropError(
+                f"{what} has {len(key)} bits but the bundle expects {self.key_bits}",
+                "use the key the bundle was personalized with",
+            )
+        return key
 
 
 def load_bundle(path: Path) -> Bundle:

@@ -1,18 +1,54 @@
-"""Training settings: one dataclass, validated in one place, recorded in the manifest."""
+"""Settings of personalize, the audit and the export: dataclasses, validated here and nowhere else.
+
+Their field defaults are the only place a default is written: the CLI reads its option defaults from
+them. No torch here, so `prop --help` stays fast.
+"""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from typing import Any
 
+from .constants import KEY_ENCODINGS
 from .errors import PropError
-from .keyed import KEY_ENCODINGS
+
+TASKS = ("classification", "regression")
+
+
+def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
+    if not ok:
+        raise PropError(f"{flag} {value!r} is invalid", f"{flag} must be {rule}")
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+class _Settings:
+    """What the three dataclasses share: a checker naming the CLI flag, and dict round trips."""
+
+    def need(self, ok: bool, name: str, rule: str, flag: str | None = None) -> None:
+        _need(ok, flag or _flag(name), getattr(self, name), rule)
+
+    def to_dict(self) -> dict:
+        return asdict(self)  # type: ignore[call-overload]
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        known = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        return cls(**{k: v for k, v in d.items() if k in known})
 
 
 @dataclass
-class PersonalizeConfig:
+class PersonalizeConfig(_Settings):
+    """Training settings; recorded in the bundle's manifest so a run can be repeated."""
+
     steps: int = 2000
-    lr: float = 1e-3  # Adam, base weights and encoder; cosine-decays to lr * lr_floor
+    lr: float = 1e-3  # Adam, the encoder's; cosine-decays to lr * lr_floor
     lr_floor: float = 0.05
+    # The base weights learn at lr * base_lr_scale: the encoder carries the personalization, and a base
+    # that moves less keeps the no-key model closer to the original (docs/design.md, "No-key drift").
+    base_lr_scale: float = 1.0
     # Rows of one step: each row is one (sample, key) pair.
     user_rows: int = 64  # per step, shared among users: the user's key on the user's data
     null_rows: int = 32  # distinct fallback samples per step, each also run with the null key
@@ -21,15 +57,22 @@ class PersonalizeConfig:
     samples_per_key: int = 4  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
+    # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's
+    # fallback samples is a given input plus Gaussian noise of `fallback_sigma` per-feature standard
+    # deviations, labelled by the original on the fly. Keeps the no-key model the original around and
+    # between the data points too, not only on them (docs/design.md, "No-key drift").
+    fallback_noise: float = 0.5
+    fallback_sigma: float = 0.5
     encoder_hidden: list[int] = field(default_factory=lambda: [256])
     delta_scale: float = 2.0  # delta in (1 - scale, 1 + scale)
-    key_encoding: str = "hashed"
+    key_encoding: str = KEY_ENCODINGS[0]
     freeze_base: bool = False
     val_fraction: float = 0.2
     seed: int = 0
     layers: list[str] | None = None  # None = default choice (see layers.default_layers)
     exclude: list[str] | None = None
     eval_random_keys: int = 64
+    task: str | None = None  # None: decided against the model (prop_cli.data.resolve_task)
 
     @property
     def batch_rows(self) -> int:
@@ -37,35 +80,118 @@ class PersonalizeConfig:
             self.user_rows + self.null_rows + (self.random_keys + self.neighbour_keys) * self.samples_per_key
         )
 
-    def validate(self) -> PersonalizeConfig:
-        def need(ok: bool, flag: str, rule: str) -> None:
-            if not ok:
-                raise PropError(
-                    f"{flag} {getattr(self, flag[2:].replace('-', '_'))!r} is invalid",
-                    f"{flag} must be {rule}",
-                )
-
-        need(self.steps >= 1, "--steps", "at least 1")
-        need(self.lr > 0, "--lr", "positive")
-        need(0 < self.lr_floor <= 1, "--lr-floor", "in (0, 1]")
-        need(self.user_rows >= 1, "--user-rows", "at least 1")
-        need(self.null_rows >= 1, "--null-rows", "at least 1")
-        need(self.random_keys >= 0, "--random-keys", ">= 0")
-        need(self.neighbour_keys >= 0, "--neighbour-keys", ">= 0")
-        need(self.samples_per_key >= 1, "--samples-per-key", "at least 1")
-        need(self.hamming_radius >= 1, "--hamming-radius", "at least 1")
-        need(self.null_weight >= 0, "--null-weight", ">= 0")
-        need(self.delta_scale > 0, "--delta-scale", "positive")
-        need(self.key_encoding in KEY_ENCODINGS, "--key-encoding", " or ".join(KEY_ENCODINGS))
-        need(0 < self.val_fraction < 1, "--val-fraction", "in (0, 1)")
-        need(self.eval_random_keys >= 1, "--eval-random-keys", "at least 1")
-        need(all(h >= 1 for h in self.encoder_hidden), "--encoder-hidden", "positive sizes")
+    def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
+        """Check every field; with ``key_bits``, also what depends on the key size."""
+        self.need(self.steps >= 1, "steps", "at least 1")
+        self.need(self.lr > 0, "lr", "positive")
+        self.need(0 < self.lr_floor <= 1, "lr_floor", "in (0, 1]")
+        self.need(self.base_lr_scale > 0, "base_lr_scale", "positive")
+        self.need(self.user_rows >= 1, "user_rows", "at least 1")
+        self.need(self.null_rows >= 1, "null_rows", "at least 1")
+        self.need(self.random_keys >= 0, "random_keys", ">= 0")
+        self.need(self.neighbour_keys >= 0, "neighbour_keys", ">= 0")
+        self.need(self.samples_per_key >= 1, "samples_per_key", "at least 1")
+        self.need(self.hamming_radius >= 1, "hamming_radius", "at least 1")
+        if key_bits is not None:
+            self.need(
+                self.hamming_radius <= key_bits, "hamming_radius", f"at most the key size ({key_bits} bits)"
+            )
+        self.need(self.null_weight >= 0, "null_weight", ">= 0")
+        self.need(0 <= self.fallback_noise <= 1, "fallback_noise", "in [0, 1]")
+        self.need(self.fallback_sigma > 0, "fallback_sigma", "positive")
+        self.need(self.delta_scale > 0, "delta_scale", "positive")
+        self.need(self.key_encoding in KEY_ENCODINGS, "key_encoding", " or ".join(KEY_ENCODINGS))
+        self.need(0 < self.val_fraction < 1, "val_fraction", "in (0, 1)")
+        self.need(self.eval_random_keys >= 1, "eval_random_keys", "at least 1")
+        self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
+        self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
         return self
 
-    def to_dict(self) -> dict:
-        return asdict(self)
 
-    @classmethod
-    def from_dict(cls, d: dict) -> PersonalizeConfig:
-        known = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+@dataclass
+class AuditSettings(_Settings):
+    """What `prop attack` probes and how hard (docs/threat-model.md)."""
+
+    probes: list[str] | None = None  # None: every probe in the registry that is on by default
+    hamming: list[int] | None = None  # None: 1..8 with a key, none without
+    per_distance: int = 256  # keys per distance; every key when the neighbourhood is smaller
+    random: int = 4096
+    restarts: int = 8
+    search_steps: int = 200
+    search_lr: float = 0.1
+    samples: int = 256  # samples of --data the audit runs on
+    seed: int = 0
+
+    def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
+        self.need(self.per_distance >= 1, "per_distance", "at least 1")
+        self.need(self.random >= 0, "random", ">= 0")
+        self.need(self.restarts >= 1, "restarts", "at least 1")
+        self.need(self.search_steps >= 1, "search_steps", "at least 1")
+        self.need(self.search_lr > 0, "search_lr", "positive")
+        self.need(self.samples >= 2, "samples", "at least 2")
+        if self.probes is not None:
+            unknown = [p for p in self.probes if p not in known_probes]
+            _need(not unknown, "--probes", ",".join(self.probes), "a list of: " + ", ".join(known_probes))
+        if self.hamming:
+            if not has_key:
+                raise PropError(
+                    "--hamming needs the user's key (neighbours are keys a few bits from it)",
+                    "pass --key-file, or drop --hamming for a no-key audit",
+                )
+            _need(
+                max(self.hamming) <= key_bits,
+                "--hamming",
+                max(self.hamming),
+                f"at most the key size ({key_bits} bits)",
+            )
+        return self
+
+
+def parse_hamming(spec: str) -> list[int]:
+    """``1..8`` (a range), ``1,2,4`` (a list) or ``3`` -> sorted distinct distances >= 1."""
+    bad = PropError(
+        f"--hamming {spec!r} is not a distance list",
+        "use a range like 1..8, a list like 1,2,4, or one distance like 3 (all >= 1)",
+    )
+    out: set[int] = set()
+    try:
+        for part in spec.replace(" ", "").split(","):
+            if ".." in part:
+                lo, hi = (int(v) for v in part.split(".."))
+                if lo > hi:
+                    raise bad
+                out.update(range(lo, hi + 1))
+            else:
+                out.add(int(part))
+    except ValueError:
+        raise bad from None
+    if not out or min(out) < 1:
+        raise bad
+    return sorted(out)
+
+
+def parse_list(spec: str, flag: str) -> list[str]:
+    """``a,b,c`` -> ["a", "b", "c"] (``none`` -> []); names are checked where they are known."""
+    parts = [p for p in spec.replace(" ", "").lower().split(",") if p]
+    if not parts:
+        raise PropError(f"{flag} {spec!r} is empty", f"give a comma-separated list, or {flag} none")
+    return [] if parts == ["none"] else parts
+
+
+@dataclass
+class ExportSettings(_Settings):
+    """`prop export --onnx`: which opset, and how close onnxruntime must be to torch."""
+
+    opset: int = 18  # runs on every onnxruntime since 1.14; the TorchScript exporter goes up to 20
+    atol: float = 1e-5
+    seed: int = 0  # random verification inputs and the random verification key
+
+    MIN_OPSET = 13
+    MAX_OPSET = 20
+
+    def validate(self) -> ExportSettings:
+        self.need(
+            self.MIN_OPSET <= self.opset <= self.MAX_OPSET, "opset", f"in {self.MIN_OPSET}..{self.MAX_OPSET}"
+        )
+        self.need(self.atol > 0, "atol", "positive")
+        return self

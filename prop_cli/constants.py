@@ -24,6 +24,26 @@ M_IO = "io"  # {"input_shape": [...], "checkpoint": str}
 M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
 
+# How key bits become the encoder's input (prop_cli.keyed.key_codes); the first is the default.
+KEY_ENCODINGS = ("hashed", "raw")
+
+# ONNX export (a folder; `prop export --onnx`).
+EXPORT_DIR = "onnx"  # default place: <bundle>/onnx
+EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
+EXPORT_FORMAT = 1
+BASE_GRAPH = "base.onnx"
+KEYED_GRAPH = "keyed.onnx"
+ENCODER_GRAPH = "encoder.onnx"
+POLICY_GRAPH = "policy.onnx"
+GRAPHS = (BASE_GRAPH, KEYED_GRAPH, ENCODER_GRAPH, POLICY_GRAPH)
+
+# Audit reports (`prop attack --json`).
+AUDIT_SCHEMA = "prop-audit/2"
+
+# The CLI's defaults that are not training, audit or export settings (those are in prop_cli.config).
+DEFAULT_BUNDLE = "personalized.prop"  # personalize --out
+DEFAULT_DEVICE = "auto"  # --device: CUDA when there is one
+
 # Environment variables.
 ENV_PASSPHRASE = "PROP_PASSPHRASE"
 ENV_DEBUG = "PROP_DEBUG"

@@ -1,136 +1,30 @@
-"""Datasets: ``.npz`` files with ``x`` (inputs) and ``y`` (targets), checked before training."""
+"""Data against the model: does it fit, what task it is, and the train/validation split.
+
+The task is decided against the model, not by the dtype of ``y`` alone: a checkpoint whose adapter
+says its outputs are continuous (a Box action space) is regression whatever ``y``'s dtype, one that
+says discrete is classification; for the rest, integer labels (N,) for a model with several outputs
+are classification and everything else regression. ``--task`` overrides it.
+"""
 
 from __future__ import annotations
 
-import zipfile
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
+import torch
 
-from prop_cli.errors import PropError
+from prop_adapters import LoadedModel
 
-SAVE_HINT = "save it with numpy.savez(path, x=inputs, y=targets)"
+from .datasources import Dataset
+from .errors import PropError
 
-
-@dataclass
-class Dataset:
-    x: np.ndarray  # float32, (N, *features)
-    y: np.ndarray | None  # int64 (N,) class labels, or float32 (N,) / (N, d) targets
-    path: str
-
-    @property
-    def task(self) -> str | None:
-        """'classification' for integer labels, 'regression' for float targets, None without y."""
-        if self.y is None:
-            return None
-        return "classification" if self.y.dtype.kind in "iub" else "regression"
-
-    def __len__(self) -> int:
-        return int(self.x.shape[0])
-
-
-def _nonfinite_rows(a: np.ndarray) -> int:
-    if a.dtype.kind != "f":
-        return 0
-    bad = ~np.isfinite(a.reshape(a.shape[0], -1) if a.ndim > 1 else a.reshape(-1, 1))
-    return int(bad.any(axis=1).sum())
-
-
-def _field(npz, name: str, path: Path) -> np.ndarray:
-    try:
-        return np.asarray(npz[name])
-    except ValueError:  # object arrays need pickle, which we never allow
-        raise PropError(
-            f"{path}: field '{name}' is an object array (needs pickle, which prop refuses)",
-            f"store '{name}' as a numeric array; " + SAVE_HINT,
-        ) from None
-
-
-def load_npz(path: str | Path, *, require_y: bool = True, min_samples: int = 10) -> Dataset:
-    """Read and validate a dataset; every problem is a PropError naming the file and the field."""
-    path = Path(path)
-    if not path.exists():
-        raise PropError(f"data file {path} does not exist", "check the path")
-    if path.is_dir():
-        raise PropError(f"data file {path} is a directory", "pass an .npz file")
-    try:
-        npz = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
-        raise PropError(f"data file {path} is not a valid .npz ({type(e).__name__})", SAVE_HINT) from None
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise PropError(f"data file {path} holds a single array, not an .npz with x and y", SAVE_HINT)
-    with npz:
-        fields = list(npz.files)
-        if "x" not in fields:
-            raise PropError(f"{path} has no field 'x' (fields: {', '.join(fields) or 'none'})", SAVE_HINT)
-        x = _field(npz, "x", path)
-        y = _field(npz, "y", path) if "y" in fields else None
-    if y is None and require_y:
-        raise PropError(
-            f"{path} has no field 'y' (fields: {', '.join(fields)})",
-            "add the targets you want under your key: " + SAVE_HINT,
-        )
-
-    if x.dtype.kind not in "biuf":
-        raise PropError(f"{path}: field 'x' has dtype {x.dtype}, not numbers", SAVE_HINT)
-    if x.ndim < 2:
-        raise PropError(
-            f"{path}: field 'x' has shape {x.shape}; it must be (samples, features...)",
-            "for one feature per sample use x.reshape(-1, 1)",
-        )
-    x = x.astype(np.float32)
-    bad = _nonfinite_rows(x)
-    if bad:
-        raise PropError(f"{path}: field 'x' has NaN or inf in {bad} rows", "drop or fix those rows")
-
-    if y is not None:
-        if y.dtype.kind not in "biuf":
-            raise PropError(f"{path}: field 'y' has dtype {y.dtype}, not numbers", SAVE_HINT)
-        if y.ndim == 0 or len(y) != len(x):
-            n_y = "a scalar" if y.ndim == 0 else f"{len(y)} rows"
-            raise PropError(
-                f"{path}: field 'x' has {len(x)} rows but field 'y' has {n_y}",
-                "give one target per input",
-            )
-        if y.dtype.kind == "f":
-            y = y.astype(np.float32)
-            bad = _nonfinite_rows(y)
-            if bad:
-                raise PropError(f"{path}: field 'y' has NaN or inf in {bad} rows", "drop or fix those rows")
-            if y.ndim not in (1, 2):
-                raise PropError(
-                    f"{path}: field 'y' (regression targets) has shape {y.shape}; "
-                    "it must be (N,) or (N, outputs)",
-                    "reshape y to (N, outputs)",
-                )
-        else:
-            if y.ndim != 1:
-                raise PropError(
-                    f"{path}: field 'y' (integer class labels) has shape {y.shape}; it must be (N,)",
-                    "use y.reshape(-1), or store float targets for regression",
-                )
-            y = y.astype(np.int64)
-            neg = int((y < 0).sum())
-            if neg:
-                raise PropError(
-                    f"{path}: field 'y' has {neg} negative class labels",
-                    "labels must be 0..classes-1",
-                )
-
-    if len(x) < min_samples:
-        raise PropError(
-            f"{path}: field 'x' has {len(x)} rows, fewer than the {min_samples} needed",
-            "collect more samples",
-        )
-    return Dataset(x=x, y=y, path=str(path))
+# Targets this far outside a recorded action bound still count as inside (float32 round-off).
+_BOUND_TOL = 1e-5
 
 
 def check_features(
     ds: Dataset, input_shape: tuple[int, ...] | None, model_name: str, *, flag: str = "--data"
 ) -> None:
     """Refuse data whose per-sample shape is not what the model takes."""
-    if input_shape is None:
+    if input_shape is None or isinstance(ds.x, dict):
         return
     got, want = tuple(ds.x.shape[1:]), tuple(input_shape)
     if got == want:
@@ -142,26 +36,91 @@ def check_features(
     raise PropError(f"{flag} {ds.path}: {detail}", "use data collected for this model")
 
 
-def check_targets(ds: Dataset, output_dim: int, *, flag: str = "--data") -> None:
-    """Refuse labels the model has no output for, or targets of the wrong width."""
-    if ds.y is None:
-        return
-    if ds.task == "classification":
-        top = int(ds.y.max()) if len(ds.y) else -1
-        if top >= output_dim:
-            raise PropError(
-                f"{flag} {ds.path}: field 'y' has class label {top} but the model has only "
-                f"{output_dim} outputs (labels 0..{output_dim - 1})",
-                "relabel y, or use a model with more outputs",
-            )
-        return
-    width = 1 if ds.y.ndim == 1 else int(ds.y.shape[1])
-    if width != output_dim:
+def output_width(loaded: LoadedModel, ds: Dataset, flag: str) -> int:
+    """Run the model on one sample: its output width, or a PropError if the inputs do not fit."""
+    check_features(ds, loaded.input_shape, loaded.source, flag=flag)
+    try:
+        with torch.no_grad():
+            out = loaded.module(torch.from_numpy(ds.x[:1]))
+    except Exception as e:  # noqa: BLE001 - any failure here means the inputs do not fit the model
         raise PropError(
-            f"{flag} {ds.path}: field 'y' has {width} target values per sample but the model "
-            f"has {output_dim} outputs",
-            f"give y shape (N, {output_dim})",
+            f"{flag} {ds.path}: x of shape {tuple(ds.x.shape[1:])} does not fit the model "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+            "give inputs of the shape the checkpoint was trained on",
+        ) from e
+    return int(out.shape[-1])
+
+
+def resolve_task(y: np.ndarray, loaded: LoadedModel, width: int, override: str | None = None) -> str:
+    """'classification' or 'regression' for targets ``y`` of this model (see the module docstring)."""
+    if override is not None:
+        return override
+    if loaded.continuous is not None:
+        return "regression" if loaded.continuous else "classification"
+    labels = y.dtype.kind in "biu" and y.ndim == 1 and width > 1
+    return "classification" if labels else "regression"
+
+
+def _labels(ds: Dataset, width: int, flag: str) -> np.ndarray:
+    y = ds.y
+    where = f"{flag} {ds.path}: field 'y'"
+    if y.ndim != 1:
+        raise PropError(
+            f"{where} (class labels) has shape {y.shape}; it must be (N,)",
+            "use y.reshape(-1), or --task regression if these are targets",
         )
+    if y.dtype.kind == "f" and not np.array_equal(y, np.round(y)):
+        raise PropError(
+            f"{where} holds non-integer values, but the model's {width} outputs are class logits",
+            f"give class indices 0..{width - 1} (--task regression if the outputs are not classes)",
+        )
+    y = y.astype(np.int64)
+    neg = int((y < 0).sum())
+    if neg:
+        raise PropError(f"{where} has {neg} negative class labels", "labels must be 0..classes-1")
+    top = int(y.max()) if len(y) else -1
+    if top >= width:
+        raise PropError(
+            f"{where} has class label {top} but the model has only {width} outputs (labels 0..{width - 1})",
+            "relabel y, or use a model with more outputs",
+        )
+    return y
+
+
+def _targets(ds: Dataset, loaded: LoadedModel, width: int, flag: str) -> np.ndarray:
+    y = ds.y.astype(np.float32)
+    where = f"{flag} {ds.path}: field 'y'"
+    got = 1 if y.ndim == 1 else int(y.shape[1])
+    if got != width:
+        raise PropError(
+            f"{where} has {got} target values per sample but the model has {width} outputs",
+            f"give y shape (N, {width})",
+        )
+    if loaded.action_low is not None and loaded.action_high is not None:
+        low, high = np.asarray(loaded.action_low), np.asarray(loaded.action_high)
+        tol = _BOUND_TOL * np.maximum(1.0, np.maximum(np.abs(low), np.abs(high)))
+        y2 = y.reshape(len(y), -1)
+        out = (y2 < low - tol) | (y2 > high + tol)
+        if out.any():
+            row, col = (int(i) for i in np.argwhere(out)[0])
+            raise PropError(
+                f"{where} has {int(out.sum())} values outside the action bounds the checkpoint records "
+                f"(low {low.tolist()}, high {high.tolist()}; row {row}, output {col}: {y2[row, col]:.4g})",
+                "give actions in the environment's units, within the bounds (the policy cannot act outside)",
+            )
+    return y
+
+
+def prepare(
+    loaded: LoadedModel, ds: Dataset, flag: str = "--data", task: str | None = None
+) -> tuple[Dataset, str | None]:
+    """Check ``ds`` against the model; returns it with typed targets, and its task (None without y)."""
+    width = output_width(loaded, ds, flag)
+    if ds.y is None:
+        return ds, None
+    task = resolve_task(ds.y, loaded, width, task)
+    y = _labels(ds, width, flag) if task == "classification" else _targets(ds, loaded, width, flag)
+    return Dataset(ds.x, y, ds.path, dict(ds.meta)), task
 
 
 def split(ds: Dataset, val_fraction: float, seed: int) -> tuple[Dataset, Dataset]:
@@ -171,9 +130,4 @@ def split(ds: Dataset, val_fraction: float, seed: int) -> tuple[Dataset, Dataset
     n = len(ds)
     n_val = 0 if val_fraction == 0 else min(max(1, round(n * val_fraction)), n - 1)
     order = np.random.default_rng(seed).permutation(n)
-    val_idx, train_idx = order[:n_val], order[n_val:]
-
-    def take(idx: np.ndarray) -> Dataset:
-        return Dataset(x=ds.x[idx], y=None if ds.y is None else ds.y[idx], path=ds.path)
-
-    return take(train_idx), take(val_idx)
+    return ds.subset(order[n_val:]), ds.subset(order[:n_val])

@@ -7,6 +7,7 @@ import torch
 
 from . import metrics
 from .keyed import KeyedModel, key_codes, keys_per_forward
+from .keyspace import one_bit_neighbours, random_keys
 
 
 @torch.no_grad()
@@ -17,14 +18,6 @@ def outputs_for_codes(km: KeyedModel, x: torch.Tensor, codes: torch.Tensor) -> t
         km.run_keys(x, km.layer_deltas(codes[i : i + per].to(x.device))) for i in range(0, len(codes), per)
     ]
     return torch.cat(outs)
-
-
-def one_bit_neighbours(bits: np.ndarray) -> np.ndarray:
-    """All keys at Hamming distance exactly 1 from ``bits`` (n, n)."""
-    n = len(bits)
-    keys = np.repeat(bits[None].astype(np.uint8), n, 0)
-    keys[np.arange(n), np.arange(n)] ^= 1
-    return keys
 
 
 def _group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
@@ -44,7 +37,7 @@ def user_report(
     user_bits: np.ndarray,
     encoding: str,
     task: str,
-    random_keys: int,
+    n_random: int,
     rng: np.random.Generator,
 ) -> dict:
     """personalization of the user's key; leakage and fidelity of null, random and 1-bit keys."""
@@ -52,8 +45,7 @@ def user_report(
     b = original(x)
     o_user = outputs_for_codes(km, x, key_codes(user_bits, encoding))[0]
     o_null = km(x)[None]
-    rand = rng.integers(0, 2, (random_keys, len(user_bits)), dtype=np.uint8)
-    rand[(rand == user_bits).all(1), 0] ^= 1  # "random" means other than the user's key
+    rand = random_keys(n_random, len(user_bits), rng, exclude=user_bits)
     o_rand = outputs_for_codes(km, x, key_codes(rand, encoding))
     o_ham = outputs_for_codes(km, x, key_codes(one_bit_neighbours(user_bits), encoding))
     return {

@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from .constants import KEY_ENCODINGS
 from .errors import PropError
 
-KEY_ENCODINGS = ("hashed", "raw")
 # Domain separation for the hashed key code; changing it changes every trained bundle's meaning.
 _CODE_DOMAIN = b"prop/key-code/v1"
 

@@ -1,4 +1,4 @@
-"""Key material: key files, passphrase-derived keys, and their ±1 encoding.
+"""Key material: key files, passphrase-derived keys, which key goes with which bundle, ±1 codes.
 
 Bit order everywhere: for each byte, most significant bit first (``np.unpackbits``). Nothing
 here logs, prints or puts key bits into an error message.
@@ -11,11 +11,13 @@ import os
 import stat
 import tempfile
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from prop_cli import constants as C
 from prop_cli.constants import (
     ENV_PASSPHRASE,
     KEY_BITS_MAX,
@@ -133,6 +135,14 @@ def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:
     return np.unpackbits(np.frombuffer(data, dtype=np.uint8))
 
 
+@dataclass
+class KeySource:
+    """One user's key and how it was given; ``bits`` never leaves memory."""
+
+    bits: np.ndarray  # 0/1, uint8
+    kind: str  # "file" | "passphrase"
+
+
 def new_salt() -> bytes:
     """Fresh random salt for a passphrase key (stored in the bundle manifest; not secret)."""
     return os.urandom(SALT_BYTES)
@@ -176,3 +186,41 @@ def hamming_distance(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor)
     if a_np.shape != b_np.shape:
         raise ValueError(f"cannot compare keys of shapes {a_np.shape} and {b_np.shape}")
     return int(np.count_nonzero(a_np != b_np))
+
+
+def user_keys(
+    key_files: list[Path], passphrases: list[str], bits: int = C.KEY_BITS_DEFAULT
+) -> tuple[list[KeySource], bytes | None]:
+    """Keys for `personalize`: key files first, then passphrases (one fresh salt per bundle, shared
+    by its passphrase users, stored in the manifest); returns the keys and that salt (None if none)."""
+    keys = [KeySource(read_key_file(p), "file") for p in key_files]
+    salt = None
+    if passphrases:
+        check_bits(bits)
+        salt = new_salt()
+        keys += [KeySource(passphrase_bits(p, salt, bits), "passphrase") for p in passphrases]
+    return keys, salt
+
+
+def kdf_record(salt: bytes | None) -> dict | None:
+    """What the manifest keeps to derive a passphrase key again (the salt is not secret)."""
+    if salt is None:
+        return None
+    return {"name": "scrypt", "n": SCRYPT_N, "r": SCRYPT_R, "p": SCRYPT_P, "salt": salt.hex()}
+
+
+def key_for_bundle(
+    manifest: dict, key_file: Path | None = None, passphrase: str | None = None
+) -> np.ndarray | None:
+    """The key bits for an existing bundle, from a key file or its passphrase (salt in the manifest)."""
+    bits = int(manifest[C.M_KEY]["bits"])
+    if key_file is not None and passphrase is not None:
+        raise PropError("--key-file and --passphrase both given", "use one of them")
+    if key_file is not None:
+        return read_key_file(key_file, bits)
+    if passphrase is not None:
+        kdf = manifest[C.M_KEY].get("kdf")
+        if not kdf:
+            raise PropError("this bundle was not made with a passphrase", "use --key-file")
+        return passphrase_bits(passphrase, bytes.fromhex(kdf["salt"]), bits)
+    return None

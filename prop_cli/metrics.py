@@ -1,4 +1,4 @@
-"""The shared metrics (DESIGN.md): personalization, leakage, fidelity.
+"""The shared metrics: personalization, leakage, fidelity (definitions: docs/metrics.md).
 
 ``b`` = the original model's output, ``p`` = the user's target, ``o`` = the bundle's output under a key.
 Regression outputs are (..., B, d) floats; classification uses logits (..., B, C) and labels p (B,).
@@ -11,7 +11,7 @@ import math
 
 import torch
 
-# Samples where the user's target equals the original's output carry nothing that could leak.
+# Below this the user's targets equal the original's outputs: there is nothing that could leak.
 _EPS = 1e-12
 
 
@@ -23,7 +23,14 @@ def personalization(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str
 
 
 def leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
-    """Per key: how far its outputs move from the original towards the user's behaviour, in [0, 1]."""
+    """Per key: how far its outputs move from the original towards the user's behaviour, in [0, 1].
+
+    Regression: the projection of the key's whole move ``o - b`` (all samples, all outputs) onto the
+    whole gap ``p - b``, as a fraction of the gap, clipped to [0, 1]:
+    ``clip(mean_i <o_i - b_i, p_i - b_i> / mean_i |p_i - b_i|^2, 0, 1)``. The clip comes after the
+    mean, so outputs that scatter around ``b`` average to 0 instead of counting their positive half.
+    Classification: the share of samples with ``p != argmax b`` where ``argmax o == p``.
+    """
     if task == "classification":
         differs = p != b.argmax(-1)
         if not differs.any():
@@ -31,12 +38,10 @@ def leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> tor
         return ((o.argmax(-1) == p) & differs).float().sum(-1) / differs.sum()
     gap = (p - b).flatten(1) if p.dim() > 1 else (p - b)[:, None]
     move = (o - b).flatten(2) if o.dim() > 2 else (o - b)[..., None]
-    norm = (gap**2).sum(-1)
-    keep = norm > _EPS
-    if not keep.any():
+    norm = (gap**2).sum()
+    if norm <= _EPS * gap.shape[0]:
         return torch.zeros(o.shape[0])
-    frac = ((move * gap).sum(-1) / norm.clamp_min(_EPS)).clamp(0, 1)
-    return frac[:, keep].mean(-1)
+    return ((move * gap).sum((-2, -1)) / norm).clamp(0, 1)
 
 
 def fidelity(o: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:

@@ -2,8 +2,11 @@
 
 Per step: the personalized loss of each user's key on that user's data, plus the fallback loss
 (distillation towards the frozen original) for the null key, K2 = uniform random keys and
-K1 = Hamming neighbours of the user keys within ``radius``. Neighbours are drawn in key-bit space,
-whatever the key encoding, so the objective is the paper's in both encodings.
+K1 = Hamming neighbours of the user keys within ``radius`` (drawn by ``keyspace.KeySampler``, in
+key-bit space whatever the key encoding, so the objective is the paper's in both encodings).
+
+A step's rows are laid out as [user rows | sampled-key fallback rows | null rows]; ``prop_loss``
+relies on that order (built by ``trainer.make_batch``).
 """
 
 from __future__ import annotations
@@ -28,42 +31,6 @@ def check_user_keys(keys: list[np.ndarray], radius: int) -> None:
                     f"--hamming-radius ({2 * radius})",
                     "give each user an independent key (prop keygen) or lower --hamming-radius",
                 )
-
-
-class KeySampler:
-    """Draws K1 neighbours and K2 random keys (as 0/1 bits) from a seeded generator."""
-
-    def __init__(self, user_keys: list[np.ndarray], radius: int, rng: np.random.Generator) -> None:
-        self.users = np.stack(user_keys).astype(np.uint8)
-        self.bits = self.users.shape[1]
-        self.radius = min(radius, self.bits)
-        self.rng = rng
-        # Distance 1 has only `bits` members per user: walk through all of them in turn so every
-        # 1-bit neighbour is seen every few steps, instead of hoping random draws cover them.
-        self._order = rng.permutation(self.bits)
-        self._next = 0
-
-    def neighbours(self, n: int) -> np.ndarray:
-        if n == 0:
-            return np.zeros((0, self.bits), np.uint8)
-        owner = self.rng.integers(0, len(self.users), n)
-        keys = self.users[owner].copy()
-        n1 = n // 4
-        flips = self._order[(self._next + np.arange(n1)) % self.bits]
-        self._next += n1
-        keys[np.arange(n1), flips] ^= 1
-        dist = self.rng.integers(1, self.radius + 1, n - n1)
-        ranks = self.rng.random((n - n1, self.bits)).argsort(1)
-        keys[n1:] ^= (ranks < dist[:, None]).astype(np.uint8)
-        return keys
-
-    def random(self, n: int) -> np.ndarray:
-        keys = self.rng.integers(0, 2, (n, self.bits), dtype=np.uint8)
-        # A uniform key equal to a user key has probability 2^-bits; exclude it anyway (K - K').
-        for u in self.users:
-            same = (keys == u).all(1)
-            keys[same, 0] ^= 1
-        return keys
 
 
 @dataclass

@@ -14,21 +14,25 @@ from prop_adapters import LoadedModel
 
 from . import data as data_mod
 from .config import PersonalizeConfig
+from .datasources import Dataset
 from .errors import PropError
 from .evaluate import user_report
 from .keyed import KeyedModel, KeyEncoder, key_codes
+from .keyspace import KeySampler
 from .layers import select_layers
-from .objective import Batch, KeySampler, check_user_keys, prop_loss
+from .objective import Batch, check_user_keys, prop_loss
 
 # A seed stream of its own for evaluation keys, so they cannot replay a caller's seeded user key.
 _EVAL_STREAM = 0x5EED_E7A1
 # Inputs per forward when caching the original's outputs.
 _CHUNK = 8192
 
+Progress = Callable[[int, dict[str, float]], None]  # (step, latest losses)
+
 
 @dataclass
 class User:
-    data: data_mod.Dataset
+    data: Dataset
     key_bits: np.ndarray  # 0/1, the user's key (never stored)
 
 
@@ -57,60 +61,72 @@ def resolve_device(name: str) -> torch.device:
 
 
 @torch.no_grad()
-def _outputs(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+def outputs(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """The module's outputs on many inputs, in chunks."""
     return torch.cat([module(x[i : i + _CHUNK]) for i in range(0, len(x), _CHUNK)])
 
 
-def _targets(ds: data_mod.Dataset, task: str) -> torch.Tensor:
+def targets_tensor(ds: Dataset, task: str) -> torch.Tensor:
+    """y as the loss wants it: labels (N,), or float targets (N, d)."""
     y = torch.from_numpy(ds.y)
     return y if task == "classification" or y.dim() > 1 else y[:, None]
 
 
-def _task_of(users: list[User]) -> str:
-    tasks = {u.data.task for u in users}
+class FallbackPool:
+    """The inputs the no-key, random-key and neighbour-key rows are trained on, and their targets.
+
+    The given inputs (users' training data, ``--general-data``) are labelled by the original once. A
+    share ``noise`` of each draw is a given input plus Gaussian noise of ``sigma`` per-feature standard
+    deviations, labelled by the original on the fly: the no-key model then matches the original
+    around and between the data points too, not only on them.
+    """
+
+    def __init__(self, x: torch.Tensor, original: torch.nn.Module, noise: float, sigma: float) -> None:
+        self.x = x
+        self.original = original
+        self.targets = outputs(original, x)
+        self.noise = noise
+        self.scale = sigma * x.std(0, keepdim=True) if len(x) > 1 else torch.zeros_like(x[:1])
+
+    def draw(self, n: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        idx = torch.from_numpy(rng.integers(0, len(self.x), n)).to(self.x.device)
+        x, t = self.x[idx], self.targets[idx]
+        k = int(round(self.noise * n))
+        if k:
+            eps = torch.from_numpy(rng.standard_normal((k, *x.shape[1:])).astype(np.float32)).to(x.device)
+            x = torch.cat([x[: n - k], x[n - k :] + self.scale * eps])
+            t = torch.cat([t[: n - k], outputs(self.original, x[n - k :])])
+        return x, t
+
+
+def _prepare(loaded: LoadedModel, users: list[User], general: Dataset | None, task: str | None):
+    """Users' data checked against the model, with one task for all; general inputs checked too."""
+    prepared = [data_mod.prepare(loaded, u.data, "--data", task) for u in users]
+    tasks = {t for _, t in prepared}
     if len(tasks) != 1:
         raise PropError(
-            "the --data files mix float targets and integer labels",
-            "give every user the same kind of y",
+            "the --data files hold different kinds of y (class labels and float targets)",
+            "give every user the same kind of y, or set --task",
         )
-    return tasks.pop()
-
-
-def check_compatible(loaded: LoadedModel, ds: data_mod.Dataset, flag: str) -> int:
-    """Validate a dataset against the model; returns the model's output size."""
-    data_mod.check_features(ds, loaded.input_shape, loaded.source, flag=flag)
-    try:
-        with torch.no_grad():
-            out = loaded.module(torch.from_numpy(ds.x[:1]))
-    except Exception as e:  # noqa: BLE001 - any failure here means the inputs do not fit the model
-        raise PropError(
-            f"{flag} {ds.path}: x of shape {tuple(ds.x.shape[1:])} does not fit the model "
-            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
-            "give inputs of the shape the checkpoint was trained on",
-        ) from e
-    if ds.y is not None:
-        data_mod.check_targets(ds, out.shape[-1], flag=flag)
-    return out.shape[-1]
+    if general is not None:
+        data_mod.output_width(loaded, general, "--general-data")
+    return [d for d, _ in prepared], tasks.pop()
 
 
 def personalize(
     loaded: LoadedModel,
     users: list[User],
     cfg: PersonalizeConfig,
-    general: data_mod.Dataset | None = None,
+    general: Dataset | None = None,
     device: str = "cpu",
-    progress: Callable[[int, dict[str, float]], None] | None = None,
+    progress: Progress | None = None,
 ) -> Personalized:
     """Train the keyed model of Eq. 5 with the objective of Eq. 8; the loaded module is updated in place."""
-    cfg.validate()
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
+    cfg.validate(key_bits=len(users[0].key_bits))
     check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
-    task = _task_of(users)
-    for u in users:
-        check_compatible(loaded, u.data, "--data")
-    if general is not None:
-        check_compatible(loaded, general, "--general-data")
+    datasets, task = _prepare(loaded, users, general, cfg.task)
     names = select_layers(loaded.module, cfg.layers, cfg.exclude)
 
     dev = resolve_device(device)
@@ -119,11 +135,11 @@ def personalize(
     module = loaded.module.to(dev).eval()  # eval: batch-norm statistics and dropout stay the original's
     original = copy.deepcopy(module).requires_grad_(False)
 
-    splits = [data_mod.split(u.data, cfg.val_fraction, cfg.seed + i) for i, u in enumerate(users)]
+    splits = [data_mod.split(d, cfg.val_fraction, cfg.seed + i) for i, d in enumerate(datasets)]
     ux = [torch.from_numpy(tr.x).to(dev) for tr, _ in splits]
-    uy = [_targets(tr, task).to(dev) for tr, _ in splits]
-    pool = torch.cat(ux + ([torch.from_numpy(general.x).to(dev)] if general is not None else []))
-    pool_targets = _outputs(original, pool)  # distillation targets, computed once
+    uy = [targets_tensor(tr, task).to(dev) for tr, _ in splits]
+    given = torch.cat(ux + ([torch.from_numpy(general.x).to(dev)] if general is not None else []))
+    pool = FallbackPool(given, original, cfg.fallback_noise, cfg.fallback_sigma)
 
     mods = dict(module.named_modules())
     encoder = KeyEncoder(
@@ -135,8 +151,11 @@ def personalize(
     km = KeyedModel(module, encoder, names).to(dev)
     if cfg.freeze_base:
         module.requires_grad_(False)
-    params = [p for p in km.parameters() if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=cfg.lr, foreach=True)  # one kernel per op, not per tensor
+    groups = [{"params": list(encoder.parameters())}]
+    base = [p for p in module.parameters() if p.requires_grad]
+    if base:
+        groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
+    opt = torch.optim.Adam(groups, lr=cfg.lr, foreach=True)  # foreach: one kernel per op, not per tensor
     floor = cfg.lr_floor
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))
@@ -148,72 +167,49 @@ def personalize(
     # floats, which made CPU steps ~10x slower; flushing them to zero costs nothing in accuracy.
     flush = torch.set_flush_denormal(True)
     try:
-        losses = _train(
-            km,
-            opt,
-            sched,
-            cfg,
-            rng,
-            sampler,
-            user_codes,
-            ux,
-            uy,
-            pool,
-            pool_targets,
-            task,
-            progress,
-        )
+        losses: dict[str, float] = {}
+        for step in range(cfg.steps):
+            batch = make_batch(cfg, rng, sampler, user_codes, ux, uy, pool)
+            deltas = km.layer_deltas(batch.codes, null=1)
+            out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
+            loss, losses = prop_loss(out, batch, task, cfg.null_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            if progress is not None:
+                progress(step + 1, losses)
     finally:
         if flush:
             torch.set_flush_denormal(False)
-    reports = []
-    for i, (u, (_, val)) in enumerate(zip(users, splits)):
-        reports.append(
-            user_report(
-                km,
-                original,
-                torch.from_numpy(val.x).to(dev),
-                _targets(val, task).to(dev),
-                u.key_bits,
-                cfg.key_encoding,
-                task,
-                cfg.eval_random_keys,
-                np.random.default_rng((cfg.seed, _EVAL_STREAM, i)),
-            )
+    reports = [
+        user_report(
+            km,
+            original,
+            torch.from_numpy(val.x).to(dev),
+            targets_tensor(val, task).to(dev),
+            u.key_bits,
+            cfg.key_encoding,
+            task,
+            cfg.eval_random_keys,
+            np.random.default_rng((cfg.seed, _EVAL_STREAM, i)),
         )
+        for i, (u, (_, val)) in enumerate(zip(users, splits))
+    ]
     return Personalized(km, original, task, reports, losses)
 
 
-def _train(
-    km, opt, sched, cfg, rng, sampler, user_codes, ux, uy, pool, pool_targets, task, progress
-) -> dict[str, float]:
-    losses: dict[str, float] = {}
-    for step in range(cfg.steps):
-        batch = _batch(cfg, rng, sampler, user_codes, ux, uy, pool, pool_targets)
-        deltas = km.layer_deltas(batch.codes, null=1)
-        out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
-        loss, losses = prop_loss(out, batch, task, cfg.null_weight)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        if progress is not None:
-            progress(step + 1, losses)
-    return losses
-
-
-def _batch(
+def make_batch(
     cfg: PersonalizeConfig,
     rng: np.random.Generator,
     sampler: KeySampler,
     user_codes: torch.Tensor,
     ux: list[torch.Tensor],
     uy: list[torch.Tensor],
-    pool: torch.Tensor,
-    pool_targets: torch.Tensor,
+    pool: FallbackPool,
 ) -> Batch:
-    """Rows: [user rows | sampled-key fallback rows | null rows]; prop_loss relies on that order."""
-    dev = pool.device
+    """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order)."""
+    dev = pool.x.device
     n_users = len(ux)
     per_user = max(1, cfg.user_rows // n_users)
     xs, ys, user_key = [], [], []
@@ -224,34 +220,25 @@ def _batch(
         user_key += [i] * per_user
     n_user_rows = per_user * n_users
 
-    fb = torch.from_numpy(rng.integers(0, len(pool), cfg.null_rows)).to(dev)
+    fb_x, fb_t = pool.draw(cfg.null_rows, rng)
     sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
     codes = torch.cat([user_codes, key_codes(sampled, cfg.key_encoding).to(dev)])
     k, s = len(sampled), cfg.samples_per_key
     pick = rng.integers(0, cfg.null_rows, k * s)  # which fallback samples each sampled key sees
 
     sample_index = np.concatenate(
-        [
-            np.arange(n_user_rows),
-            n_user_rows + pick,
-            n_user_rows + np.arange(cfg.null_rows),
-        ]
+        [np.arange(n_user_rows), n_user_rows + pick, n_user_rows + np.arange(cfg.null_rows)]
     )
     key_index = np.concatenate(
-        [
-            np.asarray(user_key),
-            n_users + np.repeat(np.arange(k), s),
-            np.full(cfg.null_rows, n_users + k),
-        ]
+        [np.asarray(user_key), n_users + np.repeat(np.arange(k), s), np.full(cfg.null_rows, n_users + k)]
     )
-    fb_rows = torch.cat([fb[torch.from_numpy(pick).to(dev)], fb])
     return Batch(
-        x=torch.cat([*xs, pool[fb]]),
+        x=torch.cat([*xs, fb_x]),
         sample_index=torch.from_numpy(sample_index).to(dev),
         key_index=torch.from_numpy(key_index).to(dev),
         codes=codes,
         user_rows=n_user_rows,
         null_rows=cfg.null_rows,
         user_targets=torch.cat(ys),
-        fallback_targets=pool_targets[fb_rows],
+        fallback_targets=torch.cat([fb_t[torch.from_numpy(pick).to(dev)], fb_t]),
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import save_file
@@ -230,11 +231,17 @@ def test_empty_file(tmp_path):
         load_checkpoint(tmp_path / "e.pt")
 
 
-@pytest.mark.parametrize("name", ["junk.pt", "junk.safetensors"])
-def test_corrupt_file(tmp_path, name):
-    (tmp_path / name).write_bytes(b"this is not a checkpoint at all" * 3)
-    with pytest.raises(PropError, match=rf"{name.replace('.', '[.]')} is (corrupt|not a readable)"):
+@pytest.mark.parametrize("name", ["junk.pt", "junk.safetensors", "junk.bin"])
+@pytest.mark.parametrize("first", [b"this is", b"\x80\x02", b"PK\x03\x04"])
+def test_random_bytes_are_not_a_torch_or_safetensors_file(tmp_path, name, first):
+    """Issue 10, fix 8: random bytes used to be refused for "pickling objects other than tensors"."""
+    junk = first + np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8).tobytes()
+    (tmp_path / name).write_bytes(junk)
+    with pytest.raises(
+        PropError, match=rf"{name.replace('.', '[.]')} is (not a torch or safetensors|corrupt)"
+    ) as e:
         load_checkpoint(tmp_path / name)
+    assert "pickles" not in str(e.value)
 
 
 def test_truncated_pt(tmp_path):

@@ -12,12 +12,14 @@ import pytest
 
 from prop_cli import constants as C
 from prop_cli.api import KeySource, personalize_checkpoint
-from prop_cli.attack import AuditSettings, audit, hamming_keys, parse_hamming, parse_search
+from prop_cli.audit import audit
 from prop_cli.bundle import load_bundle, sha256_file
-from prop_cli.config import PersonalizeConfig
-from prop_cli.data import load_npz
+from prop_cli.config import AuditSettings, PersonalizeConfig, parse_hamming
+from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.keys import read_key_file
+from prop_cli.keyspace import neighbours_at
+from prop_cli.probes import select
 from tests.conftest import make_mlp_checkpoint
 
 # Small audits: the verdicts below do not need the default 4096 random keys or 200 search steps.
@@ -61,25 +63,30 @@ def test_parse_hamming_rejects_bad_specs(spec):
         parse_hamming(spec)
 
 
-def test_parse_search():
-    assert parse_search("relaxed,latent") == ["relaxed", "latent"]
-    assert parse_search("latent") == ["latent"]
-    assert parse_search("none") == []
+def test_probe_selection_and_the_older_search_flag():
+    assert select() == ["null", "random", "hamming", "relaxed", "latent", "cross-user"]
+    assert select(["latent", "null"]) == ["null", "latent"]  # registry order
+    assert select(search=["latent"]) == ["null", "random", "hamming", "latent", "cross-user"]
+    assert select(search=[]) == ["null", "random", "hamming", "cross-user"]
     with pytest.raises(PropError, match="--search"):
-        parse_search("gradient")
+        select(search=["gradient"])
+    with pytest.raises(PropError, match="--search 'random' is not a search"):
+        select(search=["random"])
+    with pytest.raises(PropError, match="--probes"):
+        select(["gradient"])
 
 
 def test_hamming_keys_exact_distance_distinct_and_exhaustive():
     rng = np.random.default_rng(1)
     user = rng.integers(0, 2, 64).astype(np.uint8)
-    ones = hamming_keys(user, 1, 256, rng)
+    ones = neighbours_at(user, 1, 256, rng)
     assert len(ones) == 64  # the whole 1-bit neighbourhood, each once
     assert len(np.unique(ones, axis=0)) == 64
     for d in (2, 5):
-        keys = hamming_keys(user, d, 100, rng)
+        keys = neighbours_at(user, d, 100, rng)
         assert len(keys) == 100 and len(np.unique(keys, axis=0)) == 100
         assert set((keys != user).sum(1)) == {d}
-    assert len(hamming_keys(user[:32], 2, 10_000, rng)) == math.comb(32, 2)
+    assert len(neighbours_at(user[:32], 2, 10_000, rng)) == math.comb(32, 2)
 
 
 # --- it must be able to fail ----------------------------------------------------------------------
@@ -129,7 +136,7 @@ def test_json_report_schema(bundles, cli):
     )  # fmt: skip
     assert r.code == 0, r.err
     rep = json.loads(out.read_text())
-    assert rep["schema"] == "prop-audit/1" and rep["mode"] == "owner"
+    assert rep["schema"] == "prop-audit/2" and rep["mode"] == "owner"
     assert rep["bundle"]["manifest_sha256"] == sha256_file(d / "good.prop" / C.MANIFEST)
     assert rep["settings"]["seed"] == 3 and rep["settings"]["hamming"] == [1]
     assert rep["data"]["samples"] == 64
@@ -150,8 +157,8 @@ def test_json_report_schema(bundles, cli):
 def test_latent_search_moves_further_than_random_keys(bundles):
     d = bundles
     b = load_bundle(d / "good.prop")
-    s = AuditSettings(hamming=[], random=64, search=["latent"], restarts=2, search_steps=25)
-    rep = audit(b, load_npz(d / "mine.npz"), [read_key_file(d / "k.bin")], s)
+    s = AuditSettings(hamming=[], random=64, probes=["random", "latent"], restarts=2, search_steps=25)
+    rep = audit(b, load_data(d / "mine.npz"), [read_key_file(d / "k.bin")], s)
     g = {x["name"]: x for x in rep["groups"]}
     assert g["latent"]["search"]["best_fidelity"] > 10 * g["random"]["fidelity"]["mean"]
 
@@ -200,7 +207,7 @@ def test_record_writes_summary_and_bundle_still_verifies(bundles, cli, tmp_path)
     assert r.code == 0, r.err
     manifest = json.loads((bundle / C.MANIFEST).read_text())
     rec = manifest[C.M_AUDIT]
-    assert rec["schema"] == "prop-audit/1" and rec["max_leak"]["passed"] is True
+    assert rec["schema"] == "prop-audit/2" and rec["max_leak"]["passed"] is True
     assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1"]
     assert load_bundle(bundle).manifest[C.M_AUDIT] == rec  # hashes of the weights still match
     assert sha256_file(bundle / C.BASE_WEIGHTS) == weights

@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 import torch
 
+from prop_cli import constants as C
 from prop_cli import export as ex
+from prop_cli import onnx_runtime as rt
 from prop_cli.api import CheckpointOptions, KeySource, personalize_checkpoint, run_bundle
 from prop_cli.bundle import load_bundle
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import ExportSettings, PersonalizeConfig
 from prop_cli.errors import PropError
 from prop_cli.keyed import key_codes
 from prop_cli.keys import read_key_file
@@ -60,14 +62,14 @@ def test_export_cli_writes_and_verifies_every_graph(cli, tmp_path, exported):
     r = cli("export", exported, "--onnx", "--out", out, "--key-file", root / "k.bin", "--json")
     assert r.code == 0, r.err
     res = json.loads(r.out)
-    assert res["ok"] and res["opset"] == ex.DEFAULT_OPSET
-    assert sorted(res["files"]) == sorted([*ex.GRAPHS, ex.EXPORT_META])
+    assert res["ok"] and res["opset"] == ExportSettings.opset
+    assert sorted(res["files"]) == sorted([*C.GRAPHS, C.EXPORT_META])
     seen = {(row["graph"], row["key"]) for row in res["verification"]}
     for g in ("policy.onnx", "keyed.onnx", "encoder.onnx"):
         assert {(g, "random"), (g, "user")} <= seen
     assert {("base.onnx", "null"), ("policy.onnx", "null")} <= seen
     assert all(row["max_abs"] <= 1e-5 for row in res["verification"])
-    meta = json.loads((out / ex.EXPORT_META).read_text())
+    meta = json.loads((out / C.EXPORT_META).read_text())
     assert meta["key"] == {"bits": 128, "encoding": "hashed"}
     assert [d["input"] for d in meta["deltas"]] == ["delta_1", "delta_2"]
     # The human table goes to stdout too.
@@ -78,8 +80,8 @@ def test_export_cli_writes_and_verifies_every_graph(cli, tmp_path, exported):
 def test_graphs_have_dynamic_batch_and_documented_inputs(exported):
     import onnxruntime as ort
 
-    folder = exported / ex.EXPORT_DIR
-    ins = {g: [i.name for i in ort.InferenceSession(str(folder / g)).get_inputs()] for g in ex.GRAPHS}
+    folder = exported / C.EXPORT_DIR
+    ins = {g: [i.name for i in ort.InferenceSession(str(folder / g)).get_inputs()] for g in C.GRAPHS}
     assert ins == {
         "base.onnx": ["x"],
         "keyed.onnx": ["x", "code"],
@@ -111,8 +113,8 @@ def _needles(bundle: Path) -> dict[str, list[bytes]]:
 
 
 def test_no_key_material_or_folded_weights_in_the_export(exported):
-    blobs = {p.name: p.read_bytes() for p in (exported / ex.EXPORT_DIR).iterdir()}
-    assert set(blobs) == {*ex.GRAPHS, ex.EXPORT_META}
+    blobs = {p.name: p.read_bytes() for p in (exported / C.EXPORT_DIR).iterdir()}
+    assert set(blobs) == {*C.GRAPHS, C.EXPORT_META}
     for what, needles in _needles(exported).items():
         for needle in needles:
             for name, blob in blobs.items():
@@ -147,10 +149,10 @@ def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
     code = key_codes(bits, b.key_encoding).numpy()
     x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
     want = run_bundle(b, x, bits)
-    folder = exported / ex.EXPORT_DIR
-    np.testing.assert_allclose(ex.OnnxPolicy(folder, code)(x), want, atol=1e-5)
-    np.testing.assert_allclose(ex.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
-    np.testing.assert_allclose(ex.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
+    folder = exported / C.EXPORT_DIR
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
 
 
 def test_existing_output_needs_force(cli, exported):
@@ -177,14 +179,14 @@ def test_stale_or_modified_export_is_refused(cli, tmp_path, exported):
         "run",
         fresh,
         "--onnx-dir",
-        exported / ex.EXPORT_DIR,
+        exported / C.EXPORT_DIR,
         "--input",
         root / "x.npy",
         "--output",
         tmp_path / "y.npy",
     )
     assert r.code == 2 and "another bundle" in r.err
-    (other / ex.EXPORT_DIR / "policy.onnx").write_bytes(b"tampered")
+    (other / C.EXPORT_DIR / "policy.onnx").write_bytes(b"tampered")
     r = cli(
         "run",
         other,
@@ -220,7 +222,7 @@ def test_bad_options(cli, exported):
 def test_missing_extra_names_the_install_command(cli, monkeypatch, exported):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)
     with pytest.raises(PropError, match=r"prop-cli\[onnx\]"):
-        ex.require_onnx()
+        rt.require_onnx()
     r = cli("export", exported, "--onnx", "--force")
     assert r.code == 2 and "pip install 'prop-cli[onnx]'" in r.err
 
@@ -251,4 +253,4 @@ def test_cnn_bundle_with_image_inputs_exports(tmp_path):
     res = ex.export_onnx(load_bundle(tmp_path / "cnn.prop"), key=bits)
     assert res.ok and max(r["max_abs"] for r in res.table) <= 1e-5
     b = load_bundle(tmp_path / "cnn.prop")
-    np.testing.assert_allclose(ex.run_onnx(b, x[:3], bits), run_bundle(b, x[:3], bits), atol=1e-5)
+    np.testing.assert_allclose(rt.run_onnx(b, x[:3], bits), run_bundle(b, x[:3], bits), atol=1e-5)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from prop_cli import constants as C
-from prop_cli import hub
+from prop_cli import hub, publish
 from prop_cli.bundle import update_manifest
 from prop_cli.errors import PropError
 from tests.conftest import FAST, make_mlp_checkpoint
@@ -138,7 +138,7 @@ def _key_strings(bundle: Path) -> list[str]:
 def test_model_card_content(bundle):
     update_manifest(bundle, C.M_AUDIT, {"T2": {"leakage": {"worst": 0.0123}}, "verdict": "pass"})
     manifest = json.loads((bundle / C.MANIFEST).read_text())
-    card = hub.model_card(manifest, "me/my-policy", ["base.onnx", "policy.onnx"])
+    card = publish.model_card(manifest, "me/my-policy", ["base.onnx", "policy.onnx"])
     assert card.startswith("---\n") and "library_name: prop-cli" in card
     assert "model.safetensors" in card and str(bundle.parent) not in card  # file name, not the local path
     assert "| `2` | 16 |" in card and "| `4` | 2 |" not in card  # keyed layers with their sizes
@@ -149,7 +149,7 @@ def test_model_card_content(bundle):
     assert "onnx/policy.onnx" in card
     for s in _key_strings(bundle):
         assert s not in card
-    assert "No audit recorded" in hub.model_card({}, "me/x")
+    assert "No audit recorded" in publish.model_card({}, "me/x")
 
 
 def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch):

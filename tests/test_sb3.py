@@ -13,7 +13,7 @@ import torch
 from safetensors.torch import load_file
 from torch import nn
 
-from prop_adapters import load_checkpoint
+from prop_adapters import activations, load_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.errors import PropError
 from tests.conftest import FAST
@@ -198,10 +198,31 @@ def test_activation_from_policy_kwargs_and_override(tmp_path):
     assert loaded.spec["activation"] == "relu"
     x = torch.randn(5, 3)
     torch.testing.assert_close(loaded.module(x).detach(), _ref("actor_critic", sd, x, torch.relu))
-    assert load_checkpoint(path, activation="tanh").spec["activation"] == "tanh"
+    assert load_checkpoint(path, activation="relu").spec["activation"] == "relu"  # agreeing: fine
+    # Issue 10, fix 7: an --activation other than the zip's would build a different network.
+    with pytest.raises(PropError, match="--activation tanh contradicts .*relu"):
+        load_checkpoint(path, activation="tanh")
     odd = make_zip(tmp_path / "odd.zip", state=sd, policy_kwargs={"activation_fn": "<class 'my.Swish'>"})
-    with pytest.raises(PropError, match="Swish.*--activation"):
+    with pytest.raises(PropError, match="Swish is not one prop can rebuild") as e:
         load_checkpoint(odd)
+    assert "--activation" not in str(e.value)  # no hint to pick a "closest" one
+
+
+@pytest.mark.parametrize("name", sorted(activations.BY_CLASS_NAME))
+def test_every_activation_sb3_can_use_rebuilds_exactly(tmp_path, name):
+    """SB3's create_mlp builds activation_fn() between Linear layers: the rebuilt actor must be equal."""
+    cls = getattr(nn, name)
+    sd = sb3_state("actor_critic")
+    kwargs = _pickled("dict", activation_fn=f"<class 'torch.nn.modules.activation.{name}'>")
+    loaded = load_checkpoint(make_zip(tmp_path / "m.zip", state=sd, policy_kwargs=kwargs))
+    policy_net = _mlp([3, 16, 16], cls, cls)
+    policy_net.load_state_dict({k.removeprefix("mlp_extractor.policy_net."): v for k, v in sd.items()
+                                if k.startswith("mlp_extractor.policy_net.")})  # fmt: skip
+    head = nn.Linear(16, 2)
+    head.load_state_dict({"weight": sd["action_net.weight"], "bias": sd["action_net.bias"]})
+    x = torch.randn(64, 3) * 3
+    with torch.no_grad():
+        assert torch.equal(loaded.module(x), head(policy_net(x)))
 
 
 def test_personalize_keeps_every_policy_tensor_with_sb3_names(tmp_path, cli, workdir):

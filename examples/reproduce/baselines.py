@@ -22,7 +22,8 @@ from torch import nn
 
 from prop_cli.config import PersonalizeConfig
 from prop_cli.keyed import key_codes
-from prop_cli.objective import KeySampler, row_loss
+from prop_cli.keyspace import KeySampler
+from prop_cli.objective import row_loss
 
 CVAE_LATENT = 16
 CVAE_BETA = 1e-3  # small: the decoder must read the key from z, a strong KL pull would erase it

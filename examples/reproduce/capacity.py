@@ -92,7 +92,7 @@ def run(out: Path, quick: bool, mnist: Path | None = None, log=print, users=None
             if m == PROP:
                 bundle = common.run_prop(td, list(zip(mines, keys)), general, d / "prop.prop", cfg)
                 r = _evaluate(common.prop_outputs(bundle), td, keys, perms, ev_rng)
-                t2 = common.t2_leakage(bundle, td.test_x, perms[0][td.test_y], keys[0], td.base, budget)
+                t2 = common.t2_leakage(bundle, td.test_x, perms[0][td.test_y], keys[0], td.base_path, budget)
                 r["t2_leakage"] = t2["leakage"]
                 params[m] = common.prop_params(bundle)
             else:

@@ -21,9 +21,10 @@ from prop_cli import metrics
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import Bundle, load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.data import Dataset
-from prop_cli.evaluate import one_bit_neighbours, outputs_for_codes
+from prop_cli.datasources import Dataset
+from prop_cli.evaluate import outputs_for_codes
 from prop_cli.keyed import key_codes
+from prop_cli.keyspace import one_bit_neighbours, random_keys
 
 KEY_BITS = 128
 # PRoP as in the paper (raw key bits into the encoder) and with prop's default hashed encoding.
@@ -65,22 +66,25 @@ def user_key(seed: int, salt: int = 0) -> np.ndarray:
 
 
 def t2_leakage(
-    bundle: Bundle, x: np.ndarray, y: np.ndarray, key: np.ndarray, b_module, budget: Budget
+    bundle: Bundle, x: np.ndarray, y: np.ndarray, key: np.ndarray, base_path: Path, budget: Budget
 ) -> dict:
-    """The audit's T2 (direct delta search) on (x, y), via prop_cli.attack.audit: the attacker's pick."""
-    from prop_cli.attack import AuditSettings, audit
+    """The audit's T2 (direct delta search) on (x, y), via prop_cli.audit.audit: the attacker's pick,
+    with the original checkpoint (``base_path``) as the reference and as the search's control."""
+    from prop_cli.audit import audit, load_original
+    from prop_cli.config import AuditSettings
 
     settings = AuditSettings(
         hamming=[1],
         per_distance=1,
         random=0,
-        search=["latent"],
+        probes=["latent"],
         restarts=budget.t2_restarts,
         search_steps=budget.t2_steps,
         samples=budget.t2_samples,
         seed=0,
     )
-    report = audit(bundle, Dataset(x=x, y=y, path="<test split>"), [key], settings, original=b_module)
+    original = load_original(bundle, str(base_path))  # rebuilt as the bundle's base: the T2 control runs
+    report = audit(bundle, Dataset(x=x, y=y, path="<test split>"), [key], settings, original=original)
     latent = next(g for g in report["groups"] if g["name"] == "latent")
     return {"leakage": latent["search"]["best_leakage"], "fidelity": latent["search"]["best_fidelity"]}
 
@@ -102,7 +106,7 @@ def columns(outputs, x: torch.Tensor, td: TaskData, key: np.ndarray, budget: Bud
     if budget.hamming_keys < len(ham):
         ham = ham[rng.choice(len(ham), budget.hamming_keys, replace=False)]
     keysets = {
-        "random": rng.integers(0, 2, (budget.random_keys, len(key)), dtype=np.uint8),
+        "random": random_keys(budget.random_keys, len(key), rng, exclude=key),
         "hamming1": ham,
         "user": key[None],
     }
@@ -179,7 +183,7 @@ def run_seed(
             cfg = prop_config(seed, budget, encoder_hidden, enc)
             bundle = run_prop(td, [(mine, key)], general, work / f"{m}.prop", cfg)
             cells = columns(prop_outputs(bundle), x, td, key, budget, rng)
-            t2 = t2_leakage(bundle, td.test_x, td.test_y_personal, key, td.base, budget)
+            t2 = t2_leakage(bundle, td.test_x, td.test_y_personal, key, td.base_path, budget)
             cells["leakage"]["t2"] = t2["leakage"]
             res["_params"][m] = budget_params = prop_params(bundle)
         else:

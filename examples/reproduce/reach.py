@@ -35,8 +35,8 @@ from prop_cli import constants as C
 from prop_cli.config import PersonalizeConfig
 from prop_cli.errors import PropError
 from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.keyspace import KeySampler
 from prop_cli.layers import select_layers
-from prop_cli.objective import KeySampler
 
 HORIZON = 50
 OBS = 9
@@ -337,8 +337,7 @@ def t2_leakage(ka: _KeyedActor, actor_path: Path, key: np.ndarray, states: np.nd
     bundle = load_bundle(work / "reach.prop")
     with torch.no_grad():
         y = ka.km.fold(key_codes(key, ka.encoding))(torch.from_numpy(states)).numpy()
-        base = prop_adapters.load_checkpoint(str(actor_path)).module.eval()
-    return common.t2_leakage(bundle, states, y, key, base, budget)["leakage"]
+    return common.t2_leakage(bundle, states, y, key, actor_path, budget)["leakage"]
 
 
 def run(out: Path, quick: bool, seeds: int | None, log=print) -> list[dict]:

@@ -1,19 +1,34 @@
-"""What the commands share: output streams, key input, JSON output. No torch here (fast --help)."""
+"""What the commands share: output streams, progress, key input, JSON output. No torch here (fast --help)."""
 
 from __future__ import annotations
 
 import json
 import os
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
 from rich.console import Console
 
-out = Console()  # results
-err = Console(stderr=True)  # progress and diagnostics
+# Where output is not a terminal (a pipe, a log file), rich would wrap at 80 columns and split table
+# cells; there the console is as wide as any line and never wraps.
+_WIDE = 100_000
 
-DEBUG_HINT = "set PROP_DEBUG=1 for a traceback"
+
+class _Stream(Console):
+    """A console on stdout or stderr that, when it is not a terminal, never wraps or splits a line."""
+
+    def __init__(self, stderr: bool = False) -> None:
+        super().__init__(stderr=stderr)
+        if not self.is_terminal:
+            self.width = _WIDE
+            self.soft_wrap = True
+
+
+out = _Stream()  # results
+err = _Stream(stderr=True)  # progress and diagnostics
 
 
 def fail(what: str, fix: str | None = None):
@@ -35,7 +50,13 @@ def parse_json_option(value: str | None, flag: str) -> dict | None:
     return parsed
 
 
-def read_passphrase(prompt: str) -> str:
+def checkpoint_options(arch: str | None, arch_kwargs: str | None, activation: str | None):
+    from prop_cli.api import CheckpointOptions
+
+    return CheckpointOptions(arch, parse_json_option(arch_kwargs, "--arch-kwargs"), activation)
+
+
+def read_passphrase(prompt: str = "Passphrase") -> str:
     from prop_cli.constants import ENV_PASSPHRASE
 
     value = os.environ.get(ENV_PASSPHRASE)
@@ -50,24 +71,74 @@ def read_passphrase(prompt: str) -> str:
 
 
 def print_json(obj: dict) -> None:
-    from prop_cli.bundle import dump_json
+    from prop_cli.files import dump_json
 
     sys.stdout.write(dump_json(obj))
 
 
-def key_for_bundle(key_file: Path | None, passphrase: bool, manifest: dict):
-    """The key bits for an existing bundle, from a key file or its passphrase (salt in the manifest)."""
-    from prop_cli import constants as C
-    from prop_cli.keys import passphrase_bits, read_key_file
+def warn(message: str) -> None:
+    print(f"prop: warning: {message}", file=sys.stderr)
 
-    bits = int(manifest[C.M_KEY]["bits"])
-    if key_file is not None and passphrase:
-        fail("--key-file and --passphrase both given", "use one of them")
-    if key_file is not None:
-        return read_key_file(key_file, bits)
-    if passphrase:
-        kdf = manifest[C.M_KEY].get("kdf")
-        if not kdf:
-            fail("this bundle was not made with a passphrase", "use --key-file")
-        return passphrase_bits(read_passphrase("Passphrase"), bytes.fromhex(kdf["salt"]), bits)
-    return None
+
+def step_progress(fn: Callable, total: int, label: str, fields: Callable[[dict], str]):
+    """Run ``fn(callback)`` with a progress display on stderr: a bar on a terminal, else a plain line
+    every tenth of the way (logs, nohup)."""
+    if not err.is_terminal:
+        every = max(1, total // 10)
+        t0 = time.perf_counter()
+
+        def plain(step: int, info: dict) -> None:
+            if step % every == 0 or step == total:
+                took = time.perf_counter() - t0
+                print(
+                    f"{label}: step {step}/{total} ({took:.1f} s) {fields(info)}", file=sys.stderr, flush=True
+                )
+
+        return fn(plain)
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn(label), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(),
+        TimeRemainingColumn(), TextColumn("{task.fields[info]}"), console=err, transient=True,
+    ) as bar:  # fmt: skip
+        task = bar.add_task(label, total=total, info="")
+
+        def rich_cb(step: int, info: dict) -> None:
+            if step % 10 == 0 or step == total:
+                bar.update(task, completed=step, info=fields(info))
+
+        return fn(rich_cb)
+
+
+def stage_progress(fn: Callable):
+    """Run ``fn(callback(stage, done, total))``: a bar per stage on a terminal, else a line per finished
+    stage."""
+    if not err.is_terminal:
+        t0 = time.perf_counter()
+
+        def plain(stage: str, done: int, total: int) -> None:
+            if done == total:
+                print(f"attack: {stage} {done}/{total} ({time.perf_counter() - t0:.1f} s)", file=sys.stderr)
+
+        return fn(plain)
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(
+        TextColumn("{task.description:<12}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(), console=err, transient=True,
+    ) as bar:  # fmt: skip
+        tasks: dict[str, int] = {}
+
+        def rich_cb(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done)
+
+        return fn(rich_cb)
+
+
+def output_path(value: Path | None) -> Path | None:
+    """``-`` means stdout: no file."""
+    return None if value is None or str(value) == "-" else value

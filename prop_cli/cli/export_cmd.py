@@ -1,53 +1,56 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from .common import err, fail, key_for_bundle, out, print_json
+from prop_cli.config import ExportSettings
+
+from .common import err, fail, out, print_json, read_passphrase
+from .options import BundleArg, Force, Json, Passphrase, config_options
+
+SETTINGS = {  # ExportSettings field -> help of its --flag
+    "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
+    "atol": "Largest accepted |onnxruntime - torch| difference in the check.",
+}
 
 
+@config_options(ExportSettings, SETTINGS, into="settings")
 def export(
-    bundle: Path = typer.Argument(..., help="Bundle directory written by prop personalize."),
-    onnx: bool = typer.Option(False, "--onnx", help="Export ONNX graphs (the only format so far)."),
-    out_dir: Path = typer.Option(None, "--out", help="Folder to write the graphs to (default: BUNDLE/onnx)."),
-    opset: int = typer.Option(18, "--opset", help="ONNX opset version (13..20)."),
-    atol: float = typer.Option(
-        1e-5, "--atol", help="Largest accepted |onnxruntime - torch| difference in the verification."
-    ),
-    key_file: Path = typer.Option(
-        None, "--key-file", help="Also verify with your key (the key is never written to the graphs)."
-    ),
-    passphrase: bool = typer.Option(False, "--passphrase", help="Verify with your passphrase's key."),
-    input_path: Path = typer.Option(
-        None, "--input", help="Verify on these inputs (.npy or .npz with x) instead of random ones."
-    ),
-    force: bool = typer.Option(False, "--force", help="Replace an existing --out folder."),
-    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+    bundle: BundleArg,
+    settings: ExportSettings,
+    onnx: Annotated[
+        bool, typer.Option("--onnx", help="Export ONNX graphs (needs: pip install 'prop-cli[onnx]').")
+    ] = False,
+    out_dir: Annotated[
+        Path | None, typer.Option("--out", help="Folder to write the graphs to (default: BUNDLE/onnx).")
+    ] = None,
+    key_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--key-file", help="Also verify with your key (the key is never written to the graphs)."
+        ),
+    ] = None,
+    passphrase: Passphrase = False,
+    input_path: Annotated[
+        Path | None, typer.Option("--input", help="Verify on these inputs (.npy or a data file's x).")
+    ] = None,
+    force: Force = False,
+    as_json: Json = False,
 ) -> None:
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime."""
     if not onnx:
         fail("choose an export format", "pass --onnx")
-    from prop_cli.api import load_inputs
-    from prop_cli.bundle import load_bundle
-    from prop_cli.export import export_onnx, require_onnx
+    from prop_cli.api import export_bundle
 
-    require_onnx()
-    b = load_bundle(bundle)
-    key = key_for_bundle(key_file, passphrase, b.manifest)
-    x = load_inputs(input_path, b) if input_path is not None else None
-    result = export_onnx(b, out_dir, opset=opset, atol=atol, key=key, inputs=x, force=force)
+    result = export_bundle(
+        bundle, out_dir, settings, key_file=key_file,
+        passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
+    )  # fmt: skip
     if as_json:
-        print_json(
-            {
-                "out": str(result.out),
-                "ok": result.ok,
-                "opset": result.opset,
-                "atol": result.atol,
-                "files": result.files,
-                "verification": result.table,
-            }
-        )
+        print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,
+                    "files": result.files, "verification": result.table})  # fmt: skip
     else:
         _print_table(result)
     if not result.ok:

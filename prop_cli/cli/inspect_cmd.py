@@ -2,36 +2,29 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
-from .common import out, parse_json_option, print_json
+from .common import checkpoint_options, out, print_json
+from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers
 
 
 def inspect(
-    checkpoint: str = typer.Argument(
-        ..., help="Checkpoint: .safetensors, .pt/.pth, SB3 .zip, model folder, or hf://org/name/file."
-    ),
-    arch: str = typer.Option(None, "--arch", help="Your module: package.module:factory."),
-    arch_kwargs: str = typer.Option(None, "--arch-kwargs", help="JSON keyword arguments for --arch."),
-    activation: str = typer.Option(None, "--activation", help="Plain MLP activation (default relu)."),
-    layers: list[str] = typer.Option(
-        None, "--layers", help="Layers to key: name, dotted suffix, regex, all-linear."
-    ),
-    exclude: list[str] = typer.Option(None, "--exclude", help="Layers not to key (same forms)."),
-    as_json: bool = typer.Option(False, "--json", help="Print JSON."),
-) -> None:
-    """List the linear layers of a checkpoint and which ones would be keyed."""
+    checkpoint: Checkpoint, arch: Arch = None, arch_kwargs: ArchKwargs = None, activation: Activation = None,
+    layers: Layers = None, exclude: Exclude = None, as_json: Json = False,
+) -> None:  # fmt: skip
+    """List the linear layers of a checkpoint, which ones would be keyed, and what prop knows of it."""
     from rich.table import Table
 
-    from prop_cli.api import CheckpointOptions, inspect_checkpoint
+    from prop_cli.api import inspect_checkpoint
 
-    opts = CheckpointOptions(arch, parse_json_option(arch_kwargs, "--arch-kwargs"), activation)
-    info = inspect_checkpoint(checkpoint, opts, layers or None, exclude or None)
+    info = inspect_checkpoint(checkpoint, checkpoint_options(arch, arch_kwargs, activation), layers, exclude)
     if as_json:
         print_json(info)
         return
+    model = info["model"]
+    known = ", ".join(f"{k} {v}" for k, v in model.items() if k != "adapter" and v is not None)
     table = Table(
         title=f"{Path(checkpoint).name}: {info['adapter']} adapter, {info['parameters']:,} parameters"
+        + (f"\n{known}" if known else ""),
+        title_justify="left",
     )
     for col in ("layer", "in", "out", "keyed"):
         table.add_column(col)

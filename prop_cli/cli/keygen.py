@@ -1,19 +1,28 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from .common import err
+from prop_cli.constants import KEY_BITS_DEFAULT, KEY_BITS_MAX, KEY_BITS_MIN
+
+from .common import err, print_json
+from .options import Force, Json
 
 
 def keygen(
-    path: Path = typer.Argument(..., help="Key file to create (mode 0600)."),
-    bits: int = typer.Option(128, "--bits", help="Key size: a multiple of 8 from 32 to 1024."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing file (its key is lost)."),
+    path: Annotated[Path, typer.Argument(help="Key file to create (mode 0600).")],
+    bits: Annotated[
+        int, typer.Option("--bits", help=f"Key size: a multiple of 8 from {KEY_BITS_MIN} to {KEY_BITS_MAX}.")
+    ] = KEY_BITS_DEFAULT,
+    force: Force = False,
+    as_json: Json = False,
 ) -> None:
     """Write a new random key (from the OS) to PATH, readable by you only."""
     from prop_cli.keys import generate_key_file
 
     generate_key_file(path, bits=bits, force=force)
+    if as_json:
+        print_json({"path": str(path), "bits": bits, "mode": "0600"})
     err.print(f"wrote a {bits}-bit key to {path} (mode 0600); keep it secret, keep a backup")

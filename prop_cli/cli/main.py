@@ -8,7 +8,7 @@ import warnings
 
 import typer
 
-from . import attack_cmd, export_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
+from . import attack_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
 
 app = typer.Typer(
     name="prop",
@@ -25,6 +25,7 @@ app.command("run")(run_cmd.run)
 app.command("attack")(attack_cmd.attack)
 app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
+app.command("formats")(formats_cmd.formats)
 
 # Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage.
 EXIT_BAD_INPUT = 2

@@ -1,43 +1,36 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from .common import err, key_for_bundle
+from .common import err, print_json, read_passphrase
+from .options import BundleArg, Force, Inputs, Json, KeyFile, OnnxDir, Passphrase
 
 
 def run(
-    bundle: Path = typer.Argument(..., help="Bundle directory written by prop personalize."),
-    input_path: Path = typer.Option(..., "--input", help="Inputs: .npy (N, ...) or .npz with x."),
-    output: Path = typer.Option(..., "--output", help="Where to write the outputs (.npy)."),
-    key_file: Path = typer.Option(
-        None, "--key-file", help="Your key; without a key: the original behaviour."
-    ),
-    passphrase: bool = typer.Option(False, "--passphrase", help="Derive the key from your passphrase."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing --output."),
-    onnx: bool = typer.Option(
-        False, "--onnx", help="Run the exported ONNX graphs with onnxruntime (see prop export --onnx)."
-    ),
-    onnx_dir: Path = typer.Option(None, "--onnx-dir", help="The ONNX export to run (default: BUNDLE/onnx)."),
+    bundle: BundleArg,
+    input_path: Inputs,
+    output: Annotated[Path, typer.Option("--output", help="Where to write the outputs (.npy).")],
+    key_file: KeyFile = None,
+    passphrase: Passphrase = False,
+    force: Force = False,
+    onnx: Annotated[
+        bool,
+        typer.Option("--onnx", help="Run the exported ONNX graphs with onnxruntime (prop export --onnx)."),
+    ] = False,
+    onnx_dir: OnnxDir = None,
+    as_json: Json = False,
 ) -> None:
     """Run a bundle on inputs: with your key your behaviour, without a key the original's."""
-    import numpy as np
+    from prop_cli.api import run_file
 
-    from prop_cli.api import load_inputs, run_bundle
-    from prop_cli.bundle import check_output, load_bundle
-
-    check_output(output, force, what="output")
-    b = load_bundle(bundle)
-    key = key_for_bundle(key_file, passphrase, b.manifest)
-    x = load_inputs(input_path, b)
-    if onnx or onnx_dir is not None:
-        from prop_cli.export import run_onnx
-
-        y = run_onnx(b, x, key, onnx_dir)
-    else:
-        y = run_bundle(b, x, key)
-    tmp = output.with_name(output.name + ".tmp.npy")
-    np.save(tmp, y)
-    tmp.replace(output)
-    err.print(f"wrote {output} {tuple(y.shape)} ({'keyed' if key is not None else 'no key'})")
+    result = run_file(
+        bundle, input_path, output, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
+        onnx=onnx, onnx_dir=onnx_dir, force=force,
+    )  # fmt: skip
+    if as_json:
+        print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,
+                    "onnx": result.onnx})  # fmt: skip
+    err.print(f"wrote {result.output} {result.shape} ({'keyed' if result.keyed else 'no key'})")

@@ -1,0 +1,142 @@
+"""Reading a weights file (safetensors, or a torch state dict) without unpickling anything."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import re
+import struct
+from pathlib import Path
+
+import torch
+
+from prop_cli.errors import PropError
+
+SAFETENSORS_EXTS = (".safetensors",)
+TORCH_EXTS = (".pt", ".pth", ".bin")
+WEIGHT_EXTS = SAFETENSORS_EXTS + TORCH_EXTS
+# Wrappers that training scripts commonly put around the state dict.
+STATE_DICT_ENTRIES = ("state_dict", "model_state_dict")
+_ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format since 1.6 is a zip archive
+# torch.save's legacy format starts by pickling its magic number 0x1950a86a20f9469cfc6c (as LONG1).
+_LEGACY_MAGIC = b"\x8a\nl\xfc\x9cF\xf9 j\xa8P\x19"
+_MAX_HEADER = 100 << 20  # safetensors caps its JSON header at 100 MB
+
+
+def sniff(path: Path) -> str | None:
+    """'safetensors', 'torch' or None, from the first bytes of the file."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(32)
+    except OSError:
+        return None
+    if len(head) >= 9:
+        (n,) = struct.unpack("<Q", head[:8])
+        if 2 <= n <= _MAX_HEADER and head[8:9] == b"{":
+            return "safetensors"
+    if head.startswith(_ZIP_MAGIC) or (head.startswith(b"\x80") and _LEGACY_MAGIC in head):
+        return "torch"
+    return None
+
+
+def is_weights_file(path: Path) -> bool:
+    """A file with a weights suffix, or one whose first bytes say safetensors or torch."""
+    return path.is_file() and (path.suffix.lower() in WEIGHT_EXTS or sniff(path) is not None)
+
+
+def _check_file(path: Path) -> None:
+    if not path.exists():
+        raise PropError(f"checkpoint {path} does not exist", "check the path")
+    if path.is_dir():
+        raise PropError(
+            f"checkpoint {path} is a directory",
+            "pass the weights file itself (.safetensors, .pt, .pth or .bin)",
+        )
+    if path.stat().st_size == 0:
+        raise PropError(f"checkpoint {path} is empty", "re-export the checkpoint")
+
+
+def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            metadata = dict(f.metadata() or {})
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError, KeyError, json.JSONDecodeError) as e:
+        raise PropError(
+            f"checkpoint {path} is not a readable safetensors file ({e})",
+            "re-export it with safetensors.torch.save_file",
+        ) from None
+    return tensors, metadata
+
+
+def _corrupt(path: Path, e: Exception) -> PropError:
+    return PropError(
+        f"checkpoint {path} is corrupt or not a torch file ({type(e).__name__})",
+        "re-export it with torch.save(model.state_dict(), path) or as .safetensors",
+    )
+
+
+def load_state_dict(data: Path | object, name: str) -> object:
+    """``torch.load(weights_only=True)``; a refused object names the class it would have unpickled."""
+    try:
+        return torch.load(data, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as e:
+        text = str(e)
+        if "Weights only load failed" not in text:
+            raise _corrupt(Path(name), e) from None
+        # weights_only refused an arbitrary object: that is the point, never retry without it.
+        m = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+        what = f"it pickles {m.group(1)}" if m else "it pickles objects other than tensors"
+        raise PropError(
+            f"checkpoint {name} was refused: {what}, and prop never unpickles code",
+            "save only the state dict: torch.save(model.state_dict(), path), or use .safetensors",
+        ) from None
+    except Exception as e:  # torch raises many types (KeyError, RuntimeError, EOFError) on junk
+        raise _corrupt(Path(name), e) from None
+
+
+def _read_torch(path: Path) -> dict[str, torch.Tensor]:
+    obj = load_state_dict(str(path), str(path))
+    if isinstance(obj, dict):
+        for entry in STATE_DICT_ENTRIES:
+            if isinstance(obj.get(entry), dict):
+                obj = obj[entry]
+                break
+    if not isinstance(obj, dict):
+        raise PropError(
+            f"checkpoint {path} holds a {type(obj).__name__}, not a state dict",
+            "save a flat dict name -> tensor: torch.save(model.state_dict(), path)",
+        )
+    bad = [str(k) for k, v in obj.items() if not isinstance(k, str) or not torch.is_tensor(v)]
+    if bad:
+        shown = ", ".join(bad[:3]) + (f" (+{len(bad) - 3} more)" if len(bad) > 3 else "")
+        raise PropError(
+            f"checkpoint {path} is not a flat state dict: entries {shown} are not tensors",
+            "save only model.state_dict(), or put it under a 'state_dict' entry",
+        )
+    return dict(obj)
+
+
+def read_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors by name plus safetensors metadata ({} for torch files). Never unpickles."""
+    path = Path(path)
+    _check_file(path)
+    kind = sniff(path)
+    suffix = path.suffix.lower()
+    if suffix not in WEIGHT_EXTS and kind is None:
+        raise PropError(
+            f"checkpoint {path} has unsupported extension '{path.suffix}'",
+            "use .safetensors, .pt, .pth or .bin (`prop formats` lists every format prop reads)",
+        )
+    if kind is None:
+        raise PropError(
+            f"checkpoint {path} is not a torch or safetensors file (its first bytes are neither a "
+            "safetensors header, a zip archive nor a pickle)",
+            "check that it is the checkpoint itself, not a copy that was cut short or another kind of file",
+        )
+    tensors, metadata = _read_safetensors(path) if kind == "safetensors" else (_read_torch(path), {})
+    if not tensors:
+        raise PropError(f"checkpoint {path} contains no tensors", "check that it is the right file")
+    return tensors, metadata

@@ -1,0 +1,85 @@
+"""Options the commands share, declared once (typer ``Annotated`` aliases). No torch here.
+
+Defaults are not written here: each command takes them from the settings dataclasses in
+``prop_cli.config`` (or ``prop_cli.constants``), so a default lives in exactly one place.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+FORMATS = "`prop formats` lists the formats"
+
+Checkpoint = Annotated[
+    str,
+    typer.Argument(help=f"Checkpoint file or folder, or hf://org/name[@rev]/path ({FORMATS})."),
+]
+BundleArg = Annotated[Path, typer.Argument(help="Bundle directory written by prop personalize.")]
+
+Arch = Annotated[str | None, typer.Option("--arch", help="Your module: package.module:factory.")]
+ArchKwargs = Annotated[str | None, typer.Option("--arch-kwargs", help="JSON keyword arguments for --arch.")]
+Activation = Annotated[
+    str | None,
+    typer.Option(
+        "--activation", help="Plain MLP state dicts: the activation (relu if the file does not say)."
+    ),
+]
+Layers = Annotated[
+    list[str] | None,
+    typer.Option("--layers", help="Layers to key: exact name, dotted suffix, regex or all-linear; repeat."),
+]
+Exclude = Annotated[
+    list[str] | None, typer.Option("--exclude", help="Layers not to key (same forms); repeat.")
+]
+
+KeyFile = Annotated[
+    Path | None, typer.Option("--key-file", help="Your key file; without a key: the original behaviour.")
+]
+Passphrase = Annotated[
+    bool,
+    typer.Option("--passphrase", help="Derive the key from your passphrase (prompted, or PROP_PASSPHRASE)."),
+]
+Force = Annotated[bool, typer.Option("--force", help="Replace existing output files or folders.")]
+Json = Annotated[bool, typer.Option("--json", help="Print the result as JSON (sorted, indented).")]
+Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda[:N].")]
+OnnxDir = Annotated[Path | None, typer.Option("--onnx-dir", help="The ONNX export (default: BUNDLE/onnx).")]
+Inputs = Annotated[Path, typer.Option("--input", help="Inputs: .npy (N, ...) or a data file's x.")]
+
+
+def config_options(cls: type, helps: dict[str, str], into: str = "config") -> Callable:
+    """Give a command one ``--flag`` per field of the settings dataclass ``cls`` named in ``helps``
+    (flag = the field name with dashes, default = the field's default); the command receives the
+    settings as the keyword argument ``into`` instead of the separate values."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+
+    def decorate(fn: Callable) -> Callable:
+        sig = inspect.signature(fn, eval_str=True)
+        own = [p for p in sig.parameters.values() if p.name != into]
+        added = [
+            inspect.Parameter(
+                name,
+                inspect.Parameter.KEYWORD_ONLY,
+                default=fields[name].default,
+                annotation=Annotated[hints[name], typer.Option("--" + name.replace("_", "-"), help=text)],
+            )
+            for name, text in helps.items()
+        ]
+
+        @functools.wraps(fn)
+        def command(*args, **kwargs):
+            settings = cls(**{name: kwargs.pop(name) for name in helps})
+            return fn(*args, **{into: settings}, **kwargs)
+
+        command.__signature__ = sig.replace(parameters=own + added)  # type: ignore[attr-defined]
+        return command
+
+    return decorate

@@ -1,0 +1,92 @@
+"""``.npz`` files with ``x`` (inputs) and ``y`` (targets), written by ``numpy.savez``."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from prop_cli.errors import PropError
+
+from .base import Dataset, DataSource
+
+SAVE_HINT = "save it with numpy.savez(path, x=inputs, y=targets)"
+
+
+def _nonfinite_rows(a: np.ndarray) -> int:
+    if a.dtype.kind != "f":
+        return 0
+    bad = ~np.isfinite(a.reshape(a.shape[0], -1) if a.ndim > 1 else a.reshape(-1, 1))
+    return int(bad.any(axis=1).sum())
+
+
+def _field(npz, name: str, path: Path) -> np.ndarray:
+    try:
+        return np.asarray(npz[name])
+    except ValueError:  # object arrays need pickle, which we never allow
+        raise PropError(
+            f"{path}: field '{name}' is an object array (needs pickle, which prop refuses)",
+            f"store '{name}' as a numeric array; " + SAVE_HINT,
+        ) from None
+
+
+def _numbers(a: np.ndarray, name: str, path: Path) -> None:
+    if a.dtype.kind not in "biuf":
+        raise PropError(f"{path}: field '{name}' has dtype {a.dtype}, not numbers", SAVE_HINT)
+    bad = _nonfinite_rows(a)
+    if bad:
+        raise PropError(f"{path}: field '{name}' has NaN or inf in {bad} rows", "drop or fix those rows")
+
+
+class NpzSource(DataSource):
+    name = "npz"
+    summary = "an .npz with x (inputs, (N, ...)) and y (targets: (N,) or (N, outputs)), from numpy.savez"
+
+    def recognise(self, path: Path) -> bool:
+        return path.suffix.lower() in (".npz", ".npy") or (path.is_file() and zipfile.is_zipfile(path))
+
+    def load(self, path: Path, *, require_y: bool = True, min_samples: int = 10) -> Dataset:
+        try:
+            npz = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+            raise PropError(f"data file {path} is not a valid .npz ({type(e).__name__})", SAVE_HINT) from None
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise PropError(f"data file {path} holds a single array, not an .npz with x and y", SAVE_HINT)
+        with npz:
+            fields = list(npz.files)
+            if "x" not in fields:
+                raise PropError(f"{path} has no field 'x' (fields: {', '.join(fields) or 'none'})", SAVE_HINT)
+            x = _field(npz, "x", path)
+            y = _field(npz, "y", path) if "y" in fields else None
+        if y is None and require_y:
+            raise PropError(
+                f"{path} has no field 'y' (fields: {', '.join(fields)})",
+                "add the targets you want under your key: " + SAVE_HINT,
+            )
+        _numbers(x, "x", path)
+        if x.ndim < 2:
+            raise PropError(
+                f"{path}: field 'x' has shape {x.shape}; it must be (samples, features...)",
+                "for one feature per sample use x.reshape(-1, 1)",
+            )
+        if y is not None:
+            _numbers(y, "y", path)
+            if y.ndim == 0 or len(y) != len(x):
+                n_y = "a scalar" if y.ndim == 0 else f"{len(y)} rows"
+                raise PropError(
+                    f"{path}: field 'x' has {len(x)} rows but field 'y' has {n_y}",
+                    "give one target per input",
+                )
+            if y.ndim > 2:
+                raise PropError(
+                    f"{path}: field 'y' has shape {y.shape}; it must be (N,) or (N, outputs)",
+                    "reshape y to (N, outputs)",
+                )
+            y = y.astype(np.int64) if y.dtype.kind in "biu" else y.astype(np.float32)
+        if len(x) < min_samples:
+            raise PropError(
+                f"{path}: field 'x' has {len(x)} rows, fewer than the {min_samples} needed",
+                "collect more samples",
+            )
+        return Dataset(x=x.astype(np.float32), y=y, path=str(path))

@@ -1,0 +1,116 @@
+"""Writing what prop writes: never over the user's files without --force, never half a file.
+
+Every output (bundle, export folder, run output, audit JSON and plot, manifest updates) is written
+to a temporary sibling and renamed into place, so an interrupted run leaves nothing at the path.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from .errors import PropError
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def dump_json(obj: dict) -> str:
+    """The one JSON style of prop's files: sorted keys, indented, newline-terminated."""
+    return json.dumps(obj, sort_keys=True, indent=2) + "\n"
+
+
+def check_output(out: Path, force: bool, what: str = "bundle", flag: str = "--out") -> None:
+    """Refuse to replace what the user owns without --force; fail early if the place is unwritable."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise PropError(
+            f"{what} {out} already exists", f"choose another {flag} or pass --force to replace it"
+        )
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise PropError(f"cannot write {what} {out}: folder {parent} does not exist", "create it first")
+    if not os.access(parent, os.W_OK):
+        raise PropError(
+            f"cannot write {what} {out}: folder {parent} is not writable", f"choose another {flag}"
+        )
+
+
+def _cannot_write(what: str, out: Path, e: OSError, flag: str) -> PropError:
+    why = e.strerror or type(e).__name__
+    return PropError(
+        f"cannot write {what} {out}: no file can be created in {out.resolve().parent} ({why})",
+        f"choose another {flag}",
+    )
+
+
+@contextlib.contextmanager
+def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator[Path]:
+    """A temporary folder beside ``out``, renamed to ``out`` when the block succeeds, removed if not."""
+    out = Path(out)
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.resolve().parent))
+    except OSError as e:
+        raise _cannot_write(what, out, e, flag) from None
+    try:
+        yield tmp
+        replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_file(
+    out: Path, write: Callable[[Path], None], what: str = "output", flag: str = "--output"
+) -> Path:
+    """Call ``write(tmp)`` on a temporary sibling of ``out`` (same suffix), then rename it to ``out``."""
+    out = Path(out)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.resolve().parent)
+    except OSError as e:
+        raise _cannot_write(what, out, e, flag) from None
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give what a plain open() would
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return out
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_text(out: Path, text: str, what: str = "output", flag: str = "--output") -> Path:
+    return write_file(out, lambda p: p.write_text(text), what, flag)
+
+
+def replace_dir(new: Path, out: Path) -> None:
+    """Move folder ``new`` to ``out``, replacing what is there (a file or a folder)."""
+    if not out.exists():
+        os.replace(new, out)
+        return
+    old = new.with_name(new.name + ".old")
+    os.replace(out, old)
+    os.replace(new, out)
+    if old.is_dir():
+        shutil.rmtree(old)
+    else:
+        old.unlink()

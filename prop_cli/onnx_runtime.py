@@ -1,0 +1,141 @@
+"""Running an ONNX export with onnxruntime: reading and checking it, and a policy for control loops.
+
+The export is written by ``prop_cli.export`` (graph names and ``export.json`` in ``constants``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from . import constants as C
+from .bundle import Bundle
+from .errors import PropError
+from .files import sha256_file
+from .keyed import key_codes
+
+ONNX_EXTRA = "pip install 'prop-cli[onnx]'"
+
+
+def require_onnx():
+    """(onnx, onnxruntime), or a PropError naming the extra to install."""
+    try:
+        import onnx
+        import onnxruntime
+    except ImportError as e:
+        raise PropError(f"ONNX support needs the 'onnx' extra ({e.name} is not installed)", ONNX_EXTRA) from e
+    return onnx, onnxruntime
+
+
+def session(path: Path, threads: int = 0):
+    _, ort = require_onnx()
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
+    """Read and check ``export.json`` (graph hashes; with a manifest, that it matches the bundle)."""
+    folder = Path(folder)
+    mpath = folder / C.EXPORT_META
+    if not mpath.is_file():
+        raise PropError(
+            f"{folder} holds no ONNX export ({C.EXPORT_META} missing)", "run prop export BUNDLE --onnx"
+        )
+    try:
+        meta = json.loads(mpath.read_text())
+        graphs = meta["graphs"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        raise PropError(f"{mpath} is not a valid export description", "run prop export --onnx --force") from e
+    for g, digest in graphs.items():
+        if not (folder / g).is_file() or sha256_file(folder / g) != digest:
+            raise PropError(f"{folder / g} is missing or modified", "run prop export --onnx --force")
+    if bundle_manifest is not None and meta.get("bundle_files") != bundle_manifest.get(C.M_FILES):
+        raise PropError(
+            f"the ONNX export in {folder} was made from another bundle (or an older version of it)",
+            "run prop export BUNDLE --onnx --force",
+        )
+    return meta
+
+
+class OnnxPolicy:
+    """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
+
+    With a key, delta is computed once here (encoder.onnx) and bound to policy.onnx, so a step
+    feeds only x; without a key each call runs base.onnx. Calls go through an IOBinding, the
+    cheapest per-call path at batch 1. ``fold=True`` instead runs base.onnx with the keyed layers'
+    weights replaced, in this process's memory only, by W diag(delta) (onnxruntime initializer
+    overrides): a step then costs exactly a base step. Nothing folded is ever written. ``threads``
+    = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    """
+
+    def __init__(
+        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool = False
+    ) -> None:
+        _, ort = require_onnx()
+        folder = Path(folder)
+        self.meta = read_export(folder)
+        self.names = [d["input"] for d in self.meta["deltas"]]
+        self._keep: list = []  # OrtValues the session reads from must outlive it
+        bound: dict = {}
+        if key_code is None:
+            self.session = session(folder / C.BASE_GRAPH, threads)
+        else:
+            code = np.asarray(key_code, np.float32).reshape(1, -1)
+            deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+            if fold:
+                self.session = self._folded(folder, deltas, threads, ort)
+            else:
+                self.session = session(folder / C.POLICY_GRAPH, threads)
+                bound = {n: ort.OrtValue.ortvalue_from_numpy(d) for n, d in zip(self.names, deltas)}
+                self._keep += bound.values()
+        self._binding = self.session.io_binding()
+        for n, v in bound.items():
+            self._binding.bind_ortvalue_input(n, v)
+        self._binding.bind_output("y")
+
+    def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
+        onnx, _ = require_onnx()
+        from onnx import numpy_helper
+
+        weights = [d.get("base_weight") for d in self.meta["deltas"]]
+        if not all(weights):
+            raise PropError(
+                f"{folder / C.BASE_GRAPH} does not expose the keyed layers' weights by name",
+                "run without fold (the split form, policy.onnx)",
+            )
+        inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+        so = ort.SessionOptions()
+        so.intra_op_num_threads, so.inter_op_num_threads, so.log_severity_level = threads, 1, 3
+        for name, d in zip(weights, deltas):
+            w = numpy_helper.to_array(inits[name]) * d.reshape(1, -1)  # Gemm B (out, in), transB=1
+            v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(w, np.float32))
+            self._keep.append(v)
+            so.add_initializer(name, v)
+        return ort.InferenceSession(str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"])
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self._binding.bind_cpu_input("x", np.ascontiguousarray(x, np.float32))
+        self.session.run_with_iobinding(self._binding)
+        return self._binding.copy_outputs_to_cpu()[0]
+
+
+def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None) -> np.ndarray:
+    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (split form)."""
+    require_onnx()
+    folder = Path(folder) if folder is not None else Path(bundle.path) / C.EXPORT_DIR
+    if not folder.is_dir():
+        raise PropError(
+            f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"
+        )
+    read_export(folder, bundle.manifest)
+    code = None
+    if key is not None:
+        code = key_codes(bundle.check_key(key), bundle.key_encoding).numpy()
+    threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    return OnnxPolicy(folder, code, threads=threads)(x)

@@ -1,0 +1,46 @@
+"""T1: a relaxed code in [-1, 1]^n optimised through the encoder, then rounded to ±1 and probed too.
+
+With the default hashed encoding the encoder's input is SHAKE-256(key), so this searches the code
+space: at least as strong as searching keys (a rounded code need not be reachable by any key). With
+raw encoding the code is the key. The search maximises divergence from the reference on the inputs
+only; it never sees the owner's targets.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .base import Group, Probe, ProbeContext, maximise_divergence
+
+
+def run(ctx: ProbeContext) -> list[Group]:
+    s = ctx.settings
+    n = ctx.km.encoder.code_bits
+    u = torch.rand(s.restarts, n, generator=ctx.generator()).clamp(0.02, 0.98)
+    theta = torch.logit(u).to(ctx.ref.x.device).requires_grad_(True)
+
+    def codes() -> torch.Tensor:
+        return torch.tanh(theta / 2)  # = 2 * sigmoid(theta) - 1: the relaxed key u mapped to ±1
+
+    maximise_divergence(ctx, [theta], lambda: ctx.km.layer_deltas(codes()), "relaxed")
+    relaxed = codes().detach()
+    rounded = torch.where(relaxed >= 0, 1.0, -1.0)
+    search = {"restarts": s.restarts, "steps": s.search_steps}
+    rounded_search = dict(search)
+    if ctx.has_key:  # 0 = the search found the user's own code (for raw encoding: the key)
+        rounded_search["code_distance"] = [int(c) for c in (rounded != ctx.codes(ctx.keys[0])).sum(1)]
+    return [
+        Group("relaxed", ctx.probe_codes(relaxed, "relaxed"), is_key=False, search=search),
+        Group(
+            "relaxed-rounded",
+            ctx.probe_codes(rounded, "relaxed"),
+            is_key=ctx.encoding == "raw",
+            search=rounded_search,
+        ),
+    ]
+
+
+PROBE = Probe(
+    "relaxed", "T1", "search",
+    "a continuous code optimised through the encoder (--restarts, --search-steps), and its rounding", run,
+)  # fmt: skip
