@@ -28,45 +28,28 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from examples import save_npz
+from examples import fit, mlp, save_npz
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.evaluate import outputs_for_codes
 from prop_cli.keyed import key_codes
+from prop_cli.keyspace import neighbours_at, random_keys
 
 RANDOM_KEYS = 256
 PER_DISTANCE = 32
 DISTANCES = range(1, 9)
 
 
-def _train(model: nn.Module, x, y, loss_fn, steps: int, seed: int, batch: int = 256) -> nn.Module:
-    gen = torch.Generator().manual_seed(seed)
-    xt, yt = torch.as_tensor(x), torch.as_tensor(y)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=[int(0.7 * steps)], gamma=0.3)
-    for _ in range(steps):
-        idx = torch.randint(0, len(xt), (batch,), generator=gen)
-        loss = loss_fn(model(xt[idx]), yt[idx])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-    return model.eval()
-
-
 def write_reach3(work: Path, seed: int) -> dict:
     from examples.il_task import expert_actions, make_states
 
     torch.manual_seed(seed)
-    sizes = [6, 160, 160, 160, 3]
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers += [nn.Linear(a, b)] + ([nn.Tanh()] if i < len(sizes) - 2 else [])
     x_base = make_states(20000, seed * 1000, 3)
-    model = _train(
-        nn.Sequential(*layers), x_base, expert_actions(x_base, 3), nn.functional.mse_loss, 6000, seed
-    )
+    y_base = torch.from_numpy(expert_actions(x_base, 3))
+    model = mlp([6, 160, 160, 160, 3], nn.Tanh)
+    fit(model, torch.from_numpy(x_base), y_base, nn.functional.mse_loss, steps=6000, batch=256, lr=1e-3,
+        seed=seed, decay_at=0.7)  # fmt: skip
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(work / "base.safetensors"),
               metadata={"activation": "tanh"})  # fmt: skip
     x_mine = make_states(2000, seed * 1000 + 1, 3)
@@ -92,7 +75,9 @@ def write_digits_perm(work: Path, seed: int) -> dict:
         perm = np.random.default_rng(int(perm.sum() + perm[0] * 10 + seed)).permutation(10)
     (xb, yb), (xu, yu), (xt, yt) = splits["base"], splits["user"], splits["test"]
     torch.manual_seed(seed)
-    model = _train(make_mlp(), xb, yb, nn.functional.cross_entropy, 600, seed, batch=128)
+    model = make_mlp()
+    fit(model, torch.from_numpy(xb), torch.from_numpy(yb), nn.functional.cross_entropy, steps=600, batch=128,
+        lr=1e-3, seed=seed)  # fmt: skip
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(work / "base.safetensors"))
     return {
         "task": "classification",
@@ -103,13 +88,6 @@ def write_digits_perm(work: Path, seed: int) -> dict:
         "y": yt,
         "y_personal": perm[yt].astype(np.int64),
     }
-
-
-def neighbours(key: np.ndarray, d: int, n: int, rng: np.random.Generator) -> np.ndarray:
-    flips = np.argsort(rng.random((n, len(key))), axis=1)[:, :d]
-    keys = np.repeat(key[None], n, 0)
-    np.put_along_axis(keys, flips, 1 - np.take_along_axis(keys, flips, 1), axis=1)
-    return keys
 
 
 def run_seed(task: str, seed: int, work: Path, overrides: dict, general: bool) -> dict:
@@ -134,8 +112,8 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict, general: bool) -
         return outputs_for_codes(bundle.keyed, x, key_codes(bits, bundle.key_encoding))
 
     o_user = probe(key)[0]
-    others = {"random": probe(rng.integers(0, 2, (RANDOM_KEYS, 128), dtype=np.uint8))}
-    others.update({f"h{d}": probe(neighbours(key, d, PER_DISTANCE, rng)) for d in DISTANCES})
+    others = {"random": probe(random_keys(RANDOM_KEYS, 128, rng, exclude=key))}
+    others.update({f"h{d}": probe(neighbours_at(key, d, PER_DISTANCE, rng)) for d in DISTANCES})
     y, yp = torch.from_numpy(t["y"]), torch.from_numpy(t["y_personal"])
     row: dict = {"seed": seed, "seconds": round(seconds, 1)}
     if t["task"] == "regression":

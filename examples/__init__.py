@@ -1,15 +1,19 @@
 """Example tasks that generate data and train a base checkpoint for PRoP demos, tests, benchmarks.
 
-Shared helper: `save_npz`, a byte-reproducible replacement for `np.savez` (numpy stamps each
-zip member with the current time, so two identical runs would differ on disk).
+Shared helpers: `save_npz`, a byte-reproducible replacement for `np.savez` (numpy stamps each
+zip member with the current time, so two identical runs would differ on disk); `mlp` and `fit`, how
+every example builds and trains its base checkpoint.
 """
 
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import torch
+from torch import nn
 
 # Fixed zip timestamp (the earliest zip allows) so the same arrays give the same bytes.
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -27,4 +31,40 @@ def save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
     return path
 
 
-__all__ = ["save_npz"]
+def mlp(sizes: list[int], act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+    """Linear layers of the given sizes with ``act`` between them (not after the last)."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers += [nn.Linear(a, b)] + ([act()] if i < len(sizes) - 2 else [])
+    return nn.Sequential(*layers)
+
+
+def fit(
+    model: nn.Module,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    *,
+    steps: int,
+    batch: int,
+    lr: float,
+    seed: int,
+    decay_at: float | None = None,
+) -> nn.Module:
+    """Adam on minibatches from a seeded generator of its own (repeatable); lr x0.3 at ``decay_at``."""
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    milestones = [int(decay_at * steps)] if decay_at is not None else []
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=0.3)
+    gen = torch.Generator().manual_seed(seed)  # own stream: batches don't depend on global RNG
+    model.train()
+    for _ in range(steps):
+        idx = torch.randint(0, x.shape[0], (batch,), generator=gen)
+        loss = loss_fn(model(x[idx]), y[idx])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+    return model.eval()
+
+
+__all__ = ["fit", "mlp", "save_npz"]

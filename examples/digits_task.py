@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from examples import save_npz
+from examples import fit, mlp, save_npz
 
 OFFSET = 3
 N_CLASSES = 10
@@ -46,40 +46,19 @@ def load_splits(seed: int = 0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def make_mlp(hidden: int = 128) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Linear(64, hidden),
-        nn.ReLU(),
-        nn.Linear(hidden, hidden),
-        nn.ReLU(),
-        nn.Linear(hidden, N_CLASSES),
-    )
+    return mlp([64, hidden, hidden, N_CLASSES])
 
 
 def train_base(
-    x: np.ndarray,
-    y: np.ndarray,
-    *,
-    hidden: int = 128,
-    steps: int = 600,
-    batch: int = 128,
-    lr: float = 1e-3,
+    x: np.ndarray, y: np.ndarray, *, hidden: int = 128, steps: int = 600, batch: int = 128, lr: float = 1e-3,
     seed: int = 0,
-) -> nn.Sequential:
+) -> nn.Sequential:  # fmt: skip
     """Adam on cross-entropy with minibatches drawn from a seeded generator (repeatable)."""
     torch.manual_seed(seed)
     xt = torch.as_tensor(np.asarray(x, dtype=np.float32))
     yt = torch.as_tensor(np.asarray(y, dtype=np.int64))
     model = make_mlp(hidden)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    gen = torch.Generator().manual_seed(seed)
-    model.train()
-    for _ in range(steps):
-        idx = torch.randint(0, xt.shape[0], (batch,), generator=gen)
-        loss = nn.functional.cross_entropy(model(xt[idx]), yt[idx])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    return model.eval()
+    return fit(model, xt, yt, nn.functional.cross_entropy, steps=steps, batch=batch, lr=lr, seed=seed)
 
 
 def accuracy(model: nn.Module, x: np.ndarray, y: np.ndarray) -> float:

@@ -19,7 +19,7 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from examples import save_npz
+from examples import fit, mlp, save_npz
 
 N_CANDIDATES = 1000
 STATE_BOUND = 10.0
@@ -68,13 +68,7 @@ def make_states(n: int, seed: int, dim: int = 2) -> np.ndarray:
 
 
 def make_mlp(dim: int = 2, hidden: int = 192) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Linear(2 * dim, hidden),
-        nn.ReLU(),
-        nn.Linear(hidden, hidden),
-        nn.ReLU(),
-        nn.Linear(hidden, dim),
-    )
+    return mlp([2 * dim, hidden, hidden, dim])
 
 
 def train_base(
@@ -94,18 +88,9 @@ def train_base(
     model = make_mlp(xt.shape[1] // 2, hidden)
     if yt.shape[1] != xt.shape[1] // 2:
         raise ValueError("targets must have half as many columns as states")
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=[int(0.7 * steps)], gamma=0.3)
-    gen = torch.Generator().manual_seed(seed)  # own stream: batches don't depend on global RNG
-    model.train()
-    for _ in range(steps):
-        idx = torch.randint(0, xt.shape[0], (batch,), generator=gen)
-        loss = nn.functional.mse_loss(model(xt[idx]), yt[idx])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-    return model.eval()
+    return fit(
+        model, xt, yt, nn.functional.mse_loss, steps=steps, batch=batch, lr=lr, seed=seed, decay_at=0.7
+    )
 
 
 def predict(model: nn.Module, x: np.ndarray) -> np.ndarray:

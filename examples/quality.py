@@ -24,17 +24,11 @@ from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.evaluate import outputs_for_codes
 from prop_cli.keyed import key_codes
+from prop_cli.keyspace import neighbours_at, random_keys
 
 DISTANCES = range(1, 9)
 KEYS_PER_DISTANCE = 64
 RANDOM_KEYS = 256
-
-
-def neighbours(key: np.ndarray, d: int, n: int, rng: np.random.Generator) -> np.ndarray:
-    keys = np.repeat(key[None], n, 0)
-    for row in keys:
-        row[rng.choice(len(key), d, replace=False)] ^= 1
-    return keys
 
 
 def _probe(bundle, x: torch.Tensor, bits: np.ndarray) -> torch.Tensor:
@@ -69,8 +63,8 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict | None = None) ->
         b = load_checkpoint(str(paths["base"])).module(x)
         o_null = bundle.keyed(x)
     o_user = _probe(bundle, x, key)[0]
-    o_rand = _probe(bundle, x, rng.integers(0, 2, (RANDOM_KEYS, 128), dtype=np.uint8))
-    o_ham = {d: _probe(bundle, x, neighbours(key, d, KEYS_PER_DISTANCE, rng)) for d in DISTANCES}
+    o_rand = _probe(bundle, x, random_keys(RANDOM_KEYS, 128, rng, exclude=key))
+    o_ham = {d: _probe(bundle, x, neighbours_at(key, d, KEYS_PER_DISTANCE, rng)) for d in DISTANCES}
     row: dict = {"seed": seed, "seconds": seconds}
     if task == "il":
         mse = lambda o, t: ((o - t) ** 2).flatten(-2).mean(-1)  # noqa: E731 - per key

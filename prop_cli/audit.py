@@ -201,7 +201,7 @@ def audit(
             controls = _controls(probe, ctx, control_km, control_from, name, task)
             timing[name] = time.perf_counter() - t0
             for g in found:
-                control = controls.get(g.name) if isinstance(controls, dict) else controls
+                control = None if controls is None else controls.get(g.name, controls.get(None))
                 groups.append(_with_control(_group_json(g, task), probe, control))
     finally:
         for prm, flag in zip(km.parameters(), grad_flags):
@@ -247,11 +247,12 @@ def _user(ctx: ProbeContext, key: np.ndarray) -> dict:
 
 
 def _controls(probe, ctx, control_km, control_from, name, task) -> dict | None:
-    """{group name: control JSON} for a probe with a control slot; None for one without."""
+    """{group name: control JSON} for a probe with a control slot (key None: every other group);
+    None for a probe without one."""
     if probe.control is None:
         return None
     if control_km is None:
-        return {"available": False, "reason": control_from}
+        return {None: {"available": False, "reason": control_from}}
     found = probe.control(replace(ctx, probe=name))
     return {g.name: {"available": True, "model": control_from, **_group_json(g, task)} for g in found}
 

@@ -87,7 +87,6 @@ def resolve_checkpoint(path: str | Path) -> str | Path:
         return path
     hp = parse_hub_path(str(path))
     hf = hub_module()
-    errors = hf.errors
     offline = _offline()
     common = {"revision": hp.revision, "repo_type": hp.repo_type, "local_files_only": offline}
     try:
@@ -99,30 +98,45 @@ def resolve_checkpoint(path: str | Path) -> str | Path:
             )
             return str(Path(root) / hp.filename)
         return hf.hf_hub_download(hp.repo_id, hp.filename, library_name="prop-cli", **common)
-    except errors.LocalEntryNotFoundError as e:
-        why = "HF_HUB_OFFLINE is set" if offline else "the hub cannot be reached"
-        raise PropError(
+    except Exception as e:  # noqa: BLE001 - mapped to one line below, anything else re-raised
+        raise _download_error(e, path, hp, offline) from e
+
+
+def _download_error(e: Exception, path: str | Path, hp: HubPath, offline: bool) -> PropError:
+    """The one-line error for a failed download (most specific huggingface_hub error first)."""
+    errors = hub_module().errors
+    why = "HF_HUB_OFFLINE is set" if offline else "the hub cannot be reached"
+    first_line = str(e).splitlines()[0] if str(e).strip() else type(e).__name__
+    cases = [
+        (
+            errors.LocalEntryNotFoundError,
             f"{path} is not in the local hub cache and {why}",
             "connect to the network (unset HF_HUB_OFFLINE), or download it once while online",
-        ) from e
-    except errors.GatedRepoError as e:
-        raise PropError(
-            f"{path}: repo {hp.repo_id} is gated", "accept its terms on the hub and log in"
-        ) from e
-    except errors.RepositoryNotFoundError as e:
-        raise PropError(
+        ),
+        (
+            errors.GatedRepoError,
+            f"{path}: repo {hp.repo_id} is gated",
+            "accept its terms on the hub and log in",
+        ),
+        (
+            errors.RepositoryNotFoundError,
             f"{path}: repo {hp.repo_id} not found (or private)",
             "check the name, or log in with `hf auth login` for a private repo",
-        ) from e
-    except errors.RevisionNotFoundError as e:
-        raise PropError(f"{path}: revision {hp.revision} not found", "check the branch, tag or commit") from e
-    except errors.EntryNotFoundError as e:
-        raise PropError(
-            f"{path}: no file {hp.filename} in {hp.repo_id}", "check the path inside the repo"
-        ) from e
-    except errors.HfHubHTTPError as e:
-        raise PropError(
-            f"{path}: the hub answered with an error ({str(e).splitlines()[0]})", "try again"
-        ) from e
-    except OSError as e:  # connection errors
-        raise PropError(f"{path}: cannot reach the hub ({type(e).__name__})", "check the network") from e
+        ),
+        (
+            errors.RevisionNotFoundError,
+            f"{path}: revision {hp.revision} not found",
+            "check the branch, tag or commit",
+        ),
+        (
+            errors.EntryNotFoundError,
+            f"{path}: no file {hp.filename} in {hp.repo_id}",
+            "check the path inside the repo",
+        ),
+        (errors.HfHubHTTPError, f"{path}: the hub answered with an error ({first_line})", "try again"),
+        (OSError, f"{path}: cannot reach the hub ({type(e).__name__})", "check the network"),
+    ]
+    for cls, what, fix in cases:
+        if isinstance(e, cls):
+            return PropError(what, fix)
+    raise e

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import builtins
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +17,6 @@ from prop_cli.config import AuditSettings, PersonalizeConfig, parse_hamming
 from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.keys import read_key_file
-from prop_cli.keyspace import neighbours_at
 from prop_cli.probes import select
 from tests.conftest import make_mlp_checkpoint
 
@@ -74,19 +72,6 @@ def test_probe_selection_and_the_older_search_flag():
         select(search=["random"])
     with pytest.raises(PropError, match="--probes"):
         select(["gradient"])
-
-
-def test_hamming_keys_exact_distance_distinct_and_exhaustive():
-    rng = np.random.default_rng(1)
-    user = rng.integers(0, 2, 64).astype(np.uint8)
-    ones = neighbours_at(user, 1, 256, rng)
-    assert len(ones) == 64  # the whole 1-bit neighbourhood, each once
-    assert len(np.unique(ones, axis=0)) == 64
-    for d in (2, 5):
-        keys = neighbours_at(user, d, 100, rng)
-        assert len(keys) == 100 and len(np.unique(keys, axis=0)) == 100
-        assert set((keys != user).sum(1)) == {d}
-    assert len(neighbours_at(user[:32], 2, 10_000, rng)) == math.comb(32, 2)
 
 
 # --- it must be able to fail ----------------------------------------------------------------------
@@ -240,3 +225,55 @@ def test_plot_without_matplotlib_says_how_to_install(monkeypatch, tmp_path):
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
     with pytest.raises(PropError, match=r"pip install prop-cli\[plot\]"):
         audit_report.plot({"bundle": {"task": "regression"}, "user": None, "groups": []}, tmp_path / "x.png")
+
+
+# --- controls (where the bundle gives nothing) and the gate ---------------------------------------
+
+
+def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it(bundles, cli):
+    d = bundles
+    base = ["attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin"]
+    quick = ["--probes", "null,latent", "--restarts", "2", "--search-steps", "20", "--samples", "64"]
+    r = cli(*base, *quick, "--json", "-")
+    assert r.code == 0, r.err
+    latent = next(g for g in json.loads(r.out)["groups"] if g["name"] == "latent")
+    assert latent["kind"] == "search" and latent["probe"] == "latent"
+    assert latent["control"] == {
+        "available": False,
+        "reason": "no original checkpoint: pass --original (the bundle's base was trained with the key)",
+    }
+    assert latent["gate"] == {"on": "raw", "value": latent["leakage"]["worst"]}  # no control: raw
+    r = cli(*base, *quick, "--original", d / "model.safetensors", "--json", "-")
+    assert r.code == 0, r.err
+    rep = json.loads(r.out)
+    assert rep["reference"] == "original" and "--original" in rep["control_model"]
+    latent = next(g for g in rep["groups"] if g["name"] == "latent")
+    c = latent["control"]
+    assert c["available"] and c["keys"] == 2 and 0 <= c["leakage"]["worst"] <= 1
+    assert latent["beyond"] == pytest.approx(max(0.0, latent["leakage"]["worst"] - c["leakage"]["worst"]))
+    assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"]}
+    null = rep["groups"][0]
+    assert null["control"] is None and null["gate"]["on"] == "raw"  # key probes: raw leakage
+
+
+def test_frozen_base_is_its_own_control(tmp_path, bundles):
+    d = bundles
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    cfg = PersonalizeConfig(steps=30, freeze_base=True)
+    personalize_checkpoint(str(d / "model.safetensors"), [(d / "mine.npz", key)], tmp_path / "f.prop", cfg)
+    s = AuditSettings(probes=["latent"], restarts=2, search_steps=10, samples=32)
+    rep = audit(load_bundle(tmp_path / "f.prop"), load_data(d / "mine.npz"), [key.bits], s)
+    latent = rep["groups"][0]
+    assert latent["control"]["available"] and "--freeze-base" in rep["control_model"]
+
+
+def test_wrong_key_warns(bundles, cli):
+    """Issue 10, fix 10: a key at base level gets a one-line hint that it may not be the bundle's."""
+    d = bundles
+    args = ["attack", d / "good.prop", "--data", d / "mine.npz", "--probes", "null", "--samples", "32"]
+    r = cli(*args, "--key-file", d / "k2.bin")
+    assert r.code == 0, r.err
+    warning = [ln for ln in r.err.splitlines() if ln.startswith("prop: warning:")]
+    assert len(warning) == 1 and "may not be this bundle's key" in warning[0]
+    r = cli(*args, "--key-file", d / "k.bin")
+    assert "prop: warning:" not in r.err

@@ -331,3 +331,94 @@ def test_make_checkpoint_prefix(workdir):
     # conftest helper sanity: prefixes are honoured (used by adapter tests elsewhere)
     p = make_mlp_checkpoint(workdir / "p.safetensors", prefix="net.")
     assert "net.0.weight" in load_file(p)
+
+
+# ---- issue 10: what a new user hit ----------------------------------------------------------------
+
+
+def test_overwrite_hints_name_the_commands_real_flag(cli, workdir):
+    """Fix 4: run's hint said --out (its flag is --output); attack's named no flag."""
+    assert personalize(cli, workdir).code == 0
+    np.save(workdir / "y.npy", np.zeros(1))
+    res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, "choose another --output or pass --force")
+    (workdir / "a.json").write_text("{}")
+    (workdir / "a.png").write_bytes(b"")
+    base = ["attack", workdir / "mine.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin"]
+    assert_clean_error(cli(*base, "--json", workdir / "a.json"), "choose another --json or pass --force")
+    assert_clean_error(cli(*base, "--plot", workdir / "a.png"), "choose another --plot or pass --force")
+
+
+def test_hamming_radius_above_the_key_size_is_refused(cli, workdir):
+    """Fix 5: --hamming-radius 200 was accepted for a 128-bit key."""
+    res = personalize(cli, workdir, "--hamming-radius", "200")
+    assert_clean_error(res, "--hamming-radius 200", "at most the key size (128 bits)")
+    assert not (workdir / "mine.prop").exists()
+
+
+def test_output_that_is_not_a_terminal_is_neither_wrapped_nor_split(cli, workdir):
+    """Fix 9: piped output wrapped at 80 columns and split table cells; personalize showed no progress."""
+    deep = workdir / ("a_directory_name_long_enough_to_push_the_title_past_eighty_columns_" * 2)
+    deep.mkdir()
+    res = personalize(cli, workdir, "--steps", "20", out=deep / "b.prop")
+    assert res.code == 0, res.err
+    steps = [ln for ln in res.err.splitlines() if ln.startswith("personalize: step ")]
+    assert steps[0].startswith("personalize: step 2/20") and steps[-1].startswith("personalize: step 20/20")
+    assert any(str(deep / "b.prop") in ln for ln in res.out.splitlines())  # the path on one line
+    res = cli("attack", deep / "b.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin",
+              "--hamming", "1", "--random", "16", "--restarts", "2", "--search-steps", "5")  # fmt: skip
+    assert res.code == 0, res.err
+    lines = res.out.splitlines()
+    assert any(f"audit of {deep / 'b.prop'} (regression" in ln for ln in lines)
+    rows = [ln.split() for ln in lines if ln.strip().startswith(("T0 ", "T1 ", "T2 "))]
+    assert [r[:2] for r in rows[:3]] == [["T0", "null"], ["T0", "random"], ["T0", "hamming"]]
+    assert all(len(r) >= 5 for r in rows)  # every cell of a row on the row's line
+
+
+@pytest.mark.parametrize("command", ["run", "personalize"])
+def test_no_temp_file_possible_is_one_line(cli, workdir, command, monkeypatch):
+    """Fix 11: where no temporary file can be created, a traceback and exit 1."""
+    import tempfile
+
+    def refuse(*a, **kw):
+        raise PermissionError(13, "Permission denied")
+
+    if command == "run":
+        assert personalize(cli, workdir).code == 0
+        monkeypatch.setattr(tempfile, "mkstemp", refuse)
+        res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+        assert_clean_error(res, "cannot write output", "no file can be created", "--output")
+        assert not (workdir / "y.npy").exists()
+    else:
+        monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+        assert_clean_error(personalize(cli, workdir), "cannot write bundle", "Permission denied", "--out")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_output_under_proc_is_one_line(cli, workdir):
+    assert personalize(cli, workdir).code == 0
+    res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", "/proc/y.npy")
+    assert_clean_error(res, "/proc/y.npy")
+
+
+def test_every_command_has_json(cli):
+    """Fix 12: the README says every command has --json; run and keygen had none."""
+    from prop_cli.cli.main import app
+
+    for cmd in app.registered_commands:
+        res = cli(cmd.name, "--help")
+        assert "--json" in res.out, cmd.name
+
+
+def test_run_and_keygen_json(cli, workdir):
+    res = cli("keygen", workdir / "new.bin", "--json")
+    assert res.code == 0 and json.loads(res.out) == {
+        "bits": 128,
+        "mode": "0600",
+        "path": str(workdir / "new.bin"),
+    }
+    assert personalize(cli, workdir).code == 0
+    res = cli(
+        "run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy", "--json"
+    )
+    assert res.code == 0 and json.loads(res.out)["shape"] == [8, 2]

@@ -271,6 +271,38 @@ def test_personalize_keeps_every_policy_tensor_with_sb3_names(tmp_path, cli, wor
     assert np.load(tmp_path / "y.npy").shape == (8, 2)
 
 
+def test_integer_targets_for_a_box_policy_are_regression(tmp_path, cli):
+    """Issue 10, fix 2: y = zeros(N, int) for a Box policy gave "personalization 1.0000 (accuracy)"."""
+    path = make_zip(tmp_path / "ppo.zip", obs=3, act=1)
+    x = np.random.default_rng(0).uniform(-1, 1, (60, 3)).astype(np.float32)
+    np.savez(tmp_path / "d.npz", x=x, y=np.round(np.linspace(-2, 2, 60)).astype(np.int64))  # rounded torques
+    (tmp_path / "k.bin").write_bytes(bytes(range(16)))
+    (tmp_path / "k.bin").chmod(0o600)
+    r = cli("personalize", path, "--data", tmp_path / "d.npz", "--key-file", tmp_path / "k.bin", "--out",
+            tmp_path / "b.prop", "--json", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    assert json.loads(r.out)["task"] == "regression"
+    r = cli("inspect", path, "--json")
+    model = json.loads(r.out)["model"]
+    assert model["action_low"] == [-2.0] and model["outputs"] == "continuous" and model["algorithm"] == "PPO"
+
+
+def test_targets_outside_the_recorded_bounds_are_refused(tmp_path, cli):
+    """Issue 10, fix 6: targets beyond the checkpoint's action bounds passed silently."""
+    path = make_zip(tmp_path / "sac.zip", "sac", obs=3, act=2)
+    x = np.random.default_rng(0).uniform(-1, 1, (60, 3)).astype(np.float32)
+    y = np.zeros((60, 2), np.float32)
+    y[7, 1] = 3.0  # the Box is [-2, 2]
+    np.savez(tmp_path / "d.npz", x=x, y=y)
+    (tmp_path / "k.bin").write_bytes(bytes(range(16)))
+    (tmp_path / "k.bin").chmod(0o600)
+    r = cli("personalize", path, "--data", tmp_path / "d.npz", "--key-file", tmp_path / "k.bin", "--out",
+            tmp_path / "b.prop", *FAST)  # fmt: skip
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert "outside the action bounds" in r.err and "low [-2.0, -2.0], high [2.0, 2.0]" in r.err
+    assert "row 7, output 1: 3" in r.err and not (tmp_path / "b.prop").exists()
+
+
 # ---- bad input: one line, exit 2, nothing written -----------------------------------------------
 
 

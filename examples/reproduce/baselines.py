@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from examples import mlp
 from prop_cli.config import PersonalizeConfig
 from prop_cli.keyed import key_codes
 from prop_cli.keyspace import KeySampler
@@ -36,13 +37,7 @@ def n_params(module: nn.Module) -> int:
 class KeyInputMLP(nn.Module):
     def __init__(self, in_dim: int, key_bits: int, out_dim: int, hidden: int) -> None:
         super().__init__()
-        self.net = nn.Sequential(
-            nn.Linear(in_dim + key_bits, hidden),
-            nn.ReLU(),
-            nn.Linear(hidden, hidden),
-            nn.ReLU(),
-            nn.Linear(hidden, out_dim),
-        )
+        self.net = mlp([in_dim + key_bits, hidden, hidden, out_dim])
 
     def forward(self, x: torch.Tensor, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.net(torch.cat([x.flatten(1), codes], 1)), x.new_zeros(())
@@ -55,13 +50,7 @@ class StateCVAE(nn.Module):
         self.enc = nn.Sequential(
             nn.Linear(key_bits + in_dim, hidden), nn.ReLU(), nn.Linear(hidden, 2 * latent)
         )
-        self.dec = nn.Sequential(
-            nn.Linear(latent + in_dim, hidden),
-            nn.ReLU(),
-            nn.Linear(hidden, hidden),
-            nn.ReLU(),
-            nn.Linear(hidden, out_dim),
-        )
+        self.dec = mlp([latent + in_dim, hidden, hidden, out_dim])
 
     def forward(self, x: torch.Tensor, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(output, mean KL to the prior); samples z while training, z = mu in eval mode."""

@@ -15,9 +15,8 @@ def push(
     revision: Annotated[
         str | None, typer.Option("--revision", help="Branch to push to (created if missing).")
     ] = None,
-    onnx_dir: OnnxDir = None,
-    as_json: Json = False,
-) -> None:
+    onnx_dir: OnnxDir = None, as_json: Json = False,
+) -> None:  # fmt: skip
     """Upload a bundle (and its ONNX export) to the Hugging Face hub with a generated model card."""
     from prop_cli.api import push_bundle
 
