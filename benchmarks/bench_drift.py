@@ -77,7 +77,7 @@ def write_digits_perm(work: Path, seed: int) -> dict:
     torch.manual_seed(seed)
     model = make_mlp()
     fit(model, torch.from_numpy(xb), torch.from_numpy(yb), nn.functional.cross_entropy, steps=600, batch=128,
-        lr=1e-3, seed=seed)  # fmt: skip
+        lr=1e-3, seed=seed, decay_at=0.7)  # fmt: skip
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(work / "base.safetensors"))
     return {
         "task": "classification",

@@ -51,10 +51,12 @@ class PersonalizeConfig(_Settings):
     base_lr_scale: float = 1.0
     # Rows of one step: each row is one (sample, key) pair.
     user_rows: int = 64  # per step, shared among users: the user's key on the user's data
-    null_rows: int = 32  # distinct fallback samples per step, each also run with the null key
+    # Distinct fallback samples per step, each also run with the null key. 128 rather than 32 (and 2
+    # samples per sampled key rather than 4, so a step stays ~the same size): docs/design.md, "No-key drift".
+    null_rows: int = 128
     random_keys: int = 8  # K2: uniform random keys per step
     neighbour_keys: int = 32  # K1: Hamming neighbours of the user keys per step
-    samples_per_key: int = 4  # fallback samples each sampled key is run on
+    samples_per_key: int = 2  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
     # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's

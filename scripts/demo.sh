@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up, then run the imitation-learning example end to end through the `prop` CLI (~1 minute).
+# Set up (prop alone, no extras), then run the imitation-learning example end to end through the `prop` CLI.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

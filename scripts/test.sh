@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Set up, then run the linter and the test suite (a few minutes on 2 cores).
+# Set up with the test extra (the real Stable-Baselines3 round trips included), then run the linter and
+# the test suite. PROP_TEST_EXTRAS=test,rl also installs panda-gym for the PandaReach smoke test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh "${PROP_TEST_EXTRAS:-test}"
 . .venv/bin/activate
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 ruff check .

@@ -108,7 +108,7 @@ def write_base(x: np.ndarray, y: np.ndarray, work: Path, seed: int, steps: int):
 def make_task(seed: int, work: Path, quick: bool, mnist: Path | None) -> common.TaskData:
     sp = splits(seed, mnist)
     (xb, yb), (xu, yu), (xt, yt) = sp["base"], sp["user"], sp["test"]
-    steps = 150 if quick else (600 if mnist is None else 1500)
+    steps = 40 if quick else (600 if mnist is None else 1500)  # quick: a smoke run of the pipeline
     model, path = write_base(xb, yb, work, seed, steps)
     shift = lambda y: ((y + OFFSET) % 10).astype(np.int64)  # noqa: E731
     return common.TaskData(

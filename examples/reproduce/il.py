@@ -33,7 +33,7 @@ def personal_actions(x: np.ndarray, dim: int) -> np.ndarray:
 
 
 def make_task(seed: int, dim: int, work: Path, quick: bool) -> common.TaskData:
-    n_base, base_steps = (2000, 300) if quick else (20000, 6000)
+    n_base, base_steps = (500, 60) if quick else (20000, 6000)  # quick: a smoke run of the pipeline
     base_seed, mine_seed, general_seed, test_seed = (seed * 1000 + 100 * dim + k for k in range(4))
     x_base = il_task.make_states(n_base, base_seed, dim)
     model = il_task.train_base(
