@@ -24,7 +24,7 @@ from .errors import PropError
 from .files import check_output, write_file
 from .hub import resolve_checkpoint
 from .keyed import key_codes
-from .keys import KeySource, kdf_record, key_for_bundle, read_key_file
+from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, read_key_file
 from .layers import linear_layers, select_layers
 from .policy import KeyedPolicy
 from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
@@ -42,6 +42,7 @@ __all__ = [
     "audit_bundle",
     "export_bundle",
     "formats",
+    "generate_key_file",
     "inspect_checkpoint",
     "key_codes",
     "key_for_bundle",

@@ -20,7 +20,7 @@ def keygen(
     as_json: Json = False,
 ) -> None:
     """Write a new random key (from the OS) to PATH, readable by you only."""
-    from prop_cli.keys import generate_key_file
+    from prop_cli.api import generate_key_file
 
     generate_key_file(path, bits=bits, force=force)
     if as_json:
