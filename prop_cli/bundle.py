@@ -6,20 +6,21 @@ never leaves a half bundle at the output path. No key material and no key hash i
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from safetensors import safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
 import prop_adapters
 from prop_adapters import LoadedModel
 
 from . import __version__
 from . import constants as C
+from . import manifest as schema
 from .errors import PropError
 from .files import check_output, dump_json, sha256_file, staged_dir, write_text
 from .keyed import KeyedModel, KeyEncoder
@@ -61,7 +62,7 @@ def write_bundle(
         full[C.M_FORMAT] = C.FORMAT_VERSION
         full[C.M_PROP_VERSION] = __version__
         full[C.M_FILES] = {n: sha256_file(tmp / n) for n in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)}
-        (tmp / C.MANIFEST).write_text(dump_json(full))
+        (tmp / C.MANIFEST).write_text(dump_json(schema.stamp(full)))
     return out
 
 
@@ -70,6 +71,8 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     bundle = Path(path)
     manifest = read_manifest(bundle)
     manifest[key] = value
+    if C.M_DIGEST in manifest:  # format 1 manifests stay as they were: no digest
+        manifest = schema.stamp(manifest)
     write_text(bundle / C.MANIFEST, dump_json(manifest), what="manifest", flag="BUNDLE")
 
 
@@ -86,24 +89,12 @@ def read_manifest(path: Path) -> dict:
             "pass the directory written by prop personalize --out",
         )
     try:
-        manifest = json.loads(mpath.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raw = mpath.read_bytes()
+    except OSError as e:
         raise PropError(
-            f"bundle {path}: {C.MANIFEST} is not valid JSON ({e})",
-            "the bundle is corrupt; write it again with prop personalize",
-        ) from e
-    version = manifest.get(C.M_FORMAT)
-    if not isinstance(version, int):
-        raise PropError(
-            f"bundle {path}: {C.MANIFEST} has no {C.M_FORMAT}",
-            "the bundle is corrupt; write it again with prop personalize",
-        )
-    if version > C.FORMAT_VERSION:
-        raise PropError(
-            f"bundle {path} has format version {version}; this prop reads up to {C.FORMAT_VERSION}",
-            "upgrade prop: pip install -U prop-cli",
-        )
-    return manifest
+            f"bundle {path}: {C.MANIFEST} cannot be read ({e.strerror})", "check its permissions"
+        ) from None
+    return schema.parse(raw, str(path))
 
 
 @dataclass
@@ -135,31 +126,58 @@ class Bundle:
 
 
 def load_bundle(path: Path) -> Bundle:
-    """Load and verify (format version, sha256 of every weight file) a bundle."""
+    """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle."""
     path = Path(path)
     manifest = read_manifest(path)
-    files = manifest.get(C.M_FILES, {})
-    for name in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS):
+    check_files(path, manifest)
+    base = _weights(path / C.BASE_WEIGHTS)
+    loaded = prop_adapters.rebuild(manifest[C.M_MODEL], base, str(path))
+    keyed = _keyed(path, manifest, loaded)
+    return Bundle(path, manifest, loaded, keyed)
+
+
+def check_files(path: Path, manifest: dict) -> None:
+    """Every file the manifest lists is there and has the sha256 the manifest records."""
+    for name, digest in manifest[C.M_FILES].items():
         f = path / name
         if not f.is_file():
             raise PropError(f"bundle {path} is missing {name}", "write the bundle again")
-        if files.get(name) != sha256_file(f):
+        if digest != sha256_file(f):
             raise PropError(
                 f"bundle {path}: {name} does not match its sha256 in {C.MANIFEST} (modified or corrupt)",
                 "restore the bundle from a trusted copy",
             )
-    loaded = prop_adapters.rebuild(manifest[C.M_MODEL], load_file(str(path / C.BASE_WEIGHTS)), str(path))
-    enc_meta = manifest[C.M_ENCODER]
+
+
+def _weights(path: Path) -> dict:
+    return prop_adapters.read_weights(path)[0]
+
+
+def _keyed(path: Path, manifest: dict, loaded: LoadedModel) -> KeyedModel:
+    """The key encoder the manifest describes, with its weights, hooked onto the keyed layers."""
     layers = manifest[C.M_KEYED_LAYERS]
-    encoder = KeyEncoder(
+    schema.check_layers(layers, loaded.module, str(path))
+    enc_meta = manifest[C.M_ENCODER]
+    args = dict(
         code_bits=int(manifest[C.M_KEY]["bits"]),
         features=[int(layer["features"]) for layer in layers],
         hidden=list(enc_meta["hidden"]),
         scale=float(enc_meta["scale"]),
     )
-    encoder.load_state_dict(load_file(str(path / C.ENCODER_WEIGHTS)))
-    keyed = KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
-    return Bundle(path, manifest, loaded, keyed)
+    state = _weights(path / C.ENCODER_WEIGHTS)
+    with torch.device("meta"):  # shapes only: nothing is allocated for what the manifest claims
+        want = {k: tuple(v.shape) for k, v in KeyEncoder(**args).state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    if got != want:
+        diff = sorted(set(got.items()) ^ set(want.items()))[0][0]
+        raise PropError(
+            f"bundle {path}: {C.ENCODER_WEIGHTS} does not fit the encoder {C.MANIFEST} describes "
+            f"(tensor {diff!r} differs)",
+            schema.FIX,
+        )
+    encoder = KeyEncoder(**args)
+    encoder.load_state_dict(state)
+    return KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
 
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:

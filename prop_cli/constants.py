@@ -7,8 +7,10 @@ BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
 
-# Bump on any change a reader of an older version would misread.
-FORMAT_VERSION = 1
+# Bump on any change a reader of an older version would misread. 2: the manifest carries its own
+# digest (M_DIGEST); version 1 bundles (no digest) still load, with only their weight files checked.
+FORMAT_VERSION = 2
+FORMAT_VERSIONS = (1, 2)  # what this prop reads
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -23,6 +25,14 @@ M_TASK = "task"  # "regression" | "classification"
 M_IO = "io"  # {"input_shape": [...], "checkpoint": str}
 M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
+M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.manifest)
+# Sealed bundles (the keyed part encrypted under the user's key); absent mode = unsealed.
+M_MODE = "mode"  # "unsealed" | "sealed"
+M_PAYLOAD = "payload"  # {"kind": "lora"|"delta"|"full", "rank": int, "layers": [str]}
+M_RECORDS = "records"  # [{"id", "file", "salt", "nonce", "sha256"}]: one encrypted record each
+M_KDF = "kdf"  # {"scrypt_salt": hex, "n": int, "r": int, "p": int}
+MODES = ("unsealed", "sealed")
+PAYLOAD_KINDS = ("lora", "delta", "full")
 
 # How key bits become the encoder's input (prop_cli.keyed.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")

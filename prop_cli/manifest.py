@@ -1,0 +1,372 @@
+"""The bundle manifest: its schema (one table), its digest, and the one function that reads it.
+
+Every field has a rule: its JSON type, its range, and whether it is required (in which mode). Unknown
+fields are refused, so a typo or a flipped bit in a key name cannot pass as "absent". Format 2 adds
+``manifest_sha256``: the sha256 of the canonical JSON of every other field, and the file must be exactly
+the text prop writes (sorted, indented), so any single flipped bit in ``manifest.json`` is caught, even
+one JSON would read back as the same value ("1e-05" -> "1E-05"). Format 1 manifests have no digest: they
+load with only their weight files checked against ``files``, as before.
+
+The digest is a corruption check, not a signature: anyone who edits the manifest can recompute it. For
+sealed bundles the authenticated cipher's associated data binds the public fields to the user's key.
+No torch here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+from . import constants as C
+from .errors import PropError
+from .files import dump_json
+
+FIX = "the bundle is damaged or was edited; restore it from a trusted copy or write it again"
+_HEX = re.compile(r"[0-9a-f]*")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+MAX_TEXT = 4096  # longest string the schema accepts where it gives no other bound
+MAX_DIM = 1 << 20  # largest layer width or input dimension a manifest may claim
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One field: JSON ``kind`` (or kinds), ``ok(value)`` with the ``want`` text, and its children."""
+
+    kind: tuple[type, ...]
+    want: str
+    ok: Callable[[Any], bool] | None = None
+    required: bool | tuple[str, ...] = True  # True, False, or the modes in which it is required
+    nullable: bool = False
+    fields: dict[str, Rule] | None = None  # an object with these fields, others refused
+    open: bool = False  # with ``fields``: other fields allowed (an adapter's own spec)
+    items: Rule | None = None  # a list of these
+    values: Rule | None = None  # an object of free names (``key_ok``) -> these
+    key_ok: Callable[[str], bool] | None = None
+    variants: tuple[str, dict[str, dict[str, Rule]]] | None = None  # (field, value -> extra fields)
+    min_len: int = 0
+    max_len: int = 1 << 16
+
+
+def _opt(rule: Rule, required: bool | tuple[str, ...] = False, nullable: bool = False) -> Rule:
+    """``rule`` for a field that is optional (or required only in the given modes)."""
+    return replace(rule, required=required, nullable=nullable or rule.nullable)
+
+
+def integer(lo: int, hi: int, multiple: int = 1) -> Rule:
+    more = f", a multiple of {multiple}" if multiple > 1 else ""
+    return Rule((int,), f"an integer in {lo}..{hi}{more}", lambda v: lo <= v <= hi and v % multiple == 0)
+
+
+def number(lo: float, hi: float = math.inf, open_lo: bool = False) -> Rule:
+    left = "(" if open_lo else "["
+
+    def ok(v: float) -> bool:
+        return math.isfinite(v) and (v > lo if open_lo else v >= lo) and v <= hi
+
+    return Rule((int, float), f"a finite number in {left}{lo}, {hi}]", ok)
+
+
+def text(max_len: int = MAX_TEXT, nonempty: bool = True) -> Rule:
+    return Rule((str,), f"a {'non-empty ' * nonempty}string of at most {max_len} characters",
+                lambda v: (bool(v) or not nonempty) and len(v) <= max_len)  # fmt: skip
+
+
+def choice(options: tuple[str, ...]) -> Rule:
+    return Rule((str,), "one of " + ", ".join(repr(o) for o in options), lambda v: v in options)
+
+
+def hex_string(min_bytes: int, max_bytes: int) -> Rule:
+    return Rule((str,), f"lowercase hex of {min_bytes} to {max_bytes} bytes",
+                lambda v: min_bytes * 2 <= len(v) <= max_bytes * 2 and len(v) % 2 == 0
+                and _HEX.fullmatch(v) is not None)  # fmt: skip
+
+
+SHA256 = Rule((str,), "a sha256 in lowercase hex (64 characters)", lambda v: _SHA256.fullmatch(v) is not None)
+BOOL = Rule((bool,), "true or false")
+RECORD = Rule((dict,), "an object (a record; not read when loading)")  # reports: free-form JSON
+
+
+def obj(fields: dict[str, Rule], **kw: Any) -> Rule:
+    return Rule((dict,), "an object", fields=fields, **kw)
+
+
+def list_of(item: Rule, min_len: int = 0, max_len: int = 1 << 16) -> Rule:
+    want = f"a list of {min_len} to {max_len} items"
+    return Rule((list,), want, items=item, min_len=min_len, max_len=max_len)
+
+
+def file_name(name: str) -> bool:
+    """A plain file name inside the bundle folder: no folders, no hidden files, not the manifest."""
+    return (
+        0 < len(name) <= 255
+        and not name.startswith(".")
+        and "/" not in name
+        and "\\" not in name
+        and "\0" not in name
+        and name != C.MANIFEST
+    )
+
+
+FILE = Rule((str,), "a plain file name in the bundle folder", file_name)
+NAME = text(1024)  # a module path such as "actor.mu.0"
+DIM = integer(1, MAX_DIM)
+UNSEALED = ("unsealed",)
+SEALED = ("sealed",)
+
+# What each built-in adapter's model spec holds (prop_adapters.*.build reads these). An adapter this
+# table does not know (an extension) is checked for "adapter" only; its rebuild reports the rest.
+_ACTION = obj({
+    "space": choice(("Box", "Discrete")),
+    "shape": _opt(list_of(DIM, 1, 1)),
+    "n": _opt(DIM),
+    "low": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
+    "high": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
+})  # fmt: skip
+ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
+    "mlp": {
+        "layers": list_of(NAME, 1, 4096),
+        "sizes": list_of(DIM, 2, 4097),
+        "bias": Rule((dict,), "an object of layer name -> true/false", values=BOOL, key_ok=bool),
+        "activation": text(64),
+    },
+    "sb3": {
+        "algorithm": text(64),
+        "family": choice(("actor_critic", "sac", "td3")),
+        "policy": text(128),
+        "activation": text(64),
+        "observation_shape": list_of(DIM, 1, 8),
+        "action": _ACTION,
+        "sb3_version": _opt(text(64), nullable=True),
+    },
+    "module": {"arch": text(1024), "arch_kwargs": RECORD},
+    "folder": {"arch": text(1024), "arch_kwargs": RECORD, "builder": text(1024), "config": RECORD},
+}
+
+KDF_RECORD = obj({
+    "name": choice(("scrypt",)),
+    "n": integer(2, 1 << 20),
+    "r": integer(1, 64),
+    "p": integer(1, 64),
+    "salt": hex_string(8, 64),
+})  # fmt: skip
+
+# The manifest, field by field (keys in prop_cli.constants).
+SCHEMA: dict[str, Rule] = {
+    C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
+    C.M_PROP_VERSION: text(64),
+    C.M_MODE: _opt(choice(C.MODES)),
+    C.M_MODEL: obj({"adapter": text(64)}, open=True, variants=("adapter", ADAPTER_SPECS)),
+    C.M_KEYED_LAYERS: _opt(list_of(obj({"name": NAME, "features": DIM}), 1, 4096), UNSEALED),
+    C.M_KEY: obj({
+        "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
+        "encoding": choice(C.KEY_ENCODINGS),
+        "users": _opt(integer(1, 1 << 16)),
+        "source": _opt(choice(("file", "passphrase", "mixed"))),
+        "kdf": _opt(KDF_RECORD, nullable=True),
+    }),  # fmt: skip
+    C.M_ENCODER: _opt(obj({
+        "hidden": list_of(integer(1, 1 << 16), 0, 16),
+        "scale": number(0, 1e6, open_lo=True),
+        "activation": _opt(choice(("tanh",))),
+        "output": _opt(text(256)),
+    }), UNSEALED),  # fmt: skip
+    C.M_CONFIG: _opt(RECORD),
+    C.M_METRICS: _opt(RECORD),
+    C.M_TASK: choice(("classification", "regression")),
+    C.M_IO: obj({"input_shape": list_of(DIM, 1, 8), "checkpoint": _opt(text(MAX_TEXT, nonempty=False))}),
+    C.M_FILES: Rule((dict,), "an object of file name -> sha256", values=SHA256, key_ok=file_name, min_len=1),
+    C.M_AUDIT: _opt(RECORD),
+    C.M_PAYLOAD: _opt(obj({
+        "kind": choice(C.PAYLOAD_KINDS),
+        "rank": integer(0, MAX_DIM),
+        "layers": list_of(NAME, 0, 4096),
+    }), SEALED),  # fmt: skip
+    C.M_RECORDS: _opt(list_of(obj({
+        "id": text(256),
+        "file": FILE,
+        "salt": hex_string(8, 64),
+        "nonce": hex_string(8, 64),
+        "sha256": SHA256,
+    }), 1, 4096), SEALED),  # fmt: skip
+    C.M_KDF: _opt(obj({
+        "scrypt_salt": hex_string(8, 64),
+        "n": integer(2, 1 << 20),
+        "r": integer(1, 64),
+        "p": integer(1, 64),
+    })),  # fmt: skip
+}
+
+
+# ---- the digest -----------------------------------------------------------------------------------
+
+
+def canonical_json(obj: Any) -> bytes:
+    """The one byte form of a JSON value that digests (and a cipher's associated data) are taken over."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
+
+
+def digest(manifest: dict) -> str:
+    """sha256 of the canonical JSON of every field but the digest itself."""
+    return hashlib.sha256(canonical_json({k: v for k, v in manifest.items() if k != C.M_DIGEST})).hexdigest()
+
+
+def stamp(manifest: dict) -> dict:
+    """The manifest with its digest (re)computed: what is written, after any change to a field."""
+    return {**manifest, C.M_DIGEST: digest(manifest)}
+
+
+# ---- reading --------------------------------------------------------------------------------------
+
+
+def _bad(source: str, where: str, problem: str, fix: str = FIX) -> PropError:
+    return PropError(f"bundle {source}: {C.MANIFEST} field '{where}' {problem}", fix)
+
+
+def _shown(value: Any) -> str:
+    s = json.dumps(value) if not isinstance(value, float) or math.isfinite(value) else repr(value)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def _type_ok(rule: Rule, value: Any) -> bool:
+    if isinstance(value, bool) and bool not in rule.kind:
+        return False  # JSON true is not the integer 1
+    return isinstance(value, rule.kind)
+
+
+def _check(rule: Rule, value: Any, where: str, source: str, mode: str) -> None:
+    if value is None and rule.nullable:
+        return
+    if not _type_ok(rule, value) or (rule.ok is not None and not rule.ok(value)):
+        want = rule.want + (" or null" if rule.nullable else "")
+        raise _bad(source, where, f"must be {want} (found {_shown(value)})")
+    if isinstance(value, (list, dict)) and not rule.min_len <= len(value) <= rule.max_len:
+        raise _bad(source, where, f"must hold {rule.min_len} to {rule.max_len} items (found {len(value)})")
+    if rule.items is not None:
+        for i, item in enumerate(value):
+            _check(rule.items, item, f"{where}[{i}]", source, mode)
+    if rule.values is not None:
+        for k, v in value.items():
+            if rule.key_ok is not None and not rule.key_ok(k):
+                raise _bad(source, where, f"has an invalid entry name {_shown(k)}")
+            _check(rule.values, v, f"{where}.{k}", source, mode)
+    if rule.fields is not None:
+        fields, known = dict(rule.fields), False
+        if rule.variants is not None:
+            tag, table = rule.variants
+            known = value.get(tag) in table
+            fields.update(table.get(value.get(tag), {}))
+        check_fields(fields, value, where, source, mode, open_=rule.open and not known)
+
+
+def check_fields(
+    fields: dict[str, Rule], value: dict, where: str, source: str, mode: str, open_: bool = False
+) -> None:
+    """Check an object against its field table: required present, unknown refused, each by its rule."""
+    prefix = f"{where}." if where else ""
+    for name, rule in fields.items():
+        required = rule.required if isinstance(rule.required, bool) else mode in rule.required
+        if name not in value:
+            if required:
+                raise _bad(source, prefix + name, "is missing")
+            continue
+        _check(rule, value[name], prefix + name, source, mode)
+    if not open_:
+        unknown = sorted(set(value) - set(fields))
+        if unknown:
+            known = ", ".join(sorted(fields))
+            raise _bad(
+                source, prefix + str(unknown[0]), f"is not a known field (known: {known})",
+                "a newer prop may have written it (upgrade prop), else " + FIX,
+            )  # fmt: skip
+
+
+def _cross_check(m: dict, source: str, mode: str) -> None:
+    """What one field's rule cannot say: how the fields fit together."""
+    needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if mode == "unsealed" else (C.BASE_WEIGHTS,)
+    for name in needed:
+        if name not in m[C.M_FILES]:
+            raise _bad(source, f"{C.M_FILES}.{name}", "is missing")
+    names = [layer["name"] for layer in m.get(C.M_KEYED_LAYERS, [])]
+    if len(set(names)) != len(names):
+        raise _bad(source, C.M_KEYED_LAYERS, "names a layer twice")
+    key = m[C.M_KEY]
+    if key.get("source") in ("passphrase", "mixed") and not key.get("kdf"):
+        raise _bad(source, f"{C.M_KEY}.kdf", "is missing (a passphrase key needs its salt)")
+    ids = [r["id"] for r in m.get(C.M_RECORDS, [])]
+    if len(set(ids)) != len(ids):
+        raise _bad(source, C.M_RECORDS, "holds two records with the same id")
+    spec = m[C.M_MODEL]
+    if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
+        raise _bad(source, f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+
+
+def validate(manifest: dict, source: str) -> dict:
+    """Check a parsed manifest against ``SCHEMA``; one-line PropError naming the first bad field."""
+    mode = manifest.get(C.M_MODE, "unsealed")
+    body = {k: v for k, v in manifest.items() if k != C.M_DIGEST}
+    check_fields(SCHEMA, body, "", source, mode if mode in C.MODES else "unsealed")
+    _cross_check(manifest, source, mode)
+    return manifest
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    d = dict(pairs)
+    if len(d) != len(pairs):
+        raise ValueError("a field appears twice")
+    return d
+
+
+def parse(raw: bytes, source: str) -> dict:
+    """``manifest.json``'s bytes -> the checked manifest: JSON, format version, digest, schema."""
+    try:
+        manifest = json.loads(raw.decode("utf-8"), object_pairs_hook=_no_duplicates)
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:  # JSONDecodeError is a ValueError
+        raise PropError(
+            f"bundle {source}: {C.MANIFEST} is not valid JSON ({type(e).__name__}: {str(e)[:80]})", FIX
+        ) from None
+    if not isinstance(manifest, dict):
+        raise PropError(f"bundle {source}: {C.MANIFEST} is not a JSON object", FIX)
+    version = manifest.get(C.M_FORMAT)
+    if isinstance(version, int) and not isinstance(version, bool) and version > max(C.FORMAT_VERSIONS):
+        raise PropError(
+            f"bundle {source} has format version {version}; this prop reads up to {C.FORMAT_VERSION}",
+            "upgrade prop: pip install -U prop-cli",
+        )
+    _check(SCHEMA[C.M_FORMAT], version, C.M_FORMAT, source, "unsealed")
+    if version >= 2:
+        check_digest(manifest, raw, source)
+    return validate(manifest, source)
+
+
+def check_digest(manifest: dict, raw: bytes, source: str) -> None:
+    """The stored digest matches the fields, and the file is exactly the text prop writes."""
+    stored = manifest.get(C.M_DIGEST)
+    if not isinstance(stored, str):
+        raise _bad(source, C.M_DIGEST, "is missing" if stored is None else "must be a sha256 in hex")
+    if stored != digest(manifest) or raw != dump_json(manifest).encode():
+        raise PropError(
+            f"bundle {source}: {C.MANIFEST} does not match its {C.M_DIGEST} (modified or corrupt)",
+            "restore the bundle from a trusted copy, or write it again with prop personalize",
+        )
+
+
+def check_layers(layers: list[dict], module, source: str) -> None:
+    """Each keyed layer is a linear layer of ``module`` with the recorded input width."""
+    from torch import nn
+
+    mods = dict(module.named_modules())
+    for i, layer in enumerate(layers):
+        m = mods.get(layer["name"])
+        where = f"{C.M_KEYED_LAYERS}[{i}]"
+        if not isinstance(m, nn.Linear):
+            raise _bad(source, f"{where}.name", f"names no linear layer of the model ({layer['name']!r})")
+        if m.in_features != layer["features"]:
+            raise _bad(
+                source, f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
+                f"{m.in_features} inputs",
+            )  # fmt: skip
