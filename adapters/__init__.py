@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 
 from .base import Adapter, CheckpointOptions, LoadedModel, check_exists
 from .folder import CONFIG, WEIGHTS, FolderAdapter
@@ -102,6 +102,12 @@ def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> Loaded
     except KeyError as e:
         raise PropError(
             f"{source}: model spec lacks field {e}", "the manifest is damaged; re-create the bundle"
+        ) from None
+    except (TypeError, ValueError, IndexError, AttributeError, RuntimeError, OverflowError) as e:
+        # A spec the adapter cannot build from (the manifest passed its schema, so it was edited).
+        raise PropError(
+            f"{source}: the model spec in the manifest does not build ({brief(e)})",
+            "the manifest is damaged; re-create the bundle",
         ) from None
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 
 from . import activations, sb3_zip
 from .base import Adapter, CheckpointOptions, LoadedModel, finish
@@ -222,7 +222,16 @@ class SB3Adapter(Adapter):
 
     def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
         data, state, version = sb3_zip.read_zip(path)
-        src = str(path)
+        try:
+            spec = self._spec(data, version, str(path), options)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as e:
+            raise PropError(
+                f"{path}: its 'data' entry is not what Stable-Baselines3 writes ({brief(e)})",
+                sb3_zip.SAVE_HINT,
+            ) from None
+        return _loaded(spec, state, str(path))
+
+    def _spec(self, data: dict, version: str | None, src: str, options: CheckpointOptions) -> dict:
         family, policy = sb3_zip.policy_class(data, src)
         if data.get("use_sde") is True:
             raise unsupported(src, "gSDE (use_sde=True)")
@@ -236,7 +245,7 @@ class SB3Adapter(Adapter):
             "action": sb3_zip.action_space(family, data, src),
             "sb3_version": version,
         }
-        return _loaded(spec, state, src)
+        return spec
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         return _loaded(spec, weights, source)

@@ -13,11 +13,12 @@ import json
 import math
 import re
 import zipfile
+import zlib
 from pathlib import Path
 
 import torch
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 
 from .weights import load_state_dict
 
@@ -32,6 +33,11 @@ _FAMILIES = {
     "stable_baselines3.td3.policies": ("td3", "TD3Policy"),
 }
 SAVE_HINT = "pass the .zip written by model.save() of a Stable-Baselines3 model"
+# What zipfile raises on a damaged archive: bad CRC or headers (BadZipFile), a broken deflate stream
+# (zlib.error), a cut-off member (EOFError), an unknown compression method or encryption, bad names.
+ZIP_ERRORS = (
+    zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, RuntimeError, ValueError
+)  # fmt: skip
 
 
 def unsupported(path: str, what: str) -> PropError:
@@ -55,11 +61,11 @@ def read_zip(path: Path) -> tuple[dict, dict[str, torch.Tensor], str | None]:
             version = None
             if "_stable_baselines3_version" in names:
                 version = z.read("_stable_baselines3_version").decode(errors="replace").strip() or None
-    except (zipfile.BadZipFile, OSError) as e:
-        raise PropError(f"{path} is not a readable zip archive ({e})", SAVE_HINT) from None
+    except ZIP_ERRORS as e:
+        raise PropError(f"{path} is not a readable zip archive ({brief(e)})", SAVE_HINT) from None
     try:
         data = json.loads(raw_data)
-    except (json.JSONDecodeError, UnicodeDecodeError):
+    except (ValueError, RecursionError):  # JSONDecodeError and UnicodeDecodeError are ValueErrors
         data = None
     if not isinstance(data, dict):
         raise PropError(

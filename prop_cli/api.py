@@ -20,6 +20,7 @@ from .audit import apply_max_leak, audit, load_original
 from .bundle import Bundle, describe_layers, load_bundle, write_bundle
 from .config import AuditSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
+from .datasources.npz import read_npy
 from .errors import PropError
 from .files import check_output, write_file
 from .hub import resolve_checkpoint
@@ -172,12 +173,10 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
     if path.suffix == ".npy":
         if not path.is_file():
             raise PropError(f"{flag} {path} does not exist", "give a .npy or .npz file")
-        try:
-            x = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise PropError(
-                f"{flag} {path} is not a readable .npy file ({e})", "save inputs with numpy.save"
-            ) from e
+        fix = "save inputs with numpy.save"
+        x = read_npy(lambda: np.load(path, allow_pickle=False), f"{flag} {path}", fix)
+        if not isinstance(x, np.ndarray) or x.ndim == 0:
+            raise PropError(f"{flag} {path} holds no array of samples", fix)
         if x.dtype.kind not in "fiu" or not np.isfinite(x).all():
             raise PropError(f"{flag} {path} must hold finite numbers", "check the array")
         x = x.astype(np.float32)

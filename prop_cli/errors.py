@@ -17,3 +17,9 @@ class PropError(Exception):
 
     def line(self) -> str:
         return f"{self.what}; {self.fix}" if self.fix else self.what
+
+
+def brief(e: BaseException, width: int = 120) -> str:
+    """``Type: first line of the message``, short enough for a one-line error."""
+    first = (str(e).splitlines() or [""])[0][:width]
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__

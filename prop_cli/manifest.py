@@ -30,7 +30,7 @@ FIX = "the bundle is damaged or was edited; restore it from a trusted copy or wr
 _HEX = re.compile(r"[0-9a-f]*")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 MAX_TEXT = 4096  # longest string the schema accepts where it gives no other bound
-MAX_DIM = 1 << 20  # largest layer width or input dimension a manifest may claim
+MAX_DIM = 1 << 24  # largest layer width or input dimension a manifest may claim
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ def file_name(name: str) -> bool:
 
 
 FILE = Rule((str,), "a plain file name in the bundle folder", file_name)
-NAME = text(1024)  # a module path such as "actor.mu.0"
+NAME = text()  # a module path such as "actor.mu.0"
 DIM = integer(1, MAX_DIM)
 UNSEALED = ("unsealed",)
 SEALED = ("sealed",)
@@ -129,22 +129,22 @@ _ACTION = obj({
 })  # fmt: skip
 ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
     "mlp": {
-        "layers": list_of(NAME, 1, 4096),
-        "sizes": list_of(DIM, 2, 4097),
+        "layers": list_of(NAME, 1),
+        "sizes": list_of(DIM, 2),
         "bias": Rule((dict,), "an object of layer name -> true/false", values=BOOL, key_ok=bool),
-        "activation": text(64),
+        "activation": text(),
     },
     "sb3": {
-        "algorithm": text(64),
+        "algorithm": text(),
         "family": choice(("actor_critic", "sac", "td3")),
-        "policy": text(128),
-        "activation": text(64),
-        "observation_shape": list_of(DIM, 1, 8),
+        "policy": text(),
+        "activation": text(),
+        "observation_shape": list_of(DIM, 1, 16),
         "action": _ACTION,
-        "sb3_version": _opt(text(64), nullable=True),
+        "sb3_version": _opt(text(), nullable=True),
     },
-    "module": {"arch": text(1024), "arch_kwargs": RECORD},
-    "folder": {"arch": text(1024), "arch_kwargs": RECORD, "builder": text(1024), "config": RECORD},
+    "module": {"arch": text(), "arch_kwargs": RECORD},
+    "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
 }
 
 KDF_RECORD = obj({
@@ -158,10 +158,10 @@ KDF_RECORD = obj({
 # The manifest, field by field (keys in prop_cli.constants).
 SCHEMA: dict[str, Rule] = {
     C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
-    C.M_PROP_VERSION: text(64),
+    C.M_PROP_VERSION: text(),
     C.M_MODE: _opt(choice(C.MODES)),
-    C.M_MODEL: obj({"adapter": text(64)}, open=True, variants=("adapter", ADAPTER_SPECS)),
-    C.M_KEYED_LAYERS: _opt(list_of(obj({"name": NAME, "features": DIM}), 1, 4096), UNSEALED),
+    C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", ADAPTER_SPECS)),
+    C.M_KEYED_LAYERS: _opt(list_of(obj({"name": NAME, "features": DIM}), 1), UNSEALED),
     C.M_KEY: obj({
         "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
         "encoding": choice(C.KEY_ENCODINGS),
@@ -170,29 +170,29 @@ SCHEMA: dict[str, Rule] = {
         "kdf": _opt(KDF_RECORD, nullable=True),
     }),  # fmt: skip
     C.M_ENCODER: _opt(obj({
-        "hidden": list_of(integer(1, 1 << 16), 0, 16),
+        "hidden": list_of(DIM, 0, 256),
         "scale": number(0, 1e6, open_lo=True),
         "activation": _opt(choice(("tanh",))),
-        "output": _opt(text(256)),
+        "output": _opt(text()),
     }), UNSEALED),  # fmt: skip
     C.M_CONFIG: _opt(RECORD),
     C.M_METRICS: _opt(RECORD),
     C.M_TASK: choice(("classification", "regression")),
-    C.M_IO: obj({"input_shape": list_of(DIM, 1, 8), "checkpoint": _opt(text(MAX_TEXT, nonempty=False))}),
+    C.M_IO: obj({"input_shape": list_of(DIM, 1, 16), "checkpoint": _opt(text(MAX_TEXT, nonempty=False))}),
     C.M_FILES: Rule((dict,), "an object of file name -> sha256", values=SHA256, key_ok=file_name, min_len=1),
     C.M_AUDIT: _opt(RECORD),
     C.M_PAYLOAD: _opt(obj({
         "kind": choice(C.PAYLOAD_KINDS),
         "rank": integer(0, MAX_DIM),
-        "layers": list_of(NAME, 0, 4096),
+        "layers": list_of(NAME),
     }), SEALED),  # fmt: skip
     C.M_RECORDS: _opt(list_of(obj({
-        "id": text(256),
+        "id": text(),
         "file": FILE,
         "salt": hex_string(8, 64),
         "nonce": hex_string(8, 64),
         "sha256": SHA256,
-    }), 1, 4096), SEALED),  # fmt: skip
+    }), 1), SEALED),  # fmt: skip
     C.M_KDF: _opt(obj({
         "scrypt_salt": hex_string(8, 64),
         "n": integer(2, 1 << 20),

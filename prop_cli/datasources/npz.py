@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -21,14 +22,26 @@ def _nonfinite_rows(a: np.ndarray) -> int:
     return int(bad.any(axis=1).sum())
 
 
-def _field(npz, name: str, path: Path) -> np.ndarray:
+def read_npy(read: Callable[[], object], what: str, fix: str = SAVE_HINT) -> object:
+    """``read()`` (an ``np.load`` or an npz member) with numpy's and zipfile's errors as a PropError.
+
+    A damaged file fails in many ways (zipfile.BadZipFile for a bad CRC, zlib.error, EOFError, a
+    ValueError or SyntaxError from a mangled .npy header, MemoryError from a header claiming a huge
+    shape), so everything but an interrupt becomes the one message.
+    """
     try:
-        return np.asarray(npz[name])
-    except ValueError:  # object arrays need pickle, which we never allow
-        raise PropError(
-            f"{path}: field '{name}' is an object array (needs pickle, which prop refuses)",
-            f"store '{name}' as a numeric array; " + SAVE_HINT,
-        ) from None
+        return read()
+    except ValueError as e:
+        if "allow_pickle" in str(e):  # object arrays need pickle, which we never allow
+            raise PropError(f"{what} is an object array (needs pickle, which prop refuses)", fix) from None
+        raise PropError(f"{what} is corrupt or not numpy data ({type(e).__name__})", fix) from None
+    except Exception as e:  # noqa: BLE001 - see the docstring
+        raise PropError(f"{what} is corrupt or not numpy data ({type(e).__name__})", fix) from None
+
+
+def _field(npz, name: str, path: Path) -> np.ndarray:
+    fix = f"store '{name}' as a numeric array; " + SAVE_HINT
+    return np.asarray(read_npy(lambda: npz[name], f"{path}: field '{name}'", fix))
 
 
 def _numbers(a: np.ndarray, name: str, path: Path) -> None:
@@ -47,10 +60,7 @@ class NpzSource(DataSource):
         return path.suffix.lower() in (".npz", ".npy") or (path.is_file() and zipfile.is_zipfile(path))
 
     def load(self, path: Path, *, require_y: bool = True, min_samples: int = 10) -> Dataset:
-        try:
-            npz = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
-            raise PropError(f"data file {path} is not a valid .npz ({type(e).__name__})", SAVE_HINT) from None
+        npz = read_npy(lambda: np.load(path, allow_pickle=False), f"data file {path}")
         if not isinstance(npz, np.lib.npyio.NpzFile):
             raise PropError(f"data file {path} holds a single array, not an .npz with x and y", SAVE_HINT)
         with npz:
