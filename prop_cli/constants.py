@@ -40,7 +40,10 @@ KEY_ENCODINGS = ("hashed", "raw")
 # ONNX export (a folder; `prop export --onnx`).
 EXPORT_DIR = "onnx"  # default place: <bundle>/onnx
 EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
-EXPORT_FORMAT = 1
+# 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.
+EXPORT_FORMAT = 2
+EXPORT_FORMATS = (1, 2)
+EXPORT_DIGEST = "export_sha256"
 BASE_GRAPH = "base.onnx"
 KEYED_GRAPH = "keyed.onnx"
 ENCODER_GRAPH = "encoder.onnx"

@@ -41,6 +41,7 @@ from .config import ExportSettings
 from .errors import PropError
 from .files import check_output, dump_json, sha256_file, staged_dir
 from .keyed import key_codes
+from .manifest import stamp
 from .onnx_runtime import require_onnx, session
 
 VERIFY_BATCH = 16
@@ -161,6 +162,7 @@ def export_onnx(
             meta = _export_meta(bundle, tmp, names, s.opset, s.atol)
             if not all(r["ok"] for r in table):
                 raise _VerificationFailed  # staged_dir removes the folder: nothing is left behind
+            meta = stamp(meta, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
     except _VerificationFailed:
         return ExportResult(out, s.opset, s.atol, [], table, False, meta)

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from . import constants as C
-from .errors import PropError
+from .errors import PropError, brief
 from .files import dump_json
 
 FIX = "the bundle is damaged or was edited; restore it from a trusted copy or write it again"
@@ -210,21 +210,29 @@ def canonical_json(obj: Any) -> bytes:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
 
 
-def digest(manifest: dict) -> str:
-    """sha256 of the canonical JSON of every field but the digest itself."""
-    return hashlib.sha256(canonical_json({k: v for k, v in manifest.items() if k != C.M_DIGEST})).hexdigest()
+def digest(obj: dict, key: str = C.M_DIGEST) -> str:
+    """sha256 of the canonical JSON of every field but the digest (``key``) itself."""
+    return hashlib.sha256(canonical_json({k: v for k, v in obj.items() if k != key})).hexdigest()
 
 
-def stamp(manifest: dict) -> dict:
-    """The manifest with its digest (re)computed: what is written, after any change to a field."""
-    return {**manifest, C.M_DIGEST: digest(manifest)}
+def stamp(obj: dict, key: str = C.M_DIGEST) -> dict:
+    """``obj`` with its digest (re)computed: what is written, after any change to a field."""
+    return {**obj, key: digest(obj, key)}
 
 
 # ---- reading --------------------------------------------------------------------------------------
 
 
-def _bad(source: str, where: str, problem: str, fix: str = FIX) -> PropError:
-    return PropError(f"bundle {source}: {C.MANIFEST} field '{where}' {problem}", fix)
+@dataclass(frozen=True)
+class Doc:
+    """The JSON file being checked: how errors name it, its mode, and the fix they suggest."""
+
+    name: str  # e.g. "bundle out.prop: manifest.json"
+    mode: str = "unsealed"
+    fix: str = FIX
+
+    def bad(self, where: str, problem: str, fix: str | None = None) -> PropError:
+        return PropError(f"{self.name} field '{where}' {problem}", fix or self.fix)
 
 
 def _shown(value: Any) -> str:
@@ -238,79 +246,83 @@ def _type_ok(rule: Rule, value: Any) -> bool:
     return isinstance(value, rule.kind)
 
 
-def _check(rule: Rule, value: Any, where: str, source: str, mode: str) -> None:
+def check_value(rule: Rule, value: Any, where: str, doc: Doc) -> None:
+    """Check one value against its rule, and its items, entries or fields against theirs."""
     if value is None and rule.nullable:
         return
     if not _type_ok(rule, value) or (rule.ok is not None and not rule.ok(value)):
         want = rule.want + (" or null" if rule.nullable else "")
-        raise _bad(source, where, f"must be {want} (found {_shown(value)})")
+        raise doc.bad(where, f"must be {want} (found {_shown(value)})")
     if isinstance(value, (list, dict)) and not rule.min_len <= len(value) <= rule.max_len:
-        raise _bad(source, where, f"must hold {rule.min_len} to {rule.max_len} items (found {len(value)})")
+        raise doc.bad(where, f"must hold {rule.min_len} to {rule.max_len} items (found {len(value)})")
     if rule.items is not None:
         for i, item in enumerate(value):
-            _check(rule.items, item, f"{where}[{i}]", source, mode)
+            check_value(rule.items, item, f"{where}[{i}]", doc)
     if rule.values is not None:
         for k, v in value.items():
             if rule.key_ok is not None and not rule.key_ok(k):
-                raise _bad(source, where, f"has an invalid entry name {_shown(k)}")
-            _check(rule.values, v, f"{where}.{k}", source, mode)
+                raise doc.bad(where, f"has an invalid entry name {_shown(k)}")
+            check_value(rule.values, v, f"{where}.{k}", doc)
     if rule.fields is not None:
         fields, known = dict(rule.fields), False
         if rule.variants is not None:
             tag, table = rule.variants
             known = value.get(tag) in table
             fields.update(table.get(value.get(tag), {}))
-        check_fields(fields, value, where, source, mode, open_=rule.open and not known)
+        check_fields(fields, value, doc, where, open_=rule.open and not known)
 
 
 def check_fields(
-    fields: dict[str, Rule], value: dict, where: str, source: str, mode: str, open_: bool = False
+    fields: dict[str, Rule], value: dict, doc: Doc, where: str = "", open_: bool = False
 ) -> None:
     """Check an object against its field table: required present, unknown refused, each by its rule."""
     prefix = f"{where}." if where else ""
     for name, rule in fields.items():
-        required = rule.required if isinstance(rule.required, bool) else mode in rule.required
+        required = rule.required if isinstance(rule.required, bool) else doc.mode in rule.required
         if name not in value:
             if required:
-                raise _bad(source, prefix + name, "is missing")
+                raise doc.bad(prefix + name, "is missing")
             continue
-        _check(rule, value[name], prefix + name, source, mode)
+        check_value(rule, value[name], prefix + name, doc)
     if not open_:
         unknown = sorted(set(value) - set(fields))
         if unknown:
             known = ", ".join(sorted(fields))
-            raise _bad(
-                source, prefix + str(unknown[0]), f"is not a known field (known: {known})",
-                "a newer prop may have written it (upgrade prop), else " + FIX,
+            raise doc.bad(
+                prefix + str(unknown[0]), f"is not a known field (known: {known})",
+                "a newer prop may have written it (upgrade prop), else " + doc.fix,
             )  # fmt: skip
 
 
-def _cross_check(m: dict, source: str, mode: str) -> None:
+def _cross_check(m: dict, doc: Doc) -> None:
     """What one field's rule cannot say: how the fields fit together."""
-    needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if mode == "unsealed" else (C.BASE_WEIGHTS,)
+    needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if doc.mode == "unsealed" else (C.BASE_WEIGHTS,)
     for name in needed:
         if name not in m[C.M_FILES]:
-            raise _bad(source, f"{C.M_FILES}.{name}", "is missing")
+            raise doc.bad(f"{C.M_FILES}.{name}", "is missing")
     names = [layer["name"] for layer in m.get(C.M_KEYED_LAYERS, [])]
     if len(set(names)) != len(names):
-        raise _bad(source, C.M_KEYED_LAYERS, "names a layer twice")
+        raise doc.bad(C.M_KEYED_LAYERS, "names a layer twice")
     key = m[C.M_KEY]
     if key.get("source") in ("passphrase", "mixed") and not key.get("kdf"):
-        raise _bad(source, f"{C.M_KEY}.kdf", "is missing (a passphrase key needs its salt)")
+        raise doc.bad(f"{C.M_KEY}.kdf", "is missing (a passphrase key needs its salt)")
     ids = [r["id"] for r in m.get(C.M_RECORDS, [])]
     if len(set(ids)) != len(ids):
-        raise _bad(source, C.M_RECORDS, "holds two records with the same id")
+        raise doc.bad(C.M_RECORDS, "holds two records with the same id")
     spec = m[C.M_MODEL]
     if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
-        raise _bad(source, f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+        raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+
+
+def _doc(source: str, mode: object = "unsealed") -> Doc:
+    return Doc(f"bundle {source}: {C.MANIFEST}", mode if mode in C.MODES else "unsealed")
 
 
 def validate(manifest: dict, source: str) -> dict:
     """Check a parsed manifest against ``SCHEMA``; one-line PropError naming the first bad field."""
-    mode = manifest.get(C.M_MODE, "unsealed")
-    body = {k: v for k, v in manifest.items() if k != C.M_DIGEST}
-    check_fields(SCHEMA, body, "", source, mode if mode in C.MODES else "unsealed")
-    _cross_check(manifest, source, mode)
+    doc = _doc(source, manifest.get(C.M_MODE, "unsealed"))
+    check_fields(SCHEMA, {k: v for k, v in manifest.items() if k != C.M_DIGEST}, doc)
+    _cross_check(manifest, doc)
     return manifest
 
 
@@ -321,38 +333,45 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return d
 
 
-def parse(raw: bytes, source: str) -> dict:
-    """``manifest.json``'s bytes -> the checked manifest: JSON, format version, digest, schema."""
+def read_json(raw: bytes, name: str, fix: str) -> dict:
+    """Bytes -> a JSON object (no field twice), or a one-line PropError naming ``name``."""
     try:
-        manifest = json.loads(raw.decode("utf-8"), object_pairs_hook=_no_duplicates)
-    except (ValueError, UnicodeDecodeError, RecursionError) as e:  # JSONDecodeError is a ValueError
+        obj = json.loads(raw.decode("utf-8"), object_pairs_hook=_no_duplicates)
+    except (ValueError, RecursionError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise PropError(f"{name} is not valid JSON ({brief(e, 80)})", fix) from None
+    if not isinstance(obj, dict):
+        raise PropError(f"{name} is not a JSON object", fix)
+    return obj
+
+
+def check_version(obj: dict, key: str, known: tuple[int, ...], doc: Doc) -> int:
+    """The format version: too new asks for an upgrade; anything else unknown is damage."""
+    version = obj.get(key)
+    if isinstance(version, int) and not isinstance(version, bool) and version > max(known):
         raise PropError(
-            f"bundle {source}: {C.MANIFEST} is not valid JSON ({type(e).__name__}: {str(e)[:80]})", FIX
-        ) from None
-    if not isinstance(manifest, dict):
-        raise PropError(f"bundle {source}: {C.MANIFEST} is not a JSON object", FIX)
-    version = manifest.get(C.M_FORMAT)
-    if isinstance(version, int) and not isinstance(version, bool) and version > max(C.FORMAT_VERSIONS):
-        raise PropError(
-            f"bundle {source} has format version {version}; this prop reads up to {C.FORMAT_VERSION}",
+            f"{doc.name} has format version {version}; this prop reads up to {max(known)}",
             "upgrade prop: pip install -U prop-cli",
         )
-    _check(SCHEMA[C.M_FORMAT], version, C.M_FORMAT, source, "unsealed")
-    if version >= 2:
-        check_digest(manifest, raw, source)
-    return validate(manifest, source)
+    check_value(integer(min(known), max(known)), version, key, doc)
+    return version
 
 
-def check_digest(manifest: dict, raw: bytes, source: str) -> None:
+def check_digest(obj: dict, raw: bytes, key: str, doc: Doc) -> None:
     """The stored digest matches the fields, and the file is exactly the text prop writes."""
-    stored = manifest.get(C.M_DIGEST)
+    stored = obj.get(key)
     if not isinstance(stored, str):
-        raise _bad(source, C.M_DIGEST, "is missing" if stored is None else "must be a sha256 in hex")
-    if stored != digest(manifest) or raw != dump_json(manifest).encode():
-        raise PropError(
-            f"bundle {source}: {C.MANIFEST} does not match its {C.M_DIGEST} (modified or corrupt)",
-            "restore the bundle from a trusted copy, or write it again with prop personalize",
-        )
+        raise doc.bad(key, "is missing" if stored is None else "must be a sha256 in hex")
+    if stored != digest(obj, key) or raw != dump_json(obj).encode():
+        raise PropError(f"{doc.name} does not match its {key} (modified or corrupt)", doc.fix)
+
+
+def parse(raw: bytes, source: str) -> dict:
+    """``manifest.json``'s bytes -> the checked manifest: JSON, format version, digest, schema."""
+    doc = _doc(source)
+    manifest = read_json(raw, doc.name, FIX)
+    if check_version(manifest, C.M_FORMAT, C.FORMAT_VERSIONS, doc) >= 2:
+        check_digest(manifest, raw, C.M_DIGEST, doc)
+    return validate(manifest, source)
 
 
 def check_layers(layers: list[dict], module, source: str) -> None:
@@ -364,9 +383,9 @@ def check_layers(layers: list[dict], module, source: str) -> None:
         m = mods.get(layer["name"])
         where = f"{C.M_KEYED_LAYERS}[{i}]"
         if not isinstance(m, nn.Linear):
-            raise _bad(source, f"{where}.name", f"names no linear layer of the model ({layer['name']!r})")
+            raise _doc(source).bad(f"{where}.name", f"names no linear layer of the model ({layer['name']!r})")
         if m.in_features != layer["features"]:
-            raise _bad(
-                source, f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
+            raise _doc(source).bad(
+                f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
                 f"{m.in_features} inputs",
             )  # fmt: skip

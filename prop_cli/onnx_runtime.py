@@ -5,19 +5,38 @@ The export is written by ``prop_cli.export`` (graph names and ``export.json`` in
 
 from __future__ import annotations
 
-import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from . import constants as C
 from .bundle import Bundle
-from .errors import PropError
+from .errors import PropError, brief
 from .files import sha256_file
 from .keyed import key_codes
+from .manifest import (
+    DIM,
+    SHA256,
+    Doc,
+    check_digest,
+    check_fields,
+    check_version,
+    list_of,
+    obj,
+    read_json,
+    text,
+)
 
 ONNX_EXTRA = "pip install 'prop-cli[onnx]'"
+REEXPORT = "run prop export BUNDLE --onnx --force"
+# What OnnxPolicy reads from export.json (the rest describes the export for people and other tools).
+EXPORT_FIELDS = {
+    "graphs": obj({g: SHA256 for g in C.GRAPHS}),
+    "deltas": list_of(obj({"input": text(), "layer": text(), "features": DIM,
+                           "base_weight": replace(text(), nullable=True)}, open=True)),  # fmt: skip
+}
 
 
 def require_onnx():
@@ -36,7 +55,15 @@ def session(path: Path, threads: int = 0):
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
     so.log_severity_level = 3
-    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    return open_session(ort, path, so)
+
+
+def open_session(ort, path: Path, so):
+    """An onnxruntime session; a graph it cannot load (damaged, edited, too new) is a PropError."""
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as e:  # noqa: BLE001 - onnxruntime's own exception types (Fail, InvalidGraph, ...)
+        raise PropError(f"onnxruntime cannot load {path} ({brief(e)})", REEXPORT) from None
 
 
 def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
@@ -47,14 +74,19 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
         raise PropError(
             f"{folder} holds no ONNX export ({C.EXPORT_META} missing)", "run prop export BUNDLE --onnx"
         )
+    doc = Doc(str(mpath), fix=REEXPORT)
     try:
-        meta = json.loads(mpath.read_text())
-        graphs = meta["graphs"]
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
-        raise PropError(f"{mpath} is not a valid export description", "run prop export --onnx --force") from e
+        raw = mpath.read_bytes()
+    except OSError as e:
+        raise PropError(f"{mpath} cannot be read ({e.strerror})", "check its permissions") from None
+    meta = read_json(raw, str(mpath), REEXPORT)
+    if check_version(meta, "format", C.EXPORT_FORMATS, doc) >= 2:
+        check_digest(meta, raw, C.EXPORT_DIGEST, doc)
+    check_fields(EXPORT_FIELDS, meta, doc, open_=True)
+    graphs = meta["graphs"]
     for g, digest in graphs.items():
         if not (folder / g).is_file() or sha256_file(folder / g) != digest:
-            raise PropError(f"{folder / g} is missing or modified", "run prop export --onnx --force")
+            raise PropError(f"{folder / g} is missing or modified", REEXPORT)
     if bundle_manifest is not None and meta.get("bundle_files") != bundle_manifest.get(C.M_FILES):
         raise PropError(
             f"the ONNX export in {folder} was made from another bundle (or an older version of it)",
@@ -117,7 +149,7 @@ class OnnxPolicy:
             v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(w, np.float32))
             self._keep.append(v)
             so.add_initializer(name, v)
-        return ort.InferenceSession(str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"])
+        return open_session(ort, folder / C.BASE_GRAPH, so)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         self._binding.bind_cpu_input("x", np.ascontiguousarray(x, np.float32))
