@@ -11,11 +11,41 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from .errors import PropError
+
+# What this process has put in place so far (final paths, in order): the CLI names them if interrupted.
+_WRITTEN: list[Path] = []
+
+
+def written() -> list[Path]:
+    return list(_WRITTEN)
+
+
+def wrote(path: Path) -> None:
+    """Record a finished output (called once it is at its final path)."""
+    _WRITTEN.append(Path(path))
+
+
+@contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Hold Ctrl-C until the block ends, so a rename (or a pair of them) is never cut in half."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if held:
+            signal.raise_signal(signal.SIGINT)  # now, to the handler that was there before
 
 
 def sha256_file(path: Path) -> str:
@@ -65,7 +95,9 @@ def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator
         raise _cannot_write(what, out, e, flag) from None
     try:
         yield tmp
-        replace_dir(tmp, out)
+        with uninterrupted():
+            replace_dir(tmp, out)
+            wrote(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -85,7 +117,9 @@ def write_file(
     try:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give what a plain open() would
-        os.replace(tmp, out)
+        with uninterrupted():
+            os.replace(tmp, out)
+            wrote(out)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -103,7 +137,8 @@ def write_text(out: Path, text: str, what: str = "output", flag: str = "--output
 
 
 def replace_dir(new: Path, out: Path) -> None:
-    """Move folder ``new`` to ``out``, replacing what is there (a file or a folder)."""
+    """Move folder ``new`` to ``out``, replacing what is there (a file or a folder). Call it under
+    ``uninterrupted()``: between its two renames nothing is at ``out``."""
     if not out.exists():
         os.replace(new, out)
         return

@@ -28,6 +28,7 @@ from prop_cli.constants import (
     SCRYPT_R,
 )
 from prop_cli.errors import PropError
+from prop_cli.files import uninterrupted, wrote
 
 # scrypt needs 128*r*N*p bytes (16 MiB with the defaults); OpenSSL's own cap is 32 MiB, so give
 # it explicit headroom instead of relying on that default.
@@ -92,11 +93,13 @@ def generate_key_file(path: Path, bits: int = 128, force: bool = False) -> None:
                 f.write(data)
                 f.flush()
                 os.fsync(f.fileno())
-            os.replace(tmp, path)
+            with uninterrupted():
+                os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
     os.chmod(path, 0o600)  # the umask can only remove bits, but be explicit
+    wrote(path)
 
 
 def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:

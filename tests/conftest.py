@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -31,10 +32,13 @@ def cli(capsys, monkeypatch):
     def run(*args: str) -> Result:
         monkeypatch.setattr(sys, "argv", ["prop", *map(str, args)])
         code = 0
+        sigint = signal.getsignal(signal.SIGINT)  # main() leaves its exit-time Ctrl-C handler behind
         try:
             main()
         except SystemExit as e:
             code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        finally:
+            signal.signal(signal.SIGINT, sigint)
         cap = capsys.readouterr()
         return Result(code, cap.out, cap.err)
 

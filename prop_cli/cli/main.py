@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import warnings
 
 import typer
+
+from prop_cli.constants import ENV_DEBUG
 
 from . import attack_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
 
@@ -27,25 +30,64 @@ app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
 app.command("formats")(formats_cmd.formats)
 
-# Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage.
+# Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage, 130 interrupted.
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class Interrupted(BaseException):
+    """Ctrl-C, raised by our SIGINT handler instead of KeyboardInterrupt, which typer would swallow
+    (exit 130, no message). Not an Exception, so no ``except Exception`` turns it into an error."""
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"prop: warning: {message}", file=sys.stderr)
 
 
+def _on_sigint(signum, frame) -> None:
+    # Only the first Ctrl-C interrupts: a second one must not cut short the clean-up it started.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise Interrupted()
+
+
+def _what_was_written() -> str:
+    from prop_cli.files import written
+
+    paths = written()
+    return f"wrote {', '.join(map(str, paths))}" if paths else "nothing was written"
+
+
+def _exit_interrupted(when: str = "") -> None:
+    """Say what was written, then leave at once: no traceback from exit hooks (torch's among them)."""
+    print(f"prop: interrupted{when}; {_what_was_written()}", file=sys.stderr)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(EXIT_INTERRUPTED)
+
+
+def _on_late_sigint(signum, frame) -> None:
+    _exit_interrupted(" while exiting")
+
+
 def main() -> None:
     warnings.showwarning = _one_line_warning
+    debug = bool(os.environ.get(ENV_DEBUG))
+    if not debug:
+        signal.signal(signal.SIGINT, _on_sigint)
     try:
         app()
+    except Interrupted:
+        _exit_interrupted()
     except Exception as e:
         from prop_cli.errors import PropError
 
-        if not isinstance(e, PropError) or os.environ.get("PROP_DEBUG"):
+        if not isinstance(e, PropError) or debug:
             raise
         print(f"prop: error: {e.line()}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
+    finally:
+        if not debug:  # the work is done; a Ctrl-C during interpreter exit gets a line, not a traceback
+            signal.signal(signal.SIGINT, _on_late_sigint)
 
 
 if __name__ == "__main__":
