@@ -176,7 +176,7 @@ def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Mo
     with torch.no_grad():
         try:
             out = module(torch.zeros(1, features))
-        except RuntimeError:
+        except (RuntimeError, TypeError, OverflowError):  # sizes that do not fit (or do not exist)
             out = None
     want = spec["action"].get("n") or spec["action"]["shape"][0]
     if out is None or out.shape[-1] != want:

@@ -13,14 +13,13 @@ import json
 import math
 import re
 import zipfile
-import zlib
 from pathlib import Path
 
 import torch
 
 from prop_cli.errors import PropError, brief
 
-from .weights import load_state_dict
+from .weights import ZIP_ERRORS, load_state_dict
 
 SUPPORTED = (
     "PPO and A2C MlpPolicy (Box or Discrete actions), SAC MlpPolicy, TD3 and DDPG MlpPolicy "
@@ -33,11 +32,6 @@ _FAMILIES = {
     "stable_baselines3.td3.policies": ("td3", "TD3Policy"),
 }
 SAVE_HINT = "pass the .zip written by model.save() of a Stable-Baselines3 model"
-# What zipfile raises on a damaged archive: bad CRC or headers (BadZipFile), a broken deflate stream
-# (zlib.error), a cut-off member (EOFError), an unknown compression method or encryption, bad names.
-ZIP_ERRORS = (
-    zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, RuntimeError, ValueError
-)  # fmt: skip
 
 
 def unsupported(path: str, what: str) -> PropError:
@@ -129,6 +123,20 @@ def _numbers(text: object, count: int) -> list[float] | None:
     return values if len(values) == count else None
 
 
+_MAX_DIM = 1 << 24
+
+
+def _dim(value: object, field: str, path: str) -> int:
+    """A size SB3 wrote (an int, or a numeric string for Discrete.n), checked to be a sane one."""
+    try:
+        d = int(value)  # type: ignore[call-overload]
+    except (TypeError, ValueError, OverflowError):
+        d = 0
+    if not 1 <= d <= _MAX_DIM:
+        raise PropError(f"{path}: 'data' has an invalid size {value!r} in {field}", SAVE_HINT)
+    return d
+
+
 def observation_shape(data: dict, path: str) -> list[int]:
     kind, space = _space(data, "observation_space", path)
     shape = space.get("_shape")
@@ -136,17 +144,17 @@ def observation_shape(data: dict, path: str) -> list[int]:
         raise unsupported(path, f"a {kind} observation space")
     if space.get("dtype") == "uint8" and len(shape) == 3:
         raise unsupported(path, "an image observation space (CnnPolicy)")
-    return [int(d) for d in shape]
+    return [_dim(d, "observation_space", path) for d in shape]
 
 
 def action_space(family: str, data: dict, path: str) -> dict:
     kind, space = _space(data, "action_space", path)
     if kind == "Discrete" and family == "actor_critic":
-        return {"space": "Discrete", "n": int(space["n"])}
+        return {"space": "Discrete", "n": _dim(space["n"], "action_space", path)}
     shape = space.get("_shape")
     if kind != "Box" or not isinstance(shape, list) or len(shape) != 1:
         raise unsupported(path, f"a {kind} action space for {family.replace('_', '-')} policies")
-    n = int(shape[0])
+    n = _dim(shape[0], "action_space", path)
     action: dict = {"space": "Box", "shape": [n]}
     low = _numbers(space.get("low"), n) or _numbers(space.get("low_repr"), n)
     high = _numbers(space.get("high"), n) or _numbers(space.get("high_repr"), n)

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import io
 import json
 import pickle
 import re
 import struct
+import zipfile
+import zlib
 from pathlib import Path
 
 import torch
@@ -21,6 +24,11 @@ _ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format since 1.6 is a zip archive
 # torch.save's legacy format starts by pickling its magic number 0x1950a86a20f9469cfc6c (as LONG1).
 _LEGACY_MAGIC = b"\x8a\nl\xfc\x9cF\xf9 j\xa8P\x19"
 _MAX_HEADER = 100 << 20  # safetensors caps its JSON header at 100 MB
+# What zipfile raises on a damaged archive: bad CRC or headers (BadZipFile), a broken deflate stream
+# (zlib.error), a cut-off member (EOFError), an unknown compression method or encryption, bad names.
+ZIP_ERRORS = (
+    zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, RuntimeError, ValueError
+)  # fmt: skip
 
 
 def sniff(path: Path) -> str | None:
@@ -78,8 +86,33 @@ def _corrupt(path: Path, e: Exception) -> PropError:
     )
 
 
-def load_state_dict(data: Path | object, name: str) -> object:
+def check_zip_crc(data: Path | str | io.BytesIO, name: str) -> None:
+    """Check the CRC-32 of every member of a zip-format torch file, which torch.load does not: without
+    this a flipped bit in a tensor loads as a different weight. Members stored with CRC 0 are skipped
+    (torch.save with its CRC option off writes 0). Legacy (pickle) torch files have no checksum."""
+    if not isinstance(data, io.BytesIO):
+        with open(data, "rb") as f:
+            if f.read(4) != _ZIP_MAGIC:
+                return
+    elif not data.getbuffer()[:4].tobytes() == _ZIP_MAGIC:
+        return
+    try:
+        with zipfile.ZipFile(data) as z:
+            for info in z.infolist():
+                if info.CRC:
+                    with z.open(info) as member:
+                        while member.read(1 << 20):
+                            pass
+    except ZIP_ERRORS as e:
+        raise _corrupt(Path(name), e) from None
+    finally:
+        if isinstance(data, io.BytesIO):
+            data.seek(0)
+
+
+def load_state_dict(data: Path | str | io.BytesIO, name: str) -> object:
     """``torch.load(weights_only=True)``; a refused object names the class it would have unpickled."""
+    check_zip_crc(data, name)
     try:
         return torch.load(data, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as e:

@@ -16,7 +16,7 @@ SAVE_HINT = "save it with numpy.savez(path, x=inputs, y=targets)"
 
 
 def _nonfinite_rows(a: np.ndarray) -> int:
-    if a.dtype.kind != "f":
+    if a.dtype.kind != "f" or a.size == 0:
         return 0
     bad = ~np.isfinite(a.reshape(a.shape[0], -1) if a.ndim > 1 else a.reshape(-1, 1))
     return int(bad.any(axis=1).sum())
