@@ -19,7 +19,7 @@ import torch
 
 from prop_cli.errors import PropError, brief
 
-from .weights import ZIP_ERRORS, load_state_dict
+from .weights import ZIP_ERRORS, load_state_dict, verify_zip
 
 SUPPORTED = (
     "PPO and A2C MlpPolicy (Box or Discrete actions), SAC MlpPolicy, TD3 and DDPG MlpPolicy "
@@ -44,6 +44,7 @@ def read_zip(path: Path) -> tuple[dict, dict[str, torch.Tensor], str | None]:
         raise PropError(f"checkpoint {path} does not exist", "check the path")
     try:
         with zipfile.ZipFile(path) as z:
+            verify_zip(z)
             names = set(z.namelist())
             if "data" not in names or "policy.pth" not in names:
                 raise PropError(

@@ -24,10 +24,12 @@ _ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format since 1.6 is a zip archive
 # torch.save's legacy format starts by pickling its magic number 0x1950a86a20f9469cfc6c (as LONG1).
 _LEGACY_MAGIC = b"\x8a\nl\xfc\x9cF\xf9 j\xa8P\x19"
 _MAX_HEADER = 100 << 20  # safetensors caps its JSON header at 100 MB
+_DOS_DIRECTORY = 0x10  # the MS-DOS "directory" bit of a zip entry's external attributes
 # What zipfile raises on a damaged archive: bad CRC or headers (BadZipFile), a broken deflate stream
 # (zlib.error), a cut-off member (EOFError), an unknown compression method or encryption, bad names.
 ZIP_ERRORS = (
-    zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, RuntimeError, ValueError
+    zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, RuntimeError, ValueError,
+    IndexError, KeyError, struct.error,
 )  # fmt: skip
 
 
@@ -86,23 +88,31 @@ def _corrupt(path: Path, e: Exception) -> PropError:
     )
 
 
+def verify_zip(z: zipfile.ZipFile) -> None:
+    """Read every member of an open archive, so zipfile checks each CRC-32 and that each local header
+    names the member its central-directory entry does; refuse members marked as folders (torch's
+    reader skips those, so a flipped attribute bit would silently drop a tensor). Members stored with
+    CRC 0 are opened but not read (torch.save with its CRC option off writes 0)."""
+    for info in z.infolist():
+        if not info.filename or info.filename.endswith("/") or info.external_attr & _DOS_DIRECTORY:
+            raise zipfile.BadZipFile(f"member {info.filename!r} has no name or is marked as a folder")
+        with z.open(info) as member:
+            while info.CRC and member.read(1 << 20):
+                pass
+
+
 def check_zip_crc(data: Path | str | io.BytesIO, name: str) -> None:
-    """Check the CRC-32 of every member of a zip-format torch file, which torch.load does not: without
-    this a flipped bit in a tensor loads as a different weight. Members stored with CRC 0 are skipped
-    (torch.save with its CRC option off writes 0). Legacy (pickle) torch files have no checksum."""
+    """``verify_zip`` for a zip-format torch file, which torch.load does not check: without this a
+    flipped bit in a tensor loads as a different weight. Legacy (pickle) torch files have no checksum."""
     if not isinstance(data, io.BytesIO):
         with open(data, "rb") as f:
             if f.read(4) != _ZIP_MAGIC:
                 return
-    elif not data.getbuffer()[:4].tobytes() == _ZIP_MAGIC:
+    elif data.getbuffer()[:4].tobytes() != _ZIP_MAGIC:
         return
     try:
         with zipfile.ZipFile(data) as z:
-            for info in z.infolist():
-                if info.CRC:
-                    with z.open(info) as member:
-                        while member.read(1 << 20):
-                            pass
+            verify_zip(z)
     except ZIP_ERRORS as e:
         raise _corrupt(Path(name), e) from None
     finally:

@@ -11,7 +11,8 @@ the result the way prop does and sorts the outcome:
   (a flipped bit in a safetensors tensor: that format has no checksum) and for ``edit`` mutations,
   which write a new well-formed file (for bundles: a field edited and the digest recomputed, as a
   hostile editor would);
-- ``crash:<Type>``: any other exception. Never allowed.
+- ``crash:<Type>``: any other exception. Never allowed;
+- ``noop``: the mutation left every byte as it was (zeros over zeros); not loaded.
 
 Used by tests/test_fuzz.py (a couple of thousand cases) and benchmarks/fuzz.py (10,000 per kind).
 """
@@ -320,7 +321,10 @@ def _write(folder: Path, files: dict[str, bytes | None]) -> None:
 
 def run_case(seed: Seed, how: str, rng: np.random.Generator, folder: Path) -> str:
     """One case: mutate, write, load; the outcome (see the module docstring)."""
-    _write(folder, mutate(seed, how, rng))
+    files = mutate(seed, how, rng)
+    if files == seed.files:
+        return "noop"  # e.g. zeros written over zeros: nothing to detect
+    _write(folder, files)
     try:
         got = seed.load(folder / seed.name)
     except PropError as e:
