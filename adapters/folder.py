@@ -38,7 +38,7 @@ def read_config(folder: Path) -> dict:
     path = folder / CONFIG
     try:
         config = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
         raise PropError(
             f"{path} is not readable JSON ({type(e).__name__})", "fix or re-export config.json"
         ) from None
@@ -56,7 +56,7 @@ def read_folder_weights(folder: Path) -> tuple[dict[str, torch.Tensor], str]:
     if index.is_file():
         try:
             shards = sorted(set(json.loads(index.read_text())["weight_map"].values()))
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
             raise PropError(
                 f"{index} has no readable weight_map", "re-export the sharded checkpoint"
             ) from None

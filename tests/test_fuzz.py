@@ -306,3 +306,13 @@ def test_ctrl_c_during_exit_hooks_gives_a_line_not_a_traceback(workdir):
     assert re.fullmatch(r"prop: interrupted( while exiting)?; wrote new.key", last)
     assert "Traceback" not in r.stderr
     assert (workdir / "new.key").stat().st_size == 16
+
+
+@pytest.mark.parametrize("config", [b"[" * 100_000, b"\xff\xfe{}", b'{"type": 1', b"[]"])
+def test_a_damaged_config_folder_is_one_error(seeds, tmp_path, config):
+    import prop_adapters
+
+    (tmp_path / "model.safetensors").write_bytes(seeds["checkpoint"][0].files["model.safetensors"])
+    (tmp_path / "config.json").write_bytes(config)
+    with pytest.raises(PropError, match="config.json"):
+        prop_adapters.load_checkpoint(tmp_path)
