@@ -22,7 +22,13 @@ def _nonfinite_rows(a: np.ndarray) -> int:
     return int(bad.any(axis=1).sum())
 
 
-def read_npy(read: Callable[[], object], what: str, fix: str = SAVE_HINT) -> object:
+def read_npy(
+    read: Callable[[], object],
+    what: str,
+    fix: str = SAVE_HINT,
+    problem: str = "is corrupt or not numpy data",
+    pickled: str | None = "is an object array (needs pickle, which prop refuses)",
+) -> object:
     """``read()`` (an ``np.load`` or an npz member) with numpy's and zipfile's errors as a PropError.
 
     A damaged file fails in many ways (zipfile.BadZipFile for a bad CRC, zlib.error, EOFError, a
@@ -32,11 +38,11 @@ def read_npy(read: Callable[[], object], what: str, fix: str = SAVE_HINT) -> obj
     try:
         return read()
     except ValueError as e:
-        if "allow_pickle" in str(e):  # object arrays need pickle, which we never allow
-            raise PropError(f"{what} is an object array (needs pickle, which prop refuses)", fix) from None
-        raise PropError(f"{what} is corrupt or not numpy data ({type(e).__name__})", fix) from None
+        if pickled and "allow_pickle" in str(e):  # object arrays need pickle, which we never allow
+            raise PropError(f"{what} {pickled}", fix) from None
+        raise PropError(f"{what} {problem} ({type(e).__name__})", fix) from None
     except Exception as e:  # noqa: BLE001 - see the docstring
-        raise PropError(f"{what} is corrupt or not numpy data ({type(e).__name__})", fix) from None
+        raise PropError(f"{what} {problem} ({type(e).__name__})", fix) from None
 
 
 def _field(npz, name: str, path: Path) -> np.ndarray:
@@ -60,7 +66,12 @@ class NpzSource(DataSource):
         return path.suffix.lower() in (".npz", ".npy") or (path.is_file() and zipfile.is_zipfile(path))
 
     def load(self, path: Path, *, require_y: bool = True, min_samples: int = 10) -> Dataset:
-        npz = read_npy(lambda: np.load(path, allow_pickle=False), f"data file {path}")
+        npz = read_npy(
+            lambda: np.load(path, allow_pickle=False),
+            f"data file {path}",
+            problem="is not a valid .npz",
+            pickled=None,
+        )
         if not isinstance(npz, np.lib.npyio.NpzFile):
             raise PropError(f"data file {path} holds a single array, not an .npz with x and y", SAVE_HINT)
         with npz:
