@@ -24,9 +24,8 @@ import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
+from .config import PAYLOAD_KINDS
 from .errors import PropError
-
-PAYLOAD_KINDS = ("delta", "lora", "full")
 
 
 @dataclass

@@ -39,7 +39,9 @@ def _aead():
         from cryptography.hazmat.primitives.ciphers.aead import AESGCM
         from cryptography.hazmat.primitives.kdf.hkdf import HKDF
     except ImportError as e:  # a broken install; prop-cli requires cryptography
-        raise PropError(f"sealed bundles need the 'cryptography' package ({e.name} is missing)", CRYPTO_EXTRA)
+        raise PropError(
+            f"sealed bundles need the 'cryptography' package ({e.name} is missing)", CRYPTO_EXTRA
+        ) from None
     return AESGCM, HKDF, hashes, InvalidTag
 
 

@@ -208,7 +208,10 @@ def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
             "files", sorted(p.name for p in Path(kw["folder_path"]).iterdir())
         ),
     )
-    r = cli("push", bundle, "me/pub")
+    r = cli("push", bundle, "me/pub")  # unsealed to a public repo: refused, nothing uploaded
+    assert r.code == 2 and "unsealed" in r.err and "--allow-unsealed" in r.err and not seen
+    assert len(r.err.strip().splitlines()) == 2  # the "uploading" notice and the one-line error
+    r = cli("push", bundle, "me/pub", "--allow-unsealed")
     assert r.code == 0, r.err
     assert seen["repo"]["private"] is False
     assert seen["files"] == sorted(["README.md", C.MANIFEST, C.BASE_WEIGHTS, C.ENCODER_WEIGHTS])
@@ -219,13 +222,13 @@ def test_push_refuses_bad_repo_and_modified_bundle(cli, bundle, monkeypatch):
     assert "repo id" in cli("push", bundle, "no-namespace").err
     with open(bundle / C.BASE_WEIGHTS, "ab") as f:
         f.write(b"x")
-    r = cli("push", bundle, "me/x")
+    r = cli("push", bundle, "me/x", "--private")
     assert r.code == 2 and "sha256" in r.err
 
 
 def test_push_offline_fails_cleanly(cli, bundle):
     # The real client, offline: it refuses before any request.
-    r = cli("push", bundle, "me/x")
+    r = cli("push", bundle, "me/x", "--private")
     assert r.code == 2
     assert r.err.splitlines()[-1].startswith("prop: error: cannot push") and "HF_HUB_OFFLINE" in r.err
 

@@ -28,6 +28,10 @@ SETTINGS = {
     "exclude": "Layers not to key (same forms); repeat.",
     "task": " or ".join(TASKS) + " (default: decided against the model).",
     "seed": "Seed: the same seed and inputs give byte-identical weights.",
+    "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
+    "payload": "With --seal: lora, delta or full (what is stored per user).",
+    "payload_rank": "With --seal --payload lora: the update's rank.",
+    "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
 }
 
 
