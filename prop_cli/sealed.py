@@ -47,6 +47,14 @@ Progress = Callable[[int, dict[str, float]], None]
 _BOUND = (C.M_FORMAT, C.M_MODE, C.M_MODEL, C.M_PAYLOAD, C.M_TASK)
 
 
+def public_part(manifest: dict) -> dict:
+    """The manifest fields that opening a record needs (an ONNX export carries them)."""
+    part = {f: manifest.get(f) for f in _BOUND}
+    part.update({C.M_IO: manifest[C.M_IO], C.M_KEY: manifest[C.M_KEY], C.M_FILES: manifest[C.M_FILES]})
+    part[C.M_RECORDS] = manifest[C.M_RECORDS]
+    return part
+
+
 def binding(manifest: dict, record_id: str) -> bytes:
     """The associated data of one record: a digest of the bundle's bound public fields and its id."""
     key = manifest[C.M_KEY]
