@@ -237,3 +237,25 @@ def test_missing_extra_names_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
     with pytest.raises(PropError, match=r"prop-cli\[hub\]"):
         hub.resolve_checkpoint("hf://org/p/w.safetensors")
+
+
+def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch):
+    tmp = bundle.parent
+    sealed = tmp / "sealed.prop"
+    r = cli("personalize", tmp / "model.safetensors", "--data", tmp / "mine.npz", "--key-file", tmp / "k.bin",
+            "--out", sealed, "--seal", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    seen = {}
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.setdefault("repo", kw))
+
+    def upload(self, **kw):
+        root = Path(kw["folder_path"])
+        seen["files"] = sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file())
+        seen["card"] = (root / "README.md").read_text()
+
+    monkeypatch.setattr(hf.HfApi, "upload_folder", upload)
+    r = cli("push", sealed, "me/pub")
+    assert r.code == 0, r.err
+    record = json.loads((sealed / C.MANIFEST).read_text())[C.M_RECORDS][0]["file"]
+    assert seen["files"] == sorted(["README.md", C.MANIFEST, C.BASE_WEIGHTS, record])
+    assert "**sealed**" in seen["card"] and "Audit verdict: no audit recorded" in seen["card"]
