@@ -111,7 +111,8 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| task | variant | personalization (mean over seeds) | vs unsealed | wrong keys bit-identical to no key "
+        "| task | variant | personalization (mean over seeds) | vs unsealed "
+        "| wrong keys bit-identical to no key "
         "| per-user bytes | train s |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -127,7 +128,8 @@ def table(rows: list[dict]) -> str:
             lines.append(
                 f"| {task} | {name} | {pers:.4f} | {100 * (pers - ref) / abs(ref):+.1f}% "
                 f"| {np.mean([r['wrong_keys_identical'] for r in sel]):.3f} "
-                f"| {int(np.mean([r['user_bytes'] for r in sel]))} | {np.mean([r['seconds'] for r in sel]):.1f} |"
+                f"| {int(np.mean([r['user_bytes'] for r in sel]))} "
+                f"| {np.mean([r['seconds'] for r in sel]):.1f} |"
             )
     return "\n".join(lines)
 

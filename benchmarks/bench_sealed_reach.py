@@ -114,11 +114,16 @@ def main(argv: list[str] | None = None) -> None:
                 seconds = time.perf_counter() - t0
                 out = Path(tmp) / f"{seed}-{kind}.prop"
                 manifest = {
-                    C.M_MODEL: loaded.spec, C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
-                    C.M_PAYLOAD: spec.to_dict(), C.M_KEY: {"bits": len(key), "users": 1, "source": "file", "kdf": None},
-                    C.M_CONFIG: PersonalizeConfig(seal=True, payload=kind, payload_rank=max(rank, 1)).to_dict(),
-                    C.M_TASK: "regression", C.M_IO: {"input_shape": [reach.OBS], "checkpoint": str(ckpt)},
-                }  # fmt: skip
+                    C.M_MODEL: loaded.spec,
+                    C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
+                    C.M_PAYLOAD: spec.to_dict(),
+                    C.M_KEY: {"bits": len(key), "users": 1, "source": "file", "kdf": None},
+                    C.M_CONFIG: PersonalizeConfig(
+                        seal=True, payload=kind, payload_rank=max(rank, 1)
+                    ).to_dict(),
+                    C.M_TASK: "regression",
+                    C.M_IO: {"input_shape": [reach.OBS], "checkpoint": str(ckpt)},
+                }
                 write_sealed_bundle(out, loaded=loaded, manifest=manifest, users=[(payload, {}, key)])
                 bundle = load_bundle(out)
                 user = scores(env, KeyedPolicy(bundle, key), a.episodes)
@@ -141,19 +146,24 @@ def main(argv: list[str] | None = None) -> None:
                 key=lambda e: abs(base_total + 129 * e + e * feats + feats - reach.TOTAL_PARAMS),
             )
             ka = reach.finetune(
-                common.PROP_HASHED, env, actor, log_std, critic, pool, key, a.iters, seed, enc, reach.TOTAL_PARAMS,
-                ft_cfg, lambda *_: None,
+                common.PROP_HASHED, env, actor, log_std, critic, pool, key, a.iters, seed, enc, total, ft_cfg,
+                lambda *_: None,
             )  # fmt: skip
             seconds = time.perf_counter() - t0
             rng = np.random.default_rng(seed + 5)
             rand = [scores(env, ka.policy(b), 5) for b in rng.integers(0, 2, (5, len(key)), dtype=np.uint8)]
-            rows.append({"seed": seed, "method": "unsealed PRoP", "user": scores(env, ka.policy(key), a.episodes),
-                         "seconds": seconds, "random_keys_personal": float(np.mean([r["personal"] for r in rand]))})  # fmt: skip
+            user = scores(env, ka.policy(key), a.episodes)
+            rand_personal = float(np.mean([r["personal"] for r in rand]))
+            rows.append(
+                {"seed": seed, "method": "unsealed PRoP", "user": user, "seconds": seconds,
+                 "random_keys_personal": rand_personal}
+            )  # fmt: skip
             print(seed, rows[-1], flush=True)
     env.close()
     print()
     print(
-        "| method | personalized reward (user key) | general reward (user key) | vs unsealed | wrong keys = original | train s |"
+        "| method | personalized reward (user key) | general reward (user key) | vs unsealed "
+        "| wrong keys = original | train s |"
     )
     print("|---|---|---|---|---|---|")
     ref = np.mean([r["user"]["personal"] for r in rows if r["method"] == "unsealed PRoP"])

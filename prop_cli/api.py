@@ -293,7 +293,9 @@ def run_file(
             np.save(f, y)
 
     write_file(output, save, what="output", flag="--output")
-    return RunResult(Path(output), tuple(y.shape), key is not None, onnx or onnx_dir is not None)
+    # A key that opens no record of a sealed bundle ran the base: report it as such, not as keyed.
+    keyed = key is not None and (not bundle.is_sealed or bundle.sealed.open(key) is not None)
+    return RunResult(Path(output), tuple(y.shape), keyed, onnx or onnx_dir is not None)
 
 
 def audit_bundle(

@@ -114,4 +114,6 @@ def _print_report(result) -> None:
             )  # fmt: skip
         out.print(table)
     layers = ", ".join(f"{x['name']} ({x['features']})" for x in result.keyed_layers)
-    out.print(f"wrote {result.out} (keyed layers: {layers})")
+    records = [r["id"] for r in result.manifest.get("records", [])]
+    sealed = f"; sealed, user records {', '.join(records)}" if records else ""
+    out.print(f"wrote {result.out} (keyed layers: {layers}{sealed})")
