@@ -146,8 +146,8 @@ def main(argv: list[str] | None = None) -> None:
                 key=lambda e: abs(base_total + 129 * e + e * feats + feats - reach.TOTAL_PARAMS),
             )
             ka = reach.finetune(
-                common.PROP_HASHED, env, actor, log_std, critic, pool, key, a.iters, seed, enc, total, ft_cfg,
-                lambda *_: None,
+                common.PROP_HASHED, env, actor, log_std, critic, pool, key, a.iters, seed, enc, reach.TOTAL_PARAMS,
+                ft_cfg, lambda *_: None,
             )  # fmt: skip
             seconds = time.perf_counter() - t0
             rng = np.random.default_rng(seed + 5)
