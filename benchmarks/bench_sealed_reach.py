@@ -145,10 +145,8 @@ def main(argv: list[str] | None = None) -> None:
                 range(8, 1025),
                 key=lambda e: abs(base_total + 129 * e + e * feats + feats - reach.TOTAL_PARAMS),
             )
-            ka = reach.finetune(
-                common.PROP_HASHED, env, actor, log_std, critic, pool, key, a.iters, seed, enc, reach.TOTAL_PARAMS,
-                ft_cfg, lambda *_: None,
-            )  # fmt: skip
+            args = (env, actor, log_std, critic, pool, key, a.iters, seed, enc, reach.TOTAL_PARAMS, ft_cfg)
+            ka = reach.finetune(common.PROP_HASHED, *args, lambda *_: None)
             seconds = time.perf_counter() - t0
             rng = np.random.default_rng(seed + 5)
             rand = [scores(env, ka.policy(b), 5) for b in rng.integers(0, 2, (5, len(key)), dtype=np.uint8)]
