@@ -31,6 +31,8 @@ DEFAULT_HAMMING = "1..8"
 # Below this leakage of the user's own key, its personalization is at the base's level (fix for a
 # wrong key file, or data the bundle was not personalized on, going unnoticed).
 WRONG_KEY_LEAKAGE = 0.5
+# Per-candidate lists in a search's JSON only up to this many candidates (a key scan keeps hundreds).
+PER_RESTART_LISTS = 256
 
 
 def _sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
@@ -79,6 +81,14 @@ def _search(v: dict[str, torch.Tensor], info: dict) -> dict:
         "best_divergence": float(v["divergence"][best]),
         "best_leakage": float(v["leakage"][best]) if "leakage" in v else None,
         "best_fidelity": float(v["fidelity"][best]),
+        **_per_restart(v),
+    }
+
+
+def _per_restart(v: dict[str, torch.Tensor]) -> dict:
+    if len(v["divergence"]) > PER_RESTART_LISTS:
+        return {}
+    return {
         "divergence": [float(d) for d in v["divergence"]],
         "leakage": [float(d) for d in v["leakage"]] if "leakage" in v else None,
     }
@@ -179,7 +189,9 @@ def audit(
     control_km, control_from = _control_model(bundle, original)
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
-    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter)
+    seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
+    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter,
+                       seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
     timing: dict[str, float] = {}
     groups: list[dict] = []
     user, warnings = None, []
@@ -198,7 +210,7 @@ def audit(
                 continue
             t0 = time.perf_counter()
             found = probe.run(replace(ctx, probe=name))
-            controls = _controls(probe, ctx, control_km, control_from, name, task)
+            controls = _controls(probe, ctx, control_km, control_from, name, task, found)
             timing[name] = time.perf_counter() - t0
             for g in found:
                 control = None if controls is None else controls.get(g.name, controls.get(None))
@@ -236,24 +248,22 @@ def audit(
 
 
 def _user(ctx: ProbeContext, key: np.ndarray) -> dict:
-    with torch.inference_mode():
-        o = ctx.km.run_keys(ctx.ref.x, ctx.km.layer_deltas(ctx.codes(key)))
-        v = ctx.scores(o)
+    v = ctx.probe_keys(key, "user", outputs=True)
     return {
-        "personalization": metrics.personalization(o[0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
+        "personalization": metrics.personalization(v["outputs"][0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
         "leakage": float(v["leakage"][0]),
         "fidelity": float(v["fidelity"][0]),
     }
 
 
-def _controls(probe, ctx, control_km, control_from, name, task) -> dict | None:
+def _controls(probe, ctx, control_km, control_from, name, task, found) -> dict | None:
     """{group name: control JSON} for a probe with a control slot (key None: every other group);
     None for a probe without one."""
     if probe.control is None:
         return None
     if control_km is None:
         return {None: {"available": False, "reason": control_from}}
-    found = probe.control(replace(ctx, probe=name))
+    found = probe.control(replace(ctx, probe=name), found)
     return {g.name: {"available": True, "model": control_from, **_group_json(g, task)} for g in found}
 
 

@@ -253,7 +253,8 @@ def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it
     assert latent["beyond"] == pytest.approx(max(0.0, latent["leakage"]["worst"] - c["leakage"]["worst"]))
     assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"]}
     null = rep["groups"][0]
-    assert null["control"] is None and null["gate"]["on"] == "raw"  # key probes: raw leakage
+    assert null["control"]["available"] and null["control"]["leakage"]["worst"] == 0  # the original itself
+    assert null["gate"] == {"on": "raw", "value": null["leakage"]["worst"]}  # key probes: raw leakage
 
 
 def test_frozen_base_is_its_own_control(tmp_path, bundles):

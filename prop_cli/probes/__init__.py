@@ -5,13 +5,15 @@ from __future__ import annotations
 
 from prop_cli.errors import PropError
 
-from . import cross_user, hamming, latent, null, random_keys, relaxed
+from . import blackbox, cross_user, hamming, latent, null, random_keys, relaxed, structure
 from .base import Group, Probe, ProbeContext, Reference
 
 PROBES: list[Probe] = [
     null.PROBE,
     random_keys.PROBE,
+    blackbox.PROBE,
     hamming.PROBE,
+    structure.PROBE,
     relaxed.PROBE,
     latent.PROBE,
     cross_user.PROBE,
