@@ -33,11 +33,27 @@ DEFAULT_HAMMING = "1..8"
 WRONG_KEY_LEAKAGE = 0.5
 # Per-candidate lists in a search's JSON only up to this many candidates (a key scan keeps hundreds).
 PER_RESTART_LISTS = 256
+MAX_SHOTS = 64  # the largest few-shot k
 
 
 def _sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
     order = np.random.default_rng(seed).permutation(len(data))
     return np.sort(order[: min(n, len(data))])
+
+
+def _shots(data: Dataset, audit_rows: np.ndarray, seed: int, dev, reference, task: str) -> Reference | None:
+    """Up to MAX_SHOTS labelled rows outside the audit sample: what a few-shot attacker holds."""
+    rest = np.setdiff1d(np.arange(len(data)), audit_rows)
+    if not len(rest):
+        return None
+    rows = np.random.default_rng([seed, 1]).permutation(rest)[:MAX_SHOTS]
+    x = torch.from_numpy(data.x[rows]).to(dev)
+    p = torch.from_numpy(data.y[rows]).to(dev)
+    if task == "regression" and p.dim() == 1:
+        p = p[:, None]
+    with torch.inference_mode():
+        b = reference(x)
+    return Reference(x, b.clone(), p, task)
 
 
 def _unhooked_copy(module: torch.nn.Module) -> torch.nn.Module:
@@ -186,12 +202,17 @@ def audit(
         p = torch.from_numpy(data.y[idx]).to(dev)
         if task == "regression" and p.dim() == 1:
             p = p[:, None]
+    shots = (
+        _shots(data, idx, s.seed, x.device, km.module if original is None else original, task)
+        if has_key
+        else None
+    )
     control_km, control_from = _control_model(bundle, original)
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
     seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
     ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter,
-                       seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
+                       shots=shots, seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
     timing: dict[str, float] = {}
     groups: list[dict] = []
     user, warnings = None, []

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from prop_cli.errors import PropError
 
-from . import blackbox, cross_user, hamming, latent, null, random_keys, relaxed, structure
+from . import blackbox, cross_user, fewshot, hamming, latent, null, random_keys, relaxed, structure
 from .base import Group, Probe, ProbeContext, Reference
 
 PROBES: list[Probe] = [
@@ -16,6 +16,7 @@ PROBES: list[Probe] = [
     structure.PROBE,
     relaxed.PROBE,
     latent.PROBE,
+    fewshot.PROBE,
     cross_user.PROBE,
 ]
 

@@ -71,6 +71,7 @@ class ProbeContext:
     progress: Progress | None = None
     counter: Counter = field(default_factory=Counter)
     probe: str = ""  # the running probe's name: seeds its random streams
+    shots: Reference | None = None  # labelled owner's rows outside the audit sample (few-shot attacks)
     seed_hint: int | None = None  # the training seed the manifest records, if any (what an attacker reads)
 
     @property
