@@ -263,9 +263,28 @@ def audit(
             "key_sample_evaluations": counter.evals,
             "evaluations_per_second": counter.evals / counter.seconds if counter.seconds else None,
             "stage_seconds": timing,
+            "blackbox": _scan_speed(groups),
             "wall_seconds": time.perf_counter() - started,
         },
     }
+
+
+def _scan_speed(groups: list[dict]) -> dict | None:
+    """The black-box scan's own throughput (keys x screening samples per second of scanning)."""
+    for g in groups:
+        if g["probe"] == "blackbox" and g.get("search"):
+            s = g["search"]
+            fields = (
+                "scanned",
+                "screen_samples",
+                "path",
+                "seconds",
+                "keys_per_second",
+                "evaluations_per_second",
+                "evaluations_per_cpu_second",
+            )
+            return {f: s[f] for f in fields}
+    return None
 
 
 def _user(ctx: ProbeContext, key: np.ndarray) -> dict:

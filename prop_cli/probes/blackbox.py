@@ -36,15 +36,18 @@ def run(ctx: ProbeContext) -> list[Group]:
         _chunks(ctx, s.blackbox), s.blackbox, "blackbox", screen=s.blackbox_screen, keep=s.blackbox_keep
     )
     v = scan.values
-    scan_seconds = sum(t for k, t in scan.seconds.items() if k != "rescore")
+    wall, cpu = scan.seconds["scan"], scan.seconds["scan_cpu"]
+    evals = scan.scanned * scan.screen_samples
     info = {
         "scanned": scan.scanned,
         "screen_samples": scan.screen_samples,
         "rescored": int(len(scan.bits)),
         "path": scan.path,
         "seconds": scan.seconds,
-        "keys_per_second": scan.scanned / scan_seconds if scan_seconds else None,
-        "evaluations_per_second": scan.scanned * scan.screen_samples / scan_seconds if scan_seconds else None,
+        "keys_per_second": scan.scanned / wall if wall else None,
+        "evaluations_per_second": evals / wall if wall else None,
+        # per CPU-second (all threads): what the scan costs on a machine other work also uses
+        "evaluations_per_cpu_second": evals / cpu if cpu else None,
     }
     order = torch.argsort(v["divergence"], descending=True)[:TOP_REPORTED]
     top = [{"divergence": float(v["divergence"][i]), "fidelity": float(v["fidelity"][i])} for i in order]

@@ -16,7 +16,8 @@ buffers reused across chunks. Any other model takes ``KeyedModel.run_keys`` in f
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -154,6 +155,28 @@ def _top(values: torch.Tensor, keep: int) -> torch.Tensor:
     return values.topk(min(keep, len(values))).indices
 
 
+def _deltas_ahead(ctx: ProbeContext, chunks: Iterable[np.ndarray], low: bool, sec: dict) -> Iterator:
+    """(bits, deltas) per chunk, the next chunk's keys and deltas made on a second thread meanwhile
+    (hashing holds the GIL, the model's matmuls release it: on 2 cores the two overlap)."""
+    it = iter(chunks)
+
+    def work() -> tuple | None:
+        t0 = time.perf_counter()
+        bits = next(it, None)
+        if bits is None:
+            return None
+        with torch.inference_mode():  # thread-local, like autocast inside key_deltas
+            deltas = ctx.key_deltas(bits, low_precision=low)
+        sec["keys+deltas"] += time.perf_counter() - t0
+        return bits, deltas
+
+    with ThreadPoolExecutor(1) as pool:
+        ahead = pool.submit(work)
+        while (got := ahead.result()) is not None:
+            ahead = pool.submit(work)
+            yield got
+
+
 def scan_keys(
     ctx: ProbeContext, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
 ) -> KeyScan:
@@ -166,17 +189,14 @@ def scan_keys(
             fast = None
     except ValueError:
         fast = None
-    sec = {"keys": 0.0, "deltas": 0.0, "model": 0.0, "scores": 0.0}
+    sec = {"keys+deltas": 0.0, "model": 0.0, "scores": 0.0}
     kept_bits = np.zeros((0, ctx.km.encoder.code_bits), np.uint8)
     kept_div = torch.zeros(0)
     kept_lk: torch.Tensor | None = None
     done = 0
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     with torch.inference_mode():
-        t0 = time.perf_counter()
-        for bits in chunks:
-            t1 = time.perf_counter()
-            deltas = ctx.key_deltas(bits, low_precision=fast is not None)
+        for bits, deltas in _deltas_ahead(ctx, chunks, fast is not None, sec):
             t2 = time.perf_counter()
             o = (fast(deltas) if fast is not None else ctx.km.run_keys(xs, deltas)).float()
             t3 = time.perf_counter()
@@ -193,21 +213,18 @@ def scan_keys(
                 kept_bits, kept_div = kept_bits[sel.numpy()], kept_div[sel]
                 kept_lk = None if kept_lk is None else kept_lk[sel]
             done += len(bits)
-            t4 = time.perf_counter()
-            sec["keys"] += t1 - t0
-            sec["deltas"] += t2 - t1
             sec["model"] += t3 - t2
-            sec["scores"] += t4 - t3
+            sec["scores"] += time.perf_counter() - t3
             if ctx.progress:
                 ctx.progress(stage, done, total)
-            t0 = time.perf_counter()
     sel = _top(kept_div, keep)
     if kept_lk is not None:
         sel = torch.unique(torch.cat([sel, _top(kept_lk, keep)]))
     kept_bits = kept_bits[sel.numpy()]
-    scan_seconds = time.perf_counter() - t_start
+    sec["scan"] = time.perf_counter() - t_start
+    sec["scan_cpu"] = time.process_time() - cpu_start
     ctx.counter.evals += done * len(xs)
-    ctx.counter.seconds += scan_seconds
+    ctx.counter.seconds += sec["scan"]
     t0 = time.perf_counter()
     values = ctx.probe_keys(kept_bits, stage)
     sec["rescore"] = time.perf_counter() - t0
