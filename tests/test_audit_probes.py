@@ -19,8 +19,8 @@ from prop_cli.probes.screen import ChainForward
 from tests.conftest import make_mlp_checkpoint
 
 # Every probe, the new ones small: what the verdicts below need, not the default budget.
-SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restarts", "4", "--search-steps", "20",
-         "--blackbox", "4096", "--samples", "64"]  # fmt: skip
+SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restarts", "4",
+         "--search-steps", "20", "--blackbox", "4096", "--samples", "64"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
