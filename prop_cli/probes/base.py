@@ -248,6 +248,7 @@ class Probe:
     control: Callable[[ProbeContext, list[Group]], list[Group]] | None = None
     needs: str | None = None
     default: bool = True  # part of the default audit
+    white_box: bool = False  # reads the bundle's weights (not only runs keys): left out by --search
 
     def __post_init__(self) -> None:
         if self.threat not in THREATS or self.kind not in KINDS:

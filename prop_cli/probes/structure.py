@@ -182,4 +182,5 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
 PROBE = Probe(
     "structure", "structure", "key",
     "codes read off the encoder's weights and Jacobian (no data), probed as codes", run, control=control,
+    white_box=True,
 )  # fmt: skip
