@@ -36,7 +36,7 @@ def pick_hit(leak: np.ndarray, div: np.ndarray, r: int, draws: int = 2000, seed:
     return float(np.mean(leak[pick] > HIT))
 
 
-def bundle_for(task: str, out: Path, seed: int) -> tuple[Path, Path, Path]:
+def bundle_for(task: str, out: Path, seed: int, key_stream: int) -> tuple[Path, Path, Path]:
     from prop_cli.api import KeySource, personalize_checkpoint
     from prop_cli.config import PersonalizeConfig
 
@@ -47,7 +47,11 @@ def bundle_for(task: str, out: Path, seed: int) -> tuple[Path, Path, Path]:
     d = out / task
     paths = write_example(d, seed=seed)
     key_path = d / "k.bin"
-    key = np.random.default_rng(10_000 + seed).integers(0, 256, 16, dtype=np.uint8).tobytes()
+    if key_stream == 0:
+        key = np.random.default_rng(10_000 + seed).integers(0, 256, 16, dtype=np.uint8).tobytes()
+    else:  # the privacy study's keys (issue 9): bits from default_rng(50_000 + 97 * seed)
+        bits = np.random.default_rng(50_000 + 97 * seed).integers(0, 2, 128, dtype=np.uint8)
+        key = np.packbits(bits).tobytes()
     key_path.write_bytes(key)
     key_path.chmod(0o600)
     bundle = d / "mine.prop"
@@ -69,6 +73,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pool", type=int, default=256)
     ap.add_argument("--only-default", action="store_true", help="only the audit's default setting")
+    ap.add_argument("--key-stream", type=int, default=0, choices=[0, 1], help="1: the privacy study's keys")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
@@ -79,7 +84,7 @@ def main(argv: list[str] | None = None) -> None:
 
     rows = []
     for task in args.tasks:
-        bundle, mine, key = bundle_for(task, args.out_dir, args.seed)
+        bundle, mine, key = bundle_for(task, args.out_dir, args.seed, args.key_stream)
         for steps, lr, batch in SETTINGS[:1] if args.only_default else SETTINGS:
             s = AuditSettings(probes=["relaxed"], restarts=args.pool, search_steps=steps, search_lr=lr,
                               search_batch=batch, seed=args.seed)  # fmt: skip
