@@ -18,7 +18,7 @@ from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.keys import read_key_file
 from prop_cli.probes import select
-from tests.conftest import make_mlp_checkpoint
+from tests.conftest import write_keys, write_user_data
 
 # Small audits: the verdicts below do not need the default 4096 random keys or 200 search steps.
 QUICK = [
@@ -39,14 +39,10 @@ QUICK = [
 def bundles(tmp_path_factory) -> Path:
     """A leaky bundle (raw key bits, no neighbour negatives) and a well-trained one, same user."""
     d = tmp_path_factory.mktemp("attack")
-    make_mlp_checkpoint(d / "model.safetensors")
     rng = np.random.default_rng(0)
-    x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
-    np.savez(d / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    write_user_data(d, 200, rng)
     np.savez(d / "public.npz", x=rng.uniform(-1, 1, (50, 4)).astype(np.float32))
-    for name in ("k.bin", "k2.bin"):
-        (d / name).write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
-        (d / name).chmod(0o600)
+    write_keys(d, ("k.bin", "k2.bin"), rng)
     key = KeySource(read_key_file(d / "k.bin"), "file")
     ckpt = str(d / "model.safetensors")
     leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0)

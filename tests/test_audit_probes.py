@@ -16,7 +16,7 @@ from prop_cli.config import AuditSettings, PersonalizeConfig
 from prop_cli.keys import read_key_file
 from prop_cli.probes.base import ProbeContext, Reference
 from prop_cli.probes.screen import ChainForward
-from tests.conftest import make_mlp_checkpoint
+from tests.conftest import write_keys, write_user_data
 
 # Every probe, the new ones small: what the verdicts below need, not the default budget.
 SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restarts", "4",
@@ -27,12 +27,9 @@ SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restar
 def default_bundle(tmp_path_factory) -> Path:
     """A bundle made with today's `prop personalize` defaults, on a tiny MLP."""
     d = tmp_path_factory.mktemp("probes")
-    make_mlp_checkpoint(d / "model.safetensors")
     rng = np.random.default_rng(1)
-    x = rng.uniform(-1, 1, (400, 4)).astype(np.float32)
-    np.savez(d / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
-    (d / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
-    (d / "k.bin").chmod(0o600)
+    write_user_data(d, 400, rng)
+    write_keys(d, ("k.bin",), rng)
     key = KeySource(read_key_file(d / "k.bin"), "file")
     personalize_checkpoint(str(d / "model.safetensors"), [(d / "mine.npz", key)], d / "mine.prop",
                            PersonalizeConfig())  # fmt: skip
