@@ -22,6 +22,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/prop_bench_blackbox"))
     ap.add_argument("--keys", type=int, default=200_000)
     ap.add_argument("--screen", default="8,32")
+    ap.add_argument("--bundle", type=Path, help="another bundle (with --data and --key-file)")
+    ap.add_argument("--data", type=Path)
+    ap.add_argument("--key-file", type=Path)
+    ap.add_argument("--recall", type=int, default=0, help="also score N keys exactly: top-10 recall")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import numpy as np
@@ -36,18 +40,24 @@ def main(argv: list[str] | None = None) -> None:
     from prop_cli.probes.blackbox import CHUNK
     from prop_cli.probes.screen import ChainForward
 
-    args.workdir.mkdir(parents=True, exist_ok=True)
-    bundle_path, data, key_path = prepare(args.workdir)
+    if args.bundle:
+        bundle_path, data, key_path = args.bundle, args.data, args.key_file
+    else:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+        bundle_path, data, key_path = prepare(args.workdir)
     bundle = load_bundle(bundle_path)
     km = bundle.keyed.eval().requires_grad_(False)
     d = np.load(data)
     x = torch.from_numpy(d["x"][:256])
     with torch.inference_mode():
         b = km.module(x)
-    ref = Reference(x, b.clone(), torch.from_numpy(d["y"][:256]), bundle.task)
+    y = torch.from_numpy(d["y"][:256])
+    ref = Reference(
+        x, b.clone(), y[:, None] if bundle.task == "regression" and y.dim() == 1 else y, bundle.task
+    )
     key = read_key_file(key_path, bundle.key_bits)
     ctx = ProbeContext(km, ref, AuditSettings(), [key], bundle.key_encoding, probe="bench")
-    print(f"IL bundle {bundle_path}; cpu count {os.cpu_count()}; load {os.getloadavg()[0]:.2f}; "
+    print(f"bundle {bundle_path}; cpu count {os.cpu_count()}; load {os.getloadavg()[0]:.2f}; "
           f"torch threads {torch.get_num_threads()}")  # fmt: skip
 
     rng = np.random.default_rng(0)
@@ -86,6 +96,25 @@ def main(argv: list[str] | None = None) -> None:
         print(f"scan S={s}: {scan.scanned:,} keys in {wall:.2f} s wall / {cpu:.2f} s CPU: "
               f"{scan.scanned / wall / 1e3:.0f}k keys/s, {evals / wall / 1e6:.2f}M evaluations/s wall, "
               f"{evals / cpu / 1e6:.2f}M per CPU-second ({scan.path}; {parts})")  # fmt: skip
+
+    if args.recall:
+        _recall(ctx, args.recall, CHUNK, np)
+
+
+def _recall(ctx, n: int, chunk: int, np) -> None:
+    """Score n keys exactly on every sample and check the screened scan keeps the exact top 10."""
+    keys = np.random.default_rng(7).integers(0, 2, (n, ctx.km.encoder.code_bits), dtype=np.uint8)
+    exact = ctx.probe_keys(keys, "exact")["leakage"]
+    scan = ctx.probe_keys_stream(
+        (keys[i : i + chunk] for i in range(0, n, chunk)), n, "scan", screen=8, keep=256
+    )
+    kept = {k.tobytes() for k in scan.bits}
+    top = exact.argsort(descending=True)[:10].numpy()
+    hits = sum(keys[i].tobytes() in kept for i in top)
+    print(
+        f"recall: of the exact top 10 of {n:,} keys by leakage (worst {float(exact.max()):.3f}), the scan "
+        f"(S=8, keep 256) kept {hits}; its worst after re-scoring {float(scan.values['leakage'].max()):.3f}"
+    )
 
 
 if __name__ == "__main__":
