@@ -153,3 +153,17 @@ def test_every_key_probe_goes_through_probe_keys(default_bundle, monkeypatch):
         seen.clear()
         probes.probe_named(name).run(ctx)
         assert seen, name
+
+
+@pytest.mark.parametrize("task", ["regression", "classification"])
+def test_screening_divergence_is_the_searches_objective(task):
+    from prop_cli.probes.base import divergence
+    from prop_cli.probes.screen import _Criteria
+
+    g = torch.Generator().manual_seed(0)
+    b = torch.randn(6, 3, generator=g)
+    p = torch.randn(6, 3, generator=g) if task == "regression" else torch.tensor([0, 1, 2, 0, 1, 2])
+    o = torch.randn(5, 6, 3, generator=g)
+    div, lk = _Criteria(Reference(torch.zeros(6, 1), b, p, task), 6)(o)
+    assert torch.allclose(div, divergence(o, b, task), atol=1e-6)
+    assert lk.shape == (5,)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .base import KeyScan, ProbeContext, divergence
+from .base import KeyScan, ProbeContext
 
 # Relative error the bf16 forward may show against fp32 on a check batch before it is refused.
 _BF16_TOLERANCE = 0.05
@@ -132,23 +132,42 @@ def _check(fast: ChainForward, ctx: ProbeContext, xs: torch.Tensor) -> bool:
     return bool(((got - want).abs().max() / scale) <= _BF16_TOLERANCE)
 
 
-def _screen_leakage(o: torch.Tensor, ctx: ProbeContext, screen: int) -> torch.Tensor | None:
-    """A continuous leakage on the screening samples (ranking only; the re-score is exact).
-    Regression: the metric itself. Classification: mean probability of the owner's label on the
-    samples where it differs from the reference's."""
-    ref = ctx.ref
-    if ref.p is None:
-        return None
-    b, p = ref.b[:screen], ref.p[:screen]
-    if ref.task == "regression":
-        gap = (p - b).flatten(1)
-        norm = (gap**2).sum().clamp_min(1e-12)
-        return ((o - b).flatten(2) * gap).sum((-2, -1)) / norm
-    differs = p != b.argmax(-1)
-    if not differs.any():
-        return None
-    prob = torch.softmax(o[:, differs], -1).gather(-1, p[differs][None, :, None].expand(len(o), -1, 1))
-    return prob.squeeze(-1).mean(1)
+class _Criteria:
+    """Per key, from its outputs on the screening samples: divergence from the reference (what the
+    attacker ranks by; as the searches' objective: mse, or KL for classification) and, with the owner's
+    targets, a continuous screening leakage (ranking only; the re-score is exact). Regression: the
+    metric itself; classification: the mean probability of the owner's label where it differs from
+    the reference's. What depends on the samples alone is computed once."""
+
+    def __init__(self, ref, screen: int) -> None:
+        self.task = ref.task
+        self.b = ref.b[:screen].float()
+        self.gap = self.label = None
+        if self.task == "classification":
+            self.logp_b = torch.log_softmax(self.b, -1)
+            self.p_b = self.logp_b.exp()
+        if ref.p is None:
+            return
+        p = ref.p[:screen]
+        if self.task == "regression":
+            self.gap = (p - self.b).flatten(1)
+            self.norm = (self.gap**2).sum().clamp_min(1e-12)
+        else:
+            differs = p != self.b.argmax(-1)
+            if differs.any():
+                self.rows, self.label = torch.nonzero(differs).flatten(), p[differs]
+
+    def __call__(self, o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if self.task == "regression":
+            move = (o - self.b).flatten(2)
+            div = (move**2).mean((-2, -1))
+            return div, None if self.gap is None else (move * self.gap).sum((-2, -1)) / self.norm
+        logp = torch.log_softmax(o, -1)
+        div = (self.p_b * (self.logp_b - logp)).sum(-1).flatten(1).mean(-1)
+        if self.label is None:
+            return div, None
+        at = logp[:, self.rows].gather(-1, self.label[None, :, None].expand(len(o), -1, 1))
+        return div, at.squeeze(-1).exp().mean(1)
 
 
 def _top(values: torch.Tensor, keep: int) -> torch.Tensor:
@@ -181,7 +200,7 @@ def scan_keys(
     ctx: ProbeContext, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
 ) -> KeyScan:
     xs = ctx.ref.x[:screen]
-    bs = ctx.ref.b[:screen]
+    criteria = _Criteria(ctx.ref, screen)
     fast: ChainForward | None = None
     try:
         fast = ChainForward(ctx.km, xs)
@@ -200,8 +219,7 @@ def scan_keys(
             t2 = time.perf_counter()
             o = (fast(deltas) if fast is not None else ctx.km.run_keys(xs, deltas)).float()
             t3 = time.perf_counter()
-            div = divergence(o, bs, ctx.ref.task)
-            lk = _screen_leakage(o, ctx, screen)
+            div, lk = criteria(o)
             kept_bits = np.concatenate([kept_bits, bits])
             kept_div = torch.cat([kept_div, div])
             if lk is not None:
