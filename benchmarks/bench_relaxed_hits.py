@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--tasks", nargs="+", default=["il", "digits"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pool", type=int, default=256)
-    ap.add_argument("--only-default", action="store_true", help="only the audit's default setting")
+    ap.add_argument(
+        "--settings", default=None, help="indices into SETTINGS to run, e.g. 0 (the default) or 0,1,3"
+    )
     ap.add_argument("--key-stream", type=int, default=0, choices=[0, 1], help="1: the privacy study's keys")
     args = ap.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -85,7 +87,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for task in args.tasks:
         bundle, mine, key = bundle_for(task, args.out_dir, args.seed, args.key_stream)
-        for steps, lr, batch in SETTINGS[:1] if args.only_default else SETTINGS:
+        chosen = SETTINGS if args.settings is None else [SETTINGS[int(i)] for i in args.settings.split(",")]
+        for steps, lr, batch in chosen:
             s = AuditSettings(probes=["relaxed"], restarts=args.pool, search_steps=steps, search_lr=lr,
                               search_batch=batch, seed=args.seed)  # fmt: skip
             t0 = time.perf_counter()

@@ -209,11 +209,12 @@ def maximise_divergence(
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     s = ctx.settings
     opt = torch.optim.Adam(params, lr=s.search_lr)
+    n = len(ctx.ref.x)
     x, b = ctx.ref.x, ctx.ref.b
     gen = ctx.generator()
     for step in range(s.search_steps):
-        if s.search_batch and s.search_batch < len(x):  # a fresh minibatch each step: cheaper, as good
-            i = torch.randperm(len(x), generator=gen)[: s.search_batch].to(x.device)
+        if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
+            i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)
             x, b = ctx.ref.x[i], ctx.ref.b[i]
         div = divergence(ctx.km.run_keys(x, make_deltas()), b, ctx.ref.task)
         opt.zero_grad(set_to_none=True)
