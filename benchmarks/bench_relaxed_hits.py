@@ -45,7 +45,9 @@ def bundle_for(task: str, out: Path, seed: int, key_stream: int) -> tuple[Path, 
     else:
         from examples.digits_task import write_example
     d = out / task
-    paths = write_example(d, seed=seed)
+    paths = {"base": d / "base.safetensors", "mine": d / "mine.npz"}
+    if not all(p.exists() for p in paths.values()):
+        paths = write_example(d, seed=seed)
     key_path = d / "k.bin"
     if key_stream == 0:
         key = np.random.default_rng(10_000 + seed).integers(0, 256, 16, dtype=np.uint8).tobytes()
