@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,16 +26,35 @@ from .errors import PropError
 from .files import sha256_file
 from .keyed import KeyedModel
 from .probes.base import Counter, Group, ProbeContext, Progress, Reference
+from .probes.sealed_context import SealedContext, blank_keyed
 
 DEFAULT_HAMMING = "1..8"
 # Below this leakage of the user's own key, its personalization is at the base's level (fix for a
 # wrong key file, or data the bundle was not personalized on, going unnoticed).
 WRONG_KEY_LEAKAGE = 0.5
+# Per-candidate lists in a search's JSON only up to this many candidates (a key scan keeps hundreds).
+PER_RESTART_LISTS = 256
+MAX_SHOTS = 64  # the largest few-shot k
 
 
 def _sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
     order = np.random.default_rng(seed).permutation(len(data))
     return np.sort(order[: min(n, len(data))])
+
+
+def _shots(data: Dataset, audit_rows: np.ndarray, seed: int, dev, reference, task: str) -> Reference | None:
+    """Up to MAX_SHOTS labelled rows outside the audit sample: what a few-shot attacker holds."""
+    rest = np.setdiff1d(np.arange(len(data)), audit_rows)
+    if not len(rest):
+        return None
+    rows = np.random.default_rng([seed, 1]).permutation(rest)[:MAX_SHOTS]
+    x = torch.from_numpy(data.x[rows]).to(dev)
+    p = torch.from_numpy(data.y[rows]).to(dev)
+    if task == "regression" and p.dim() == 1:
+        p = p[:, None]
+    with torch.inference_mode():
+        b = reference(x)
+    return Reference(x, b.clone(), p, task)
 
 
 def _unhooked_copy(module: torch.nn.Module) -> torch.nn.Module:
@@ -45,21 +64,24 @@ def _unhooked_copy(module: torch.nn.Module) -> torch.nn.Module:
     return copied
 
 
-def _control_model(bundle: Bundle, original: torch.nn.Module | None) -> tuple[KeyedModel | None, str]:
+def _control_model(
+    bundle: Bundle, km: KeyedModel, original: torch.nn.Module | None
+) -> tuple[KeyedModel | None, str]:
     """The original checkpoint keyed like the bundle (the controls' model), or why there is none."""
-    if original is None and bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
-        original, where = bundle.keyed.module, "the bundle's base (trained with --freeze-base: the original)"
+    if original is None and bundle.is_sealed:
+        original, where = bundle.loaded.module, "the bundle's base (a sealed bundle's base is the original)"
+    elif original is None and bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
+        original, where = km.module, "the bundle's base (trained with --freeze-base: the original)"
     elif original is not None:
         where = "the original checkpoint (--original)"
     else:
         return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
     mods = dict(original.named_modules())
-    base = dict(bundle.keyed.module.named_modules())
-    if not all(n in mods and mods[n].weight.shape == base[n].weight.shape for n in bundle.keyed.layer_names):
+    base = dict(km.module.named_modules())
+    if not all(n in mods and mods[n].weight.shape == base[n].weight.shape for n in km.layer_names):
         return None, "the original module does not have the bundle's keyed layers (names and shapes)"
-    module = _unhooked_copy(original).to(bundle.keyed.encoder.net[0].weight.device).eval()
-    km = KeyedModel(module, bundle.keyed.encoder, bundle.keyed.layer_names).eval()
-    return km, where
+    module = _unhooked_copy(original).to(km.encoder.net[0].weight.device).eval()
+    return KeyedModel(module, km.encoder, km.layer_names).eval(), where
 
 
 def _summary(v: dict[str, torch.Tensor], task: str) -> dict:
@@ -79,6 +101,14 @@ def _search(v: dict[str, torch.Tensor], info: dict) -> dict:
         "best_divergence": float(v["divergence"][best]),
         "best_leakage": float(v["leakage"][best]) if "leakage" in v else None,
         "best_fidelity": float(v["fidelity"][best]),
+        **_per_restart(v),
+    }
+
+
+def _per_restart(v: dict[str, torch.Tensor]) -> dict:
+    if len(v["divergence"]) > PER_RESTART_LISTS:
+        return {}
+    return {
         "divergence": [float(d) for d in v["divergence"]],
         "leakage": [float(d) for d in v["leakage"]] if "leakage" in v else None,
     }
@@ -164,7 +194,10 @@ def audit(
     data = _check_inputs(bundle, data, keys)
 
     dev = resolve_device(device)
-    km = bundle.keyed.to(dev).eval()
+    if bundle.is_sealed:  # no encoder: white-box probes get a blank one over the public base
+        km = blank_keyed(_unhooked_copy(bundle.loaded.module), bundle.layer_names, bundle.key_bits).to(dev)
+    else:
+        km = bundle.keyed.to(dev).eval()
     grad_flags = [p.requires_grad for p in km.parameters()]
     km.requires_grad_(False)  # searches need gradients w.r.t. their own variables only
     idx = _sample_index(data, s.samples, s.seed)
@@ -176,10 +209,19 @@ def audit(
         p = torch.from_numpy(data.y[idx]).to(dev)
         if task == "regression" and p.dim() == 1:
             p = p[:, None]
-    control_km, control_from = _control_model(bundle, original)
+    shots = (
+        _shots(data, idx, s.seed, x.device, km.module if original is None else original, task)
+        if has_key
+        else None
+    )
+    control_km, control_from = _control_model(bundle, km, original)
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
-    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter)
+    seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
+    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter,
+                       shots=shots, seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
+    if bundle.is_sealed:  # keys are tried on the records, as prop run does
+        ctx = SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, sealed=bundle.sealed)
     timing: dict[str, float] = {}
     groups: list[dict] = []
     user, warnings = None, []
@@ -198,7 +240,7 @@ def audit(
                 continue
             t0 = time.perf_counter()
             found = probe.run(replace(ctx, probe=name))
-            controls = _controls(probe, ctx, control_km, control_from, name, task)
+            controls = _controls(probe, ctx, control_km, control_from, name, task, found)
             timing[name] = time.perf_counter() - t0
             for g in found:
                 control = None if controls is None else controls.get(g.name, controls.get(None))
@@ -217,6 +259,7 @@ def audit(
             "task": task,
             "key_bits": bundle.key_bits,
             "key_encoding": bundle.key_encoding,
+            "sealed": bundle.is_sealed,
             "keyed_layers": bundle.manifest[C.M_KEYED_LAYERS],
         },
         "data": {"path": str(data.path), "rows": len(data), "samples": int(len(idx))},
@@ -230,30 +273,47 @@ def audit(
             "key_sample_evaluations": counter.evals,
             "evaluations_per_second": counter.evals / counter.seconds if counter.seconds else None,
             "stage_seconds": timing,
+            "blackbox": _scan_speed(groups),
             "wall_seconds": time.perf_counter() - started,
         },
     }
 
 
+def _scan_speed(groups: list[dict]) -> dict | None:
+    """The black-box scan's own throughput (keys x screening samples per second of scanning)."""
+    for g in groups:
+        if g["probe"] == "blackbox" and g.get("search"):
+            s = g["search"]
+            fields = (
+                "scanned",
+                "screen_samples",
+                "path",
+                "seconds",
+                "keys_per_second",
+                "evaluations_per_second",
+                "evaluations_per_cpu_second",
+            )
+            return {f: s[f] for f in fields}
+    return None
+
+
 def _user(ctx: ProbeContext, key: np.ndarray) -> dict:
-    with torch.inference_mode():
-        o = ctx.km.run_keys(ctx.ref.x, ctx.km.layer_deltas(ctx.codes(key)))
-        v = ctx.scores(o)
+    v = ctx.probe_keys(key, "user", outputs=True)
     return {
-        "personalization": metrics.personalization(o[0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
+        "personalization": metrics.personalization(v["outputs"][0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
         "leakage": float(v["leakage"][0]),
         "fidelity": float(v["fidelity"][0]),
     }
 
 
-def _controls(probe, ctx, control_km, control_from, name, task) -> dict | None:
+def _controls(probe, ctx, control_km, control_from, name, task, found) -> dict | None:
     """{group name: control JSON} for a probe with a control slot (key None: every other group);
     None for a probe without one."""
     if probe.control is None:
         return None
     if control_km is None:
         return {None: {"available": False, "reason": control_from}}
-    found = probe.control(replace(ctx, probe=name))
+    found = probe.control(replace(ctx, probe=name), found)
     return {g.name: {"available": True, "model": control_from, **_group_json(g, task)} for g in found}
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -24,6 +25,10 @@ from . import manifest as schema
 from .errors import PropError
 from .files import check_output, dump_json, sha256_file, staged_dir, write_text
 from .keyed import KeyedModel, KeyEncoder
+from .payload import Payload
+
+if TYPE_CHECKING:
+    from .sealed import SealedState
 
 
 def _safetensors_metadata(path: str) -> dict[str, str] | None:
@@ -31,6 +36,27 @@ def _safetensors_metadata(path: str) -> dict[str, str] | None:
         return None
     with safe_open(path, framework="pt") as f:
         return f.metadata()
+
+
+def _write_base(tmp: Path, loaded: LoadedModel, module, copy_base: bool) -> None:
+    base_path = tmp / C.BASE_WEIGHTS
+    if copy_base:
+        shutil.copyfile(loaded.source, base_path)
+        return
+    state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
+    state.update(
+        (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
+        for k, v in module.state_dict().items()
+    )
+    save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+
+
+def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
+    full = dict(manifest)
+    full[C.M_FORMAT] = C.FORMAT_VERSION
+    full[C.M_PROP_VERSION] = __version__
+    full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
+    return full
 
 
 def write_bundle(
@@ -46,24 +72,38 @@ def write_bundle(
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
-        base_path = tmp / C.BASE_WEIGHTS
-        if copy_base:
-            shutil.copyfile(loaded.source, base_path)
-        else:
-            state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
-            state.update(
-                (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
-                for k, v in keyed.module.state_dict().items()
-            )
-            save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+        _write_base(tmp, loaded, keyed.module, copy_base)
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
-        full = dict(manifest)
-        full[C.M_FORMAT] = C.FORMAT_VERSION
-        full[C.M_PROP_VERSION] = __version__
-        full[C.M_FILES] = {n: sha256_file(tmp / n) for n in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)}
+        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS))
         (tmp / C.MANIFEST).write_text(dump_json(schema.stamp(full)))
     return out
+
+
+def write_sealed_bundle(
+    out: Path,
+    *,
+    loaded: LoadedModel,
+    manifest: dict,
+    users: list[tuple[Payload, dict, np.ndarray]],
+    force: bool = False,
+) -> dict:
+    """Write a sealed bundle: the original's weights as the base, and one encrypted record per user
+    ``(payload, private metadata, key bits)``. Returns the manifest written."""
+    from .sealed import record_entry, seal_payload, write_record
+
+    out = Path(out)
+    check_output(out, force)
+    with staged_dir(out) as tmp:
+        copy_base = str(loaded.source).endswith(".safetensors")
+        _write_base(tmp, loaded, loaded.module, copy_base)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_SEALED, C.M_RECORDS: []}, tmp, (C.BASE_WEIGHTS,))
+        for payload, meta, bits in users:
+            rec = seal_payload(full, meta, payload, bits)
+            full[C.M_RECORDS].append(record_entry(rec, write_record(tmp, rec)))
+        full = schema.stamp(full)
+        (tmp / C.MANIFEST).write_text(dump_json(full))
+    return full
 
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
@@ -71,9 +111,7 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     bundle = Path(path)
     manifest = read_manifest(bundle)
     manifest[key] = value
-    if C.M_DIGEST in manifest:  # format 1 manifests stay as they were: no digest
-        manifest = schema.stamp(manifest)
-    write_text(bundle / C.MANIFEST, dump_json(manifest), what="manifest", flag="BUNDLE")
+    write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
 
 
 def read_manifest(path: Path) -> dict:
@@ -99,10 +137,24 @@ def read_manifest(path: Path) -> dict:
 
 @dataclass
 class Bundle:
+    """A loaded bundle. Unsealed: ``keyed`` is the base with its key encoder. Sealed: ``keyed`` is
+    None (there is no encoder) and ``sealed`` holds the payload layout and the encrypted records."""
+
     path: Path
     manifest: dict
     loaded: LoadedModel
-    keyed: KeyedModel
+    keyed: KeyedModel | None
+    sealed: SealedState | None = None
+
+    @property
+    def is_sealed(self) -> bool:
+        return self.sealed is not None
+
+    @property
+    def layer_names(self) -> list[str]:
+        if self.sealed is not None:
+            return [layer["name"] for layer in self.sealed.spec.layers]
+        return list(self.keyed.layer_names)
 
     @property
     def task(self) -> str:
@@ -114,7 +166,8 @@ class Bundle:
 
     @property
     def key_encoding(self) -> str:
-        return self.manifest[C.M_KEY]["encoding"]
+        # Sealed bundles have no encoder and record none; the audit's blank encoder hashes like the default.
+        return self.manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
 
     def check_key(self, key: np.ndarray, what: str = "the key") -> np.ndarray:
         if len(key) != self.key_bits:
@@ -130,10 +183,12 @@ def load_bundle(path: Path) -> Bundle:
     path = Path(path)
     manifest = read_manifest(path)
     check_files(path, manifest)
-    base = _weights(path / C.BASE_WEIGHTS)
-    loaded = prop_adapters.rebuild(manifest[C.M_MODEL], base, str(path))
-    keyed = _keyed(path, manifest, loaded)
-    return Bundle(path, manifest, loaded, keyed)
+    loaded = prop_adapters.rebuild(manifest[C.M_MODEL], _weights(path / C.BASE_WEIGHTS), str(path))
+    if manifest.get(C.M_MODE) == C.MODE_SEALED:
+        from .sealed import load_state
+
+        return Bundle(path, manifest, loaded, None, load_state(path, manifest))
+    return Bundle(path, manifest, loaded, _keyed(path, manifest, loaded))
 
 
 def check_files(path: Path, manifest: dict) -> None:

@@ -13,6 +13,7 @@ from .constants import KEY_ENCODINGS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
+PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.payload)
 
 
 def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
@@ -75,6 +76,14 @@ class PersonalizeConfig(_Settings):
     exclude: list[str] | None = None
     eval_random_keys: int = 64
     task: str | None = None  # None: decided against the model (prop_cli.data.resolve_task)
+    # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
+    # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
+    seal: bool = False
+    # lora at rank 4 matched unsealed PRoP's personalization on IL and digits at ~2% of its bytes
+    # (docs/sealed.md, "Choosing the payload"); full is the strongest, delta the smallest.
+    payload: str = "lora"
+    payload_rank: int = 4
+    payload_lr: float = 0.01  # Adam on the payload; cosine-decays like lr
 
     @property
     def batch_rows(self) -> int:
@@ -107,6 +116,9 @@ class PersonalizeConfig(_Settings):
         self.need(self.eval_random_keys >= 1, "eval_random_keys", "at least 1")
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
+        self.need(self.payload in PAYLOAD_KINDS, "payload", " or ".join(PAYLOAD_KINDS))
+        self.need(self.payload_rank >= 1, "payload_rank", "at least 1")
+        self.need(self.payload_lr > 0, "payload_lr", "positive")
         return self
 
 
@@ -118,11 +130,15 @@ class AuditSettings(_Settings):
     hamming: list[int] | None = None  # None: 1..8 with a key, none without
     per_distance: int = 256  # keys per distance; every key when the neighbourhood is smaller
     random: int = 4096
-    restarts: int = 8
-    search_steps: int = 200
+    restarts: int = 128  # T1 finds the code in a small share of restarts: docs/metrics.md, hit rate
+    search_steps: int = 100
     search_lr: float = 0.1
+    search_batch: int = 32  # samples per search step (0: all); each step draws its own
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
+    blackbox: int = 1_000_000  # random keys of the streamed black-box scan
+    blackbox_screen: int = 8  # samples each scanned key is screened on
+    blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
         self.need(self.per_distance >= 1, "per_distance", "at least 1")
@@ -130,7 +146,11 @@ class AuditSettings(_Settings):
         self.need(self.restarts >= 1, "restarts", "at least 1")
         self.need(self.search_steps >= 1, "search_steps", "at least 1")
         self.need(self.search_lr > 0, "search_lr", "positive")
+        self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         self.need(self.samples >= 2, "samples", "at least 2")
+        self.need(self.blackbox >= 0, "blackbox", ">= 0")
+        self.need(self.blackbox_screen >= 1, "blackbox_screen", "at least 1")
+        self.need(self.blackbox_keep >= 1, "blackbox_keep", "at least 1")
         if self.probes is not None:
             unknown = [p for p in self.probes if p not in known_probes]
             _need(not unknown, "--probes", ",".join(self.probes), "a list of: " + ", ".join(known_probes))

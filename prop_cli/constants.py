@@ -6,11 +6,15 @@ from __future__ import annotations
 BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
+RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
+RECORD_SUFFIX = ".sealed"
 
-# Bump on any change a reader of an older version would misread. 2: the manifest carries its own
-# digest (M_DIGEST); version 1 bundles (no digest) still load, with only their weight files checked.
-FORMAT_VERSION = 2
-FORMAT_VERSIONS = (1, 2)  # what this prop reads
+# Bump on any change a reader of an older version would misread. 2: sealed bundles (mode, payload,
+# records); 3: the manifest carries its own digest (M_DIGEST). Versions 1 and 2 (no digest) still load,
+# with only their listed files checked.
+FORMAT_VERSION = 3
+FORMAT_VERSIONS = (1, 2, 3)  # what this prop reads
+DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -25,14 +29,14 @@ M_TASK = "task"  # "regression" | "classification"
 M_IO = "io"  # {"input_shape": [...], "checkpoint": str}
 M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
+M_MODE = "mode"  # "unsealed" (absent in version 1) | "sealed"
+M_PAYLOAD = "payload"  # sealed: {"kind", "rank", "layers": [{"name", "in_features", "out_features"}]}
+M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256"}], one per user
+MODE_UNSEALED = "unsealed"
+MODE_SEALED = "sealed"
+MODES = (MODE_UNSEALED, MODE_SEALED)
 M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.manifest)
-# Sealed bundles (the keyed part encrypted under the user's key); absent mode = unsealed.
-M_MODE = "mode"  # "unsealed" | "sealed"
-M_PAYLOAD = "payload"  # {"kind": "lora"|"delta"|"full", "rank": int, "layers": [str]}
-M_RECORDS = "records"  # [{"id", "file", "salt", "nonce", "sha256"}]: one encrypted record each
-M_KDF = "kdf"  # {"scrypt_salt": hex, "n": int, "r": int, "p": int}
-MODES = ("unsealed", "sealed")
-PAYLOAD_KINDS = ("lora", "delta", "full")
+M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
 # How key bits become the encoder's input (prop_cli.keyed.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")

@@ -1,11 +1,12 @@
 """The bundle manifest: its schema (one table), its digest, and the one function that reads it.
 
 Every field has a rule: its JSON type, its range, and whether it is required (in which mode). Unknown
-fields are refused, so a typo or a flipped bit in a key name cannot pass as "absent". Format 2 adds
+fields are refused, so a typo or a flipped bit in a key name cannot pass as "absent". Format 3 adds
 ``manifest_sha256``: the sha256 of the canonical JSON of every other field, and the file must be exactly
 the text prop writes (sorted, indented), so any single flipped bit in ``manifest.json`` is caught, even
-one JSON would read back as the same value ("1e-05" -> "1E-05"). Format 1 manifests have no digest: they
-load with only their weight files checked against ``files``, as before.
+one JSON would read back as the same value ("1e-05" -> "1E-05"). Format 1 and 2 manifests have no
+digest: they load with only their listed files checked, as before (and a digest, where present, is
+always checked: one flipped bit turns version 3 into 2 or 1).
 
 The digest is a corruption check, not a signature: anyone who edits the manifest can recompute it. For
 sealed bundles the authenticated cipher's associated data binds the public fields to the user's key.
@@ -23,6 +24,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from . import constants as C
+from .config import PAYLOAD_KINDS
 from .errors import PropError, brief
 from .files import dump_json
 
@@ -112,7 +114,13 @@ def file_name(name: str) -> bool:
     )
 
 
-FILE = Rule((str,), "a plain file name in the bundle folder", file_name)
+def record_file(name: str) -> bool:
+    """Where a sealed bundle keeps a user's record: users/<plain file name>."""
+    folder, sep, leaf = name.partition("/")
+    return folder == C.RECORDS_DIR and bool(sep) and file_name(leaf)
+
+
+RECORD_FILE = Rule((str,), f"a file name in the bundle's {C.RECORDS_DIR}/ folder", record_file)
 NAME = text()  # a module path such as "actor.mu.0"
 DIM = integer(1, MAX_DIM)
 UNSEALED = ("unsealed",)
@@ -164,7 +172,7 @@ SCHEMA: dict[str, Rule] = {
     C.M_KEYED_LAYERS: _opt(list_of(obj({"name": NAME, "features": DIM}), 1), UNSEALED),
     C.M_KEY: obj({
         "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
-        "encoding": choice(C.KEY_ENCODINGS),
+        "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
         "users": _opt(integer(1, 1 << 16)),
         "source": _opt(choice(("file", "passphrase", "mixed"))),
         "kdf": _opt(KDF_RECORD, nullable=True),
@@ -182,13 +190,13 @@ SCHEMA: dict[str, Rule] = {
     C.M_FILES: Rule((dict,), "an object of file name -> sha256", values=SHA256, key_ok=file_name, min_len=1),
     C.M_AUDIT: _opt(RECORD),
     C.M_PAYLOAD: _opt(obj({
-        "kind": choice(C.PAYLOAD_KINDS),
+        "kind": choice(PAYLOAD_KINDS),
         "rank": integer(0, MAX_DIM),
-        "layers": list_of(NAME),
+        "layers": list_of(obj({"name": NAME, "in_features": DIM, "out_features": DIM}), 1),
     }), SEALED),  # fmt: skip
     C.M_RECORDS: _opt(list_of(obj({
         "id": text(),
-        "file": FILE,
+        "file": RECORD_FILE,
         "salt": hex_string(8, 64),
         "nonce": hex_string(8, 64),
         "sha256": SHA256,
@@ -218,6 +226,11 @@ def digest(obj: dict, key: str = C.M_DIGEST) -> str:
 def stamp(obj: dict, key: str = C.M_DIGEST) -> dict:
     """``obj`` with its digest (re)computed: what is written, after any change to a field."""
     return {**obj, key: digest(obj, key)}
+
+
+def restamp(manifest: dict) -> dict:
+    """After an edit: the digest recomputed where the manifest has one (older formats stay without)."""
+    return stamp(manifest) if C.M_DIGEST in manifest else manifest
 
 
 # ---- reading --------------------------------------------------------------------------------------
@@ -369,7 +382,9 @@ def parse(raw: bytes, source: str) -> dict:
     """``manifest.json``'s bytes -> the checked manifest: JSON, format version, digest, schema."""
     doc = _doc(source)
     manifest = read_json(raw, doc.name, FIX)
-    if check_version(manifest, C.M_FORMAT, C.FORMAT_VERSIONS, doc) >= 2:
+    version = check_version(manifest, C.M_FORMAT, C.FORMAT_VERSIONS, doc)
+    # A digest is checked wherever there is one: a flipped bit can turn version 3 into 2 or 1.
+    if version >= C.DIGEST_SINCE or C.M_DIGEST in manifest:
         check_digest(manifest, raw, C.M_DIGEST, doc)
     return validate(manifest, source)
 

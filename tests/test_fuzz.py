@@ -121,11 +121,16 @@ def test_sealed_fields_are_in_the_schema(seeds):
     m = _manifest(seeds)
     del m[C.M_ENCODER], m[C.M_KEYED_LAYERS], m[C.M_FILES][C.ENCODER_WEIGHTS]
     m[C.M_MODE] = "sealed"
-    m[C.M_PAYLOAD] = {"kind": "lora", "rank": 4, "layers": ["2", "4"]}
-    record = {"id": "u0", "file": "r0.bin", "salt": "ab" * 16, "nonce": "cd" * 12, "sha256": "0" * 64}
+    layer = {"name": "2", "in_features": 16, "out_features": 16}
+    m[C.M_PAYLOAD] = {"kind": "lora", "rank": 4, "layers": [layer]}
+    record = {"id": "u0", "file": "users/u0.sealed", "salt": "ab" * 16, "nonce": "cd" * 12}
+    record["sha256"] = "0" * 64
     m[C.M_RECORDS] = [record]
     m[C.M_KDF] = {"scrypt_salt": "ef" * 16, "n": 2**14, "r": 8, "p": 1}
     assert schema.validate(m, "b.prop") is m
+    m[C.M_RECORDS][0]["file"] = "../u0.sealed"
+    assert "field 'records[0].file' must be a file name in the bundle's users/ folder" in _refused(m)
+    m[C.M_RECORDS][0]["file"] = "users/u0.sealed"
     m[C.M_RECORDS][0]["nonce"] = "xyz"
     assert "field 'records[0].nonce' must be lowercase hex" in _refused(m)
     del m[C.M_RECORDS]

@@ -11,7 +11,17 @@ import typer
 
 from prop_cli.constants import ENV_DEBUG
 
-from . import attack_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
+from . import (
+    attack_cmd,
+    export_cmd,
+    formats_cmd,
+    inspect_cmd,
+    keygen,
+    personalize_cmd,
+    push_cmd,
+    run_cmd,
+    users_cmd,
+)
 
 app = typer.Typer(
     name="prop",
@@ -25,6 +35,8 @@ app.command("keygen")(keygen.keygen)
 app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)
 app.command("run")(run_cmd.run)
+app.command("add-user")(users_cmd.add_user)
+app.command("remove-user")(users_cmd.remove_user)
 app.command("attack")(attack_cmd.attack)
 app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
