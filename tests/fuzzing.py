@@ -1,6 +1,7 @@
 """Seeded fuzzing of everything prop reads: bundles, checkpoints, .npz data and SB3 zips.
 
-Each case takes a valid input (a seed), applies one mutation drawn from a seeded generator, loads
+Each case takes a valid input (a seed: an unsealed and a sealed bundle, a safetensors and a torch
+checkpoint, an .npz, an SB3 zip), applies one mutation drawn from a seeded generator, loads
 the result the way prop does and sorts the outcome:
 
 - ``error``: a ``PropError`` (what every damaged input must give);
@@ -23,6 +24,7 @@ import hashlib
 import io
 import json
 import shutil
+import warnings
 import zipfile
 from collections import Counter
 from collections.abc import Callable
@@ -95,10 +97,14 @@ def bundle_loader(key: np.ndarray, x: np.ndarray) -> Callable[[Path], tuple]:
         from prop_cli.policy import KeyedPolicy
 
         b = load_bundle(path)
-        outs = tuple(KeyedPolicy(b, k)(x).tobytes() for k in (key, None))
-        enc = {f"enc:{k}": v for k, v in b.keyed.encoder.state_dict().items()}
-        state = {**b.keyed.module.state_dict(), **enc}
-        return (json.dumps(b.manifest, sort_keys=True), outs, _tensors_digest(state))
+        with warnings.catch_warnings(record=True) as caught:  # a sealed key that opens no user warns
+            warnings.simplefilter("always")
+            outs = tuple(KeyedPolicy(b, k)(x).tobytes() for k in (key, None))
+        state = dict(b.loaded.module.state_dict())
+        if b.keyed is not None:  # sealed bundles: the payload is in the records, behind the outputs
+            state.update({f"enc:{k}": v for k, v in b.keyed.encoder.state_dict().items()})
+        warned = sorted({type(w.message).__name__ for w in caught})
+        return (json.dumps(b.manifest, sort_keys=True), outs, _tensors_digest(state), warned)
 
     return load
 
@@ -149,14 +155,18 @@ def make_seeds(work: Path, steps: int = 5) -> dict[str, list[Seed]]:
     np.savez(work / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
     key = rng.integers(0, 2, 128, dtype=np.uint8)
     cfg = PersonalizeConfig(steps=steps, encoder_hidden=[32], eval_random_keys=2)
-    personalize_checkpoint(
-        str(work / "model.safetensors"), [(work / "mine.npz", KeySource(key, "file"))], work / "b.prop", cfg
-    )
+    users = [(work / "mine.npz", KeySource(key, "file"))]
+    personalize_checkpoint(str(work / "model.safetensors"), users, work / "b.prop", cfg)
+    sealed_cfg = PersonalizeConfig(steps=steps, seal=True, payload="lora", payload_rank=2, eval_random_keys=2)
+    personalize_checkpoint(str(work / "model.safetensors"), users, work / "s.prop", sealed_cfg)
     def one(kind: str, name: str, load: Callable, checksummed: bool, data: bytes | None = None) -> Seed:
         return Seed(kind, name, {name: data or (work / name).read_bytes()}, load, checksummed)
 
     seeds = {
-        "bundle": [Seed("bundle", "b.prop", _read_tree(work, "b.prop"), bundle_loader(key, x[:8]), True)],
+        "bundle": [
+            Seed("bundle", name, _read_tree(work, name), bundle_loader(key, x[:8]), True)
+            for name in ("b.prop", "s.prop")  # unsealed and sealed
+        ],
         "checkpoint": [
             one("checkpoint", "model.safetensors", load_checkpoint_fp, False),
             one("checkpoint", "model.pt", load_checkpoint_fp, True),  # zip: prop checks its CRC-32s

@@ -43,8 +43,10 @@ def test_fuzzed_inputs_end_in_prop_error_or_load_unchanged(seeds, tmp_path, kind
         assert (EDIT, "changed") in outcomes
 
 
-def test_every_single_bit_flip_of_a_manifest_is_refused(seeds):
-    raw = seeds["bundle"][0].files[f"b.prop/{C.MANIFEST}"]
+@pytest.mark.parametrize("which", [0, 1], ids=["unsealed", "sealed"])
+def test_every_single_bit_flip_of_a_manifest_is_refused(seeds, which):
+    seed = seeds["bundle"][which]
+    raw = seed.files[f"{seed.name}/{C.MANIFEST}"]
     assert schema.parse(raw, "b.prop")[C.M_DIGEST] == schema.digest(json.loads(raw))
     buf = bytearray(raw)
     loaded = []
