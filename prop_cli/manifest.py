@@ -280,8 +280,9 @@ def check_value(rule: Rule, value: Any, where: str, doc: Doc) -> None:
         fields, known = dict(rule.fields), False
         if rule.variants is not None:
             tag, table = rule.variants
-            known = value.get(tag) in table
-            fields.update(table.get(value.get(tag), {}))
+            variant = value.get(tag)
+            known = isinstance(variant, str) and variant in table  # a wrong type is reported below
+            fields.update(table[variant] if known else {})
         check_fields(fields, value, doc, where, open_=rule.open and not known)
 
 

@@ -115,6 +115,10 @@ def test_schema_names_the_field_and_the_fix(seeds):
     assert "field 'model.sizes' must have one entry more than model.layers" in _refused(m)
 
     m = _manifest(seeds)
+    m[C.M_MODEL]["adapter"] = [1]  # found by the fuzzer: was a TypeError (unhashable list)
+    assert "field 'model.adapter' must be a non-empty string" in _refused(m)
+
+    m = _manifest(seeds)
     m[C.M_TASK] = True
     assert "field 'task' must be one of 'classification', 'regression' (found true)" in _refused(m)
 
