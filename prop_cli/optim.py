@@ -14,44 +14,60 @@ import torch
 
 
 class Adam:
+    """``torch.optim.Adam(groups, lr, foreach=True)``: ``params`` is a list of tensors, or of groups
+    ``{"params": [...], "lr": ...}`` (a group without "lr" takes ``lr``). ``set_lr_factor`` scales every
+    group's learning rate, as ``torch.optim.lr_scheduler.LambdaLR`` does."""
+
     def __init__(
         self,
-        params: list[torch.Tensor],
+        params: list,
         lr: float,
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-8,
     ) -> None:
-        self.params = [p for p in params if p.requires_grad]
-        self.lr = lr
+        groups = params if params and isinstance(params[0], dict) else [{"params": params}]
+        self.groups = [
+            {"params": [p for p in g["params"] if p.requires_grad], "lr": g.get("lr", lr)} for g in groups
+        ]
+        self.base_lrs = [g["lr"] for g in self.groups]
         self.beta1, self.beta2 = betas
         self.eps = eps
         self.t = 0
-        self.m = [torch.zeros_like(p) for p in self.params]
-        self.v = [torch.zeros_like(p) for p in self.params]
+        for g in self.groups:
+            g["m"] = [torch.zeros_like(p) for p in g["params"]]
+            g["v"] = [torch.zeros_like(p) for p in g["params"]]
+
+    def set_lr_factor(self, factor: float) -> None:
+        for g, base in zip(self.groups, self.base_lrs):
+            g["lr"] = base * factor
 
     def zero_grad(self) -> None:
-        for p in self.params:
-            p.grad = None
+        for g in self.groups:
+            for p in g["params"]:
+                p.grad = None
 
     @torch.no_grad()
     def step(self) -> None:
-        live = [i for i, p in enumerate(self.params) if p.grad is not None]
-        if not live:
+        if not any(p.grad is not None for g in self.groups for p in g["params"]):
             return
         self.t += 1
-        ps = [self.params[i] for i in live]
-        gs = [self.params[i].grad for i in live]
-        ms = [self.m[i] for i in live]
-        vs = [self.v[i] for i in live]
-        torch._foreach_lerp_(ms, gs, 1 - self.beta1)
-        torch._foreach_mul_(vs, self.beta2)
-        torch._foreach_addcmul_(vs, gs, gs, 1 - self.beta2)
         bc1 = 1 - self.beta1**self.t
         bc2 = 1 - self.beta2**self.t
-        denom = torch._foreach_sqrt(vs)
-        torch._foreach_div_(denom, math.sqrt(bc2))
-        torch._foreach_add_(denom, self.eps)
-        torch._foreach_addcdiv_(ps, ms, denom, -self.lr / bc1)
+        for g in self.groups:
+            live = [i for i, p in enumerate(g["params"]) if p.grad is not None]
+            if not live:
+                continue
+            ps = [g["params"][i] for i in live]
+            gs = [p.grad for p in ps]
+            ms = [g["m"][i] for i in live]
+            vs = [g["v"][i] for i in live]
+            torch._foreach_lerp_(ms, gs, 1 - self.beta1)
+            torch._foreach_mul_(vs, self.beta2)
+            torch._foreach_addcmul_(vs, gs, gs, 1 - self.beta2)
+            denom = torch._foreach_sqrt(vs)
+            torch._foreach_div_(denom, math.sqrt(bc2))
+            torch._foreach_add_(denom, self.eps)
+            torch._foreach_addcdiv_(ps, ms, denom, -g["lr"] / bc1)
 
 
 def cosine_lr(base: float, step: int, total: int, floor: float) -> float:

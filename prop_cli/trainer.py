@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -21,6 +20,7 @@ from .keyed import KeyedModel, KeyEncoder, key_codes
 from .keyspace import KeySampler
 from .layers import select_layers
 from .objective import Batch, check_user_keys, prop_loss
+from .optim import Adam, cosine_lr
 
 # A seed stream of its own for evaluation keys, so they cannot replay a caller's seeded user key.
 _EVAL_STREAM = 0x5EED_E7A1
@@ -155,11 +155,7 @@ def personalize(
     base = [p for p in module.parameters() if p.requires_grad]
     if base:
         groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
-    opt = torch.optim.Adam(groups, lr=cfg.lr, foreach=True)  # foreach: one kernel per op, not per tensor
-    floor = cfg.lr_floor
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))
-    )
+    opt = Adam(groups, lr=cfg.lr)  # torch.optim's update, without its 2 s torch._dynamo import
     user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
     sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
 
@@ -173,10 +169,10 @@ def personalize(
             deltas = km.layer_deltas(batch.codes, null=1)
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
             loss, losses = prop_loss(out, batch, task, cfg.null_weight)
-            opt.zero_grad(set_to_none=True)
+            opt.zero_grad()
             loss.backward()
             opt.step()
-            sched.step()
+            opt.set_lr_factor(cosine_lr(1.0, step + 1, cfg.steps, cfg.lr_floor))
             if progress is not None:
                 progress(step + 1, losses)
     finally:
