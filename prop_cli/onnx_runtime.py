@@ -98,6 +98,7 @@ class OnnxPolicy:
         for n, v in bound.items():
             self._binding.bind_ortvalue_input(n, v)
         self._binding.bind_output("y")
+        self._rows: int | None = None  # the batch size the output binding was last run with
 
     def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
         onnx, _ = require_onnx()
@@ -120,13 +121,23 @@ class OnnxPolicy:
         return ort.InferenceSession(str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"])
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        self._binding.bind_cpu_input("x", np.ascontiguousarray(x, np.float32))
+        x = np.ascontiguousarray(x, np.float32)
+        if self._rows is not None and x.shape[0] != self._rows:
+            # The bound output keeps the shape of its first run: a new batch size needs a fresh one.
+            self._binding.clear_binding_outputs()
+            self._binding.bind_output("y")
+        self._rows = x.shape[0]
+        self._binding.bind_cpu_input("x", x)
         self.session.run_with_iobinding(self._binding)
         return self._binding.copy_outputs_to_cpu()[0]
 
 
-def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None) -> np.ndarray:
-    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (split form)."""
+def run_onnx(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0
+) -> np.ndarray:
+    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (split form).
+
+    ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
     require_onnx()
     folder = Path(folder) if folder is not None else Path(bundle.path) / C.EXPORT_DIR
     if not folder.is_dir():
@@ -137,5 +148,5 @@ def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path
     code = None
     if key is not None:
         code = key_codes(bundle.check_key(key), bundle.key_encoding).numpy()
-    threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
     return OnnxPolicy(folder, code, threads=threads)(x)
