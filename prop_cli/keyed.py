@@ -37,21 +37,17 @@ def key_codes(bits: np.ndarray, encoding: str) -> torch.Tensor:
     if encoding == "raw":
         out = bits
     elif encoding == "hashed":
-        packed = np.packbits(bits, axis=1)
-        out = np.stack(
-            [
-                np.unpackbits(
-                    np.frombuffer(
-                        hashlib.shake_256(_CODE_DOMAIN + row.tobytes()).digest(n // 8),
-                        dtype=np.uint8,
-                    )
-                )
-                for row in packed
-            ]
-        )
+        # One digest per key, unpacked together: a Python loop over hashes only, no array per key.
+        digests = b"".join(hashlib.shake_256(_CODE_DOMAIN + row).digest(n // 8) for row in _rows(bits))
+        out = np.unpackbits(np.frombuffer(digests, dtype=np.uint8)).reshape(len(bits), -1)
     else:
         raise PropError(f"unknown key encoding {encoding!r}", f"use one of {', '.join(KEY_ENCODINGS)}")
     return torch.from_numpy(out.astype(np.float32) * 2.0 - 1.0)
+
+
+def _rows(bits: np.ndarray) -> list[bytes]:
+    packed = np.packbits(bits, axis=1)
+    return [packed[i].tobytes() for i in range(len(packed))]
 
 
 class KeyEncoder(nn.Module):

@@ -2,8 +2,9 @@
 
 ``torch.optim.Optimizer`` imports ``torch._dynamo`` on its first call (its methods are wrapped to
 disable the compiler), which costs about 2 s per process on these machines: more than a tenth of
-a whole IL personalization. This is the same update as ``torch.optim.Adam`` (no weight decay,
-no amsgrad), on foreach kernels, and a test checks it step for step against torch's.
+a whole IL personalization. This is the same update as ``torch.optim.Adam(fused=True)`` (no weight
+decay, no amsgrad), on the same fused kernel (one pass over each tensor: 2.7x faster than the foreach
+kernels on the IL model's parameters), and a test checks it step for step against torch's.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import torch
 
 
 class Adam:
-    """``torch.optim.Adam(groups, lr, foreach=True)``: ``params`` is a list of tensors, or of groups
+    """``torch.optim.Adam(groups, lr, fused=True)``: ``params`` is a list of tensors, or of groups
     ``{"params": [...], "lr": ...}`` (a group without "lr" takes ``lr``). ``set_lr_factor`` scales every
     group's learning rate, as ``torch.optim.lr_scheduler.LambdaLR`` does."""
 
@@ -33,6 +34,7 @@ class Adam:
         self.beta1, self.beta2 = betas
         self.eps = eps
         self.t = 0
+        self._step = torch.zeros(())
         for g in self.groups:
             g["m"] = [torch.zeros_like(p) for p in g["params"]]
             g["v"] = [torch.zeros_like(p) for p in g["params"]]
@@ -51,23 +53,27 @@ class Adam:
         if not any(p.grad is not None for g in self.groups for p in g["params"]):
             return
         self.t += 1
-        bc1 = 1 - self.beta1**self.t
-        bc2 = 1 - self.beta2**self.t
+        self._step.fill_(self.t)
         for g in self.groups:
             live = [i for i, p in enumerate(g["params"]) if p.grad is not None]
             if not live:
                 continue
             ps = [g["params"][i] for i in live]
-            gs = [p.grad for p in ps]
-            ms = [g["m"][i] for i in live]
-            vs = [g["v"][i] for i in live]
-            torch._foreach_lerp_(ms, gs, 1 - self.beta1)
-            torch._foreach_mul_(vs, self.beta2)
-            torch._foreach_addcmul_(vs, gs, gs, 1 - self.beta2)
-            denom = torch._foreach_sqrt(vs)
-            torch._foreach_div_(denom, math.sqrt(bc2))
-            torch._foreach_add_(denom, self.eps)
-            torch._foreach_addcdiv_(ps, ms, denom, -g["lr"] / bc1)
+            torch._fused_adam_(
+                ps,
+                [p.grad for p in ps],
+                [g["m"][i] for i in live],
+                [g["v"][i] for i in live],
+                [],
+                [self._step] * len(ps),  # every parameter is on the same step
+                lr=g["lr"],
+                beta1=self.beta1,
+                beta2=self.beta2,
+                weight_decay=0.0,
+                eps=self.eps,
+                amsgrad=False,
+                maximize=False,
+            )
 
 
 def cosine_lr(base: float, step: int, total: int, floor: float) -> float:

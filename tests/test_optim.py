@@ -1,4 +1,4 @@
-"""prop's Adam is torch.optim.Adam (foreach) with LambdaLR's cosine, bit for bit, without torch._dynamo."""
+"""prop's Adam is torch.optim.Adam (fused) with LambdaLR's cosine, bit for bit, without torch._dynamo."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def test_same_weights_as_torch_adam_with_groups_and_a_cosine_schedule():
     ours_a, ours_b = _params(0), _params(1)
     ref_a, ref_b = ([p.detach().clone().requires_grad_() for p in ps] for ps in (ours_a, ours_b))
     ours = Adam([{"params": ours_a}, {"params": ours_b, "lr": 3e-3}], lr=1e-2)
-    ref = torch.optim.Adam([{"params": ref_a}, {"params": ref_b, "lr": 3e-3}], lr=1e-2, foreach=True)
+    ref = torch.optim.Adam([{"params": ref_a}, {"params": ref_b, "lr": 3e-3}], lr=1e-2, fused=True)
     sched = torch.optim.lr_scheduler.LambdaLR(
         ref, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / steps))
     )
