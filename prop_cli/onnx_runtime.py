@@ -66,16 +66,17 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
 class OnnxPolicy:
     """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
 
-    With a key, delta is computed once here (encoder.onnx) and bound to policy.onnx, so a step
-    feeds only x; without a key each call runs base.onnx. Calls go through an IOBinding, the
-    cheapest per-call path at batch 1. ``fold=True`` instead runs base.onnx with the keyed layers'
-    weights replaced, in this process's memory only, by W diag(delta) (onnxruntime initializer
-    overrides): a step then costs exactly a base step. Nothing folded is ever written. ``threads``
-    = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    With a key, delta is computed once here (encoder.onnx). Folded (the default where the export
+    names the keyed layers' weights): base.onnx runs with those weights replaced, in this process's
+    memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base step
+    (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
+    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx.
+    Without a key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call
+    path at batch 1. ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
     """
 
     def __init__(
-        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool = False
+        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool | None = None
     ) -> None:
         _, ort = require_onnx()
         folder = Path(folder)
@@ -88,6 +89,8 @@ class OnnxPolicy:
         else:
             code = np.asarray(key_code, np.float32).reshape(1, -1)
             deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+            if fold is None:
+                fold = all(d.get("base_weight") for d in self.meta["deltas"])
             if fold:
                 self.session = self._folded(folder, deltas, threads, ort)
             else:
@@ -135,7 +138,7 @@ class OnnxPolicy:
 def run_onnx(
     bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0
 ) -> np.ndarray:
-    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (split form).
+    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (folded where possible).
 
     ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
     require_onnx()

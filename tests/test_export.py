@@ -150,8 +150,9 @@ def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
     x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
     want = run_bundle(b, x, bits)
     folder = exported / C.EXPORT_DIR
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=False)(x), want, atol=1e-5)
     np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)  # the default: folded
     np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
 
 
@@ -263,7 +264,7 @@ def test_one_onnx_policy_serves_changing_batch_sizes(exported):
     code = key_codes(bits, b.key_encoding).numpy()
     x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
     folder = exported / C.EXPORT_DIR
-    for policy, key in ((rt.OnnxPolicy(folder, code), bits), (rt.OnnxPolicy(folder, code, fold=True), bits),
+    for policy, key in ((rt.OnnxPolicy(folder, code, fold=False), bits), (rt.OnnxPolicy(folder, code), bits),
                         (rt.OnnxPolicy(folder), None)):  # fmt: skip
         for n in (1, 256, 7, 1, 256):
             got = policy(x[:n])
