@@ -251,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     name = "quick" if args.quick else "full" if args.full else "default"
     mode = MODES[name]
     threads_env = os.environ.get("OMP_NUM_THREADS")
+    from prop_cli.threads import configure
+
+    configure(parameters=0)  # the IL example's base training: a small model (rows below set their own)
     t0 = time.perf_counter()
     torch.manual_seed(0)
     with tempfile.TemporaryDirectory() as tmp:

@@ -275,7 +275,7 @@ def make_batch(
     return Batch(
         x=torch.cat([ux, fb_x]),
         sample_index=torch.from_numpy(sample_index).to(dev),
-        key_index=torch.from_numpy(key_index).to(dev),
+        key_index=torch.from_numpy(key_index.copy()).to(dev),  # the cached layout stays untouched
         codes=codes,
         user_rows=n_user_rows,
         null_rows=cfg.null_rows,
