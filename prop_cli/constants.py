@@ -48,6 +48,7 @@ DEFAULT_THREADS = 0  # --threads: 0 = chosen by prop_cli.threads
 # Environment variables.
 ENV_PASSPHRASE = "PROP_PASSPHRASE"
 ENV_DEBUG = "PROP_DEBUG"
+ENV_OMP_THREADS = "OMP_NUM_THREADS"  # the user's thread count, respected by prop_cli.threads
 
 # Key sizes accepted by keygen.
 KEY_BITS_DEFAULT = 128

@@ -17,12 +17,13 @@ from __future__ import annotations
 import functools
 import os
 
+from .constants import ENV_OMP_THREADS
 from .errors import PropError
 
-# Parameters from which a second thread pays for itself in a training step (benchmarks/bench_core.py:
-# below ~1M parameters a step's operators are too short to split).
+# Parameters from which a second thread may pay for itself. Below it, measured (issue 13): at 38k
+# parameters two threads burned 66% more CPU for no speed-up on an idle machine. The value itself is
+# where the PRoP step's fixed overhead fades (benchmarks/table.py), not a measured crossover.
 PARALLEL_PARAMS = 1_000_000
-ENV_THREADS = "OMP_NUM_THREADS"
 
 
 def cores() -> int:
@@ -73,7 +74,7 @@ def configure(parameters: int, threads: int | None = None) -> int:
 
     threads = check(threads)
     if threads is None:
-        if os.environ.get(ENV_THREADS, "").strip():
+        if os.environ.get(ENV_OMP_THREADS, "").strip():
             return torch.get_num_threads()
         threads = choose(parameters)
     if torch.get_num_threads() != threads:
