@@ -28,6 +28,8 @@ from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, new_
 from .layers import linear_layers, select_layers
 from .policy import KeyedPolicy
 from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
+from .threads import check as check_threads
+from .threads import configure as configure_threads
 from .trainer import User, personalize
 
 __all__ = [
@@ -95,7 +97,7 @@ def inspect_checkpoint(
         "adapter": loaded.spec["adapter"],
         "model": prop_adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
-        "parameters": sum(p.numel() for p in loaded.module.parameters()),
+        "parameters": _parameters(loaded.module),
         "layers": [
             {"name": n, "in_features": m.in_features, "out_features": m.out_features, "keyed": n in chosen}
             for n, m in linear_layers(loaded.module)
@@ -115,18 +117,22 @@ def personalize_checkpoint(
     device: str = "cpu",
     force: bool = False,
     progress: Callable[[int, dict[str, float]], None] | None = None,
+    threads: int | None = None,
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
     ``users`` pairs each user's data file with their key (``keys.user_keys`` builds them from key files
-    and passphrases; ``salt`` is the passphrase salt it returns).
+    and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
+    ``prop_cli.threads`` chooses from the model's size and the idle cores).
     """
     bits = {len(k.bits) for _, k in users}
     if len(bits) > 1:
         raise PropError("the users' keys have different sizes", "give every user a key of the same size")
     cfg.validate(key_bits=min(bits) if bits else None)
+    check_threads(threads)
     check_output(out, force)  # before hours of training, not after
     loaded = _load(checkpoint, opts)
+    configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     if cfg.seal:
         if general is not None:
@@ -220,6 +226,10 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
     return PersonalizeResult(out, task, written[C.M_KEYED_LAYERS], reports, final, read_manifest(out))
 
 
+def _parameters(module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
     """Inputs for `prop run`: a .npy array, or the ``x`` of a data file; checked against the bundle."""
     path = Path(path)
@@ -275,16 +285,19 @@ def run_file(
     onnx: bool = False,
     onnx_dir: Path | None = None,
     force: bool = False,
+    threads: int | None = None,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
+    check_threads(threads)
     check_output(output, force, what="output", flag="--output")
     bundle = load_bundle(bundle_path)
+    n_threads = configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle)
     if onnx or onnx_dir is not None:
         from .onnx_runtime import run_onnx
 
-        y = run_onnx(bundle, x, key, onnx_dir)
+        y = run_onnx(bundle, x, key, onnx_dir, threads=n_threads)
     else:
         y = run_bundle(bundle, x, key)
 
@@ -308,10 +321,13 @@ def audit_bundle(
     original: str | None = None,
     device: str = "cpu",
     progress: Callable[[str, int, int], None] | None = None,
+    threads: int | None = None,
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
+    check_threads(threads)
     bundle = load_bundle(bundle_path)
+    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     data = load_data(data_path, require_y=bool(keys))
@@ -335,13 +351,16 @@ def export_bundle(
     passphrase: str | None = None,
     input_path: Path | None = None,
     force: bool = False,
+    threads: int | None = None,
 ):
     """`prop export --onnx`: the four graphs, verified against torch (``export.export_onnx``)."""
     from .export import export_onnx
     from .onnx_runtime import require_onnx
 
     require_onnx()
+    check_threads(threads)
     bundle = load_bundle(bundle_path)
+    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
@@ -407,6 +426,7 @@ def add_user(
     cfg.seal = True
     cfg.validate(key_bits=bundle.key_bits)
     check_new_key(bundle.sealed, key.bits)
+    configure_threads(_parameters(bundle.loaded.module), None)
     data, task = _user_data(bundle, data_path, cfg)
     index = len(m[C.M_RECORDS])
     [user] = train_users(bundle.loaded, [data], [key.bits], task, cfg, device, progress, first_index=index)

@@ -52,10 +52,12 @@ AUDIT_SCHEMA = "prop-audit/2"
 # The CLI's defaults that are not training, audit or export settings (those are in prop_cli.config).
 DEFAULT_BUNDLE = "personalized.prop"  # personalize --out
 DEFAULT_DEVICE = "auto"  # --device: CUDA when there is one
+DEFAULT_THREADS = 0  # --threads: 0 = chosen by prop_cli.threads
 
 # Environment variables.
 ENV_PASSPHRASE = "PROP_PASSPHRASE"
 ENV_DEBUG = "PROP_DEBUG"
+ENV_OMP_THREADS = "OMP_NUM_THREADS"  # the user's thread count, respected by prop_cli.threads
 
 # Key sizes accepted by keygen.
 KEY_BITS_DEFAULT = 128

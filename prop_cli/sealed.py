@@ -105,7 +105,7 @@ def train_payload(
     module.requires_grad_(False)
     with payload.attached(module) as m:
         for step in range(cfg.steps):
-            opt.lr = cosine_lr(cfg.payload_lr, step, cfg.steps, cfg.lr_floor)
+            opt.set_lr_factor(cosine_lr(1.0, step, cfg.steps, cfg.lr_floor))
             idx = torch.from_numpy(rng.integers(0, len(x), cfg.user_rows)).to(dev)
             loss = row_loss(m(x[idx]), y[idx], task, distill=False).mean()
             opt.zero_grad()

@@ -3,7 +3,7 @@
 
 Prints a Fig.-4-style table per experiment (markdown) and writes, under --out (default out/reproduce):
 <name>.md, <name>.png and <name>.json (per-seed values). Seeds are fixed: a rerun gives the same table.
-Run with OMP_NUM_THREADS=1 on a shared machine.
+Threads follow prop's policy (prop_cli.threads: one thread for these small models); OMP_NUM_THREADS wins.
 """
 
 from __future__ import annotations
@@ -78,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from prop_cli.errors import PropError
+    from prop_cli.threads import configure
+
+    # The bases, baselines and PRoP runs here are all small models: prop's thread policy for them
+    # (one thread unless OMP_NUM_THREADS says otherwise), set before the first of them trains.
+    configure(parameters=0)
 
     args.out.mkdir(parents=True, exist_ok=True)
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)

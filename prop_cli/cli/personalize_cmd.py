@@ -6,10 +6,16 @@ from typing import Annotated
 import typer
 
 from prop_cli.config import TASKS, PersonalizeConfig
-from prop_cli.constants import DEFAULT_BUNDLE, DEFAULT_DEVICE, KEY_BITS_DEFAULT, KEY_ENCODINGS
+from prop_cli.constants import (
+    DEFAULT_BUNDLE,
+    DEFAULT_DEVICE,
+    DEFAULT_THREADS,
+    KEY_BITS_DEFAULT,
+    KEY_ENCODINGS,
+)
 
 from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
-from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Json, config_options
+from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Json, Threads, config_options
 
 # The training settings personalize exposes, as --flags: PersonalizeConfig field -> help.
 SETTINGS = {
@@ -59,6 +65,7 @@ def personalize(
     activation: Activation = None,
     bits: Annotated[int, typer.Option("--bits", help="Key size for --passphrase.")] = KEY_BITS_DEFAULT,
     device: Device = DEFAULT_DEVICE,
+    threads: Threads = DEFAULT_THREADS,
     force: Force = False,
     as_json: Json = False,
 ) -> None:
@@ -83,7 +90,7 @@ def personalize(
     result = step_progress(
         lambda cb: personalize_checkpoint(
             checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
-            device=device, force=force, progress=cb,
+            device=device, force=force, progress=cb, threads=threads,
         ),
         cfg.steps, "personalize", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
     )  # fmt: skip
