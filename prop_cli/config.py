@@ -13,6 +13,10 @@ from .constants import KEY_ENCODINGS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
+ENCODER_INITS = ("seed", "os")
+# `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
+HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}
+PLAIN_PRESET = {"encoder_init": "seed", "code_negatives": 0}
 
 
 def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
@@ -75,12 +79,22 @@ class PersonalizeConfig(_Settings):
     exclude: list[str] | None = None
     eval_random_keys: int = 64
     task: str | None = None  # None: decided against the model (prop_cli.data.resolve_task)
+    # Hardened unsealed mode (prop_cli.hardening, docs/hardening.md): a preset of the fields below.
+    # Those left None take HARDEN_PRESET's value with harden, PLAIN_PRESET's without (validate fills them).
+    harden: bool = False
+    # "seed": the encoder's initialisation follows `seed` (byte-identical reruns, but the manifest's
+    # seed recreates it); "os": fresh OS randomness that nothing in the bundle records.
+    encoder_init: str | None = None
+    # Code-space fallback rows per step (each on samples_per_key samples), near the users' codes:
+    # up to code_flip_max bits flipped, or relaxed/noised towards the rest of the cube by >= code_relax_min.
+    code_negatives: int | None = None
+    code_flip_max: int = 48
+    code_relax_min: float = 0.1
 
     @property
     def batch_rows(self) -> int:
-        return (
-            self.user_rows + self.null_rows + (self.random_keys + self.neighbour_keys) * self.samples_per_key
-        )
+        sampled = self.random_keys + self.neighbour_keys + (self.code_negatives or 0)
+        return self.user_rows + self.null_rows + sampled * self.samples_per_key
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
@@ -107,6 +121,13 @@ class PersonalizeConfig(_Settings):
         self.need(self.eval_random_keys >= 1, "eval_random_keys", "at least 1")
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
+        for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
+        self.need(self.code_negatives >= 0, "code_negatives", ">= 0")
+        self.need(self.code_flip_max >= 1, "code_flip_max", "at least 1")
+        self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
         return self
 
 

@@ -27,7 +27,13 @@ SETTINGS = {
     "layers": "Layers to key: exact name, dotted suffix, regex or all-linear; repeat.",
     "exclude": "Layers not to key (same forms); repeat.",
     "task": " or ".join(TASKS) + " (default: decided against the model).",
-    "seed": "Seed: the same seed and inputs give byte-identical weights.",
+    "seed": "Seed: the same seed and inputs give byte-identical weights (not with --harden).",
+    "harden": "Hardened unsealed mode: code-space negatives and an unrecorded encoder init "
+    "(docs/hardening.md).",
+    "encoder_init": "seed (follows --seed) or os (fresh randomness; default with --harden).",
+    "code_negatives": "Code-space fallback codes near your code per step (default: 64 with --harden, else 0).",
+    "code_flip_max": "Code-space negatives: at most this many bits flipped.",
+    "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
 }
 
 
