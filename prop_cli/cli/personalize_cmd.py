@@ -31,7 +31,7 @@ SETTINGS = {
     "harden": "Hardened unsealed mode: code-space negatives and an unrecorded encoder init "
     "(docs/hardening.md).",
     "encoder_init": "seed (follows --seed) or os (fresh randomness; default with --harden).",
-    "code_negatives": "Code-space fallback codes near your code per step (default: 64 with --harden, else 0).",
+    "code_negatives": "Code-space fallback codes per step near your code (64 with --harden, else 0).",
     "code_flip_max": "Code-space negatives: at most this many bits flipped.",
     "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
 }
