@@ -17,6 +17,7 @@ from .config import PersonalizeConfig
 from .datasources import Dataset
 from .errors import PropError
 from .evaluate import user_report
+from .hardening import code_negatives, encoder_init
 from .keyed import KeyedModel, KeyEncoder, key_codes
 from .keyspace import KeySampler
 from .layers import select_layers
@@ -162,12 +163,13 @@ def personalize(
     user_pool = UserPool(ux, uy)
 
     mods = dict(module.named_modules())
-    encoder = KeyEncoder(
-        code_bits=len(users[0].key_bits),
-        features=[mods[n].in_features for n in names],
-        hidden=cfg.encoder_hidden,
-        scale=cfg.delta_scale,
-    )
+    with encoder_init(cfg):
+        encoder = KeyEncoder(
+            code_bits=len(users[0].key_bits),
+            features=[mods[n].in_features for n in names],
+            hidden=cfg.encoder_hidden,
+            scale=cfg.delta_scale,
+        )
     km = KeyedModel(module, encoder, names).to(dev)
     if cfg.freeze_base:
         module.requires_grad_(False)
@@ -185,7 +187,8 @@ def personalize(
     try:
         losses: dict[str, float] = {}
         for step in range(cfg.steps):
-            batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool)
+            near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
+            batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
             deltas = km.layer_deltas(batch.codes, null=1)
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
             loss, losses = prop_loss(out, batch, task, cfg.null_weight)
@@ -254,8 +257,11 @@ def make_batch(
     user_codes: torch.Tensor,
     users: UserPool,
     pool: FallbackPool,
+    extra_codes: torch.Tensor | None = None,
 ) -> Batch:
-    """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order)."""
+    """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
+
+    ``extra_codes``: more fallback codes (code-space negatives of --harden), after the sampled keys'."""
     dev = pool.x.device
     n_users = len(users)
     per_user = max(1, cfg.user_rows // n_users)
@@ -265,7 +271,9 @@ def make_batch(
     fb_x, fb_t = pool.draw(cfg.null_rows, rng)
     sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
     codes = torch.cat([user_codes, key_codes(sampled, cfg.key_encoding).to(dev)])
-    k, s = len(sampled), cfg.samples_per_key
+    if extra_codes is not None:
+        codes = torch.cat([codes, extra_codes.to(dev)])
+    k, s = len(codes) - n_users, cfg.samples_per_key
     pick = rng.integers(0, cfg.null_rows, k * s)  # which fallback samples each sampled key sees
 
     key_index, sample_index = _layout(n_users, per_user, k, s, cfg.null_rows)
