@@ -87,7 +87,8 @@ def inspect_checkpoint(
 ) -> dict:
     """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
     loaded = _load(path, opts)
-    chosen = set(select_layers(loaded.module, layers, exclude))
+    default = loaded.policy.default_layers if loaded.policy is not None else None
+    chosen = set(select_layers(loaded.module, layers or default, exclude))
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
@@ -155,7 +156,7 @@ def personalize_checkpoint(
         },
         C.M_CONFIG: cfg.to_dict(),
         C.M_TASK: result.task,
-        C.M_IO: {"input_shape": list(datasets[0].x.shape[1:]), "checkpoint": str(checkpoint)},
+        C.M_IO: {"input_shape": _input_shape(loaded, datasets[0]), "checkpoint": str(checkpoint)},
         C.M_METRICS: {"users": result.metrics, "final_losses": result.final_losses},
     }
     copy_base = cfg.freeze_base and str(loaded.source).endswith(".safetensors")
@@ -164,6 +165,13 @@ def personalize_checkpoint(
     return PersonalizeResult(
         out, result.task, manifest[C.M_KEYED_LAYERS], result.metrics, result.final_losses, manifest
     )
+
+
+def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[str, list[int]]:
+    """Per-sample input shape; per feature name for policies with several inputs."""
+    if loaded.policy is not None:
+        return {k: list(v) for k, v in loaded.policy.input_features.items()}
+    return list(data.x.shape[1:])
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:

@@ -7,6 +7,7 @@ never leaves a half bundle at the output path. No key material and no key hash i
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,12 +58,31 @@ def write_bundle(
             save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
+        names = [C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *_adapter_files(tmp, loaded, base_path)]
         full = dict(manifest)
         full[C.M_FORMAT] = C.FORMAT_VERSION
         full[C.M_PROP_VERSION] = __version__
-        full[C.M_FILES] = {n: sha256_file(tmp / n) for n in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)}
+        full[C.M_FILES] = {n: sha256_file(tmp / n) for n in names}
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return out
+
+
+def _adapter_files(tmp: Path, loaded: LoadedModel, base_path: Path) -> list[str]:
+    """The adapter's own files (e.g. a LeRobot folder's config and processors) and the base's alias."""
+    written = []
+    for rel, data in loaded.files.items():
+        (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / rel).write_bytes(data)
+        written.append(rel)
+    if loaded.base_alias:
+        alias = tmp / loaded.base_alias
+        alias.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(base_path, alias)  # the same bytes, no second copy on disk
+        except OSError:
+            shutil.copyfile(base_path, alias)
+        written.append(loaded.base_alias)
+    return written
 
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
@@ -139,7 +159,9 @@ def load_bundle(path: Path) -> Bundle:
     path = Path(path)
     manifest = read_manifest(path)
     files = manifest.get(C.M_FILES, {})
-    for name in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS):
+    for name in dict.fromkeys([C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *files]):
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise PropError(f"bundle {path}: {C.MANIFEST} lists a file outside the bundle", "the bundle is corrupt")
         f = path / name
         if not f.is_file():
             raise PropError(f"bundle {path} is missing {name}", "write the bundle again")
@@ -159,8 +181,13 @@ def load_bundle(path: Path) -> Bundle:
     )
     encoder.load_state_dict(load_file(str(path / C.ENCODER_WEIGHTS)))
     keyed = KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
+    keyed.batch_axis = {layer["name"]: int(layer["batch_axis"]) for layer in layers if "batch_axis" in layer}
     return Bundle(path, manifest, loaded, keyed)
 
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:
-    return [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+    out = [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+    for layer in out:
+        if keyed.batch_axis.get(layer["name"], 0):
+            layer["batch_axis"] = keyed.batch_axis[layer["name"]]
+    return out
