@@ -18,7 +18,7 @@ from prop_adapters import CheckpointOptions
 from . import constants as C
 from .audit import apply_max_leak, audit, load_original
 from .bundle import Bundle, describe_layers, load_bundle, write_bundle
-from .config import AuditSettings, ExportSettings, PersonalizeConfig
+from .config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
 from .errors import PropError
 from .files import check_output, write_file
@@ -39,7 +39,9 @@ __all__ = [
     "PersonalizeConfig",
     "apply_max_leak",
     "audit",
+    "EvalSettings",
     "audit_bundle",
+    "eval_bundle",
     "export_bundle",
     "formats",
     "generate_key_file",
@@ -297,3 +299,29 @@ def export_bundle(
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
+
+
+def eval_bundle(
+    bundle_path: Path,
+    env_id: str,
+    settings: EvalSettings | None = None,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    obs_map: str | None = None,
+    metric: str | None = None,
+    original: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``)."""
+    from .rollout import evaluate_bundle, load_metric, parse_obs_map
+
+    settings = settings or EvalSettings()
+    bundle = load_bundle(bundle_path)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    settings.validate(has_key=key is not None)
+    fn, mapping = load_metric(metric), parse_obs_map(obs_map)
+    ref = _load(original, None) if original else None
+    return evaluate_bundle(
+        bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress
+    )

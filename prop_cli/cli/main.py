@@ -8,7 +8,7 @@ import warnings
 
 import typer
 
-from . import attack_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
+from . import attack_cmd, eval_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
 
 app = typer.Typer(
     name="prop",
@@ -23,6 +23,7 @@ app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)
 app.command("run")(run_cmd.run)
 app.command("attack")(attack_cmd.attack)
+app.command("eval")(eval_cmd.eval_)
 app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
 app.command("formats")(formats_cmd.formats)
