@@ -60,7 +60,9 @@ def _check_type(config: dict, where: str) -> str:
             "prop supports LeRobot act policies in this version",
         )
     if kind not in SUPPORTED:
-        raise PropError(f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(SUPPORTED)}")
+        raise PropError(
+            f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(SUPPORTED)}"
+        )
     return kind
 
 
@@ -81,7 +83,8 @@ def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
         raise
     except Exception as e:  # noqa: BLE001 - LeRobot's errors on a damaged or foreign folder
         raise PropError(
-            f"{where}: LeRobot could not load the policy ({type(e).__name__}: {str(e).splitlines()[0][:160]})",
+            f"{where}: LeRobot could not load the policy "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:160]})",
             "check that config.json, model.safetensors and the processor files belong together",
         ) from None
     return version, policy, pre, post
@@ -160,7 +163,7 @@ class LeRobotPolicy(PolicyProtocol):
         return {k: tuple(f.shape) for k, f in self.config.input_features.items()}
 
     def _windows(self, episodes: np.ndarray, deltas: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """Row indices t + d for every row t and delta d, clamped to t's episode, and where they fell outside."""
+        """Row indices t + d for every row t and delta d, clamped to t's episode; and where they fell out."""
         n = len(episodes)
         starts = np.r_[0, np.flatnonzero(np.diff(episodes)) + 1]
         ends = np.r_[starts[1:], n] - 1

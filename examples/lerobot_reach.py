@@ -54,7 +54,9 @@ def main(argv: list[str] | None = None) -> None:
     task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET)
     figures["record_s"] = round(time.perf_counter() - t, 1)
     t = time.perf_counter()
-    figures["base_ms_per_step"] = round(task.train_base(out / "reach-general", out / "act", args.base_steps), 1)
+    figures["base_ms_per_step"] = round(
+        task.train_base(out / "reach-general", out / "act", args.base_steps), 1
+    )
     figures["base_train_s"] = round(time.perf_counter() - t, 1)
 
     prop("keygen", out / "user.key")
@@ -82,11 +84,13 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  {name:16s} n={r['episodes']:3d}  success {s.get('mean', 0):.2f} ± {s.get('se', 0):.2f}"
               f"  preference {m.get('mean', 0):.2f} ± {m.get('se', 0):.2f}")  # fmt: skip
     o = figures["offline"]
-    print(f"offline (held-out user episodes, normalised chunk units): personalization {o['personalization']:.3f}; "
-          f"fidelity mse null {o['null']['fidelity']['mean']:.4f}, random {o['random']['fidelity']['mean']:.4f}, "
-          f"1-bit {o['hamming1']['fidelity']['mean']:.4f}")  # fmt: skip
+    fid = {g: o[g]["fidelity"]["mean"] for g in ("null", "random", "hamming1")}
+    print(f"offline (held-out user episodes, normalised chunk units): personalization "
+          f"{o['personalization']:.3f}; fidelity mse null {fid['null']:.4f}, random {fid['random']:.4f}, "
+          f"1-bit {fid['hamming1']:.4f}")  # fmt: skip
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
-          f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, eval {figures['eval_s']} s")
+          f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
+          f"eval {figures['eval_s']} s")  # fmt: skip
 
 
 if __name__ == "__main__":

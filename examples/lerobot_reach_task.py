@@ -53,7 +53,12 @@ def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: flo
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset.create(
-        repo_id=f"local/{root.name}", fps=FPS, features=FEATURES, root=root, robot_type="panda", use_videos=False
+        repo_id=f"local/{root.name}",
+        fps=FPS,
+        features=FEATURES,
+        root=root,
+        robot_type="panda",
+        use_videos=False,
     )
     env = gym.make("PandaReach-v3").unwrapped  # a fixed horizon: no time limit, no stop on success
     rng = np.random.default_rng(seed0)
@@ -61,7 +66,10 @@ def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: flo
         obs, _ = env.reset(seed=seed0 + ep)
         for _ in range(HORIZON):
             a = expert(obs, offset)
-            frame = {STATE: obs["observation"].astype(np.float32), ENV_STATE: obs["desired_goal"].astype(np.float32)}
+            frame = {
+                STATE: obs["observation"].astype(np.float32),
+                ENV_STATE: obs["desired_goal"].astype(np.float32),
+            }
             ds.add_frame({**frame, ACTION: a, "task": "reach the target"})
             obs, *_ = env.step(np.clip(a + noise * rng.standard_normal(3).astype(np.float32), -1, 1))
         ds.save_episode()
@@ -77,7 +85,9 @@ def build_act(stats: dict | None = None, **overrides):
     from lerobot.policies.factory import make_pre_post_processors
 
     settings = dict(
-        input_features={STATE: PolicyFeature(FeatureType.STATE, (6,)), ENV_STATE: PolicyFeature(FeatureType.ENV, (3,))},
+        input_features={
+            STATE: PolicyFeature(FeatureType.STATE, (6,)), ENV_STATE: PolicyFeature(FeatureType.ENV, (3,))
+        },
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
         device="cpu", pretrained_backbone_weights=None, dim_model=64, n_heads=4, dim_feedforward=256,
         n_encoder_layers=2, n_decoder_layers=1, n_vae_encoder_layers=2, latent_dim=16, chunk_size=10,

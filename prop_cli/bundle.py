@@ -161,7 +161,7 @@ def load_bundle(path: Path) -> Bundle:
     files = manifest.get(C.M_FILES, {})
     for name in dict.fromkeys([C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *files]):
         if Path(name).is_absolute() or ".." in Path(name).parts:
-            raise PropError(f"bundle {path}: {C.MANIFEST} lists a file outside the bundle", "the bundle is corrupt")
+            raise PropError(f"bundle {path}: {C.MANIFEST} names a file outside it", "the bundle is corrupt")
         f = path / name
         if not f.is_file():
             raise PropError(f"bundle {path} is missing {name}", "write the bundle again")

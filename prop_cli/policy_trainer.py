@@ -55,7 +55,89 @@ def _split(batch: dict[str, torch.Tensor], fraction: float) -> tuple[dict, dict]
 @torch.no_grad()
 def _chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
     n = len(batch["episode_index"])
-    return torch.cat([policy.chunk(_rows(batch, torch.arange(i, min(n, i + _CHUNK)))) for i in range(0, n, _CHUNK)])
+    return torch.cat(
+        [policy.chunk(_rows(batch, torch.arange(i, min(n, i + _CHUNK)))) for i in range(0, n, _CHUNK)]
+    )
+
+
+class PolicyTrainer:
+    """The state of one personalize run and its step (kept apart so benchmarks time exactly this step)."""
+
+    def __init__(
+        self, loaded: LoadedModel, users: list, cfg: PersonalizeConfig, general: Dataset | None
+    ) -> None:
+        policy = self.policy = loaded.policy
+        cfg.validate(key_bits=len(users[0].key_bits))
+        check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
+        self.cfg, self.users = cfg, users
+        module = self.module = loaded.module
+        names = select_layers(module, cfg.layers or policy.default_layers, cfg.exclude)
+        torch.manual_seed(cfg.seed)
+        self.rng = rng = np.random.default_rng(cfg.seed)
+
+        self.splits = [_split(policy.batches(u.data, "--data"), cfg.val_fraction) for u in users]
+        self.pool = [tr for tr, _ in self.splits]
+        fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
+        self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
+        self.original = copy.deepcopy(module).requires_grad_(False).eval()
+        self.original_policy = type(policy)(self.original, policy.pre, policy.post)
+        self.targets = _chunks(self.original_policy, self.fb)
+
+        mods = dict(module.named_modules())
+        features = [mods[n].in_features for n in names]
+        encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
+        self.km = KeyedModel(module, encoder, names)
+        self.km.batch_axis = probe_batch_axes(
+            module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
+        )
+        if cfg.freeze_base:
+            module.requires_grad_(False)
+        base = [p for p in module.parameters() if p.requires_grad]
+        groups = [{"params": list(encoder.parameters())}]
+        if base:
+            groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
+        self.opt = torch.optim.Adam(groups, lr=cfg.lr)
+        floor = cfg.lr_floor
+        self.sched = torch.optim.lr_scheduler.LambdaLR(
+            self.opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))
+        )
+        self.params = [p for g in groups for p in g["params"]]
+        self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding)
+        self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
+        self.per_user = max(1, cfg.user_rows // len(users))
+
+    def step(self) -> dict[str, float]:
+        cfg, km, rng, policy = self.cfg, self.km, self.rng, self.policy
+        # User rows: the policy's own loss, each user's rows under that user's key.
+        picks = [
+            torch.from_numpy(rng.integers(0, len(tr["episode_index"]), self.per_user)) for tr in self.pool
+        ]
+        ub = {k: torch.cat([_rows(tr, p)[k] for tr, p in zip(self.pool, picks)]) for k in self.pool[0]}
+        user_of_row = torch.arange(len(self.users)).repeat_interleave(self.per_user)
+        d_user = [d.index_select(0, user_of_row) for d in km.layer_deltas(self.user_codes)]
+        personal = km.call_rows(d_user, policy.loss, ub)
+        # Fallback rows: null rows, then each sampled key on samples_per_key of the same frames.
+        sampled = np.concatenate(
+            [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
+        )
+        gi = torch.from_numpy(rng.integers(0, len(self.targets), cfg.null_rows))
+        k_rows = torch.arange(len(sampled)).repeat_interleave(cfg.samples_per_key)
+        idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
+        deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
+        key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
+        pred = km.call_rows(
+            [d.index_select(0, key_of_row) for d in deltas], policy.chunk, _rows(self.fb, idx)
+        )
+        per_row = (pred - self.targets[idx]).abs().flatten(1).mean(1)
+        null = per_row[: len(gi)].mean()
+        keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
+        loss = personal + keyed + cfg.null_weight * null
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.params, CLIP)
+        self.opt.step()
+        self.sched.step()
+        return {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
 def personalize_policy(
@@ -69,91 +151,28 @@ def personalize_policy(
     """Train the keyed policy (Eq. 5) with Eq. 8; returns trainer.Personalized. CPU only in this version."""
     from .trainer import Personalized
 
-    policy = loaded.policy
     if device not in ("cpu", "auto"):
-        raise PropError(f"--device {device}: LeRobot policies are trained on the CPU in this version", "drop --device")
-    cfg.validate(key_bits=len(users[0].key_bits))
-    check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
-    module = loaded.module
-    names = select_layers(module, cfg.layers or policy.default_layers, cfg.exclude)
-    torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
-
-    splits = [_split(policy.batches(u.data, "--data"), cfg.val_fraction) for u in users]
-    pool = [tr for tr, _ in splits]
-    if general is not None:
-        pool.append(policy.batches(general, "--general-data"))
-    obs = list(policy.input_features) + ["episode_index"]
-    fb = {k: torch.cat([p[k] for p in pool]) for k in obs}
-    original = copy.deepcopy(module).requires_grad_(False).eval()
-    original_policy = type(policy)(original, policy.pre, policy.post)
-    targets = _chunks(original_policy, fb)
-
-    mods = dict(module.named_modules())
-    encoder = KeyEncoder(len(users[0].key_bits), [mods[n].in_features for n in names], cfg.encoder_hidden, cfg.delta_scale)
-    km = KeyedModel(module, encoder, names)
-    km.batch_axis = probe_batch_axes(
-        module, names, lambda b: policy.chunk(policy.example(b, fb)), f"the policy {loaded.source}"
-    )
-    if cfg.freeze_base:
-        module.requires_grad_(False)
-    base = [p for p in module.parameters() if p.requires_grad]
-    groups = [{"params": list(encoder.parameters())}]
-    if base:
-        groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
-    opt = torch.optim.Adam(groups, lr=cfg.lr)
-    floor = cfg.lr_floor
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))
-    )
-    params = [p for g in groups for p in g["params"]]
-    user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding)
-    sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
-    per_user = max(1, cfg.user_rows // len(users))
-    n_fb = len(targets)
-
+        raise PropError(
+            f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
+        )
+    t = PolicyTrainer(loaded, users, cfg, general)
     flush = torch.set_flush_denormal(True)  # as trainer.py: denormal Adam moments stall CPU steps
     losses: dict[str, float] = {}
     try:
         for step in range(cfg.steps):
-            # User rows: the policy's own loss, each user's rows under that user's key.
-            picks = [torch.from_numpy(rng.integers(0, len(tr["episode_index"]), per_user)) for tr in pool[: len(users)]]
-            ub = {k: torch.cat([_rows(pool[i], p)[k] for i, p in enumerate(picks)]) for k in pool[0]}
-            user_of_row = torch.arange(len(users)).repeat_interleave(per_user)
-            d_user = [d.index_select(0, user_of_row) for d in km.layer_deltas(user_codes)]
-            personal = km.call_rows(d_user, policy.loss, ub)
-            # Fallback rows: null rows, then each sampled key on samples_per_key of the same frames.
-            sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
-            gi = torch.from_numpy(rng.integers(0, n_fb, cfg.null_rows))
-            k_rows = torch.arange(len(sampled)).repeat_interleave(cfg.samples_per_key)
-            k_idx = gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]
-            idx = torch.cat([gi, k_idx])
-            codes = key_codes(sampled, cfg.key_encoding) if len(sampled) else None
-            deltas = km.layer_deltas(codes, null=1)
-            key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
-            d_fb = [d.index_select(0, key_of_row) for d in deltas]
-            pred = km.call_rows(d_fb, policy.chunk, _rows(fb, idx))
-            per_row = (pred - targets[idx]).abs().flatten(1).mean(1)
-            null = per_row[: len(gi)].mean()
-            keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
-            loss = personal + keyed + cfg.null_weight * null
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, CLIP)
-            opt.step()
-            sched.step()
-            losses = {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
+            losses = t.step()
             if progress is not None:
                 progress(step + 1, losses)
     finally:
         if flush:
             torch.set_flush_denormal(False)
-    module.eval()
+    t.module.eval()
     reports = [
-        chunk_report(km, policy, original_policy, val, u.key_bits, cfg, np.random.default_rng((cfg.seed, _EVAL_STREAM, i)))
-        for i, (u, (_, val)) in enumerate(zip(users, splits))
-    ]
-    return Personalized(km, original, "regression", reports, losses)
+        chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg,
+                     np.random.default_rng((cfg.seed, _EVAL_STREAM, i)))
+        for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+    ]  # fmt: skip
+    return Personalized(t.km, t.original, "regression", reports, losses)
 
 
 @torch.no_grad()
@@ -169,7 +188,9 @@ def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: Persona
         if codes is None:
             return _chunks(policy, val)[None]
         every = km.layer_deltas(codes)
-        return torch.stack([km.call_rows([d[i : i + 1] for d in every], _chunks, policy, val) for i in range(len(codes))])
+        return torch.stack(
+            [km.call_rows([d[i : i + 1] for d in every], _chunks, policy, val) for i in range(len(codes))]
+        )
 
     enc = cfg.key_encoding
     o_user = under(key_codes(bits, enc))

@@ -59,7 +59,9 @@ def load_metric(spec: str | None) -> Metric | None:
     try:
         fn = getattr(importlib.import_module(mod_name), attr)
     except Exception as e:  # noqa: BLE001 - ImportError, AttributeError or the module's own errors
-        raise PropError(f"--metric {spec!r}: cannot load it ({type(e).__name__}: {e})", "check the name") from None
+        raise PropError(
+            f"--metric {spec!r}: cannot load it ({type(e).__name__}: {e})", "check the name"
+        ) from None
     if not callable(fn):
         raise PropError(f"--metric {spec!r} is not callable", "name a function f(trajectory) -> float")
     return fn
@@ -85,14 +87,17 @@ def make_env(env_id: str):
     try:
         import gymnasium as gym
     except ImportError:
-        raise PropError("prop eval needs gymnasium", "pip install gymnasium (and the environment's package)") from None
+        raise PropError(
+            "prop eval needs gymnasium", "pip install gymnasium (and the environment's package)"
+        ) from None
     try:
         with _stdout_to_stderr():
             return gym.make(env_id)
     except Exception as e:  # noqa: BLE001 - unknown id, missing package, bad arguments
         raise PropError(
-            f"--env {env_id!r}: gymnasium cannot make it ({type(e).__name__}: {str(e).splitlines()[0][:120]})",
-            "give a registered id; package:EnvId imports the package that registers it (panda_gym:PandaReach-v3)",
+            f"--env {env_id!r}: gymnasium cannot make it "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+            "give a registered id; package:Id imports its package first (panda_gym:PandaReach-v3)",
         ) from None
 
 

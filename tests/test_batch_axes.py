@@ -48,7 +48,9 @@ def test_probe_finds_sequence_first_axes_and_rows_get_their_own_keys():
     deltas = km.layer_deltas(codes)
     with torch.no_grad():
         rows = km.call_rows(deltas, km.module, x)
-        one_by_one = torch.cat([km.call_rows([d[i : i + 1] for d in deltas], km.module, x[i : i + 1]) for i in range(3)])
+        one_by_one = torch.cat(
+            [km.call_rows([d[i : i + 1] for d in deltas], km.module, x[i : i + 1]) for i in range(3)]
+        )
         folded = torch.cat([km.fold(codes[i : i + 1])(x[i : i + 1]) for i in range(3)])
     assert torch.allclose(rows, one_by_one, atol=1e-5)
     assert torch.allclose(rows, folded, atol=1e-5)

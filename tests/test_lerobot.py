@@ -113,7 +113,8 @@ def test_bundle_holds_no_key_material(bundle):
 
 def test_eval_rolls_out_every_key_condition(bundle, work):
     report = api.eval_bundle(
-        bundle, task.ENV_ID, EvalSettings(episodes=2, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=20),
+        bundle, task.ENV_ID,
+        EvalSettings(episodes=2, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=20),
         obs_map=task.OBS_MAP, metric=task.METRIC, original=str(work / "act"), key_file=None,
     )  # fmt: skip
     assert set(report["conditions"]) == {"original", "no_key", "random_keys"}
@@ -127,7 +128,9 @@ def test_eval_rolls_out_every_key_condition(bundle, work):
 def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer):
     cfg = PersonalizeConfig(**(TINY | {"layers": [layer], "steps": 1}))
     with pytest.raises(PropError, match="not called when the policy acts"):
-        api.personalize_checkpoint(str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg)
+        api.personalize_checkpoint(
+            str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg
+        )
     assert not (tmp_path / "b").exists()
 
 
@@ -146,7 +149,9 @@ def test_unsupported_and_old_folders_are_refused(work, tmp_path, cli):
     old = tmp_path / "old"
     shutil.copytree(work / "act", old)
     w = load_file(str(old / "model.safetensors"))
-    save_file(w | {"normalize_inputs.buffer_observation_state.mean": torch.zeros(6)}, str(old / "model.safetensors"))
+    save_file(
+        w | {"normalize_inputs.buffer_observation_state.mean": torch.zeros(6)}, str(old / "model.safetensors")
+    )
     r = cli("inspect", old)
     assert r.code == 2 and "migrate_policy_normalization" in r.err
 

@@ -24,16 +24,22 @@ def eval_(
     bundle: BundleArg,
     settings: EvalSettings,
     env: Annotated[
-        str, typer.Option("--env", help="gymnasium id; package:Id imports the package first (panda_gym:PandaReach-v3).")
+        str,
+        typer.Option(
+            "--env", help="gymnasium id; package:Id imports the package first (panda_gym:PandaReach-v3)."
+        ),
     ],
     key_file: KeyFile = None,
     passphrase: Passphrase = False,
     obs_map: Annotated[
         str | None,
-        typer.Option("--obs-map", help="Policy feature=observation key, comma-separated (dict observations)."),
+        typer.Option(
+            "--obs-map", help="Policy feature=observation key, comma-separated (dict observations)."
+        ),
     ] = None,
     metric: Annotated[
-        str | None, typer.Option("--metric", help="Your preference metric: package.module:function(trajectory).")
+        str | None,
+        typer.Option("--metric", help="Your preference metric: package.module:function(trajectory)."),
     ] = None,
     original: Annotated[
         str | None, typer.Option("--original", help="Also roll out the original checkpoint (the control).")

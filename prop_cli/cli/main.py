@@ -8,7 +8,17 @@ import warnings
 
 import typer
 
-from . import attack_cmd, eval_cmd, export_cmd, formats_cmd, inspect_cmd, keygen, personalize_cmd, push_cmd, run_cmd
+from . import (
+    attack_cmd,
+    eval_cmd,
+    export_cmd,
+    formats_cmd,
+    inspect_cmd,
+    keygen,
+    personalize_cmd,
+    push_cmd,
+    run_cmd,
+)
 
 app = typer.Typer(
     name="prop",

@@ -69,7 +69,9 @@ def read_info(root: Path, where: str) -> dict:
     try:
         info = json.loads((root / INFO).read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise PropError(f"{where}: {INFO} is not readable JSON ({type(e).__name__})", "re-record it") from None
+        raise PropError(
+            f"{where}: {INFO} is not readable JSON ({type(e).__name__})", "re-record it"
+        ) from None
     version = info.get("codebase_version")
     if version != CODEBASE:
         raise PropError(
@@ -108,7 +110,9 @@ class LeRobotSource(DataSource):
         try:
             from lerobot.datasets.lerobot_dataset import LeRobotDataset
         except ImportError:
-            raise PropError(f"{where} is a LeRobotDataset, but lerobot is not installed", SETUP_HINT) from None
+            raise PropError(
+                f"{where} is a LeRobotDataset, but lerobot is not installed", SETUP_HINT
+            ) from None
         # Offline for good: a missing file must be an error here, not a download.
         os.environ["HF_HUB_OFFLINE"] = "1"
         try:
@@ -120,7 +124,8 @@ class LeRobotSource(DataSource):
             raise
         except Exception as e:  # noqa: BLE001 - LeRobot/pyarrow errors on a damaged root
             raise PropError(
-                f"{where}: LeRobot could not read the root ({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+                f"{where}: LeRobot could not read the root "
+                f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
                 "check the root (meta/, data/) or re-record it",
             ) from None
         x: dict[str, np.ndarray] = {}
@@ -136,7 +141,9 @@ class LeRobotSource(DataSource):
                 x[c] = arr if c in INDEX_COLUMNS else arr.astype(np.float32)
         n = len(x["episode_index"]) if "episode_index" in x else 0
         if n < min_samples:
-            raise PropError(f"{where}: {n} frames, fewer than the {min_samples} needed", "record more episodes")
+            raise PropError(
+                f"{where}: {n} frames, fewer than the {min_samples} needed", "record more episodes"
+            )
         for k, v in x.items():
             if v.dtype.kind == "f" and not np.isfinite(v).all():
                 raise PropError(f"{where}: feature '{k}' has NaN or inf", "drop or fix those frames")
