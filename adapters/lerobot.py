@@ -12,7 +12,9 @@ is no deterministic action output to distil the fallback terms against (see CHAN
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -73,12 +75,13 @@ def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
         from lerobot.configs.policies import PreTrainedConfig
 
         cls = get_policy_class(kind)
-        if weights is None:
-            policy = cls.from_pretrained(str(folder))
-        else:
-            policy = cls(PreTrainedConfig.from_pretrained(str(folder)))
-            policy.load_state_dict(weights, strict=True)
-        pre, post = make_pre_post_processors(policy.config, pretrained_path=str(folder))
+        with contextlib.redirect_stdout(sys.stderr):  # LeRobot prints progress: stdout is for results
+            if weights is None:
+                policy = cls.from_pretrained(str(folder))
+            else:
+                policy = cls(PreTrainedConfig.from_pretrained(str(folder)))
+                policy.load_state_dict(weights, strict=True)
+            pre, post = make_pre_post_processors(policy.config, pretrained_path=str(folder))
     except PropError:
         raise
     except Exception as e:  # noqa: BLE001 - LeRobot's errors on a damaged or foreign folder

@@ -176,6 +176,17 @@ def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[st
     return list(data.x.shape[1:])
 
 
+def _array_model(bundle: Bundle, command: str) -> Bundle:
+    """Refuse, in one line, bundles of policies with dict observations where a command takes arrays."""
+    if bundle.loaded.policy is not None:
+        raise PropError(
+            f"{command} takes array inputs; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            "with named observation features",
+            "roll it out with prop eval (prop run, attack and export for such policies are not there yet)",
+        )
+    return bundle
+
+
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
     """Inputs for `prop run`: a .npy array, or the ``x`` of a data file; checked against the bundle."""
     path = Path(path)
@@ -234,7 +245,7 @@ def run_file(
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
     check_output(output, force, what="output", flag="--output")
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop run")
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle)
     if onnx or onnx_dir is not None:
@@ -265,7 +276,7 @@ def audit_bundle(
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop attack")
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     data = load_data(data_path, require_y=bool(keys))
@@ -295,7 +306,7 @@ def export_bundle(
     from .onnx_runtime import require_onnx
 
     require_onnx()
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop export")
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)

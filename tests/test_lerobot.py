@@ -163,3 +163,14 @@ def test_npz_data_for_a_lerobot_policy_is_one_line(work, tmp_path, cli):
             "--out", tmp_path / "b", "--steps", "1")  # fmt: skip
     assert r.code == 2 and "no feature 'observation.state'" in r.err
     assert not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("command", ["run", "attack"])
+def test_array_commands_refuse_policy_bundles_in_one_line(bundle, tmp_path, cli, command):
+    np.save(tmp_path / "x.npy", np.zeros((2, 9), np.float32))
+    args = ["--input", tmp_path / "x.npy", "--output", tmp_path / "y.npy"] if command == "run" else []
+    if command == "attack":
+        np.savez(tmp_path / "d.npz", x=np.zeros((20, 9), np.float32))
+        args = ["--data", tmp_path / "d.npz"]
+    r = cli(command, bundle, *args)
+    assert r.code == 2 and "prop eval" in r.err and len(r.err.strip().splitlines()) == 1
