@@ -14,8 +14,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
 PY="${PYTHON:-python3.11}"
+drop_draccus_tests() {
+  # draccus 0.10.0 (lerobot's config library) installs its own test suite as a top-level package
+  # `tests`, which shadows this repository's tests/ under pytest; it is not needed to run draccus.
+  local site
+  site="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
+  if grep -q '^tests/__init__.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/tests"; fi
+}
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, prop_cli" 2>/dev/null; then
   "$VENV/bin/pip" install -q --no-deps -e . 2>&1 | grep -v "^WARNING: Location" || true
+  drop_draccus_tests
   exit 0
 fi
 start=$(date +%s)
@@ -43,6 +51,7 @@ sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
   "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5"
 "$PIP" install -q --no-deps -e . 2>&1 | grep -v "^WARNING: Location" || true
+drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'
 import lerobot, numpy, torch, torchvision
 from lerobot.policies.act.modeling_act import ACTPolicy  # noqa: F401
