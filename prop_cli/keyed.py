@@ -137,6 +137,8 @@ class KeyedModel(nn.Module):
             z = args[0]
             axis = self.batch_axis.get(name, 0)
             if axis:
+                if rows.grid or rows.sample_index is not None:  # sharing assumes the batch on axis 0
+                    raise _RowMismatch()
                 return (z * self._along(rows.deltas[i], z, axis), *args[1:])
             if rows.grid:
                 return (self._grid(rows, i, z), *args[1:])

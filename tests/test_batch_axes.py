@@ -85,3 +85,16 @@ def test_lerobot_root_checks_before_lerobot(tmp_path):
         load_data(f"{root}:episodes=1-3")
     with pytest.raises(PropError, match="no 'action' feature"):
         load_data(root)
+
+
+def test_many_keys_at_once_fall_back_to_one_run_per_key_on_sequence_first_layers():
+    names = ["block.linear1", "head"]
+    km = keyed(names)
+    km.batch_axis = {"block.linear1": 1}
+    x = torch.randn(4, 3, 8)
+    codes = key_codes(np.random.default_rng(1).integers(0, 2, (2, 32)), "hashed")
+    with torch.no_grad():
+        out = km.run_keys(x, km.layer_deltas(codes))
+        ref = torch.stack([km.fold(codes[i : i + 1])(x) for i in range(2)])
+    assert km.share_prefix is False
+    assert torch.allclose(out, ref, atol=1e-5)
