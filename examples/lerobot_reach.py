@@ -7,7 +7,11 @@
    user's (hold 10 cm above it, 20 episodes). No downloads, nobody labels anything.
 2. Train a small ACT base on the general data with LeRobot's own training step; save_pretrained.
 3. `prop personalize` the ACT folder with the user's dataset and a key.
-4. `prop eval` closed loop: the original, the user's key, no key, random keys, one-bit neighbours.
+4. `prop eval` closed loop: the original, the user's key, no key, random keys, one-bit neighbours,
+   over the recorded horizon (30 steps) under every key: panda-gym ends an episode on reaching the
+   goal, before a preference judged at the episode's end could show.
+
+--reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-4.
 """
 
 from __future__ import annotations
@@ -44,22 +48,26 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--base-steps", type=int, default=2500)
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 1500)")
+    ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
     args = ap.parse_args(argv)
     out = args.out
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
     figures: dict = {}
-    t = time.perf_counter()
-    task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32))
-    task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET)
-    figures["record_s"] = round(time.perf_counter() - t, 1)
-    t = time.perf_counter()
-    figures["base_ms_per_step"] = round(
-        task.train_base(out / "reach-general", out / "act", args.base_steps), 1
-    )
-    figures["base_train_s"] = round(time.perf_counter() - t, 1)
-
-    prop("keygen", out / "user.key")
+    if args.reuse and (out / "figures.json").is_file():
+        earlier = json.loads((out / "figures.json").read_text())
+        figures = {k: v for k, v in earlier.items() if k.startswith(("record", "base"))}
+        shutil.rmtree(out / "bundle", ignore_errors=True)
+    else:
+        shutil.rmtree(out, ignore_errors=True)
+        out.mkdir(parents=True)
+        t = time.perf_counter()
+        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32))
+        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET)
+        figures["record_s"] = round(time.perf_counter() - t, 1)
+        t = time.perf_counter()
+        ms = task.train_base(out / "reach-general", out / "act", args.base_steps)
+        figures["base_ms_per_step"] = round(ms, 1)
+        figures["base_train_s"] = round(time.perf_counter() - t, 1)
+        prop("keygen", out / "user.key")
     prop("inspect", out / "act")
     steps = PERSONALIZE if args.steps is None else [*PERSONALIZE[:1], str(args.steps), *PERSONALIZE[2:]]
     t = time.perf_counter()
@@ -72,7 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     t = time.perf_counter()
     closed = json.loads(prop(
         "eval", out / "bundle", "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--metric", task.METRIC,
-        "--key-file", out / "user.key", "--original", out / "act", "--episodes", args.episodes, "--json",
+        "--key-file", out / "user.key", "--original", out / "act", "--episodes", args.episodes,
+        "--max-steps", task.HORIZON, "--ignore-terminated", "--json",
         capture=True,
     ))  # fmt: skip
     figures["eval_s"] = round(time.perf_counter() - t, 1)

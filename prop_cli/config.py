@@ -208,6 +208,9 @@ class EvalSettings(_Settings):
     neighbours: int = 6  # ... and H one-bit neighbours of the user's key (needs the key)
     episodes_per_key: int = 5  # episodes each random key and each neighbour runs
     max_steps: int = 0  # 0: the environment's own time limit
+    # Keep acting after the environment reports `terminated` (e.g. panda-gym ends an episode on reaching
+    # the goal): a preference judged at the episode's end needs the whole episode under every key.
+    ignore_terminated: bool = False
     seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
 
     def validate(self, has_key: bool) -> EvalSettings:

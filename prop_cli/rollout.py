@@ -154,7 +154,7 @@ def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     return out
 
 
-def _episodes(env, controller, seeds: list[int], features, obs_map, max_steps: int, metric) -> list[dict]:
+def _episodes(env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric) -> list:
     results = []
     for seed in seeds:
         obs, _ = env.reset(seed=int(seed))
@@ -168,7 +168,9 @@ def _episodes(env, controller, seeds: list[int], features, obs_map, max_steps: i
             steps += 1
             for k, v in (("observations", obs), ("actions", action), ("rewards", reward), ("infos", info)):
                 traj[k].append(v)
-            if terminated or truncated or (max_steps and steps >= max_steps):
+            if truncated or (terminated and not settings.ignore_terminated):
+                break
+            if settings.max_steps and steps >= settings.max_steps:
                 break
         r = {"return": total, "steps": steps}
         if "is_success" in info:
@@ -219,7 +221,7 @@ def evaluate_bundle(
         else:
             codes = None if codes_or_bits is None else key_codes(codes_or_bits, enc)
             ctl = _Source(bundle, codes).controller()
-        return _episodes(env, ctl, seeds, features, obs_map, settings.max_steps, metric)
+        return _episodes(env, ctl, seeds, features, obs_map, settings, metric)
 
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
     cond = report["conditions"]
@@ -229,7 +231,7 @@ def evaluate_bundle(
         ctl = original.policy.controller(original.module.eval()) if original.policy else None
         if ctl is None:
             raise PropError("--original: only LeRobot policies are compared this way", "drop --original")
-        cond["original"] = _summary(_episodes(env, ctl, first, features, obs_map, settings.max_steps, metric))
+        cond["original"] = _summary(_episodes(env, ctl, first, features, obs_map, settings, metric))
     cond["no_key"] = _summary(run("no key", None, first))
     if key is not None:
         cond["user_key"] = _summary(run("user key", key, first))

@@ -15,6 +15,7 @@ SETTINGS = {
     "neighbours": "One-bit neighbours of your key to roll out (needs the key).",
     "episodes_per_key": "Episodes per random key and per neighbour.",
     "max_steps": "Stop an episode after this many steps (0: the environment's limit).",
+    "ignore_terminated": "Keep acting after the environment says terminated (stop at its time limit).",
     "seed": "First evaluation seed (keep it away from the seeds your data was recorded with).",
 }
 

@@ -15,6 +15,7 @@ from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Js
 SETTINGS = {
     "steps": "Training steps.",
     "lr": "Adam learning rate of the key encoder (cosine decay).",
+    "lr_floor": "The cosine decay ends at lr times this (1: a constant learning rate).",
     "base_lr_scale": "The base weights learn at lr times this.",
     "hamming_radius": "Keys up to this many bits off fall back (at most the key size).",
     "user_rows": "Rows of the users' data per step.",
