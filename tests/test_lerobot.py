@@ -174,3 +174,13 @@ def test_array_commands_refuse_policy_bundles_in_one_line(bundle, tmp_path, cli,
         args = ["--data", tmp_path / "d.npz"]
     r = cli(command, bundle, *args)
     assert r.code == 2 and "prop eval" in r.err and len(r.err.strip().splitlines()) == 1
+
+
+def test_same_seed_same_bundle(bundle, work):
+    again = work / "again"
+    api.personalize_checkpoint(
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], again, PersonalizeConfig(**TINY),
+        general=work / "general",
+    )  # fmt: skip
+    for name in ("base.safetensors", "encoder.safetensors"):
+        assert (again / name).read_bytes() == (bundle / name).read_bytes()
