@@ -20,13 +20,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from prop_cli.constants import LEROBOT_DIR
 from prop_cli.errors import PropError
 
 from .base import Adapter, CheckpointOptions, LoadedModel, PolicyProtocol, finish
 from .folder import CONFIG, WEIGHTS, read_config
 
 PREPROCESSOR = "policy_preprocessor.json"
-FOLDER_IN_BUNDLE = "lerobot"  # the bundle's LeRobot folder
+FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
 SUPPORTED = ("act",)
 ACTION, PAD = "action", "action_is_pad"
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"

@@ -181,7 +181,7 @@ def load_bundle(path: Path) -> Bundle:
     )
     encoder.load_state_dict(load_file(str(path / C.ENCODER_WEIGHTS)))
     keyed = KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
-    keyed.batch_axis = {layer["name"]: int(layer["batch_axis"]) for layer in layers if "batch_axis" in layer}
+    keyed.batch_axis = {x["name"]: int(x[C.M_BATCH_AXIS]) for x in layers if C.M_BATCH_AXIS in x}
     return Bundle(path, manifest, loaded, keyed)
 
 
@@ -189,5 +189,5 @@ def describe_layers(keyed: KeyedModel) -> list[dict]:
     out = [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
     for layer in out:
         if keyed.batch_axis.get(layer["name"], 0):
-            layer["batch_axis"] = keyed.batch_axis[layer["name"]]
+            layer[C.M_BATCH_AXIS] = keyed.batch_axis[layer["name"]]
     return out
