@@ -4,8 +4,9 @@ Conditions: the user's key, no key, random keys and one-bit neighbours of the us
 key per episode, folded into a copy of the weights, so a keyed step costs a base step), and optionally
 the original checkpoint. Per condition: mean return, success (``info["is_success"]`` at the episode's
 end, where the environment reports it) and the user's preference metric, each with its standard error.
-Every condition runs the same evaluation seeds (random keys and neighbours: ``episodes_per_key`` seeds
-each), so the conditions differ only in the key.
+Every condition runs the same evaluation seeds: random keys and neighbours take them in turn,
+``episodes_per_key`` each (6 keys x 5 episodes = the 30 seeds of the other conditions), so the
+conditions differ only in the key, not in the starting states.
 """
 
 from __future__ import annotations
@@ -242,7 +243,10 @@ def evaluate_bundle(
     for label, keys in groups:
         results, per_key = [], []
         for j, bits in enumerate(keys):
-            seeds = [settings.seed + 10_000 * (j + 1) + i for i in range(settings.episodes_per_key)]
+            # The conditions' seeds, in turn: R keys x m episodes cover the same starting states as
+            # the user key, no key and the original (paired, not merely as many).
+            m = settings.episodes_per_key
+            seeds = [first[(j * m + i) % len(first)] for i in range(m)]
             r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds)
             results += r
             per_key.append(_summary(r))
