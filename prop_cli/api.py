@@ -17,14 +17,14 @@ from prop_adapters import CheckpointOptions
 
 from . import constants as C
 from .audit import apply_max_leak, audit, load_original
-from .bundle import Bundle, describe_layers, load_bundle, write_bundle
+from .bundle import Bundle, describe_layers, load_bundle, read_manifest, write_bundle, write_sealed_bundle
 from .config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
 from .errors import PropError
 from .files import check_output, write_file
 from .hub import resolve_checkpoint
 from .keyed import key_codes
-from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, read_key_file
+from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, new_salt, read_key_file
 from .layers import linear_layers, select_layers
 from .policy import KeyedPolicy
 from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
@@ -54,6 +54,8 @@ __all__ = [
     "push_bundle",
     "read_key_file",
     "record_audit",
+    "add_user",
+    "remove_user",
     "run_bundle",
     "run_file",
 ]
@@ -129,6 +131,18 @@ def personalize_checkpoint(
     check_output(out, force)  # before hours of training, not after
     loaded = _load(checkpoint, opts)
     datasets = [load_data(p) for p, _ in users]
+    if cfg.seal:
+        if loaded.policy is not None:
+            raise PropError(
+                f"--seal is not available for {loaded.spec['adapter']} policies yet", "drop --seal"
+            )
+        if general is not None:
+            raise PropError(
+                "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
+            )
+        return _personalize_sealed(
+            checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress
+        )
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None
     result = personalize(
         loaded,
@@ -185,6 +199,50 @@ def _array_model(bundle: Bundle, command: str) -> Bundle:
             "roll it out with prop eval (prop run, attack and export for such policies are not there yet)",
         )
     return bundle
+
+
+def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
+    from .bundle import update_manifest
+    from .sealed import check_distinct, public_metrics, train_users, wrong_key_report
+    from .trainer import _prepare
+
+    keys = [k.bits for _, k in users]
+    check_distinct(keys)
+    datasets, task = _prepare(loaded, [User(d, b) for d, b in zip(datasets, keys)], None, cfg.task)
+    trained = train_users(loaded, datasets, keys, task, cfg, device, progress)
+    kinds = sorted({k.kind for _, k in users})
+    layers = trained[0].payload.spec.layers
+    manifest = {
+        C.M_MODEL: loaded.spec,
+        C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
+        C.M_PAYLOAD: trained[0].payload.spec.to_dict(),
+        # A sealed bundle always has a passphrase salt, so passphrase users can be added later.
+        C.M_KEY: {
+            "bits": len(keys[0]),
+            "users": len(users),
+            "source": kinds[0] if len(kinds) == 1 else "mixed",
+            "kdf": kdf_record(salt or new_salt()),
+        },
+        C.M_CONFIG: cfg.to_dict(),
+        C.M_TASK: task,
+        C.M_IO: {"input_shape": list(datasets[0].x.shape[1:]), "checkpoint": str(checkpoint)},
+    }
+    written = write_sealed_bundle(
+        out, loaded=loaded, manifest=manifest, users=[(u.payload, u.private, u.bits) for u in trained],
+        force=force,
+    )  # fmt: skip
+    bundle = load_bundle(out)
+    reports = [{**u.private, **wrong_key_report(bundle, u, cfg, i)} for i, u in enumerate(trained)]
+    for r in reports:
+        r.pop("config", None)
+    records = written[C.M_RECORDS]
+    update_manifest(
+        out, C.M_METRICS, {"users": [public_metrics(r, e["id"]) for r, e in zip(reports, records)]}
+    )
+    final = reports[0].pop("final_losses", {})
+    for r in reports[1:]:
+        r.pop("final_losses", None)
+    return PersonalizeResult(out, task, written[C.M_KEYED_LAYERS], reports, final, read_manifest(out))
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
@@ -260,7 +318,9 @@ def run_file(
             np.save(f, y)
 
     write_file(output, save, what="output", flag="--output")
-    return RunResult(Path(output), tuple(y.shape), key is not None, onnx or onnx_dir is not None)
+    # A key that opens no record of a sealed bundle ran the base: report it as such, not as keyed.
+    keyed = key is not None and (not bundle.is_sealed or bundle.sealed.open(key) is not None)
+    return RunResult(Path(output), tuple(y.shape), keyed, onnx or onnx_dir is not None)
 
 
 def audit_bundle(
@@ -336,3 +396,109 @@ def eval_bundle(
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress
     )
+
+
+def _sealed_bundle(bundle_path: Path, command: str) -> Bundle:
+    bundle = load_bundle(bundle_path)
+    if not bundle.is_sealed:
+        raise PropError(
+            f"{command} works on sealed bundles; {bundle_path} is unsealed (its users share one encoder and "
+            "base, trained together)",
+            "personalize again with every user's data, or with --seal to make users independent",
+        )
+    return bundle
+
+
+@dataclass
+class UserChange:
+    bundle: Path
+    record: str  # the record id added or removed
+    users: int  # users in the bundle afterwards
+    metrics: dict | None = None  # add-user: the new user's report (as personalize prints it)
+
+
+def add_user(
+    bundle_path: Path,
+    data_path: Path,
+    key: KeySource,
+    *,
+    cfg: PersonalizeConfig | None = None,
+    device: str = "cpu",
+    progress: Callable[[int, dict[str, float]], None] | None = None,
+) -> UserChange:
+    """`prop add-user`: train one more user's payload on their data alone and seal it into the bundle.
+
+    Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
+    payload kind, rank and layers must stay the bundle's (they are bound into every record)."""
+    from .bundle import update_manifest
+    from .config import PersonalizeConfig as Cfg
+    from .sealed import (
+        check_new_key,
+        public_metrics,
+        rewrite_records,
+        seal_payload,
+        train_users,
+        wrong_key_report,
+    )
+
+    bundle = _sealed_bundle(bundle_path, "add-user")
+    m = bundle.manifest
+    bundle.check_key(key.bits, "the new user's key")
+    base_cfg = Cfg.from_dict(m[C.M_CONFIG])
+    cfg = cfg or base_cfg
+    spec = m[C.M_PAYLOAD]
+    if (cfg.payload, cfg.payload_rank if cfg.payload == "lora" else 0) != (spec["kind"], spec["rank"]):
+        raise PropError(
+            f"--payload {cfg.payload} (rank {cfg.payload_rank}) differs from the bundle's {spec['kind']} "
+            f"(rank {spec['rank']})",
+            "drop --payload/--payload-rank: every user of a bundle has the same payload layout",
+        )
+    cfg.layers = [x["name"] for x in spec["layers"]]
+    cfg.exclude = None
+    cfg.seal = True
+    cfg.validate(key_bits=bundle.key_bits)
+    check_new_key(bundle.sealed, key.bits)
+    data, task = _user_data(bundle, data_path, cfg)
+    index = len(m[C.M_RECORDS])
+    [user] = train_users(bundle.loaded, [data], [key.bits], task, cfg, device, progress, first_index=index)
+    rec = seal_payload(m, user.private, user.payload, key.bits)
+    new = rewrite_records(Path(bundle_path), m, [rec], [])
+    report = {**user.private, **wrong_key_report(load_bundle(bundle_path), user, cfg, index)}
+    report.pop("config", None)
+    users = list((new.get(C.M_METRICS) or {}).get("users", []))
+    update_manifest(Path(bundle_path), C.M_METRICS, {"users": [*users, public_metrics(report, rec.id)]})
+    return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
+
+
+def _user_data(bundle: Bundle, data_path: Path, cfg: PersonalizeConfig):
+    from . import data as data_mod
+
+    task = cfg.task or bundle.task
+    return data_mod.prepare(bundle.loaded, load_data(data_path), "--data", task)
+
+
+def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str | None = None) -> UserChange:
+    """`prop remove-user`: delete one user's record. Ownership is proven by the key: it must open the
+    record it removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's
+    maintainer when a user lost theirs: whoever can write the files can delete a record anyway, and
+    no one can add or change one without its key."""
+    from .sealed import rewrite_records
+
+    bundle = _sealed_bundle(bundle_path, "remove-user")
+    if (key is None) == (record is None):
+        raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
+    ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]
+    if key is not None:
+        opened = bundle.sealed.open(bundle.check_key(key))
+        if opened is None:
+            raise PropError(
+                f"the key opens no user of {bundle_path}",
+                "pass the key of the user to remove, or --record ID",
+            )
+        record = opened.record_id
+    elif record not in ids:
+        raise PropError(
+            f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
+        )
+    new = rewrite_records(Path(bundle_path), bundle.manifest, [], [record])
+    return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))

@@ -11,6 +11,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safetensors import safe_open
@@ -24,6 +25,10 @@ from . import constants as C
 from .errors import PropError
 from .files import check_output, dump_json, sha256_file, staged_dir, write_text
 from .keyed import KeyedModel, KeyEncoder
+from .payload import Payload
+
+if TYPE_CHECKING:
+    from .sealed import SealedState
 
 
 def _safetensors_metadata(path: str) -> dict[str, str] | None:
@@ -31,6 +36,27 @@ def _safetensors_metadata(path: str) -> dict[str, str] | None:
         return None
     with safe_open(path, framework="pt") as f:
         return f.metadata()
+
+
+def _write_base(tmp: Path, loaded: LoadedModel, module, copy_base: bool) -> None:
+    base_path = tmp / C.BASE_WEIGHTS
+    if copy_base:
+        shutil.copyfile(loaded.source, base_path)
+        return
+    state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
+    state.update(
+        (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
+        for k, v in module.state_dict().items()
+    )
+    save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+
+
+def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
+    full = dict(manifest)
+    full[C.M_FORMAT] = C.FORMAT_VERSION
+    full[C.M_PROP_VERSION] = __version__
+    full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
+    return full
 
 
 def write_bundle(
@@ -46,23 +72,12 @@ def write_bundle(
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
-        base_path = tmp / C.BASE_WEIGHTS
-        if copy_base:
-            shutil.copyfile(loaded.source, base_path)
-        else:
-            state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
-            state.update(
-                (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
-                for k, v in keyed.module.state_dict().items()
-            )
-            save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+        _write_base(tmp, loaded, keyed.module, copy_base)
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
-        names = [C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *_adapter_files(tmp, loaded, base_path)]
-        full = dict(manifest)
-        full[C.M_FORMAT] = C.FORMAT_VERSION
-        full[C.M_PROP_VERSION] = __version__
-        full[C.M_FILES] = {n: sha256_file(tmp / n) for n in names}
+        extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
+        names = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *extra)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names)
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return out
 
@@ -83,6 +98,31 @@ def _adapter_files(tmp: Path, loaded: LoadedModel, base_path: Path) -> list[str]
             shutil.copyfile(base_path, alias)
         written.append(loaded.base_alias)
     return written
+
+
+def write_sealed_bundle(
+    out: Path,
+    *,
+    loaded: LoadedModel,
+    manifest: dict,
+    users: list[tuple[Payload, dict, np.ndarray]],
+    force: bool = False,
+) -> dict:
+    """Write a sealed bundle: the original's weights as the base, and one encrypted record per user
+    ``(payload, private metadata, key bits)``. Returns the manifest written."""
+    from .sealed import record_entry, seal_payload, write_record
+
+    out = Path(out)
+    check_output(out, force)
+    with staged_dir(out) as tmp:
+        copy_base = str(loaded.source).endswith(".safetensors")
+        _write_base(tmp, loaded, loaded.module, copy_base)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_SEALED, C.M_RECORDS: []}, tmp, (C.BASE_WEIGHTS,))
+        for payload, meta, bits in users:
+            rec = seal_payload(full, meta, payload, bits)
+            full[C.M_RECORDS].append(record_entry(rec, write_record(tmp, rec)))
+        (tmp / C.MANIFEST).write_text(dump_json(full))
+    return full
 
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
@@ -128,10 +168,24 @@ def read_manifest(path: Path) -> dict:
 
 @dataclass
 class Bundle:
+    """A loaded bundle. Unsealed: ``keyed`` is the base with its key encoder. Sealed: ``keyed`` is
+    None (there is no encoder) and ``sealed`` holds the payload layout and the encrypted records."""
+
     path: Path
     manifest: dict
     loaded: LoadedModel
-    keyed: KeyedModel
+    keyed: KeyedModel | None
+    sealed: SealedState | None = None
+
+    @property
+    def is_sealed(self) -> bool:
+        return self.sealed is not None
+
+    @property
+    def layer_names(self) -> list[str]:
+        if self.sealed is not None:
+            return [layer["name"] for layer in self.sealed.spec.layers]
+        return list(self.keyed.layer_names)
 
     @property
     def task(self) -> str:
@@ -158,8 +212,10 @@ def load_bundle(path: Path) -> Bundle:
     """Load and verify (format version, sha256 of every weight file) a bundle."""
     path = Path(path)
     manifest = read_manifest(path)
+    sealed = manifest.get(C.M_MODE) == C.MODE_SEALED
     files = manifest.get(C.M_FILES, {})
-    for name in dict.fromkeys([C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *files]):
+    weights = (C.BASE_WEIGHTS,) if sealed else (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS)
+    for name in dict.fromkeys([*weights, *files]):
         if Path(name).is_absolute() or ".." in Path(name).parts:
             raise PropError(f"bundle {path}: {C.MANIFEST} names a file outside it", "the bundle is corrupt")
         f = path / name
@@ -171,6 +227,10 @@ def load_bundle(path: Path) -> Bundle:
                 "restore the bundle from a trusted copy",
             )
     loaded = prop_adapters.rebuild(manifest[C.M_MODEL], load_file(str(path / C.BASE_WEIGHTS)), str(path))
+    if sealed:
+        from .sealed import load_state
+
+        return Bundle(path, manifest, loaded, None, load_state(path, manifest))
     enc_meta = manifest[C.M_ENCODER]
     layers = manifest[C.M_KEYED_LAYERS]
     encoder = KeyEncoder(

@@ -13,6 +13,7 @@ from .constants import KEY_ENCODINGS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
+PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.payload)
 
 
 def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
@@ -75,6 +76,14 @@ class PersonalizeConfig(_Settings):
     exclude: list[str] | None = None
     eval_random_keys: int = 64
     task: str | None = None  # None: decided against the model (prop_cli.data.resolve_task)
+    # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
+    # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
+    seal: bool = False
+    # lora at rank 4 matched unsealed PRoP's personalization on IL and digits at ~2% of its bytes
+    # (docs/sealed.md, "Choosing the payload"); full is the strongest, delta the smallest.
+    payload: str = "lora"
+    payload_rank: int = 4
+    payload_lr: float = 0.01  # Adam on the payload; cosine-decays like lr
 
     @property
     def batch_rows(self) -> int:
@@ -107,6 +116,9 @@ class PersonalizeConfig(_Settings):
         self.need(self.eval_random_keys >= 1, "eval_random_keys", "at least 1")
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
+        self.need(self.payload in PAYLOAD_KINDS, "payload", " or ".join(PAYLOAD_KINDS))
+        self.need(self.payload_rank >= 1, "payload_rank", "at least 1")
+        self.need(self.payload_lr > 0, "payload_lr", "positive")
         return self
 
 

@@ -7,9 +7,12 @@ BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
 LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
+RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
+RECORD_SUFFIX = ".sealed"
 
-# Bump on any change a reader of an older version would misread.
-FORMAT_VERSION = 1
+# Bump on any change a reader of an older version would misread. 2: sealed bundles (mode, payload,
+# records); unsealed bundles of version 1 still load.
+FORMAT_VERSION = 2
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -25,6 +28,12 @@ M_TASK = "task"  # "regression" | "classification"
 M_IO = "io"  # {"input_shape": [...], "checkpoint": str}
 M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
+M_MODE = "mode"  # "unsealed" (absent in version 1) | "sealed"
+M_PAYLOAD = "payload"  # sealed: {"kind", "rank", "layers": [{"name", "in_features", "out_features"}]}
+M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256"}], one per user
+MODE_UNSEALED = "unsealed"
+MODE_SEALED = "sealed"
+MODES = (MODE_UNSEALED, MODE_SEALED)
 
 # How key bits become the encoder's input (prop_cli.keyed.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")

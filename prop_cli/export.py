@@ -148,6 +148,8 @@ def export_onnx(
         bundle.check_key(key)
     out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
     check_output(out, force, what="export folder")
+    if bundle.is_sealed:
+        return _export_sealed(bundle, out, s, key, inputs)
     km = bundle.keyed.eval()
     names = delta_names(len(km.layer_names))
     in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
@@ -165,6 +167,94 @@ def export_onnx(
     except _VerificationFailed:
         return ExportResult(out, s.opset, s.atol, [], table, False, meta)
     return ExportResult(out, s.opset, s.atol, [*C.GRAPHS, C.EXPORT_META], table, True, meta)
+
+
+def _export_sealed(
+    bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, inputs: np.ndarray | None
+) -> ExportResult:
+    """A sealed bundle exports as ``base.onnx`` (the original) plus its encrypted records: the runtime
+    (``onnx_runtime.SealedOnnxPolicy``) opens the user's record with their key and folds the payload
+    into the keyed layers' initializers in memory. No graph holds a payload in the clear."""
+    from .sealed import copy_records
+
+    onnx, _ = require_onnx()
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    batch = {0: "batch"}
+    try:
+        with staged_dir(out, what="export folder") as tmp:
+            x0 = torch.zeros(2, *in_shape)
+            module = bundle.loaded.module.eval()
+            _export(module, (x0,), tmp / C.BASE_GRAPH, ["x"], ["y"], {"x": batch, "y": batch}, s.opset)
+            onnx.checker.check_model(str(tmp / C.BASE_GRAPH))
+            copy_records(Path(bundle.path), tmp, bundle.manifest)
+            meta = _sealed_meta(bundle, tmp, s.opset, s.atol)
+            (tmp / C.EXPORT_META).write_text(dump_json(meta))
+            table = verify_sealed(bundle, tmp, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
+            if not all(r["ok"] for r in table):
+                raise _VerificationFailed
+    except _VerificationFailed:
+        return ExportResult(out, s.opset, s.atol, [], table, False, meta)
+    files = [C.BASE_GRAPH, C.EXPORT_META, *(r["file"] for r in bundle.manifest[C.M_RECORDS])]
+    return ExportResult(out, s.opset, s.atol, files, table, True, meta)
+
+
+def _sealed_meta(bundle: Bundle, folder: Path, opset: int, atol: float) -> dict:
+    from .sealed import public_part
+
+    m = bundle.manifest
+    params = _gemm_params(folder / C.BASE_GRAPH, bundle.layer_names)
+    return {
+        "format": C.EXPORT_FORMAT,
+        "mode": C.MODE_SEALED,
+        "exporter": f"torch {torch.__version__} (TorchScript-based, dynamo=False)",
+        "opset": opset,
+        "verified_atol": atol,
+        "bundle_files": dict(m[C.M_FILES]),
+        "input_shape": list(m[C.M_IO]["input_shape"]),
+        # What opening a record needs: the bound public fields (associated data) and the records.
+        "sealed": public_part(m),
+        "layers": [
+            {"layer": n, "weight": params.get(n, (None, None))[0], "bias": params.get(n, (None, None))[1]}
+            for n in bundle.layer_names
+        ],
+        "graphs": {C.BASE_GRAPH: sha256_file(folder / C.BASE_GRAPH)},
+    }
+
+
+@torch.no_grad()
+def verify_sealed(
+    bundle: Bundle,
+    folder: Path,
+    *,
+    key: np.ndarray | None = None,
+    inputs: np.ndarray | None = None,
+    seed: int = 0,
+    atol: float = ExportSettings.atol,
+) -> list[dict]:
+    """onnxruntime vs torch for a sealed export: no key, a random key and ``key`` (the user's)."""
+    from .onnx_runtime import SealedOnnxPolicy
+    from .policy import KeyedPolicy
+
+    rng = np.random.default_rng(seed)
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    if inputs is None:
+        x = rng.standard_normal((VERIFY_BATCH, *in_shape)).astype(np.float32)
+    else:
+        x = np.ascontiguousarray(inputs[:64], dtype=np.float32)
+    keys = [("null", None), ("random", rng.integers(0, 2, bundle.key_bits).astype(np.uint8))]
+    if key is not None:
+        keys.append(("user", np.asarray(key, np.uint8)))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the random key opens nothing, by design
+        for key_name, bits in keys:
+            ref = KeyedPolicy(bundle, bits)(x).astype(np.float64)
+            got = SealedOnnxPolicy(folder, bits, threads=1)(x)
+            a, r = _diff(np.asarray(got), ref)
+            rows.append(
+                {"graph": C.BASE_GRAPH, "key": key_name, "max_abs": a, "max_rel": r, "ok": bool(a <= atol)}
+            )
+    return rows
 
 
 def _export_all(km, folder: Path, in_shape: tuple, names: list[str], opset: int) -> None:
@@ -335,6 +425,28 @@ def _export_meta(bundle: Bundle, folder: Path, names: list[str], opset: int, ato
         ],
         "graphs": {g: sha256_file(folder / g) for g in C.GRAPHS},
     }
+
+
+def _gemm_params(path: Path, layers: list[str]) -> dict[str, tuple[str, str | None]]:
+    """Keyed layer -> (weight, bias) initializers in ``path`` where the layer is a Gemm with transB=1
+    whose initializers nothing else uses: then the layer's weights can be replaced in memory."""
+    onnx, _ = require_onnx()
+    graph = onnx.load(str(path)).graph
+    inits = {i.name for i in graph.initializer}
+    uses: dict[str, int] = {}
+    for node in graph.node:
+        for name in node.input:
+            uses[name] = uses.get(name, 0) + 1
+    found: dict[str, tuple[str, str | None]] = {}
+    for node in graph.node:
+        attrs = {a.name: a.i for a in node.attribute}
+        if node.op_type != "Gemm" or attrs.get("transB") != 1 or len(node.input) < 2:
+            continue
+        w = node.input[1]
+        bias = node.input[2] if len(node.input) > 2 and node.input[2] in inits else None
+        if w in inits and uses.get(w) == 1 and w.endswith(".weight") and w[: -len(".weight")] in layers:
+            found[w[: -len(".weight")]] = (w, bias if bias and uses.get(bias) == 1 else None)
+    return found
 
 
 def _gemm_weights(path: Path, layers: list[str]) -> dict[str, str]:

@@ -134,8 +134,63 @@ def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path
             f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"
         )
     read_export(folder, bundle.manifest)
+    threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    if bundle.is_sealed:
+        return SealedOnnxPolicy(folder, None if key is None else bundle.check_key(key), threads=threads)(x)
     code = None
     if key is not None:
         code = key_codes(bundle.check_key(key), bundle.key_encoding).numpy()
-    threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
     return OnnxPolicy(folder, code, threads=threads)(x)
+
+
+class SealedOnnxPolicy:
+    """A sealed bundle's export run with onnxruntime: ``base.onnx``, with the user's payload folded
+    into the keyed layers' initializers in this process's memory when ``key_bits`` opens a record.
+    A key that opens nothing runs the base (the original), as the bundle does; nothing is written."""
+
+    def __init__(self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0) -> None:
+        import torch
+
+        from .sealed import load_state
+
+        onnx, ort = require_onnx()
+        folder = Path(folder)
+        self.meta = read_export(folder)
+        self.opened = None
+        so = ort.SessionOptions()
+        so.intra_op_num_threads, so.inter_op_num_threads, so.log_severity_level = threads, 1, 3
+        self._keep: list = []
+        if key_bits is not None:
+            self.opened = load_state(folder, self.meta["sealed"]).open(np.asarray(key_bits, np.uint8))
+        if self.opened is not None:
+            from onnx import numpy_helper
+
+            missing = [x["layer"] for x in self.meta["layers"] if not x["weight"]]
+            full = self.opened.payload.spec.kind == "full"
+            missing += [x["layer"] for x in self.meta["layers"] if full and x["weight"] and not x["bias"]]
+            if missing:
+                raise PropError(
+                    f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
+                    "run the bundle with torch (prop run without --onnx)",
+                )
+            inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+            with torch.no_grad():
+                for x in self.meta["layers"]:
+                    w = torch.from_numpy(numpy_helper.to_array(inits[x["weight"]]).copy())
+                    self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
+                    if full:
+                        b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
+                        self._override(
+                            so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")
+                        )
+        self.session = ort.InferenceSession(
+            str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"]
+        )
+
+    def _override(self, so, ort, name: str, t) -> None:
+        v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(t.detach().numpy(), np.float32))
+        self._keep.append(v)  # must outlive the session
+        so.add_initializer(name, v)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]

@@ -8,6 +8,8 @@ bounds the checkpoint records, the argmax for discrete actions. The counterpart 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 
@@ -16,15 +18,40 @@ from .bundle import Bundle
 from .keyed import key_codes
 
 
+class WrongKeyWarning(UserWarning):
+    """A key that opens no user record of a sealed bundle: the base (the original) runs."""
+
+
+def sealed_module(bundle: Bundle, key: np.ndarray | None) -> torch.nn.Module:
+    """A sealed bundle's module for ``key``: the user's payload folded into a copy of the base if the
+    key opens a record; the base itself (the original) if not, with a warning when a key was given."""
+    base = bundle.loaded.module.eval()
+    if key is None:
+        return base
+    opened = bundle.sealed.open(key)
+    if opened is None:
+        warnings.warn(
+            f"the key opens no user of {bundle.path}: running the base (the original's behaviour)",
+            WrongKeyWarning,
+            stacklevel=3,
+        )
+        return base
+    return opened.payload.fold(base)
+
+
 class KeyedPolicy:
     """The bundle's module with one key's delta folded into a copy of its weights (in memory only)."""
 
     def __init__(self, bundle: Bundle, key: np.ndarray | None = None) -> None:
         if key is not None:
             bundle.check_key(key)
-        km = bundle.keyed.eval()
         # Never write the folded copy anywhere: it is the personalized policy in the clear.
-        self.module = km.fold(key_codes(key, bundle.key_encoding)) if key is not None else km.module
+        if bundle.sealed is not None:
+            self.module = sealed_module(bundle, key)
+        elif key is not None:
+            self.module = bundle.keyed.eval().fold(key_codes(key, bundle.key_encoding))
+        else:
+            self.module = bundle.keyed.eval().module
         self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
         loaded = bundle.loaded
         self.discrete = loaded.continuous is False

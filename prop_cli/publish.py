@@ -61,8 +61,11 @@ def model_card(manifest: dict, repo_id: str, onnx_files: list[str] | None = None
         f"- Base checkpoint: `{_checkpoint_label(checkpoint)}`",
         f"- Adapter: `{model.get('adapter', 'unknown')}`; task: {manifest.get(C.M_TASK, 'unknown')}; "
         f"input shape: {io.get('input_shape')}",
-        f"- Key: {key.get('bits')} bits, encoding `{key.get('encoding')}`, "
-        f"from a {key.get('source', 'file')}; users: {key.get('users', 1)}",
+        f"- Mode: {_mode_line(manifest)}",
+        f"- Key: {key.get('bits')} bits"
+        + (f", encoding `{key['encoding']}`" if key.get("encoding") else "")
+        + f", from a {key.get('source', 'file')}; users: {_users(manifest)}",
+        f"- Audit verdict: {_verdict(manifest.get(C.M_AUDIT))}",
         f"- Bundle format {manifest.get(C.M_FORMAT)}, written by prop {manifest.get(C.M_PROP_VERSION)}",
         "",
         "| keyed layer | features |",
@@ -109,13 +112,47 @@ def model_card(manifest: dict, repo_id: str, onnx_files: list[str] | None = None
     return str(hf.ModelCard("\n".join(lines) + "\n"))
 
 
+def _mode_line(manifest: dict) -> str:
+    if manifest.get(C.M_MODE) == C.MODE_SEALED:
+        p = manifest.get(C.M_PAYLOAD, {})
+        return (
+            "**sealed**: the base weights are the original checkpoint's; each user's "
+            f"{p.get('kind')} payload is encrypted (AES-256-GCM, key derived with HKDF/scrypt from the "
+            "user's key), and a wrong key opens nothing and runs the original."
+        )
+    return (
+        "**unsealed** (the paper's PRoP): the user's behaviour is trained into the base and a key encoder, "
+        "both in these files. Whoever holds them can recover it from the encoder without the key "
+        "(docs/threat-model.md); publish unsealed bundles only where that is acceptable."
+    )
+
+
+def _users(manifest: dict) -> int:
+    if manifest.get(C.M_MODE) == C.MODE_SEALED:
+        return len(manifest.get(C.M_RECORDS, []))
+    return manifest.get(C.M_KEY, {}).get("users", 1)
+
+
+def _verdict(audit: dict | None) -> str:
+    if not audit:
+        return "no audit recorded (`prop attack --record`)"
+    gate = audit.get("max_leak")
+    if not gate:
+        return f"audited ({audit.get('recorded_utc')}), no --max-leak gate applied; see below"
+    failing = ", ".join(gate.get("failing", []))
+    state = "**passed**" if gate.get("passed") else f"**failed** ({failing})"
+    return f"{state} `--max-leak {gate.get('threshold')}` ({audit.get('recorded_utc')})"
+
+
 def _metrics_lines(metrics: dict) -> list[str]:
     lines = []
     for i, u in enumerate(metrics.get("users", []), 1):
-        lines += [
-            f"User {i}: personalization {_fmt(u.get('personalization'))} ({u.get('samples')} samples)",
-            "",
-        ]
+        head = f"User {i}: " + (
+            f"personalization {_fmt(u['personalization'])}"
+            if "personalization" in u
+            else "personalization sealed"
+        )
+        lines += [f"{head} ({u.get('samples')} samples)", ""]
         lines += [
             "| keys | n | leakage mean | leakage worst | fidelity mean | fidelity worst |",
             "|---|---|---|---|---|---|",
@@ -149,8 +186,12 @@ def push_bundle(
     revision: str | None = None,
     onnx_dir: Path | None = None,
     token: str | None = None,
+    allow_unsealed: bool = False,
 ) -> PushResult:
-    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo."""
+    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo.
+
+    An unsealed bundle goes to a public repo only with ``allow_unsealed``: its encoder gives whoever
+    downloads it the owner's behaviour (docs/threat-model.md)."""
     from .bundle import load_bundle
     from .onnx_runtime import read_export
 
@@ -158,6 +199,11 @@ def push_bundle(
         raise PropError(f"repo {repo_id!r} is not a hub repo id", "write <org or user>/<name>")
     hf = hub_module()
     b = load_bundle(bundle)  # verifies the hashes: never publish a modified bundle
+    if not b.is_sealed and not private and not allow_unsealed:
+        raise PropError(
+            f"{bundle} is unsealed: whoever downloads it can read the owner's behaviour off its encoder",
+            "personalize with --seal, push with --private, or pass --allow-unsealed to publish it anyway",
+        )
     manifest = b.manifest
     if onnx_dir is None and (Path(bundle) / C.EXPORT_DIR / C.EXPORT_META).is_file():
         onnx_dir = Path(bundle) / C.EXPORT_DIR
@@ -167,8 +213,9 @@ def push_bundle(
         onnx_files = [*meta["graphs"], C.EXPORT_META]
     with tempfile.TemporaryDirectory(prefix="prop-push-") as tmp:
         stage = Path(tmp)
-        names = [C.MANIFEST, *manifest[C.M_FILES]]
+        names = [C.MANIFEST, *manifest[C.M_FILES], *(r["file"] for r in manifest.get(C.M_RECORDS, []))]
         for name in names:
+            (stage / name).parent.mkdir(parents=True, exist_ok=True)
             _link(Path(bundle) / name, stage / name)
         if onnx_files:
             (stage / C.EXPORT_DIR).mkdir()

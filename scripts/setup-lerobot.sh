@@ -21,8 +21,10 @@ drop_draccus_tests() {
   site="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
   if grep -q '^tests/__init__.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/tests"; fi
 }
+# prop's own requirements are met by what is installed (torch 2.13 is in its range), so `pip install -e .`
+# with dependencies adds only what prop needs beyond lerobot (e.g. cryptography) and never touches torch.
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, prop_cli" 2>/dev/null; then
-  "$VENV/bin/pip" install -q --no-deps -e . 2>&1 | grep -v "^WARNING: Location" || true
+  "$VENV/bin/pip" install -q -e . 2>&1 | grep -v "^WARNING: Location" || true
   drop_draccus_tests
   exit 0
 fi
@@ -50,7 +52,7 @@ sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.
   "draccus==0.10.0" "gymnasium>=1.1.1,<2.0.0" "rerun-sdk>=0.24.0,<0.27.0" "deepdiff>=7.0.1,<9.0.0" \
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
   "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5"
-"$PIP" install -q --no-deps -e . 2>&1 | grep -v "^WARNING: Location" || true
+"$PIP" install -q -e . 2>&1 | grep -v "^WARNING: Location" || true
 drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'
 import lerobot, numpy, torch, torchvision

@@ -208,7 +208,10 @@ def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
             "files", sorted(p.name for p in Path(kw["folder_path"]).iterdir())
         ),
     )
-    r = cli("push", bundle, "me/pub")
+    r = cli("push", bundle, "me/pub")  # unsealed to a public repo: refused, nothing uploaded
+    assert r.code == 2 and "unsealed" in r.err and "--allow-unsealed" in r.err and not seen
+    assert len(r.err.strip().splitlines()) == 2  # the "uploading" notice and the one-line error
+    r = cli("push", bundle, "me/pub", "--allow-unsealed")
     assert r.code == 0, r.err
     assert seen["repo"]["private"] is False
     assert seen["files"] == sorted(["README.md", C.MANIFEST, C.BASE_WEIGHTS, C.ENCODER_WEIGHTS])
@@ -219,13 +222,13 @@ def test_push_refuses_bad_repo_and_modified_bundle(cli, bundle, monkeypatch):
     assert "repo id" in cli("push", bundle, "no-namespace").err
     with open(bundle / C.BASE_WEIGHTS, "ab") as f:
         f.write(b"x")
-    r = cli("push", bundle, "me/x")
+    r = cli("push", bundle, "me/x", "--private")
     assert r.code == 2 and "sha256" in r.err
 
 
 def test_push_offline_fails_cleanly(cli, bundle):
     # The real client, offline: it refuses before any request.
-    r = cli("push", bundle, "me/x")
+    r = cli("push", bundle, "me/x", "--private")
     assert r.code == 2
     assert r.err.splitlines()[-1].startswith("prop: error: cannot push") and "HF_HUB_OFFLINE" in r.err
 
@@ -234,3 +237,25 @@ def test_missing_extra_names_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
     with pytest.raises(PropError, match=r"prop-cli\[hub\]"):
         hub.resolve_checkpoint("hf://org/p/w.safetensors")
+
+
+def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch):
+    tmp = bundle.parent
+    sealed = tmp / "sealed.prop"
+    r = cli("personalize", tmp / "model.safetensors", "--data", tmp / "mine.npz", "--key-file", tmp / "k.bin",
+            "--out", sealed, "--seal", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    seen = {}
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.setdefault("repo", kw))
+
+    def upload(self, **kw):
+        root = Path(kw["folder_path"])
+        seen["files"] = sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file())
+        seen["card"] = (root / "README.md").read_text()
+
+    monkeypatch.setattr(hf.HfApi, "upload_folder", upload)
+    r = cli("push", sealed, "me/pub")
+    assert r.code == 0, r.err
+    record = json.loads((sealed / C.MANIFEST).read_text())[C.M_RECORDS][0]["file"]
+    assert seen["files"] == sorted(["README.md", C.MANIFEST, C.BASE_WEIGHTS, record])
+    assert "**sealed**" in seen["card"] and "Audit verdict: no audit recorded" in seen["card"]

@@ -18,6 +18,7 @@ from . import (
     personalize_cmd,
     push_cmd,
     run_cmd,
+    users_cmd,
 )
 
 app = typer.Typer(
@@ -32,6 +33,8 @@ app.command("keygen")(keygen.keygen)
 app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)
 app.command("run")(run_cmd.run)
+app.command("add-user")(users_cmd.add_user)
+app.command("remove-user")(users_cmd.remove_user)
 app.command("attack")(attack_cmd.attack)
 app.command("eval")(eval_cmd.eval_)
 app.command("export")(export_cmd.export)

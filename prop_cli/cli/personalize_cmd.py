@@ -32,6 +32,10 @@ SETTINGS = {
     "exclude": "Layers not to key (same forms); repeat.",
     "task": " or ".join(TASKS) + " (default: decided against the model).",
     "seed": "Seed: the same seed and inputs give byte-identical weights.",
+    "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
+    "payload": "With --seal: lora, delta or full (what is stored per user).",
+    "payload_rank": "With --seal --payload lora: the update's rank.",
+    "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
 }
 
 
@@ -114,4 +118,6 @@ def _print_report(result) -> None:
             )  # fmt: skip
         out.print(table)
     layers = ", ".join(f"{x['name']} ({x['features']})" for x in result.keyed_layers)
-    out.print(f"wrote {result.out} (keyed layers: {layers})")
+    records = [r["id"] for r in result.manifest.get("records", [])]
+    sealed = f"; sealed, user records {', '.join(records)}" if records else ""
+    out.print(f"wrote {result.out} (keyed layers: {layers}{sealed})")

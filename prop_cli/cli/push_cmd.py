@@ -16,12 +16,17 @@ def push(
         str | None, typer.Option("--revision", help="Branch to push to (created if missing).")
     ] = None,
     onnx_dir: OnnxDir = None, as_json: Json = False,
+    allow_unsealed: Annotated[
+        bool, typer.Option("--allow-unsealed", help="Publish an unsealed bundle to a public repo anyway.")
+    ] = False,
 ) -> None:  # fmt: skip
     """Upload a bundle (and its ONNX export) to the Hugging Face hub with a generated model card."""
     from prop_cli.api import push_bundle
 
     err.print(f"uploading {bundle} to {repo} ...")
-    result = push_bundle(bundle, repo, private=private, revision=revision, onnx_dir=onnx_dir)
+    result = push_bundle(
+        bundle, repo, private=private, revision=revision, onnx_dir=onnx_dir, allow_unsealed=allow_unsealed
+    )
     if as_json:
         print_json(
             {"repo": result.repo_id, "url": result.url, "files": result.files, "revision": result.revision}

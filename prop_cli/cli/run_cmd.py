@@ -33,4 +33,10 @@ def run(
     if as_json:
         print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,
                     "onnx": result.onnx})  # fmt: skip
-    err.print(f"wrote {result.output} {result.shape} ({'keyed' if result.keyed else 'no key'})")
+    given = key_file is not None or passphrase
+    how = (
+        "keyed"
+        if result.keyed
+        else ("the original's behaviour: the key opens no user" if given else "no key")
+    )
+    err.print(f"wrote {result.output} {result.shape} ({how})")

@@ -1,0 +1,94 @@
+"""`prop add-user` and `prop remove-user`: users of a sealed bundle, one at a time."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from prop_cli.config import PersonalizeConfig
+from prop_cli.constants import DEFAULT_DEVICE
+
+from .common import err, fail, out, print_json, read_passphrase, step_progress
+from .options import BundleArg, Device, Json, KeyFile, Passphrase, config_options
+
+# add-user trains like personalize --seal; these settings may differ from the bundle's.
+SETTINGS = {
+    "steps": "Training steps.",
+    "payload_lr": "Adam learning rate of the payload (cosine decay).",
+    "val_fraction": "Share of the data held out for the report.",
+    "seed": "Seed.",
+}
+
+
+def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool):
+    from prop_cli.api import key_for_bundle
+    from prop_cli.bundle import read_manifest
+
+    if key_file is None and not passphrase:
+        if required:
+            fail("no key given", "pass --key-file (make one with prop keygen) or --passphrase")
+        return None
+    return key_for_bundle(read_manifest(bundle), key_file, read_passphrase() if passphrase else None)
+
+
+@config_options(PersonalizeConfig, SETTINGS)
+def add_user(
+    bundle: BundleArg,
+    data: Annotated[Path, typer.Option("--data", help="The new user's data (x, y).")],
+    config: PersonalizeConfig,
+    key_file: KeyFile = None,
+    passphrase: Passphrase = False,
+    device: Device = DEFAULT_DEVICE,
+    as_json: Json = False,
+) -> None:
+    """Add a user to a sealed bundle, with their data and key only (no one else's)."""
+    from prop_cli.api import add_user as api_add_user
+    from prop_cli.bundle import read_manifest
+    from prop_cli.keys import KeySource
+
+    bits = _key(bundle, key_file, passphrase, required=True)
+    base = PersonalizeConfig.from_dict(read_manifest(bundle).get("config", {}))
+    for name in SETTINGS:  # the bundle's settings, except the flags given on this command line
+        if getattr(config, name) != getattr(PersonalizeConfig(), name):
+            setattr(base, name, getattr(config, name))
+    result = step_progress(
+        lambda cb: api_add_user(
+            bundle, data, KeySource(bits, "passphrase" if passphrase else "file"), cfg=base, device=device,
+            progress=cb,
+        ),
+        base.steps, "add-user", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
+    )  # fmt: skip
+    if as_json:
+        print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users,
+                    "metrics": result.metrics})  # fmt: skip
+        return
+    m = result.metrics
+    out.print(
+        f"added record {result.record} to {result.bundle} ({result.users} users): personalization "
+        f"{m['personalization']:.4f} on {m['samples']} validation samples; wrong keys: null, "
+        f"{m['random']['leakage']['n']} random and {m['hamming1']['leakage']['n']} 1-bit keys, worst leakage "
+        f"{max(m[g]['leakage']['worst'] for g in ('null', 'random', 'hamming1')):.4f}"
+    )
+
+
+def remove_user(
+    bundle: BundleArg,
+    key_file: KeyFile = None,
+    passphrase: Passphrase = False,
+    record: Annotated[
+        str | None,
+        typer.Option("--record", help="Remove this record id without its key (for a lost key)."),
+    ] = None,
+    as_json: Json = False,
+) -> None:
+    """Remove a user from a sealed bundle: the one your key opens (or --record ID)."""
+    from prop_cli.api import remove_user as api_remove_user
+
+    bits = _key(bundle, key_file, passphrase, required=record is None)
+    result = api_remove_user(bundle, key=bits, record=record)
+    if as_json:
+        print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users})
+        return
+    err.print(f"removed record {result.record} from {result.bundle} ({result.users} users left)")
