@@ -31,11 +31,29 @@ DEFAULT_HAMMING = "1..8"
 # Below this leakage of the user's own key, its personalization is at the base's level (fix for a
 # wrong key file, or data the bundle was not personalized on, going unnoticed).
 WRONG_KEY_LEAKAGE = 0.5
+# Per-candidate lists in a search's JSON only up to this many candidates (a key scan keeps hundreds).
+PER_RESTART_LISTS = 256
+MAX_SHOTS = 64  # the largest few-shot k
 
 
 def _sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
     order = np.random.default_rng(seed).permutation(len(data))
     return np.sort(order[: min(n, len(data))])
+
+
+def _shots(data: Dataset, audit_rows: np.ndarray, seed: int, dev, reference, task: str) -> Reference | None:
+    """Up to MAX_SHOTS labelled rows outside the audit sample: what a few-shot attacker holds."""
+    rest = np.setdiff1d(np.arange(len(data)), audit_rows)
+    if not len(rest):
+        return None
+    rows = np.random.default_rng([seed, 1]).permutation(rest)[:MAX_SHOTS]
+    x = torch.from_numpy(data.x[rows]).to(dev)
+    p = torch.from_numpy(data.y[rows]).to(dev)
+    if task == "regression" and p.dim() == 1:
+        p = p[:, None]
+    with torch.inference_mode():
+        b = reference(x)
+    return Reference(x, b.clone(), p, task)
 
 
 def _unhooked_copy(module: torch.nn.Module) -> torch.nn.Module:
@@ -79,6 +97,14 @@ def _search(v: dict[str, torch.Tensor], info: dict) -> dict:
         "best_divergence": float(v["divergence"][best]),
         "best_leakage": float(v["leakage"][best]) if "leakage" in v else None,
         "best_fidelity": float(v["fidelity"][best]),
+        **_per_restart(v),
+    }
+
+
+def _per_restart(v: dict[str, torch.Tensor]) -> dict:
+    if len(v["divergence"]) > PER_RESTART_LISTS:
+        return {}
+    return {
         "divergence": [float(d) for d in v["divergence"]],
         "leakage": [float(d) for d in v["leakage"]] if "leakage" in v else None,
     }
@@ -176,10 +202,17 @@ def audit(
         p = torch.from_numpy(data.y[idx]).to(dev)
         if task == "regression" and p.dim() == 1:
             p = p[:, None]
+    shots = (
+        _shots(data, idx, s.seed, x.device, km.module if original is None else original, task)
+        if has_key
+        else None
+    )
     control_km, control_from = _control_model(bundle, original)
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
-    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter)
+    seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
+    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter,
+                       shots=shots, seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
     timing: dict[str, float] = {}
     groups: list[dict] = []
     user, warnings = None, []
@@ -198,7 +231,7 @@ def audit(
                 continue
             t0 = time.perf_counter()
             found = probe.run(replace(ctx, probe=name))
-            controls = _controls(probe, ctx, control_km, control_from, name, task)
+            controls = _controls(probe, ctx, control_km, control_from, name, task, found)
             timing[name] = time.perf_counter() - t0
             for g in found:
                 control = None if controls is None else controls.get(g.name, controls.get(None))
@@ -230,30 +263,47 @@ def audit(
             "key_sample_evaluations": counter.evals,
             "evaluations_per_second": counter.evals / counter.seconds if counter.seconds else None,
             "stage_seconds": timing,
+            "blackbox": _scan_speed(groups),
             "wall_seconds": time.perf_counter() - started,
         },
     }
 
 
+def _scan_speed(groups: list[dict]) -> dict | None:
+    """The black-box scan's own throughput (keys x screening samples per second of scanning)."""
+    for g in groups:
+        if g["probe"] == "blackbox" and g.get("search"):
+            s = g["search"]
+            fields = (
+                "scanned",
+                "screen_samples",
+                "path",
+                "seconds",
+                "keys_per_second",
+                "evaluations_per_second",
+                "evaluations_per_cpu_second",
+            )
+            return {f: s[f] for f in fields}
+    return None
+
+
 def _user(ctx: ProbeContext, key: np.ndarray) -> dict:
-    with torch.inference_mode():
-        o = ctx.km.run_keys(ctx.ref.x, ctx.km.layer_deltas(ctx.codes(key)))
-        v = ctx.scores(o)
+    v = ctx.probe_keys(key, "user", outputs=True)
     return {
-        "personalization": metrics.personalization(o[0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
+        "personalization": metrics.personalization(v["outputs"][0], ctx.ref.p, ctx.ref.b, ctx.ref.task),
         "leakage": float(v["leakage"][0]),
         "fidelity": float(v["fidelity"][0]),
     }
 
 
-def _controls(probe, ctx, control_km, control_from, name, task) -> dict | None:
+def _controls(probe, ctx, control_km, control_from, name, task, found) -> dict | None:
     """{group name: control JSON} for a probe with a control slot (key None: every other group);
     None for a probe without one."""
     if probe.control is None:
         return None
     if control_km is None:
         return {None: {"available": False, "reason": control_from}}
-    found = probe.control(replace(ctx, probe=name))
+    found = probe.control(replace(ctx, probe=name), found)
     return {g.name: {"available": True, "model": control_from, **_group_json(g, task)} for g in found}
 
 

@@ -191,6 +191,8 @@ def plot(report: dict, path: Path) -> Path:
             style = _STYLES.get(g["name"], "-" if g["threat"] == "T0" else (0, (1, 1)))
             name = f"{g['threat']} {g['name']}" if g["threat"] != "cross-user" else g["name"]
             label_ = f"{name} {what}".strip() + f": {value:.3g}"
+            if m == "leakage" and g.get("beyond") is not None:  # worst - control, what the gate may use
+                label_ += f" (beyond control {g['beyond']:.3g})"
             ax.axhline(value, color=colour, linestyle=style, linewidth=1.6, label=label_)
             c = g.get("control")
             if c and c.get("available"):

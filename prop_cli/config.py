@@ -130,11 +130,15 @@ class AuditSettings(_Settings):
     hamming: list[int] | None = None  # None: 1..8 with a key, none without
     per_distance: int = 256  # keys per distance; every key when the neighbourhood is smaller
     random: int = 4096
-    restarts: int = 8
-    search_steps: int = 200
+    restarts: int = 128  # T1 finds the code in a small share of restarts: docs/metrics.md, hit rate
+    search_steps: int = 100
     search_lr: float = 0.1
+    search_batch: int = 32  # samples per search step (0: all); each step draws its own
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
+    blackbox: int = 1_000_000  # random keys of the streamed black-box scan
+    blackbox_screen: int = 8  # samples each scanned key is screened on
+    blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
         self.need(self.per_distance >= 1, "per_distance", "at least 1")
@@ -142,7 +146,11 @@ class AuditSettings(_Settings):
         self.need(self.restarts >= 1, "restarts", "at least 1")
         self.need(self.search_steps >= 1, "search_steps", "at least 1")
         self.need(self.search_lr > 0, "search_lr", "positive")
+        self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         self.need(self.samples >= 2, "samples", "at least 2")
+        self.need(self.blackbox >= 0, "blackbox", ">= 0")
+        self.need(self.blackbox_screen >= 1, "blackbox_screen", "at least 1")
+        self.need(self.blackbox_keep >= 1, "blackbox_keep", "at least 1")
         if self.probes is not None:
             unknown = [p for p in self.probes if p not in known_probes]
             _need(not unknown, "--probes", ",".join(self.probes), "a list of: " + ", ".join(known_probes))

@@ -37,21 +37,13 @@ def key_codes(bits: np.ndarray, encoding: str) -> torch.Tensor:
     if encoding == "raw":
         out = bits
     elif encoding == "hashed":
+        # One digest per key, joined and unpacked at once: the audit's key scan hashes millions.
         packed = np.packbits(bits, axis=1)
-        out = np.stack(
-            [
-                np.unpackbits(
-                    np.frombuffer(
-                        hashlib.shake_256(_CODE_DOMAIN + row.tobytes()).digest(n // 8),
-                        dtype=np.uint8,
-                    )
-                )
-                for row in packed
-            ]
-        )
+        blob = b"".join([hashlib.shake_256(_CODE_DOMAIN + row).digest(n // 8) for row in map(bytes, packed)])
+        out = np.unpackbits(np.frombuffer(blob, dtype=np.uint8).reshape(len(bits), n // 8), axis=1)
     else:
         raise PropError(f"unknown key encoding {encoding!r}", f"use one of {', '.join(KEY_ENCODINGS)}")
-    return torch.from_numpy(out.astype(np.float32) * 2.0 - 1.0)
+    return torch.from_numpy(out).float().mul_(2.0).sub_(1.0)
 
 
 class KeyEncoder(nn.Module):

@@ -51,6 +51,19 @@ def make_mlp_checkpoint(path: Path, sizes=(4, 16, 16, 2), prefix: str = "", seed
     return path
 
 
+def write_user_data(d: Path, rows: int, rng: np.random.Generator) -> None:
+    """The tiny checkpoint and a user's data that halves and negates the first two inputs."""
+    make_mlp_checkpoint(d / "model.safetensors")
+    x = rng.uniform(-1, 1, (rows, 4)).astype(np.float32)
+    np.savez(d / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+
+
+def write_keys(d: Path, names: tuple[str, ...], rng: np.random.Generator) -> None:
+    for name in names:
+        (d / name).write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+        (d / name).chmod(0o600)
+
+
 @pytest.fixture
 def workdir(tmp_path: Path) -> Path:
     """A checkpoint, user data (negate the target), general data, inputs and two keys."""

@@ -18,24 +18,31 @@ from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.keys import read_key_file
 from prop_cli.probes import select
-from tests.conftest import make_mlp_checkpoint
+from tests.conftest import write_keys, write_user_data
 
 # Small audits: the verdicts below do not need the default 4096 random keys or 200 search steps.
-QUICK = ["--random", "128", "--per-distance", "128", "--search-steps", "30", "--restarts", "4"]
+QUICK = [
+    "--random",
+    "128",
+    "--per-distance",
+    "128",
+    "--search-steps",
+    "30",
+    "--restarts",
+    "4",
+    "--blackbox",
+    "1024",
+]
 
 
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory) -> Path:
     """A leaky bundle (raw key bits, no neighbour negatives) and a well-trained one, same user."""
     d = tmp_path_factory.mktemp("attack")
-    make_mlp_checkpoint(d / "model.safetensors")
     rng = np.random.default_rng(0)
-    x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
-    np.savez(d / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    write_user_data(d, 200, rng)
     np.savez(d / "public.npz", x=rng.uniform(-1, 1, (50, 4)).astype(np.float32))
-    for name in ("k.bin", "k2.bin"):
-        (d / name).write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
-        (d / name).chmod(0o600)
+    write_keys(d, ("k.bin", "k2.bin"), rng)
     key = KeySource(read_key_file(d / "k.bin"), "file")
     ckpt = str(d / "model.safetensors")
     leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0)
@@ -62,10 +69,11 @@ def test_parse_hamming_rejects_bad_specs(spec):
 
 
 def test_probe_selection_and_the_older_search_flag():
-    assert select() == ["null", "random", "hamming", "relaxed", "latent", "cross-user"]
+    keys = ["null", "random", "hamming", "blackbox"]
+    assert select() == [*keys, "structure", "relaxed", "latent", "fewshot", "cross-user"]
     assert select(["latent", "null"]) == ["null", "latent"]  # registry order
-    assert select(search=["latent"]) == ["null", "random", "hamming", "latent", "cross-user"]
-    assert select(search=[]) == ["null", "random", "hamming", "cross-user"]
+    assert select(search=["latent"]) == [*keys, "latent", "cross-user"]  # black-box key probes + searches
+    assert select(search=[]) == [*keys, "cross-user"]
     with pytest.raises(PropError, match="--search"):
         select(search=["gradient"])
     with pytest.raises(PropError, match="--search 'random' is not a search"):
@@ -126,7 +134,9 @@ def test_json_report_schema(bundles, cli):
     assert rep["settings"]["seed"] == 3 and rep["settings"]["hamming"] == [1]
     assert rep["data"]["samples"] == 64
     names = [g["name"] for g in rep["groups"]]
-    assert names == ["null", "random", "hamming 1", "relaxed", "relaxed-rounded", "latent", "user 2"]
+    fewshot = [f"fewshot k={k}" for k in (1, 4, 16, 64)]
+    assert names == ["null", "random", "hamming 1", "blackbox", "structure", "relaxed", "relaxed-rounded",
+                     "latent", *fewshot, "user 2"]  # fmt: skip
     for g in rep["groups"]:
         assert set(g["leakage"]) == {"n", "mean", "ci95", "worst"}
         assert g["leakage"]["ci95"][0] <= g["leakage"]["mean"] <= g["leakage"]["ci95"][1]
@@ -154,7 +164,8 @@ def test_no_key_audit_reports_reachable_divergence(bundles, cli):
     assert r.code == 0, r.err
     rep = json.loads(r.out)
     assert rep["mode"] == "no-key" and rep["user"] is None
-    assert [g["name"] for g in rep["groups"]] == ["null", "random", "relaxed", "relaxed-rounded", "latent"]
+    names = ["null", "random", "blackbox", "structure", "relaxed", "relaxed-rounded", "latent"]
+    assert [g["name"] for g in rep["groups"]] == names  # few-shot needs the key and targets
     assert all(g["leakage"] is None for g in rep["groups"])
     assert rep["groups"][-1]["fidelity"]["mean"] > 0  # the search moves the output
     r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--max-leak", "0.1")
@@ -193,7 +204,7 @@ def test_record_writes_summary_and_bundle_still_verifies(bundles, cli, tmp_path)
     manifest = json.loads((bundle / C.MANIFEST).read_text())
     rec = manifest[C.M_AUDIT]
     assert rec["schema"] == "prop-audit/2" and rec["max_leak"]["passed"] is True
-    assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1"]
+    assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1", "blackbox"]
     assert load_bundle(bundle).manifest[C.M_AUDIT] == rec  # hashes of the weights still match
     assert sha256_file(bundle / C.BASE_WEIGHTS) == weights
     key_hex = (bundles / "k.bin").read_bytes().hex()
@@ -253,7 +264,8 @@ def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it
     assert latent["beyond"] == pytest.approx(max(0.0, latent["leakage"]["worst"] - c["leakage"]["worst"]))
     assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"]}
     null = rep["groups"][0]
-    assert null["control"] is None and null["gate"]["on"] == "raw"  # key probes: raw leakage
+    assert null["control"]["available"] and null["control"]["leakage"]["worst"] == 0  # the original itself
+    assert null["gate"] == {"on": "raw", "value": null["leakage"]["worst"]}  # key probes: raw leakage
 
 
 def test_frozen_base_is_its_own_control(tmp_path, bundles):

@@ -366,7 +366,8 @@ def test_output_that_is_not_a_terminal_is_neither_wrapped_nor_split(cli, workdir
     assert steps[0].startswith("personalize: step 2/20") and steps[-1].startswith("personalize: step 20/20")
     assert any(str(deep / "b.prop") in ln for ln in res.out.splitlines())  # the path on one line
     res = cli("attack", deep / "b.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin",
-              "--hamming", "1", "--random", "16", "--restarts", "2", "--search-steps", "5")  # fmt: skip
+              "--hamming", "1", "--random", "16", "--restarts", "2", "--search-steps", "5",
+              "--blackbox", "256")  # fmt: skip
     assert res.code == 0, res.err
     lines = res.out.splitlines()
     assert any(f"audit of {deep / 'b.prop'} (regression" in ln for ln in lines)

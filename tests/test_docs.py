@@ -50,7 +50,8 @@ def test_every_name_the_readme_imports_exists():
 def test_the_python_api_example_runs(workdir, monkeypatch):
     (block,) = [b for b in _blocks() if "personalize_checkpoint(" in b and "KeyedPolicy(bundle" in b]
     quick = block.replace("steps=2000", "steps=20").replace(
-        "AuditSettings(random=256)", "AuditSettings(random=16, restarts=2, search_steps=5)"
+        "AuditSettings(blackbox=100_000)",
+        "AuditSettings(random=16, restarts=2, search_steps=5, blackbox=256, per_distance=8)",
     )
     monkeypatch.chdir(workdir)
     env: dict = {}
@@ -143,3 +144,15 @@ def test_extending_with_a_probe(monkeypatch, workdir):
             [],
             AuditSettings(probes=["complement"]),
         )
+
+
+def test_the_readme_probe_table_is_the_registry():
+    section = README.split("## Auditing with prop attack", 1)[1].split("\n## ", 1)[0]
+    rows = [ln for ln in section.splitlines() if ln.startswith("| `")]
+    listed = [
+        ln.split("`")[1] for ln in rows if "| T" in ln or "| structure |" in ln or "| cross-user |" in ln
+    ]
+    assert list(dict.fromkeys(listed)) == probes.names()
+    for p in probes.PROBES:
+        row = next(ln for ln in rows if ln.startswith(f"| `{p.name}`"))
+        assert f"| {p.threat} | {p.kind} |" in row, p.name

@@ -80,6 +80,7 @@ def t2_leakage(
         probes=["latent"],
         restarts=budget.t2_restarts,
         search_steps=budget.t2_steps,
+        search_batch=0,  # every sample each step, as the T2 budget was set with
         samples=budget.t2_samples,
         seed=0,
     )

@@ -19,7 +19,12 @@ SETTINGS = {
     "random": "Uniform random keys to probe.",
     "restarts": "Restarts of each search.",
     "search_steps": "Adam steps of each search.",
+    "search_lr": "Adam learning rate of the searches.",
+    "search_batch": "Samples per search step (0: all of them).",
     "samples": "Samples of --data to audit on.",
+    "blackbox": "Random keys of the streamed black-box scan.",
+    "blackbox_screen": "Samples each black-box key is screened on.",
+    "blackbox_keep": "Black-box keys kept per criterion and re-scored.",
     "seed": "Seed for probe keys, samples and search restarts.",
 }
 

@@ -5,15 +5,18 @@ from __future__ import annotations
 
 from prop_cli.errors import PropError
 
-from . import cross_user, hamming, latent, null, random_keys, relaxed
+from . import blackbox, cross_user, fewshot, hamming, latent, null, random_keys, relaxed, structure
 from .base import Group, Probe, ProbeContext, Reference
 
 PROBES: list[Probe] = [
     null.PROBE,
     random_keys.PROBE,
     hamming.PROBE,
+    blackbox.PROBE,
+    structure.PROBE,
     relaxed.PROBE,
     latent.PROBE,
+    fewshot.PROBE,
     cross_user.PROBE,
 ]
 
@@ -32,8 +35,8 @@ def probe_named(name: str) -> Probe:
 
 
 def select(probes: list[str] | None = None, search: list[str] | None = None) -> list[str]:
-    """Probe names from ``--probes`` (None: the defaults) or the older ``--search`` (the key probes
-    plus the given searches)."""
+    """Probe names from ``--probes`` (None: the defaults) or the older ``--search`` (the black-box key
+    probes plus the given searches)."""
     if probes is not None and search is not None:
         raise PropError("--probes and --search both given", "use --probes (--search is its older form)")
     if search is not None:
@@ -41,7 +44,9 @@ def select(probes: list[str] | None = None, search: list[str] | None = None) -> 
         for s in search:
             if s not in searches:
                 raise PropError(f"--search {s!r} is not a search", "use " + ", ".join(searches) + " or none")
-        return [p.name for p in PROBES if (p.kind == "key" and p.default) or p.name in search]
+        return [
+            p.name for p in PROBES if (p.kind == "key" and p.default and not p.white_box) or p.name in search
+        ]
     if probes is None:
         return [p.name for p in PROBES if p.default]
     for p in probes:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -46,6 +46,7 @@ class Group:
     is_key: bool  # false for codes or deltas that no known key gives
     distance: int | None = None  # Hamming rows
     search: dict | None = None  # searches: {"restarts", "steps", and any extra per-restart lists}
+    bits: np.ndarray | None = None  # the probed keys, where a control re-runs exactly these
 
 
 @dataclass
@@ -70,6 +71,8 @@ class ProbeContext:
     progress: Progress | None = None
     counter: Counter = field(default_factory=Counter)
     probe: str = ""  # the running probe's name: seeds its random streams
+    shots: Reference | None = None  # labelled owner's rows outside the audit sample (few-shot attacks)
+    seed_hint: int | None = None  # the training seed the manifest records, if any (what an attacker reads)
 
     @property
     def has_key(self) -> bool:
@@ -102,25 +105,90 @@ class ProbeContext:
             out["leakage"] = metrics.leakage(o, ref.p, ref.b, ref.task)
         return out
 
+    def key_deltas(self, bits: np.ndarray, null: int = 0, low_precision: bool = False) -> list[torch.Tensor]:
+        """Each key's delta per keyed layer, then ``null`` rows of no key (delta = 1).
+
+        The one place where a key becomes behaviour: ``probe_keys`` and ``probe_keys_stream`` both
+        come through here, so a bundle that maps keys differently (sealed: trial decryption) replaces
+        this method and every key probe follows. ``low_precision``: the caller only screens (bf16 is
+        enough); exact scores come later.
+        """
+        bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
+        codes = self.codes(bits) if len(bits) else None
+        if low_precision and codes is not None and codes.device.type == "cpu":
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return self.km.layer_deltas(codes, null)
+        return self.km.layer_deltas(codes, null)
+
+    @torch.inference_mode()
+    def probe_keys(
+        self, bits: np.ndarray, stage: str, null: int = 0, outputs: bool = False
+    ) -> dict[str, torch.Tensor]:
+        """Score keys (K, key_bits) of 0/1, then ``null`` no-key rows, on every sample (``outputs``:
+        the model's outputs (K, B, ...) too, under "outputs").
+
+        Every key-based probe (null, random, hamming, cross-user, the user's own key, the black-box
+        scan's re-score) goes through here; white-box probes read ``km`` and use ``probe_codes``.
+        """
+        bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
+        per = keys_per_forward(self.ref.x.shape[0])
+        rows = len(bits) + null
+        return self._probe(
+            rows,
+            lambda i, j: self.key_deltas(bits[i : min(j, len(bits))], max(0, j - max(i, len(bits)))),
+            per,
+            stage,
+            outputs,
+        )
+
     @torch.inference_mode()
     def probe_codes(self, codes: torch.Tensor, stage: str) -> dict[str, torch.Tensor]:
-        """Score every code (K, n) on every sample, all keys of a chunk in one forward."""
+        """Score every encoder code (K, n) on every sample, all codes of a chunk in one forward."""
+        per = keys_per_forward(self.ref.x.shape[0])
+        return self._probe(
+            len(codes), lambda i, j: self.km.layer_deltas(codes[i:j].to(self.ref.x.device)), per, stage
+        )
+
+    def _probe(
+        self, rows: int, deltas_of: Callable, per: int, stage: str, outputs: bool = False
+    ) -> dict[str, torch.Tensor]:
         t0 = time.perf_counter()
         x = self.ref.x
-        per = keys_per_forward(x.shape[0])
         parts = []
-        for i in range(0, len(codes), per):
-            deltas = self.km.layer_deltas(codes[i : i + per].to(x.device))
-            parts.append(self.scores(self.km.run_keys(x, deltas)))
+        for i in range(0, rows, per):
+            o = self.km.run_keys(x, deltas_of(i, min(i + per, rows)))
+            parts.append({**self.scores(o), **({"outputs": o} if outputs else {})})
             if self.progress:
-                self.progress(stage, min(i + per, len(codes)), len(codes))
-        self.counter.evals += len(codes) * x.shape[0]
+                self.progress(stage, min(i + per, rows), rows)
+        self.counter.evals += rows * x.shape[0]
         self.counter.seconds += time.perf_counter() - t0
         return _cat(parts)
+
+    def probe_keys_stream(
+        self, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
+    ) -> KeyScan:
+        """Streamed key scan: each chunk of keys screened on ``screen`` samples (bf16 where the model
+        allows), the ``keep`` best by divergence (and, with targets, by screening leakage) kept and
+        re-scored exactly with ``probe_keys``. Memory stays at one chunk, whatever ``total`` is."""
+        from prop_cli.probes.screen import scan_keys
+
+        return scan_keys(self, chunks, total, stage, screen=screen, keep=keep)
 
     @torch.inference_mode()
     def probe_deltas(self, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         return _cat([self.scores(self.km.run_keys(self.ref.x, deltas))])
+
+
+@dataclass
+class KeyScan:
+    """A streamed key scan: the keys kept by screening, their exact scores, and what it cost."""
+
+    bits: np.ndarray  # (M, key_bits) kept keys
+    values: dict[str, torch.Tensor]  # exact scores of the kept keys (probe_keys)
+    scanned: int
+    screen_samples: int
+    seconds: dict[str, float]  # per stage: keys, deltas, model, scores, rescore
+    path: str  # "bf16-chain" or "general" (run_keys, fp32)
 
 
 def _cat(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -141,13 +209,30 @@ def maximise_divergence(
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     s = ctx.settings
     opt = torch.optim.Adam(params, lr=s.search_lr)
+    n = len(ctx.ref.x)
+    x, b = ctx.ref.x, ctx.ref.b
+    gen = ctx.generator()
     for step in range(s.search_steps):
-        div = divergence(ctx.km.run_keys(ctx.ref.x, make_deltas()), ctx.ref.b, ctx.ref.task)
+        if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
+            i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)
+            x, b = ctx.ref.x[i], ctx.ref.b[i]
+        div = divergence(ctx.km.run_keys(x, make_deltas()), b, ctx.ref.task)
         opt.zero_grad(set_to_none=True)
         (-div.sum()).backward()  # restarts are independent: the sum's gradient is each one's own
         opt.step()
         if ctx.progress and (step % 10 == 9 or step == s.search_steps - 1):
             ctx.progress(stage, step + 1, s.search_steps)
+
+
+def on_original(
+    run: Callable[[ProbeContext], list[Group]],
+) -> Callable[[ProbeContext, list[Group]], list[Group]]:
+    """A control: the same probe, same keys or restarts, on the original checkpoint keyed the same way."""
+
+    def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+        return run(ctx.on(ctx.original))
+
+    return control
 
 
 @dataclass(frozen=True)
@@ -160,9 +245,11 @@ class Probe:
     kind: str  # one of KINDS
     summary: str  # one line for help texts and the README
     run: Callable[[ProbeContext], list[Group]]
-    control: Callable[[ProbeContext], list[Group]] | None = None
+    # (context, the groups run found) -> the control's groups, matched to run's by name
+    control: Callable[[ProbeContext, list[Group]], list[Group]] | None = None
     needs: str | None = None
     default: bool = True  # part of the default audit
+    white_box: bool = False  # reads the bundle's weights (not only runs keys): left out by --search
 
     def __post_init__(self) -> None:
         if self.threat not in THREATS or self.kind not in KINDS:

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from .base import Group, Probe, ProbeContext
+from .base import Group, Probe, ProbeContext, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
     return [
-        Group(f"user {j}", ctx.probe_codes(ctx.codes(k), f"user {j}"), is_key=True)
+        Group(f"user {j}", ctx.probe_keys(k, f"user {j}"), is_key=True)
         for j, k in enumerate(ctx.keys[1:], start=2)
     ]
 
 
 PROBE = Probe(
     "cross-user", "cross-user", "key", "another user's key (a second --key-file) on your behaviour", run,
-    needs="other-keys",
+    control=on_original(run), needs="other-keys",
 )  # fmt: skip

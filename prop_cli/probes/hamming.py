@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from prop_cli.keyspace import neighbours_at
 
-from .base import Group, Probe, ProbeContext
+from .base import Group, Probe, ProbeContext, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -12,12 +12,12 @@ def run(ctx: ProbeContext) -> list[Group]:
     groups = []
     for d in ctx.settings.hamming or []:
         near = neighbours_at(ctx.keys[0], d, ctx.settings.per_distance, rng)
-        values = ctx.probe_codes(ctx.codes(near), f"hamming {d}")
+        values = ctx.probe_keys(near, f"hamming {d}")
         groups.append(Group(f"hamming {d}", values, is_key=True, distance=d))
     return groups
 
 
 PROBE = Probe(
     "hamming", "T0", "key", "keys d bits from yours, for each d of --hamming (--per-distance each)", run,
-    needs="key",
+    control=on_original(run), needs="key",
 )  # fmt: skip

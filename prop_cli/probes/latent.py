@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Group, Probe, ProbeContext, maximise_divergence
+from .base import Group, Probe, ProbeContext, maximise_divergence, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -28,11 +28,7 @@ def run(ctx: ProbeContext) -> list[Group]:
     return [Group("latent", values, is_key=False, search={"restarts": s.restarts, "steps": s.search_steps})]
 
 
-def control(ctx: ProbeContext) -> list[Group]:
-    return run(ctx.on(ctx.original))
-
-
 PROBE = Probe(
     "latent", "T2", "search", "each keyed layer's delta optimised directly, skipping the encoder", run,
-    control=control,
+    control=on_original(run),
 )  # fmt: skip

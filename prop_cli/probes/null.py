@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import torch
+import numpy as np
 
-from .base import Group, Probe, ProbeContext
+from .base import Group, Probe, ProbeContext, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
-    ones = [torch.ones(1, f, device=ctx.ref.x.device) for f in ctx.km.encoder.features]
-    return [Group("null", ctx.probe_deltas(ones), is_key=True)]
+    none = np.zeros((0, ctx.km.encoder.code_bits), np.uint8)
+    return [Group("null", ctx.probe_keys(none, "null", null=1), is_key=True)]
 
 
-PROBE = Probe("null", "T0", "key", "no key: the base behaviour everyone gets", run)
+PROBE = Probe("null", "T0", "key", "no key: the base behaviour everyone gets", run, control=on_original(run))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from prop_cli.keyspace import random_keys
 
-from .base import Group, Probe, ProbeContext
+from .base import Group, Probe, ProbeContext, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -12,7 +12,7 @@ def run(ctx: ProbeContext) -> list[Group]:
     if not n:
         return []
     keys = random_keys(n, ctx.km.encoder.code_bits, ctx.rng(), exclude=ctx.keys[:1] or None)
-    return [Group("random", ctx.probe_codes(ctx.codes(keys), "random"), is_key=True)]
+    return [Group("random", ctx.probe_keys(keys, "random"), is_key=True)]
 
 
-PROBE = Probe("random", "T0", "key", "--random uniform random keys", run)
+PROBE = Probe("random", "T0", "key", "--random uniform random keys", run, control=on_original(run))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Group, Probe, ProbeContext, maximise_divergence
+from .base import Group, Probe, ProbeContext, maximise_divergence, on_original
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -43,4 +43,5 @@ def run(ctx: ProbeContext) -> list[Group]:
 PROBE = Probe(
     "relaxed", "T1", "search",
     "a continuous code optimised through the encoder (--restarts, --search-steps), and its rounding", run,
+    control=on_original(run),
 )  # fmt: skip

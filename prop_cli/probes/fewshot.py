@@ -1,0 +1,132 @@
+"""T3 few-shot: an attacker with k labelled samples of the user's behaviour (k = 1, 4, 16, 64).
+
+On the bundle, two fits to the k samples: the encoder's input code (relaxed through the encoder,
+then rounded to ±1; both scored) and each keyed layer's delta directly (within the encoder's
+range). Everything is scored on the audit samples, which the fits never see. The control does what
+the same k samples give without the bundle: the delta fit on the original checkpoint, and plain
+fine-tuning of the original's keyed layers. Kind "search": the gate is leakage beyond that control.
+The k samples are rows of ``--data`` outside the audit sample.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+
+from .base import Group, Probe, ProbeContext, Reference
+
+SHOTS = (1, 4, 16, 64)
+RESTARTS, STEPS, LR = 8, 100, 0.1
+FINETUNE_LR = 1e-3
+
+
+def _loss(o: torch.Tensor, y: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: the attacker's fit to its k samples (cross-entropy or mse)."""
+    if task == "classification":
+        k = o.shape[0]
+        return F.cross_entropy(o.flatten(0, 1), y.repeat(k), reduction="none").view(k, -1).mean(1)
+    return ((o - y[None]) ** 2).flatten(1).mean(1)
+
+
+def _fit(params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR) -> None:
+    opt = torch.optim.Adam(params, lr=lr)
+    for _ in range(steps):
+        loss = loss_of().sum()  # restarts are independent: each one's gradient is its own
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+
+def _fit_code(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> torch.Tensor:
+    km = ctx.km
+    u = torch.rand(RESTARTS, km.encoder.code_bits, generator=gen).clamp(0.02, 0.98)
+    theta = torch.logit(u).to(shots.x.device).requires_grad_(True)
+
+    def loss() -> torch.Tensor:
+        return _loss(km.run_keys(shots.x, km.layer_deltas(torch.tanh(theta / 2))), shots.p, shots.task)
+
+    _fit([theta], loss)
+    with torch.no_grad():
+        return torch.tanh(theta / 2)[int(torch.argmin(loss()))][None]
+
+
+def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> list[torch.Tensor]:
+    km, scale = ctx.km, ctx.km.encoder.scale
+    phis = []
+    for f in km.encoder.features:
+        p = torch.randn(RESTARTS, f, generator=gen) * 0.5
+        p[0] = 0  # one restart from delta = 1: the base itself
+        phis.append(p.to(shots.x.device).requires_grad_(True))
+
+    def deltas() -> list[torch.Tensor]:
+        return [1.0 + scale * torch.tanh(p) for p in phis]
+
+    def loss() -> torch.Tensor:
+        return _loss(km.run_keys(shots.x, deltas()), shots.p, shots.task)
+
+    _fit(phis, loss)
+    with torch.no_grad():
+        i = int(torch.argmin(loss()))
+        return [d[i : i + 1].detach() for d in deltas()]
+
+
+def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
+    """Plain fine-tuning of the keyed layers' weights of the model (no key involved)."""
+    module = copy.deepcopy(ctx.km.module)  # the copy's hooks stay idle: no key rows are ever set
+    mods = dict(module.named_modules())
+    params = [p for n in ctx.km.layer_names for p in mods[n].parameters()]
+    module.requires_grad_(False)
+    for p in params:
+        p.requires_grad_(True)
+    _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR)
+    with torch.inference_mode():
+        return ctx.scores(module(ctx.ref.x)[None])
+
+
+def _shots(ctx: ProbeContext, k: int) -> Reference:
+    s = ctx.shots
+    return Reference(s.x[:k], s.b[:k], s.p[:k], s.task)
+
+
+def _ks(ctx: ProbeContext) -> list[int]:
+    n = 0 if ctx.shots is None else len(ctx.shots.x)
+    return [k for k in SHOTS if k <= n]
+
+
+def _group(k: int, parts: list[dict[str, torch.Tensor]], what: list[str]) -> Group:
+    values = {m: torch.cat([p[m].detach().cpu() for p in parts]) for m in parts[0]}
+    return Group(f"fewshot k={k}", values, is_key=False, search={"shots": k, "candidates": what})
+
+
+def run(ctx: ProbeContext) -> list[Group]:
+    groups = []
+    for k in _ks(ctx):
+        shots = _shots(ctx, k)
+        code = _fit_code(ctx, shots, ctx.generator())
+        rounded = torch.where(code >= 0, 1.0, -1.0)
+        parts = [ctx.probe_codes(torch.cat([code, rounded]), f"fewshot k={k}"),
+                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()))]  # fmt: skip
+        g = _group(k, parts, ["code (relaxed)", "code (rounded)", "delta"])
+        if ctx.has_key:
+            g.search["code_distance"] = int((rounded != ctx.codes(ctx.keys[0])).sum())
+        groups.append(g)
+    return groups
+
+
+def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+    orig = ctx.on(ctx.original)
+    groups = []
+    for k in _ks(ctx):
+        shots = _shots(ctx, k)
+        parts = [orig.probe_deltas(_fit_delta(orig, shots, ctx.generator())), _finetune(orig, shots)]
+        groups.append(_group(k, parts, ["delta", "fine-tune keyed layers"]))
+    return groups
+
+
+PROBE = Probe(
+    "fewshot", "T3", "search",
+    "the code and the delta fitted to k = 1..64 of your samples; control: the same on the original",
+    run, control=control, needs="key",
+)  # fmt: skip
