@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ from .errors import PropError
 from .files import sha256_file
 from .keyed import KeyedModel
 from .probes.base import Counter, Group, ProbeContext, Progress, Reference
+from .probes.sealed_context import SealedContext, blank_keyed
 
 DEFAULT_HAMMING = "1..8"
 # Below this leakage of the user's own key, its personalization is at the base's level (fix for a
@@ -63,21 +64,24 @@ def _unhooked_copy(module: torch.nn.Module) -> torch.nn.Module:
     return copied
 
 
-def _control_model(bundle: Bundle, original: torch.nn.Module | None) -> tuple[KeyedModel | None, str]:
+def _control_model(
+    bundle: Bundle, km: KeyedModel, original: torch.nn.Module | None
+) -> tuple[KeyedModel | None, str]:
     """The original checkpoint keyed like the bundle (the controls' model), or why there is none."""
-    if original is None and bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
-        original, where = bundle.keyed.module, "the bundle's base (trained with --freeze-base: the original)"
+    if original is None and bundle.is_sealed:
+        original, where = bundle.loaded.module, "the bundle's base (a sealed bundle's base is the original)"
+    elif original is None and bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
+        original, where = km.module, "the bundle's base (trained with --freeze-base: the original)"
     elif original is not None:
         where = "the original checkpoint (--original)"
     else:
         return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
     mods = dict(original.named_modules())
-    base = dict(bundle.keyed.module.named_modules())
-    if not all(n in mods and mods[n].weight.shape == base[n].weight.shape for n in bundle.keyed.layer_names):
+    base = dict(km.module.named_modules())
+    if not all(n in mods and mods[n].weight.shape == base[n].weight.shape for n in km.layer_names):
         return None, "the original module does not have the bundle's keyed layers (names and shapes)"
-    module = _unhooked_copy(original).to(bundle.keyed.encoder.net[0].weight.device).eval()
-    km = KeyedModel(module, bundle.keyed.encoder, bundle.keyed.layer_names).eval()
-    return km, where
+    module = _unhooked_copy(original).to(km.encoder.net[0].weight.device).eval()
+    return KeyedModel(module, km.encoder, km.layer_names).eval(), where
 
 
 def _summary(v: dict[str, torch.Tensor], task: str) -> dict:
@@ -190,7 +194,10 @@ def audit(
     data = _check_inputs(bundle, data, keys)
 
     dev = resolve_device(device)
-    km = bundle.keyed.to(dev).eval()
+    if bundle.is_sealed:  # no encoder: white-box probes get a blank one over the public base
+        km = blank_keyed(_unhooked_copy(bundle.loaded.module), bundle.layer_names, bundle.key_bits).to(dev)
+    else:
+        km = bundle.keyed.to(dev).eval()
     grad_flags = [p.requires_grad for p in km.parameters()]
     km.requires_grad_(False)  # searches need gradients w.r.t. their own variables only
     idx = _sample_index(data, s.samples, s.seed)
@@ -207,12 +214,14 @@ def audit(
         if has_key
         else None
     )
-    control_km, control_from = _control_model(bundle, original)
+    control_km, control_from = _control_model(bundle, km, original)
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
     seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
     ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, progress, counter,
                        shots=shots, seed_hint=seed if isinstance(seed, int) else None)  # fmt: skip
+    if bundle.is_sealed:  # keys are tried on the records, as prop run does
+        ctx = SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, sealed=bundle.sealed)
     timing: dict[str, float] = {}
     groups: list[dict] = []
     user, warnings = None, []
@@ -250,6 +259,7 @@ def audit(
             "task": task,
             "key_bits": bundle.key_bits,
             "key_encoding": bundle.key_encoding,
+            "sealed": bundle.is_sealed,
             "keyed_layers": bundle.manifest[C.M_KEYED_LAYERS],
         },
         "data": {"path": str(data.path), "rows": len(data), "samples": int(len(idx))},

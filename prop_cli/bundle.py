@@ -197,7 +197,8 @@ class Bundle:
 
     @property
     def key_encoding(self) -> str:
-        return self.manifest[C.M_KEY]["encoding"]
+        # Sealed bundles have no encoder and record none; the audit's blank encoder hashes like the default.
+        return self.manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
 
     def check_key(self, key: np.ndarray, what: str = "the key") -> np.ndarray:
         if len(key) != self.key_bits:

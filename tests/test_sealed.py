@@ -172,3 +172,22 @@ def test_sealed_export_runs_like_torch(cli, sealed, workdir):
         y_torch, _ = _run(cli, sealed, workdir, *key)
         y_onnx, _ = _run(cli, sealed, workdir, "--onnx", *key)
         np.testing.assert_allclose(y_onnx, y_torch, atol=1e-5)
+
+
+def test_audit_of_a_sealed_bundle_tries_keys_on_the_records(cli, sealed, workdir):
+    rep = workdir / "audit.json"
+    r = cli("attack", sealed, "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin",
+            "--key-file", workdir / "k2.bin", "--blackbox", "3000", "--random", "64", "--per-distance", "8",
+            "--restarts", "4", "--search-steps", "10", "--samples", "64", "--max-leak", "0.01",
+            "--json", rep)  # fmt: skip
+    assert r.code == 0, r.err
+    report = json.loads(rep.read_text())
+    assert report["bundle"]["sealed"] and report["user"]["leakage"] > 0.5  # the user's key opens its record
+    assert report["speed"]["blackbox"]["path"] == "sealed: trial decryption"
+    assert report["speed"]["blackbox"]["scanned"] == 3000
+    for g in report["groups"]:
+        assert g["control"]["available"], g["name"]
+        assert g["beyond"] == 0.0, g["name"]
+        if g["kind"] == "key":  # every wrong key runs the original: nothing moves
+            assert g["leakage"]["worst"] == 0.0 and g["fidelity"]["worst"] == 0.0, g["name"]
+    assert report["max_leak"]["passed"]
