@@ -18,7 +18,7 @@ from prop_adapters import CheckpointOptions
 from . import constants as C
 from .audit import apply_max_leak, audit, load_original
 from .bundle import Bundle, describe_layers, load_bundle, read_manifest, write_bundle, write_sealed_bundle
-from .config import AuditSettings, ExportSettings, PersonalizeConfig
+from .config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
 from .errors import PropError
 from .files import check_output, write_file
@@ -41,7 +41,9 @@ __all__ = [
     "PersonalizeConfig",
     "apply_max_leak",
     "audit",
+    "EvalSettings",
     "audit_bundle",
+    "eval_bundle",
     "export_bundle",
     "formats",
     "generate_key_file",
@@ -91,7 +93,8 @@ def inspect_checkpoint(
 ) -> dict:
     """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
     loaded = _load(path, opts)
-    chosen = set(select_layers(loaded.module, layers, exclude))
+    default = loaded.policy.default_layers if loaded.policy is not None else None
+    chosen = set(select_layers(loaded.module, layers or default, exclude))
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
@@ -135,6 +138,10 @@ def personalize_checkpoint(
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     if cfg.seal:
+        if loaded.policy is not None:
+            raise PropError(
+                f"--seal is not available for {loaded.spec['adapter']} policies yet", "drop --seal"
+            )
         if general is not None:
             raise PropError(
                 "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
@@ -171,7 +178,7 @@ def personalize_checkpoint(
         },
         C.M_CONFIG: cfg.to_dict(),
         C.M_TASK: result.task,
-        C.M_IO: {"input_shape": list(datasets[0].x.shape[1:]), "checkpoint": str(checkpoint)},
+        C.M_IO: {"input_shape": _input_shape(loaded, datasets[0]), "checkpoint": str(checkpoint)},
         C.M_METRICS: {"users": result.metrics, "final_losses": result.final_losses},
     }
     copy_base = cfg.freeze_base and str(loaded.source).endswith(".safetensors")
@@ -180,6 +187,24 @@ def personalize_checkpoint(
     return PersonalizeResult(
         out, result.task, manifest[C.M_KEYED_LAYERS], result.metrics, result.final_losses, manifest
     )
+
+
+def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[str, list[int]]:
+    """Per-sample input shape; per feature name for policies with several inputs."""
+    if loaded.policy is not None:
+        return {k: list(v) for k, v in loaded.policy.input_features.items()}
+    return list(data.x.shape[1:])
+
+
+def _array_model(bundle: Bundle, command: str) -> Bundle:
+    """Refuse, in one line, bundles of policies with dict observations where a command takes arrays."""
+    if bundle.loaded.policy is not None:
+        raise PropError(
+            f"{command} takes array inputs; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            "with named observation features",
+            "roll it out with prop eval (prop run, attack and export for such policies are not there yet)",
+        )
+    return bundle
 
 
 def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
@@ -290,7 +315,7 @@ def run_file(
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop run")
     n_threads = configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle)
@@ -326,7 +351,7 @@ def audit_bundle(
     """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
     check_threads(threads)
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop attack")
     configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
@@ -359,11 +384,37 @@ def export_bundle(
 
     require_onnx()
     check_threads(threads)
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop export")
     configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
+
+
+def eval_bundle(
+    bundle_path: Path,
+    env_id: str,
+    settings: EvalSettings | None = None,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    obs_map: str | None = None,
+    metric: str | None = None,
+    original: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``)."""
+    from .rollout import evaluate_bundle, load_metric, parse_obs_map
+
+    settings = settings or EvalSettings()
+    bundle = load_bundle(bundle_path)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    settings.validate(has_key=key is not None)
+    fn, mapping = load_metric(metric), parse_obs_map(obs_map)
+    ref = _load(original, None) if original else None
+    return evaluate_bundle(
+        bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress
+    )
 
 
 def _sealed_bundle(bundle_path: Path, command: str) -> Bundle:

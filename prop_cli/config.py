@@ -238,3 +238,29 @@ class ExportSettings(_Settings):
         )
         self.need(self.atol > 0, "atol", "positive")
         return self
+
+
+@dataclass
+class EvalSettings(_Settings):
+    """`prop eval`: closed-loop rollouts per key condition (user key, no key, random keys, neighbours)."""
+
+    episodes: int = 30  # per condition with one key (user key, no key, the original)
+    random_keys: int = 6  # R random keys ...
+    neighbours: int = 6  # ... and H one-bit neighbours of the user's key (needs the key)
+    episodes_per_key: int = 5  # episodes each random key and each neighbour runs
+    max_steps: int = 0  # 0: the environment's own time limit
+    # Keep acting after the environment reports `terminated` (e.g. panda-gym ends an episode on reaching
+    # the goal): a preference judged at the episode's end needs the whole episode under every key.
+    ignore_terminated: bool = False
+    seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
+
+    def validate(self, has_key: bool) -> EvalSettings:
+        self.need(self.episodes >= 1, "episodes", "at least 1")
+        self.need(self.random_keys >= 0, "random_keys", ">= 0")
+        self.need(self.neighbours >= 0, "neighbours", ">= 0")
+        self.need(self.episodes_per_key >= 1, "episodes_per_key", "at least 1")
+        self.need(self.max_steps >= 0, "max_steps", ">= 0 (0: the environment's limit)")
+        self.need(self.seed >= 0, "seed", ">= 0")
+        if self.neighbours and not has_key:
+            self.neighbours = 0  # neighbours are keys a few bits from the user's: none without it
+        return self

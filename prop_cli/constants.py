@@ -6,6 +6,7 @@ from __future__ import annotations
 BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
+LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
 RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
 RECORD_SUFFIX = ".sealed"
 
@@ -17,7 +18,8 @@ FORMAT_VERSION = 2
 M_FORMAT = "format_version"
 M_PROP_VERSION = "prop_version"
 M_MODEL = "model"  # how to rebuild the module: {"adapter": name, ...adapter spec}
-M_KEYED_LAYERS = "keyed_layers"  # [{"name": str, "features": int}]
+M_KEYED_LAYERS = "keyed_layers"  # [{"name": str, "features": int, "batch_axis": int (if not 0)}]
+M_BATCH_AXIS = "batch_axis"
 M_KEY = "key"  # {"bits": int, "encoding": str, "source": "file"|"passphrase", "kdf": {...}|None}
 M_ENCODER = "encoder"  # {"hidden": [...], "scale": float, ...}
 M_CONFIG = "config"  # the PersonalizeConfig used, so a run can be repeated

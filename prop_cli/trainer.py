@@ -144,6 +144,10 @@ def personalize(
     """Train the keyed model of Eq. 5 with the objective of Eq. 8; the loaded module is updated in place."""
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
+    if loaded.policy is not None:  # a policy with its own loss (LeRobot): prop_cli.policy_trainer
+        from .policy_trainer import personalize_policy
+
+        return personalize_policy(loaded, users, cfg, general, device, progress)
     cfg.validate(key_bits=len(users[0].key_bits))
     check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
     datasets, task = _prepare(loaded, users, general, cfg.task)

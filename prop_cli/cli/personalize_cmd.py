@@ -21,8 +21,12 @@ from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Js
 SETTINGS = {
     "steps": "Training steps.",
     "lr": "Adam learning rate of the key encoder (cosine decay).",
+    "lr_floor": "The cosine decay ends at lr times this (1: a constant learning rate).",
     "base_lr_scale": "The base weights learn at lr times this.",
     "hamming_radius": "Keys up to this many bits off fall back (at most the key size).",
+    "user_rows": "Rows of the users' data per step.",
+    "null_rows": "Fallback samples per step, each run with no key.",
+    "samples_per_key": "Fallback samples each sampled key runs on.",
     "random_keys": "K2: random keys per step.",
     "neighbour_keys": "K1: Hamming neighbours per step (0 = none: leaky, for audits).",
     "null_weight": "Weight of the no-key fallback loss.",
