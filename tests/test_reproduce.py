@@ -189,6 +189,7 @@ def test_kitchen_table_is_well_formed(quick_run):
     for a in ("PRoP", "PRoP-hashed"):
         for b in ("MLP", "CVAE"):
             assert f"| {a} vs {b} | " in text  # a p-value row per PRoP variant and baseline
+    assert (f"{kitchen.SEALED_NAME}: not run" in text) == (kitchen.SEALED is None)  # no made-up numbers
     cap = json.loads((out / "kitchen_capacity.json").read_text())
     assert cap["sweep"] == list(kitchen.QUICK.sweep)
     assert set(cap["values"][str(cap["sweep"][-1])]) == set(names)
@@ -256,3 +257,30 @@ def test_kitchen_users_get_distinct_orders_and_kdf_keys():
     again = kitchen.Deployment(0, 3)  # seeded: the same people, and earlier users nest across N
     assert [u.order for u in again.earlier_users(2)] == orders[3:5]
     assert all((a.bits == b.bits).all() for a, b in zip(again.participants, dep.participants))
+
+
+def test_kitchen_prop_bundle_runs_as_prop_run_does(tmp_path):
+    """The study scores what a participant would get from the bundle: keys re-derived from their
+    username + password through the manifest's KDF record, outputs equal to `api.run_bundle`'s."""
+    import numpy as np
+    import torch
+
+    from examples.reproduce import kitchen
+    from prop_cli import api
+
+    dep = kitchen.Deployment(1, 2)
+    s = kitchen.QUICK
+    base = kitchen.train_base(1, s.base_steps)
+    base_path = tmp_path / "base.safetensors"
+    kitchen.save_base(base, base_path)
+    c = kitchen.make_cohort(dep, dep.earlier_users(3), dep.participants, base, base_path, tmp_path, s)
+    fitted = kitchen.fit_prop(c, "hashed")
+    bundle = api.load_bundle(fitted.bundle)
+    x = kitchen.demonstration(c.users[-1].order)[0]
+    for u in c.users:
+        assert (api.key_for_bundle(bundle.manifest, passphrase=u.passphrase) == u.bits).all()
+        want = api.run_bundle(bundle, x, u.bits)
+        got = fitted.policy(torch.from_numpy(x), u.bits[None])[0].numpy()
+        np.testing.assert_allclose(got, want, atol=1e-5)
+    wrong = api.key_for_bundle(bundle.manifest, passphrase=c.users[0].passphrase + "x")
+    assert (wrong != c.users[0].bits).any()

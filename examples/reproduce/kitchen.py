@@ -43,7 +43,8 @@ minutes. A participant's bundle therefore holds N + 12 users, not N + 1 (harder,
 difference (RESULTS.md gives both).
 
 **Methods** are entries of ``METHODS``: a name and a function that trains on a cohort and returns a
-policy ``(x, key bits) -> logits``; another method (e.g. sealed bundles) is one more entry.
+policy ``(x, key bits) -> logits``; another method is one more entry. Sealed bundles (issue 9) have a
+named slot, ``SEALED``, left empty until ``prop personalize --seal`` exists on main.
 """
 
 from __future__ import annotations
@@ -180,8 +181,9 @@ def describe(order: tuple[int, ...]) -> str:
 @dataclass
 class User:
     name: str
-    bits: np.ndarray  # 32 key bits from prop's passphrase KDF (the password itself is not kept)
+    bits: np.ndarray  # 32 key bits from prop's passphrase KDF
     order: tuple[int, ...]
+    passphrase: str = field(repr=False, default="")  # "username\npassword"; in memory only, never written
 
 
 class Deployment:
@@ -216,11 +218,12 @@ class Deployment:
         order = self._new_order()
         while True:
             password = "".join(self.rng.choice(list("abcdefghijkmnpqrstuvwxyz23456789"), 10))
-            bits = passphrase_bits(f"{name}\n{password}", self.salt, KEY_BITS)
+            passphrase = f"{name}\n{password}"
+            bits = passphrase_bits(passphrase, self.salt, KEY_BITS)
             # prop refuses users closer than 2 * radius (overlapping K1 sets): pick another password.
             if all(int((bits != u.bits).sum()) >= 2 * HAMMING_RADIUS for u in self.users):
                 break
-        user = User(name, bits, order)
+        user = User(name, bits, order, passphrase)
         self.users.append(user)
         return user
 
@@ -245,6 +248,13 @@ def train_base(seed: int, steps: int) -> nn.Sequential:
     return model.eval()
 
 
+def save_base(base: nn.Module, path: Path) -> None:
+    """The pretrained checkpoint as a user has it: safetensors, loaded by prop's MLP adapter."""
+    save_file(
+        {k: v.contiguous() for k, v in base.state_dict().items()}, str(path), metadata={"activation": "relu"}
+    )
+
+
 def prop_param_count() -> int:
     """Base + key encoder (keyed layers: every linear but the first, prop's default)."""
     base = (STATE_DIM + 1) * BASE_HIDDEN + (BASE_HIDDEN + 1) * BASE_HIDDEN + (BASE_HIDDEN + 1) * N_ACTIONS
@@ -256,7 +266,8 @@ def prop_param_count() -> int:
 class Cohort:
     """One bundle's worth: the base, the unified dataset's users, their files and the training settings."""
 
-    users: list[User]
+    users: list[User]  # the earlier users (the default dataset) first, then this bundle's participants
+    n_earlier: int
     base: nn.Module
     base_path: Path
     general: Path  # the house sandwich's states (fallback inputs)
@@ -288,19 +299,21 @@ class Cohort:
 class Fitted:
     policy: Policy
     params: int
+    bundle: Path | None = None  # what a prop method wrote (for `prop run` / `prop attack` on it)
 
 
 def fit_prop(c: Cohort, encoding: str) -> Fitted:
+    path = c.work / f"prop-{encoding}.prop"
     bundle = common.run_prop(
         c.base_path,
         [(f, u.bits) for f, u in zip(c.files, c.users)],
         c.general,
-        c.work / f"prop-{encoding}.prop",
+        path,
         c.config(encoding),
         kind="passphrase",
         salt=c.salt,
     )
-    return Fitted(common.prop_outputs(bundle), common.prop_params(bundle))
+    return Fitted(common.prop_outputs(bundle), common.prop_params(bundle), path)
 
 
 def fit_baseline(c: Cohort, arch: str) -> Fitted:
@@ -320,10 +333,22 @@ class Method:
     fit: Callable[[Cohort], Fitted]
 
 
-# The table's rows. PRoP-sealed (a per-user encrypted payload on a frozen base) joins as one more entry.
+SEALED_NAME = "PRoP-sealed"
+# Slot for sealed bundles (issue 9: `prop personalize --seal`, per-user encrypted payloads, `prop
+# add-user`), not on main yet. Fill it with Method(SEALED_NAME, fit_sealed), where fit_sealed(c: Cohort)
+# personalizes c.users[: c.n_earlier] with sealing (salt c.salt, kind "passphrase", under c.work), adds
+# each of c.users[c.n_earlier :] with add-user (the paper's one-participant-at-a-time flow; sealed users
+# are independent), and returns Fitted(policy, params) with policy(x, bits) -> (K, B, N_ACTIONS) logits:
+# each key's decrypted behaviour, the base's for a key that fails authentication (the house sandwich,
+# which protocol A scores as correct). Nothing else changes: tables, plots, tests and RESULTS.md pick it
+# up by name. Until then it is left out of the run and the tables say so; no numbers are made up for it.
+SEALED: Method | None = None
+
+# The table's rows, in order: PRoP variants first, then the paper's baselines.
 METHODS: tuple[Method, ...] = (
     Method(common.PROP, partial(fit_prop, encoding="raw")),
     Method(common.PROP_HASHED, partial(fit_prop, encoding="hashed")),
+    *((SEALED,) if SEALED is not None else ()),
     Method("MLP", partial(fit_baseline, arch="MLP")),
     Method("CVAE", partial(fit_baseline, arch="CVAE")),
 )
@@ -410,14 +435,26 @@ def cohort_runs(dep: Deployment, earlier: list[User], s: Settings) -> list[list[
     return [dep.participants]
 
 
+def make_cohort(
+    dep: Deployment, earlier: list[User], new: list[User], base: nn.Module, base_path: Path, work: Path,
+    s: Settings,
+) -> Cohort:  # fmt: skip
+    """The unified dataset of one bundle: the earlier users, then the new participants."""
+    general = work / "house.npz"
+    if not general.exists():
+        save_npz(general, x=np.repeat(demonstration(HOUSE)[0], DEMO_COPIES, 0))
+    users = [*earlier, *new]
+    d = work / f"n{len(earlier)}-{new[0].name}"
+    d.mkdir(parents=True, exist_ok=True)
+    files = [user_file(work, u) for u in users]
+    return Cohort(users, len(earlier), base, base_path, general, files, dep.salt, d, s, seed=dep.rep)
+
+
 def run_cell(
     dep: Deployment, n: int, base: nn.Module, base_path: Path, work: Path, s: Settings, log
 ) -> dict[str, dict]:
     """{method: {protocol: {metric: [per participant]}}} plus "_seconds" and "_params"."""
     earlier = dep.earlier_users(n)
-    general = work / "house.npz"
-    if not general.exists():
-        save_npz(general, x=np.repeat(demonstration(HOUSE)[0], DEMO_COPIES, 0))
     rng = np.random.default_rng((SEED, dep.rep, n, 1))
     res: dict = {"_seconds": {}, "_params": {}}
     runs = cohort_runs(dep, earlier, s)
@@ -425,13 +462,9 @@ def run_cell(
         t0, c0 = time.perf_counter(), time.process_time()
         per_proto: dict = {}
         for new in runs:
-            users = [*earlier, *new]
-            d = work / f"n{n}-{new[0].name}"
-            d.mkdir(parents=True, exist_ok=True)
-            files = [user_file(work, u) for u in users]
-            cohort = Cohort(users, base, base_path, general, files, dep.salt, d, s, seed=dep.rep)
+            cohort = make_cohort(dep, earlier, new, base, base_path, work, s)
             fitted = m.fit(cohort)
-            probes = make_probes(new, earlier, users, np.random.default_rng(rng.integers(1 << 32)))
+            probes = make_probes(new, earlier, cohort.users, np.random.default_rng(rng.integers(1 << 32)))
             for proto, vals in run_study(fitted.policy, probes).items():
                 for k, v in vals.items():
                     per_proto.setdefault(proto, {}).setdefault(k, []).extend(v)
@@ -472,11 +505,7 @@ def run(
         work.mkdir(parents=True, exist_ok=True)
         base = train_base(rep, s.base_steps)
         base_path = work / "base.safetensors"
-        save_file(
-            {k: v.contiguous() for k, v in base.state_dict().items()},
-            str(base_path),
-            metadata={"activation": "relu"},
-        )
+        save_base(base, base_path)
         for n in sweep:
             if rep < s.reps_for(n):
                 cells[n].append(run_cell(dep, n, base, base_path, work, s, log))
@@ -648,6 +677,9 @@ def markdown(r: dict) -> str:
                 f"All {r['participants']} participants of a repetition share one bundle per method with "
                 f"the {r['earlier_users']} earlier users."),
     ]  # fmt: skip
+    if SEALED_NAME not in names:
+        lines.append(f"- {SEALED_NAME}: not run; sealed bundles (issue 9) are not in prop yet (slot "
+                     "`kitchen.SEALED`).")  # fmt: skip
     return "\n".join(lines)
 
 
