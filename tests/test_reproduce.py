@@ -284,3 +284,24 @@ def test_kitchen_prop_bundle_runs_as_prop_run_does(tmp_path):
         np.testing.assert_allclose(got, want, atol=1e-5)
     wrong = api.key_for_bundle(bundle.manifest, passphrase=c.users[0].passphrase + "x")
     assert (wrong != c.users[0].bits).any()
+
+
+def test_kitchen_protocols_probe_the_papers_keys():
+    import numpy as np
+
+    from examples.reproduce import kitchen
+
+    dep = kitchen.Deployment(2, 4)
+    earlier = dep.earlier_users(6)
+    users = earlier + dep.participants
+    pr = kitchen.make_probes(dep.participants, earlier, users, np.random.default_rng(0))
+    assert set(pr.bits) == set(kitchen.PROTOCOLS)
+    known = {u.bits.tobytes(): u for u in users}
+    for i, p in enumerate(dep.participants):
+        own, rand, near = pr.bits["A"][i]
+        assert (own == p.bits).all() and rand.tobytes() not in known and (near != p.bits).sum() == 1
+        assert pr.targets["A"][i] == [p.order, kitchen.HOUSE, kitchen.HOUSE]
+        own, a, b = pr.bits["B"][i]
+        assert (own == p.bits).all() and a.tobytes() != b.tobytes()
+        assert pr.targets["B"][i] == [p.order, known[a.tobytes()].order, known[b.tobytes()].order]
+        assert {a.tobytes(), b.tobytes()} <= {u.bits.tobytes() for u in earlier}

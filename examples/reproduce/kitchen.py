@@ -85,10 +85,6 @@ ROWS_PER_USER = 8
 DEMO_COPIES = 10  # each order's rows repeated: prop holds out 20% for its report, all picks must train
 BASE_HIDDEN = 32
 ENCODER_HIDDEN = 64
-PROTOCOLS = {
-    "A": "user key, random key, one bit off",
-    "B": "user key, two earlier users' keys",
-}
 METRICS = ("score", "privacy")  # best 3 / best 0
 SEED = 20_250
 
@@ -366,22 +362,51 @@ class Probes:
     targets: dict[str, list[list[tuple[int, ...]]]]  # protocol -> P x 3 orders
 
 
+Probe = tuple[np.ndarray, tuple[int, ...]]  # a key and the order it should give
+
+
+def random_and_one_bit_off(p: User, earlier: list[User], taken: set[bytes], rng) -> list[Probe]:
+    """Sec. "Experimental Setup": a random key and the user's key one bit off; both should give the house
+    sandwich (neither is in the unified dataset)."""
+    while True:  # "random" = outside the unified dataset (K - K')
+        rand = rng.integers(0, 2, KEY_BITS, dtype=np.uint8)
+        if rand.tobytes() not in taken:
+            break
+    near = p.bits.copy()
+    near[rng.integers(KEY_BITS)] ^= 1  # >= 4 bits from every other user: never someone's key
+    return [(rand, HOUSE), (near, HOUSE)]
+
+
+def two_earlier_users(p: User, earlier: list[User], taken: set[bytes], rng) -> list[Probe]:
+    """Sec. "Participants and Procedure": two earlier users' keys; each should give that user's order."""
+    a, b = rng.choice(len(earlier), 2, replace=False)
+    return [(earlier[a].bits, earlier[a].order), (earlier[b].bits, earlier[b].order)]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The two keys rolled out beside the participant's own (Score and Privacy count three roll-outs)."""
+
+    description: str
+    others: Callable[[User, list[User], set[bytes], np.random.Generator], list[Probe]]
+
+
+# A protocol is one entry; tables, plots and tests iterate over them.
+PROTOCOLS: dict[str, Protocol] = {
+    "A": Protocol("user key, random key, one bit off", random_and_one_bit_off),
+    "B": Protocol("user key, two earlier users' keys", two_earlier_users),
+}
+
+
 def make_probes(participants: list[User], earlier: list[User], bundle_users: list[User], rng) -> Probes:
     taken = {u.bits.tobytes() for u in bundle_users}
-    bits: dict[str, list] = {"A": [], "B": []}
-    targets: dict[str, list] = {"A": [], "B": []}
+    bits: dict[str, list] = {name: [] for name in PROTOCOLS}
+    targets: dict[str, list] = {name: [] for name in PROTOCOLS}
     for p in participants:
-        while True:  # "random" = outside the unified dataset (K - K')
-            rand = rng.integers(0, 2, KEY_BITS, dtype=np.uint8)
-            if rand.tobytes() not in taken:
-                break
-        near = p.bits.copy()
-        near[rng.integers(KEY_BITS)] ^= 1  # >= 4 bits from every other user: never someone's key
-        a, b = rng.choice(len(earlier), 2, replace=False)
-        bits["A"].append([p.bits, rand, near])
-        targets["A"].append([p.order, HOUSE, HOUSE])
-        bits["B"].append([p.bits, earlier[a].bits, earlier[b].bits])
-        targets["B"].append([p.order, earlier[a].order, earlier[b].order])
+        for name, proto in PROTOCOLS.items():
+            probes = [(p.bits, p.order), *proto.others(p, earlier, taken, rng)]
+            bits[name].append([k for k, _ in probes])
+            targets[name].append([o for _, o in probes])
     return Probes({k: np.asarray(v, np.uint8) for k, v in bits.items()}, targets)
 
 
@@ -629,7 +654,7 @@ def markdown(r: dict) -> str:
         f"**{r['title']}** — mean ± s.e. over repetitions of the mean over participants; Score best 3, "
         "Privacy best 0",
         "",
-        "Protocol A: " + PROTOCOLS["A"] + "; protocol B: " + PROTOCOLS["B"] + ".",
+        "; ".join(f"Protocol {k}: {p.description}" for k, p in PROTOCOLS.items()) + ".",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -749,7 +774,7 @@ def _figure(r: dict, path: Path, panel, title: str) -> Path | None:
                 ax.set_ylim(max(0.0, min(2.0, min(mu - se for mu, se in drawn) - 0.1)), 3.05)
             else:
                 ax.set_ylim(-0.02, min(3.0, max(0.5, max(mu + se for mu, se in drawn) + 0.1)))
-            ax.set_title(f"protocol {proto}: {PROTOCOLS[proto]}", fontsize=8)
+            ax.set_title(f"protocol {proto}: {PROTOCOLS[proto].description}", fontsize=8)
             if j == 0:
                 ax.set_ylabel(f"{k.capitalize()} {ARROW[k]} (best {BEST[k]}; axis zoomed)", fontsize=8)
     fig.suptitle(title, fontsize=9)
