@@ -305,3 +305,15 @@ def test_kitchen_protocols_probe_the_papers_keys():
         assert (own == p.bits).all() and a.tobytes() != b.tobytes()
         assert pr.targets["B"][i] == [p.order, known[a.tobytes()].order, known[b.tobytes()].order]
         assert {a.tobytes(), b.tobytes()} <= {u.bits.tobytes() for u in earlier}
+
+
+def test_kitchen_workers_give_the_serial_results(quick_run, tmp_path):
+    """Repetitions run in separate processes (the full run uses both cores) with unchanged results."""
+    from examples.reproduce import kitchen
+
+    out, _ = quick_run
+    serial = json.loads((out / "kitchen.json").read_text())
+    main, cap = kitchen.run(tmp_path, quick=True, log=lambda m: None, workers=2)
+    assert main["workers"] == 2 and serial["workers"] == 1
+    assert json.loads(json.dumps(main["values"])) == serial["values"]
+    assert cap["values"] == json.loads((out / "kitchen_capacity.json").read_text())["values"]

@@ -1,5 +1,5 @@
 """python -m examples.reproduce il|digits|reach|capacity|kitchen|all [--quick] [--seeds N] [--out DIR]
-                                [--mnist DIR] [--max-users N] [--per-participant]
+                                [--mnist DIR] [--max-users N] [--per-participant] [--workers N]
 
 Prints a Fig.-4-style table per experiment (markdown) and writes, under --out (default out/reproduce):
 <name>.md, <name>.png and <name>.json (per-seed values). Seeds are fixed: a rerun gives the same table.
@@ -27,6 +27,7 @@ def run_experiment(
     log,
     max_users: int | None = None,
     per_participant: bool = False,
+    workers: int | None = None,
 ) -> list[dict]:
     """Run one experiment; returns its result dicts (one per table) after writing md/png/json."""
     from examples.reproduce import table
@@ -50,7 +51,7 @@ def run_experiment(
         from examples.reproduce import kitchen
 
         results = kitchen.run(
-            out, quick, seeds, log=log, max_users=max_users, per_participant=per_participant
+            out, quick, seeds, log=log, max_users=max_users, per_participant=per_participant, workers=workers
         )
     else:
         from examples.reproduce import reach
@@ -88,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="kitchen: one bundle per participant (the paper's protocol; ~12x the training time)",
     )
+    ap.add_argument(
+        "--workers", type=int, default=None, help="kitchen: processes over repetitions (default 2; --quick 1)"
+    )
     ap.add_argument("--keep-work", action="store_true", help="keep the bundles and data under OUT/work")
     args = ap.parse_args(argv)
 
@@ -103,7 +107,15 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         try:
             run_experiment(
-                name, args.out, args.quick, args.seeds, args.mnist, log, args.max_users, args.per_participant
+                name,
+                args.out,
+                args.quick,
+                args.seeds,
+                args.mnist,
+                log,
+                args.max_users,
+                args.per_participant,
+                args.workers,
             )
         except PropError as e:
             print(f"reproduce {name}: error: {e.line()}", file=sys.stderr)

@@ -50,8 +50,11 @@ named slot, ``SEALED``, left empty until ``prop personalize --seal`` exists on m
 from __future__ import annotations
 
 import math
+import multiprocessing
+import sys
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -103,12 +106,13 @@ class Settings:
     lr: float = 1e-2
     base_steps: int = 200
     per_participant: bool = False
+    workers: int = 1  # processes, one thread each; repetitions are independent, so results do not change
 
     def reps_for(self, n: int) -> int:
         return min(self.reps, self.reps_at.get(n, self.reps))
 
 
-FULL = Settings(reps_at={64: 4, 128: 3})
+FULL = Settings(workers=2)  # 10 repetitions at every N, on the 2 cores
 QUICK = Settings(
     reps=2, participants=3, main=4, sweep=(4, 8), prop_steps=30, prop_steps_per_user=0,
     baseline_steps=30, baseline_steps_per_user=0, base_steps=60,
@@ -503,6 +507,27 @@ def run_cell(
     return res
 
 
+def log_stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run_repetition(
+    rep: int, out: Path, s: Settings, sweep: tuple[int, ...], log=log_stderr
+) -> dict[int, dict]:
+    """One deployment (its salt, people and base) and one cell per N; shares nothing with other reps."""
+    dep = Deployment(rep, s.participants)
+    work = out / "work" / f"kitchen-{rep}"
+    work.mkdir(parents=True, exist_ok=True)
+    base = train_base(rep, s.base_steps)
+    base_path = work / "base.safetensors"
+    save_base(base, base_path)
+    return {n: run_cell(dep, n, base, base_path, work, s, log) for n in sweep if rep < s.reps_for(n)}
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)  # one thread per worker: a shared thread pool stalls on busy cores
+
+
 def run(
     out: Path,
     quick: bool,
@@ -511,29 +536,27 @@ def run(
     max_users: int | None = None,
     settings: Settings | None = None,
     per_participant: bool = False,
+    workers: int | None = None,
 ) -> list[dict]:
     s = settings or (QUICK if quick else FULL)
     if reps:
         s = replace(s, reps=reps)
     if per_participant:
         s = replace(s, per_participant=True)
+    if workers:
+        s = replace(s, workers=workers)
     sweep = tuple(n for n in s.sweep if max_users is None or n <= max_users) or (s.sweep[0],)
     if s.main not in sweep:
         s = replace(s, main=sweep[0])
-    cells: dict[int, list[dict]] = {n: [] for n in sweep}
     t_start = time.perf_counter()
-    first: Deployment | None = None
-    for rep in range(s.reps):
-        dep = Deployment(rep, s.participants)
-        first = first or dep
-        work = out / "work" / f"kitchen-{rep}"
-        work.mkdir(parents=True, exist_ok=True)
-        base = train_base(rep, s.base_steps)
-        base_path = work / "base.safetensors"
-        save_base(base, base_path)
-        for n in sweep:
-            if rep < s.reps_for(n):
-                cells[n].append(run_cell(dep, n, base, base_path, work, s, log))
+    if s.workers > 1:  # spawn, not fork: a forked torch can hang
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(min(s.workers, s.reps), mp_context=ctx, initializer=_one_thread) as ex:
+            per_rep = list(ex.map(partial(run_repetition, out=out, s=s, sweep=sweep), range(s.reps)))
+    else:
+        per_rep = [run_repetition(rep, out, s, sweep, log) for rep in range(s.reps)]
+    cells = {n: [r[n] for r in per_rep if n in r] for n in sweep}
+    first = Deployment(0, s.participants)
     wall = time.perf_counter() - t_start
     names = [m.name for m in METHODS]
     params = cells[s.main][0]["_params"]
@@ -552,6 +575,7 @@ def run(
         "values": aggregate(cells[s.main], names),
         "seconds": seconds(cells[s.main], names),
         "wall_seconds_all_cells": wall,
+        "workers": s.workers,
         "example": {"participant_order": describe(first.participants[0].order), "house": describe(HOUSE)},
     }
     main["markdown"] = markdown(main)
