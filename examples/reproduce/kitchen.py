@@ -42,6 +42,9 @@ minutes. A participant's bundle therefore holds N + 12 users, not N + 1 (harder,
 ``per_participant=True`` trains one bundle per participant, the paper's protocol, to check the
 difference (RESULTS.md gives both).
 
+**Run time.** Repetitions share nothing (each has its own salt, people, base and seeds), so the full run
+spreads them over two worker processes (``Settings.workers``, ``--workers``) with the same results.
+
 **Methods** are entries of ``METHODS``: a name and a function that trains on a cohort and returns a
 policy ``(x, key bits) -> logits``; another method is one more entry. Sealed bundles (issue 9) have a
 named slot, ``SEALED``, left empty until ``prop personalize --seal`` exists on main.
