@@ -47,7 +47,7 @@ spreads them over two worker processes (``Settings.workers``, ``--workers``) wit
 
 **Methods** are entries of ``METHODS``: a name and a function that trains on a cohort and returns a
 policy ``(x, key bits) -> logits``; another method is one more entry. Sealed bundles (issue 9) have a
-named slot, ``SEALED``, left empty until ``prop personalize --seal`` exists on main.
+named slot, ``SEALED``, left empty for now (see its comment for how to fill it).
 """
 
 from __future__ import annotations
@@ -337,14 +337,15 @@ class Method:
 
 
 SEALED_NAME = "PRoP-sealed"
-# Slot for sealed bundles (issue 9: `prop personalize --seal`, per-user encrypted payloads, `prop
-# add-user`), not on main yet. Fill it with Method(SEALED_NAME, fit_sealed), where fit_sealed(c: Cohort)
-# personalizes c.users[: c.n_earlier] with sealing (salt c.salt, kind "passphrase", under c.work), adds
-# each of c.users[c.n_earlier :] with add-user (the paper's one-participant-at-a-time flow; sealed users
-# are independent), and returns Fitted(policy, params) with policy(x, bits) -> (K, B, N_ACTIONS) logits:
-# each key's decrypted behaviour, the base's for a key that fails authentication (the house sandwich,
-# which protocol A scores as correct). Nothing else changes: tables, plots, tests and RESULTS.md pick it
-# up by name. Until then it is left out of the run and the tables say so; no numbers are made up for it.
+# Slot for sealed bundles (issue 9; on main since this experiment's runs, filled by the lead). Fill it with
+# Method(SEALED_NAME, fit_sealed), where fit_sealed(c: Cohort) calls personalize_checkpoint with
+# c.config(...) plus seal=True for c.users[: c.n_earlier] (KeySource(bits, "passphrase"), salt c.salt,
+# bundle under c.work), then api.add_user once per participant in c.users[c.n_earlier :] (the paper's
+# one-participant-at-a-time flow; sealed users are independent), and returns Fitted(policy, params,
+# path) with policy(x, bits) -> (K, B, N_ACTIONS) logits: api.KeyedPolicy(bundle, key) per key (a key
+# that opens no record runs the base: the house sandwich, which protocol A scores as correct). Tables,
+# plots, tests and RESULTS.md pick it up by name. Until then it is left out of the run and the tables say
+# so; no numbers are made up for it.
 SEALED: Method | None = None
 
 # The table's rows, in order: PRoP variants first, then the paper's baselines.
@@ -730,8 +731,7 @@ def markdown(r: dict) -> str:
                 f"the {r['earlier_users']} earlier users."),
     ]  # fmt: skip
     if SEALED_NAME not in names:
-        lines.append(f"- {SEALED_NAME}: not run; sealed bundles (issue 9) are not in prop yet (slot "
-                     "`kitchen.SEALED`).")  # fmt: skip
+        lines.append(f"- {SEALED_NAME}: not run (the slot `kitchen.SEALED` is empty).")
     return "\n".join(lines)
 
 
