@@ -46,8 +46,8 @@ difference (RESULTS.md gives both).
 spreads them over two worker processes (``Settings.workers``, ``--workers``) with the same results.
 
 **Methods** are entries of ``METHODS``: a name and a function that trains on a cohort and returns a
-policy ``(x, key bits) -> logits``; another method is one more entry. Sealed bundles (issue 9) have a
-named slot, ``SEALED``, left empty for now (see its comment for how to fill it).
+policy ``(x, key bits) -> logits``; another method is one more entry. ``SEALED`` runs sealed bundles
+(``--seal``, participants added with ``add-user``).
 """
 
 from __future__ import annotations
@@ -337,16 +337,39 @@ class Method:
 
 
 SEALED_NAME = "PRoP-sealed"
-# Slot for sealed bundles (issue 9; on main since this experiment's runs, filled by the lead). Fill it with
-# Method(SEALED_NAME, fit_sealed), where fit_sealed(c: Cohort) calls personalize_checkpoint with
-# c.config(...) plus seal=True for c.users[: c.n_earlier] (KeySource(bits, "passphrase"), salt c.salt,
-# bundle under c.work), then api.add_user once per participant in c.users[c.n_earlier :] (the paper's
-# one-participant-at-a-time flow; sealed users are independent), and returns Fitted(policy, params,
-# path) with policy(x, bits) -> (K, B, N_ACTIONS) logits: api.KeyedPolicy(bundle, key) per key (a key
-# that opens no record runs the base: the house sandwich, which protocol A scores as correct). Tables,
-# plots, tests and RESULTS.md pick it up by name. Until then it is left out of the run and the tables say
-# so; no numbers are made up for it.
-SEALED: Method | None = None
+
+
+def fit_sealed(c: Cohort) -> Fitted:
+    """Sealed bundles (prop personalize --seal): the earlier users in one call, then each participant
+    with prop add-user, as the paper's one-participant-at-a-time flow would run; sealed users are
+    trained independently, each for ``prop_steps``. A key that opens no record runs the base (the house
+    sandwich)."""
+    import warnings
+
+    from prop_cli.api import KeySource, add_user, load_bundle, personalize_checkpoint
+    from prop_cli.payload import Payload
+    from prop_cli.policy import KeyedPolicy, WrongKeyWarning
+
+    path = c.work / "prop-sealed.prop"
+    cfg = replace(c.config("hashed"), seal=True, steps=c.settings.prop_steps)
+    first = c.n_earlier or len(c.users)
+    users = [(f, KeySource(u.bits, "passphrase")) for f, u in zip(c.files, c.users)]
+    personalize_checkpoint(str(c.base_path), users[:first], path, cfg, salt=c.salt)
+    for f, key in users[first:]:
+        add_user(path, f, key, cfg=replace(cfg))
+    bundle = load_bundle(path)
+
+    def run(x: torch.Tensor, bits: np.ndarray) -> torch.Tensor:
+        xs = x.numpy()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", WrongKeyWarning)  # wrong keys run the base, by design
+            return torch.stack([torch.from_numpy(KeyedPolicy(bundle, k)(xs)) for k in np.atleast_2d(bits)])
+
+    payload = baselines.n_params(Payload(bundle.sealed.spec))
+    return Fitted(run, baselines.n_params(bundle.loaded.module) + payload * len(c.users), path)
+
+
+SEALED: Method | None = Method(SEALED_NAME, fit_sealed)
 
 # The table's rows, in order: PRoP variants first, then the paper's baselines.
 METHODS: tuple[Method, ...] = (
