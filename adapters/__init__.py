@@ -16,12 +16,14 @@ from prop_cli.errors import PropError, brief
 
 from .base import Adapter, CheckpointOptions, LoadedModel, check_exists
 from .folder import CONFIG, WEIGHTS, FolderAdapter
+from .lerobot import LeRobotAdapter
 from .mlp import MLPAdapter
 from .module import ModuleAdapter
 from .sb3 import SB3Adapter
 from .weights import read_weights
 
 ADAPTERS: list[Adapter] = [
+    LeRobotAdapter(),  # before FolderAdapter: a LeRobot folder is also config.json + model.safetensors
     FolderAdapter(),
     SB3Adapter(),
     ModuleAdapter(),

@@ -55,6 +55,50 @@ class LoadedModel:
     # Bounds of a continuous action space (one value per output), where the checkpoint records them.
     action_low: tuple[float, ...] | None = None
     action_high: tuple[float, ...] | None = None
+    # Set for policies that bring their own loss, batch layout and control loop (LeRobot): the trainer,
+    # the bundle and `prop eval` talk to it instead of calling module(x).
+    policy: PolicyProtocol | None = None
+    # Files the bundle carries besides the weights (relative path -> bytes), e.g. a LeRobot folder's
+    # config and processors, so that the bundle's base loads in the original library.
+    files: dict[str, bytes] = field(default_factory=dict)
+    # Where in the bundle a second copy (hard link) of the base weights goes, next to ``files``.
+    base_alias: str | None = None
+
+
+class PolicyProtocol(ABC):
+    """A policy that brings its own loss (paper Eq. 8's user term) and acts in a control loop.
+
+    Batches are dicts of tensors in the policy's normalised units, one row per frame, with the action
+    chunk (``action``) and its padding mask where the policy has them.
+    """
+
+    default_layers: ClassVar[list[str]]  # regexes over linear-layer names keyed when --layers is not given
+    fallbacks: ClassVar[tuple[str, ...]]  # fallback terms this policy supports, the default first
+
+    @abstractmethod
+    def batches(self, data, flag: str) -> dict[str, torch.Tensor]:
+        """A Dataset (prop_cli.datasources) -> training tensors, normalised; PropError if it does not fit."""
+
+    @abstractmethod
+    def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The policy's own training loss on ``batch`` (a batch mean), in training mode."""
+
+    @abstractmethod
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The deployed prediction (rows, ...) for the observations in ``batch``; differentiable."""
+
+    @abstractmethod
+    def example(self, rows: int, data: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """``rows`` rows of ``data`` (for probing the layers)."""
+
+    @abstractmethod
+    def controller(self, module: torch.nn.Module):
+        """An object with ``reset()`` and ``act(obs: dict[str, np.ndarray]) -> np.ndarray`` for ``module``."""
+
+    @property
+    @abstractmethod
+    def input_features(self) -> dict[str, tuple[int, ...]]:
+        """Observation feature name -> per-frame shape, as the environment must provide them."""
 
 
 class Adapter(ABC):

@@ -51,7 +51,13 @@ def fit(
     seed: int,
     decay_at: float | None = None,
 ) -> nn.Module:
-    """Adam on minibatches from a seeded generator of its own (repeatable); lr x0.3 at ``decay_at``."""
+    """Adam on minibatches from a seeded generator of its own (repeatable); lr x0.3 at ``decay_at``.
+
+    Threads follow prop's policy (``prop_cli.threads``): torch's default pool stalls on a busy machine.
+    """
+    from prop_cli.threads import configure
+
+    configure(sum(p.numel() for p in model.parameters()))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     milestones = [int(decay_at * steps)] if decay_at is not None else []
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=0.3)

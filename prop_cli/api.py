@@ -18,7 +18,7 @@ from prop_adapters import CheckpointOptions
 from . import constants as C
 from .audit import apply_max_leak, audit, load_original
 from .bundle import Bundle, describe_layers, load_bundle, read_manifest, write_bundle, write_sealed_bundle
-from .config import AuditSettings, ExportSettings, PersonalizeConfig
+from .config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
 from .datasources.npz import read_npy
 from .errors import PropError
@@ -29,6 +29,8 @@ from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, new_
 from .layers import linear_layers, select_layers
 from .policy import KeyedPolicy
 from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
+from .threads import check as check_threads
+from .threads import configure as configure_threads
 from .trainer import User, personalize
 
 __all__ = [
@@ -40,7 +42,9 @@ __all__ = [
     "PersonalizeConfig",
     "apply_max_leak",
     "audit",
+    "EvalSettings",
     "audit_bundle",
+    "eval_bundle",
     "export_bundle",
     "formats",
     "generate_key_file",
@@ -90,13 +94,14 @@ def inspect_checkpoint(
 ) -> dict:
     """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
     loaded = _load(path, opts)
-    chosen = set(select_layers(loaded.module, layers, exclude))
+    default = loaded.policy.default_layers if loaded.policy is not None else None
+    chosen = set(select_layers(loaded.module, layers or default, exclude))
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
         "model": prop_adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
-        "parameters": sum(p.numel() for p in loaded.module.parameters()),
+        "parameters": _parameters(loaded.module),
         "layers": [
             {"name": n, "in_features": m.in_features, "out_features": m.out_features, "keyed": n in chosen}
             for n, m in linear_layers(loaded.module)
@@ -116,20 +121,28 @@ def personalize_checkpoint(
     device: str = "cpu",
     force: bool = False,
     progress: Callable[[int, dict[str, float]], None] | None = None,
+    threads: int | None = None,
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
     ``users`` pairs each user's data file with their key (``keys.user_keys`` builds them from key files
-    and passphrases; ``salt`` is the passphrase salt it returns).
+    and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
+    ``prop_cli.threads`` chooses from the model's size and the idle cores).
     """
     bits = {len(k.bits) for _, k in users}
     if len(bits) > 1:
         raise PropError("the users' keys have different sizes", "give every user a key of the same size")
     cfg.validate(key_bits=min(bits) if bits else None)
+    check_threads(threads)
     check_output(out, force)  # before hours of training, not after
     loaded = _load(checkpoint, opts)
+    configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     if cfg.seal:
+        if loaded.policy is not None:
+            raise PropError(
+                f"--seal is not available for {loaded.spec['adapter']} policies yet", "drop --seal"
+            )
         if general is not None:
             raise PropError(
                 "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
@@ -166,7 +179,7 @@ def personalize_checkpoint(
         },
         C.M_CONFIG: cfg.to_dict(),
         C.M_TASK: result.task,
-        C.M_IO: {"input_shape": list(datasets[0].x.shape[1:]), "checkpoint": str(checkpoint)},
+        C.M_IO: {"input_shape": _input_shape(loaded, datasets[0]), "checkpoint": str(checkpoint)},
         C.M_METRICS: {"users": result.metrics, "final_losses": result.final_losses},
     }
     copy_base = cfg.freeze_base and str(loaded.source).endswith(".safetensors")
@@ -175,6 +188,24 @@ def personalize_checkpoint(
     return PersonalizeResult(
         out, result.task, manifest[C.M_KEYED_LAYERS], result.metrics, result.final_losses, manifest
     )
+
+
+def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[str, list[int]]:
+    """Per-sample input shape; per feature name for policies with several inputs."""
+    if loaded.policy is not None:
+        return {k: list(v) for k, v in loaded.policy.input_features.items()}
+    return list(data.x.shape[1:])
+
+
+def _array_model(bundle: Bundle, command: str) -> Bundle:
+    """Refuse, in one line, bundles of policies with dict observations where a command takes arrays."""
+    if bundle.loaded.policy is not None:
+        raise PropError(
+            f"{command} takes array inputs; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            "with named observation features",
+            "roll it out with prop eval (prop run, attack and export for such policies are not there yet)",
+        )
+    return bundle
 
 
 def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
@@ -219,6 +250,10 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
     for r in reports[1:]:
         r.pop("final_losses", None)
     return PersonalizeResult(out, task, written[C.M_KEYED_LAYERS], reports, final, read_manifest(out))
+
+
+def _parameters(module) -> int:
+    return sum(p.numel() for p in module.parameters())
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
@@ -274,16 +309,19 @@ def run_file(
     onnx: bool = False,
     onnx_dir: Path | None = None,
     force: bool = False,
+    threads: int | None = None,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
+    check_threads(threads)
     check_output(output, force, what="output", flag="--output")
-    bundle = load_bundle(bundle_path)
+    bundle = _array_model(load_bundle(bundle_path), "prop run")
+    n_threads = configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle)
     if onnx or onnx_dir is not None:
         from .onnx_runtime import run_onnx
 
-        y = run_onnx(bundle, x, key, onnx_dir)
+        y = run_onnx(bundle, x, key, onnx_dir, threads=n_threads)
     else:
         y = run_bundle(bundle, x, key)
 
@@ -307,10 +345,13 @@ def audit_bundle(
     original: str | None = None,
     device: str = "cpu",
     progress: Callable[[str, int, int], None] | None = None,
+    threads: int | None = None,
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
-    bundle = load_bundle(bundle_path)
+    check_threads(threads)
+    bundle = _array_model(load_bundle(bundle_path), "prop attack")
+    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     data = load_data(data_path, require_y=bool(keys))
@@ -334,16 +375,45 @@ def export_bundle(
     passphrase: str | None = None,
     input_path: Path | None = None,
     force: bool = False,
+    threads: int | None = None,
 ):
     """`prop export --onnx`: the four graphs, verified against torch (``export.export_onnx``)."""
     from .export import export_onnx
     from .onnx_runtime import require_onnx
 
     require_onnx()
-    bundle = load_bundle(bundle_path)
+    check_threads(threads)
+    bundle = _array_model(load_bundle(bundle_path), "prop export")
+    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
+
+
+def eval_bundle(
+    bundle_path: Path,
+    env_id: str,
+    settings: EvalSettings | None = None,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    obs_map: str | None = None,
+    metric: str | None = None,
+    original: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``)."""
+    from .rollout import evaluate_bundle, load_metric, parse_obs_map
+
+    settings = settings or EvalSettings()
+    bundle = load_bundle(bundle_path)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    settings.validate(has_key=key is not None)
+    fn, mapping = load_metric(metric), parse_obs_map(obs_map)
+    ref = _load(original, None) if original else None
+    return evaluate_bundle(
+        bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress
+    )
 
 
 def _sealed_bundle(bundle_path: Path, command: str) -> Bundle:
@@ -406,6 +476,7 @@ def add_user(
     cfg.seal = True
     cfg.validate(key_bits=bundle.key_bits)
     check_new_key(bundle.sealed, key.bits)
+    configure_threads(_parameters(bundle.loaded.module), None)
     data, task = _user_data(bundle, data_path, cfg)
     index = len(m[C.M_RECORDS])
     [user] = train_users(bundle.loaded, [data], [key.bits], task, cfg, device, progress, first_index=index)

@@ -6,6 +6,7 @@ never leaves a half bundle at the output path. No key material and no key hash i
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,9 +76,29 @@ def write_bundle(
         _write_base(tmp, loaded, keyed.module, copy_base)
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
-        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS))
+        extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
+        names = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *extra)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names)
         (tmp / C.MANIFEST).write_text(dump_json(schema.stamp(full)))
     return out
+
+
+def _adapter_files(tmp: Path, loaded: LoadedModel, base_path: Path) -> list[str]:
+    """The adapter's own files (e.g. a LeRobot folder's config and processors) and the base's alias."""
+    written = []
+    for rel, data in loaded.files.items():
+        (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / rel).write_bytes(data)
+        written.append(rel)
+    if loaded.base_alias:
+        alias = tmp / loaded.base_alias
+        alias.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(base_path, alias)  # the same bytes, no second copy on disk
+        except OSError:
+            shutil.copyfile(base_path, alias)
+        written.append(loaded.base_alias)
+    return written
 
 
 def write_sealed_bundle(
@@ -232,8 +253,14 @@ def _keyed(path: Path, manifest: dict, loaded: LoadedModel) -> KeyedModel:
         )
     encoder = KeyEncoder(**args)
     encoder.load_state_dict(state)
-    return KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
+    keyed = KeyedModel(loaded.module, encoder, [layer["name"] for layer in layers]).eval()
+    keyed.batch_axis = {x["name"]: int(x[C.M_BATCH_AXIS]) for x in layers if C.M_BATCH_AXIS in x}
+    return keyed
 
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:
-    return [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+    out = [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+    for layer in out:
+        if keyed.batch_axis.get(layer["name"], 0):
+            layer[C.M_BATCH_AXIS] = keyed.batch_axis[layer["name"]]
+    return out

@@ -14,6 +14,10 @@ from .errors import PropError
 
 TASKS = ("classification", "regression")
 PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.payload)
+ENCODER_INITS = ("seed", "os")
+# `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
+HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}
+PLAIN_PRESET = {"encoder_init": "seed", "code_negatives": 0}
 
 
 def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
@@ -84,12 +88,22 @@ class PersonalizeConfig(_Settings):
     payload: str = "lora"
     payload_rank: int = 4
     payload_lr: float = 0.01  # Adam on the payload; cosine-decays like lr
+    # Hardened unsealed mode (prop_cli.hardening, docs/hardening.md): a preset of the fields below.
+    # Those left None take HARDEN_PRESET's value with harden, PLAIN_PRESET's without (validate fills them).
+    harden: bool = False
+    # "seed": the encoder's initialisation follows `seed` (byte-identical reruns, but the manifest's
+    # seed recreates it); "os": fresh OS randomness that nothing in the bundle records.
+    encoder_init: str | None = None
+    # Code-space fallback rows per step (each on samples_per_key samples), near the users' codes:
+    # up to code_flip_max bits flipped, or relaxed/noised towards the rest of the cube by >= code_relax_min.
+    code_negatives: int | None = None
+    code_flip_max: int = 48
+    code_relax_min: float = 0.1
 
     @property
     def batch_rows(self) -> int:
-        return (
-            self.user_rows + self.null_rows + (self.random_keys + self.neighbour_keys) * self.samples_per_key
-        )
+        sampled = self.random_keys + self.neighbour_keys + (self.code_negatives or 0)
+        return self.user_rows + self.null_rows + sampled * self.samples_per_key
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
@@ -119,6 +133,13 @@ class PersonalizeConfig(_Settings):
         self.need(self.payload in PAYLOAD_KINDS, "payload", " or ".join(PAYLOAD_KINDS))
         self.need(self.payload_rank >= 1, "payload_rank", "at least 1")
         self.need(self.payload_lr > 0, "payload_lr", "positive")
+        for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
+        self.need(self.code_negatives >= 0, "code_negatives", ">= 0")
+        self.need(self.code_flip_max >= 1, "code_flip_max", "at least 1")
+        self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
         return self
 
 
@@ -216,4 +237,30 @@ class ExportSettings(_Settings):
             self.MIN_OPSET <= self.opset <= self.MAX_OPSET, "opset", f"in {self.MIN_OPSET}..{self.MAX_OPSET}"
         )
         self.need(self.atol > 0, "atol", "positive")
+        return self
+
+
+@dataclass
+class EvalSettings(_Settings):
+    """`prop eval`: closed-loop rollouts per key condition (user key, no key, random keys, neighbours)."""
+
+    episodes: int = 30  # per condition with one key (user key, no key, the original)
+    random_keys: int = 6  # R random keys ...
+    neighbours: int = 6  # ... and H one-bit neighbours of the user's key (needs the key)
+    episodes_per_key: int = 5  # episodes each random key and each neighbour runs
+    max_steps: int = 0  # 0: the environment's own time limit
+    # Keep acting after the environment reports `terminated` (e.g. panda-gym ends an episode on reaching
+    # the goal): a preference judged at the episode's end needs the whole episode under every key.
+    ignore_terminated: bool = False
+    seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
+
+    def validate(self, has_key: bool) -> EvalSettings:
+        self.need(self.episodes >= 1, "episodes", "at least 1")
+        self.need(self.random_keys >= 0, "random_keys", ">= 0")
+        self.need(self.neighbours >= 0, "neighbours", ">= 0")
+        self.need(self.episodes_per_key >= 1, "episodes_per_key", "at least 1")
+        self.need(self.max_steps >= 0, "max_steps", ">= 0 (0: the environment's limit)")
+        self.need(self.seed >= 0, "seed", ">= 0")
+        if self.neighbours and not has_key:
+            self.neighbours = 0  # neighbours are keys a few bits from the user's: none without it
         return self

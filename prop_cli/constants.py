@@ -6,6 +6,7 @@ from __future__ import annotations
 BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
+LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
 RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
 RECORD_SUFFIX = ".sealed"
 
@@ -20,7 +21,8 @@ DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
 M_FORMAT = "format_version"
 M_PROP_VERSION = "prop_version"
 M_MODEL = "model"  # how to rebuild the module: {"adapter": name, ...adapter spec}
-M_KEYED_LAYERS = "keyed_layers"  # [{"name": str, "features": int}]
+M_KEYED_LAYERS = "keyed_layers"  # [{"name": str, "features": int, "batch_axis": int (if not 0)}]
+M_BATCH_AXIS = "batch_axis"
 M_KEY = "key"  # {"bits": int, "encoding": str, "source": "file"|"passphrase", "kdf": {...}|None}
 M_ENCODER = "encoder"  # {"hidden": [...], "scale": float, ...}
 M_CONFIG = "config"  # the PersonalizeConfig used, so a run can be repeated
@@ -60,10 +62,12 @@ AUDIT_SCHEMA = "prop-audit/2"
 # The CLI's defaults that are not training, audit or export settings (those are in prop_cli.config).
 DEFAULT_BUNDLE = "personalized.prop"  # personalize --out
 DEFAULT_DEVICE = "auto"  # --device: CUDA when there is one
+DEFAULT_THREADS = 0  # --threads: 0 = chosen by prop_cli.threads
 
 # Environment variables.
 ENV_PASSPHRASE = "PROP_PASSPHRASE"
 ENV_DEBUG = "PROP_DEBUG"
+ENV_OMP_THREADS = "OMP_NUM_THREADS"  # the user's thread count, respected by prop_cli.threads
 
 # Key sizes accepted by keygen.
 KEY_BITS_DEFAULT = 128

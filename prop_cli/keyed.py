@@ -111,29 +111,61 @@ class KeyedModel(nn.Module):
         self._rows: _Rows | None = None
         # None = not probed yet; see _probe_sharing.
         self.share_prefix: bool | None = None
+        # Axis of the batch in each keyed layer's input (name -> axis; absent = 0). Sequence-first
+        # layers (nn.Transformer* without batch_first, as in LeRobot's ACT) take (S, B, D): see
+        # prop_cli.batch_axes, which finds them by probing.
+        self.batch_axis: dict[str, int] = {}
         self._hook_ids = {}
         for i, name in enumerate(self.layer_names):
             self._hook_ids[name] = mods[name].register_forward_pre_hook(self._make_hook(i)).id
 
     def _make_hook(self, i: int):
+        name = self.layer_names[i]
+
         def pre(mod: nn.Module, args: tuple):
             rows = self._rows
             if rows is None:
                 return None
             z = args[0]
+            axis = self.batch_axis.get(name, 0)
+            if axis:
+                if rows.grid or rows.sample_index is not None:  # sharing assumes the batch on axis 0
+                    raise _RowMismatch()
+                return (z * self._along(rows.deltas[i], z, axis), *args[1:])
             if rows.grid:
                 return (self._grid(rows, i, z), *args[1:])
             if rows.sample_index is not None and not rows.gathered:
                 z = z.index_select(0, rows.sample_index)
                 rows.gathered = True
             d = rows.deltas[i]
-            if z.shape[0] != d.shape[0]:
+            if z.shape[0] != d.shape[0] and d.shape[0] != 1:
                 raise _RowMismatch()
             if z.dim() > 2:
                 d = d.view(d.shape[0], *([1] * (z.dim() - 2)), d.shape[1])
             return (z * d, *args[1:])
 
         return pre
+
+    @staticmethod
+    def _along(d: torch.Tensor, z: torch.Tensor, axis: int) -> torch.Tensor:
+        """(R, d) deltas shaped to scale z along its batch ``axis``; one row broadcasts over the batch."""
+        if d.shape[0] not in (1, z.shape[axis]):
+            raise _RowMismatch()
+        shape = [1] * z.dim()
+        shape[axis], shape[-1] = d.shape[0], d.shape[1]
+        return d.view(shape)
+
+    def call_rows(self, deltas: list[torch.Tensor], fn, *args, **kwargs):
+        """``fn(*args, **kwargs)`` with row r of every keyed layer's input scaled by ``deltas[l][r]``.
+
+        For modules that take more than one tensor (dict batches) or bring their own loss: no sample
+        sharing, one delta row per batch row (or a single row for the whole batch).
+        """
+        self._rows = _Rows(deltas, None)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self._rows = None
 
     @staticmethod
     def _grid(rows: _Rows, i: int, z: torch.Tensor) -> torch.Tensor:

@@ -114,6 +114,17 @@ def file_name(name: str) -> bool:
     )
 
 
+def bundle_path(name: str) -> bool:
+    """A relative path inside the bundle folder (an adapter's files may sit in subfolders): never
+    absolute, never through "..", never the manifest."""
+    parts = name.split("/")
+    return (
+        0 < len(name) <= 1024
+        and name != C.MANIFEST
+        and all(p and p not in (".", "..") and "\\" not in p and "\0" not in p for p in parts)
+    )
+
+
 def record_file(name: str) -> bool:
     """Where a sealed bundle keeps a user's record: users/<plain file name>."""
     folder, sep, leaf = name.partition("/")
@@ -169,7 +180,10 @@ SCHEMA: dict[str, Rule] = {
     C.M_PROP_VERSION: text(),
     C.M_MODE: _opt(choice(C.MODES)),
     C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", ADAPTER_SPECS)),
-    C.M_KEYED_LAYERS: _opt(list_of(obj({"name": NAME, "features": DIM}), 1), UNSEALED),
+    C.M_KEYED_LAYERS: _opt(
+        list_of(obj({"name": NAME, "features": DIM, C.M_BATCH_AXIS: _opt(integer(0, 16))}), 1),
+        UNSEALED,
+    ),
     C.M_KEY: obj({
         "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
         "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
@@ -186,8 +200,10 @@ SCHEMA: dict[str, Rule] = {
     C.M_CONFIG: _opt(RECORD),
     C.M_METRICS: _opt(RECORD),
     C.M_TASK: choice(("classification", "regression")),
-    C.M_IO: obj({"input_shape": list_of(DIM, 1, 16), "checkpoint": _opt(text(MAX_TEXT, nonempty=False))}),
-    C.M_FILES: Rule((dict,), "an object of file name -> sha256", values=SHA256, key_ok=file_name, min_len=1),
+    C.M_IO: obj({"input_shape": list_of(DIM, 1, 16), "checkpoint": _opt(text(nonempty=False))}),
+    C.M_FILES: Rule(
+        (dict,), "an object of file path -> sha256", values=SHA256, key_ok=bundle_path, min_len=1
+    ),
     C.M_AUDIT: _opt(RECORD),
     C.M_PAYLOAD: _opt(obj({
         "kind": choice(PAYLOAD_KINDS),

@@ -100,16 +100,17 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
 class OnnxPolicy:
     """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
 
-    With a key, delta is computed once here (encoder.onnx) and bound to policy.onnx, so a step
-    feeds only x; without a key each call runs base.onnx. Calls go through an IOBinding, the
-    cheapest per-call path at batch 1. ``fold=True`` instead runs base.onnx with the keyed layers'
-    weights replaced, in this process's memory only, by W diag(delta) (onnxruntime initializer
-    overrides): a step then costs exactly a base step. Nothing folded is ever written. ``threads``
-    = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    With a key, delta is computed once here (encoder.onnx). Folded (the default where the export
+    names the keyed layers' weights): base.onnx runs with those weights replaced, in this process's
+    memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base step
+    (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
+    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx.
+    Without a key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call
+    path at batch 1. ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
     """
 
     def __init__(
-        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool = False
+        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool | None = None
     ) -> None:
         _, ort = require_onnx()
         folder = Path(folder)
@@ -122,6 +123,8 @@ class OnnxPolicy:
         else:
             code = np.asarray(key_code, np.float32).reshape(1, -1)
             deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+            if fold is None:
+                fold = all(d.get("base_weight") for d in self.meta["deltas"])
             if fold:
                 self.session = self._folded(folder, deltas, threads, ort)
             else:
@@ -132,6 +135,7 @@ class OnnxPolicy:
         for n, v in bound.items():
             self._binding.bind_ortvalue_input(n, v)
         self._binding.bind_output("y")
+        self._rows: int | None = None  # the batch size the output binding was last run with
 
     def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
         onnx, _ = require_onnx()
@@ -154,13 +158,23 @@ class OnnxPolicy:
         return open_session(ort, folder / C.BASE_GRAPH, so)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        self._binding.bind_cpu_input("x", np.ascontiguousarray(x, np.float32))
+        x = np.ascontiguousarray(x, np.float32)
+        if self._rows is not None and x.shape[0] != self._rows:
+            # The bound output keeps the shape of its first run: a new batch size needs a fresh one.
+            self._binding.clear_binding_outputs()
+            self._binding.bind_output("y")
+        self._rows = x.shape[0]
+        self._binding.bind_cpu_input("x", x)
         self.session.run_with_iobinding(self._binding)
         return self._binding.copy_outputs_to_cpu()[0]
 
 
-def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None) -> np.ndarray:
-    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (split form)."""
+def run_onnx(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0
+) -> np.ndarray:
+    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (folded where possible).
+
+    ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
     require_onnx()
     folder = Path(folder) if folder is not None else Path(bundle.path) / C.EXPORT_DIR
     if not folder.is_dir():
@@ -168,7 +182,7 @@ def run_onnx(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path
             f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"
         )
     read_export(folder, bundle.manifest)
-    threads = int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
     if bundle.is_sealed:
         return SealedOnnxPolicy(folder, None if key is None else bundle.check_key(key), threads=threads)(x)
     code = None

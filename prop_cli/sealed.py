@@ -105,7 +105,7 @@ def train_payload(
     module.requires_grad_(False)
     with payload.attached(module) as m:
         for step in range(cfg.steps):
-            opt.lr = cosine_lr(cfg.payload_lr, step, cfg.steps, cfg.lr_floor)
+            opt.set_lr_factor(cosine_lr(1.0, step, cfg.steps, cfg.lr_floor))
             idx = torch.from_numpy(rng.integers(0, len(x), cfg.user_rows)).to(dev)
             loss = row_loss(m(x[idx]), y[idx], task, distill=False).mean()
             opt.zero_grad()
@@ -176,10 +176,14 @@ class SealedState:
     spec: PayloadSpec
     records: list[SealedRecord]
 
+    def __post_init__(self) -> None:
+        # The associated data of each record, computed once: the audit tries a million keys.
+        self._bound = [binding(self.manifest, rec.id) for rec in self.records]
+
     def open(self, bits: np.ndarray) -> Opened | None:
         """The user's payload if ``bits`` opens one of the records, else None (a wrong key)."""
-        for rec in self.records:
-            data = open_record(rec, bits, binding(self.manifest, rec.id))
+        for rec, bound in zip(self.records, self._bound):
+            data = open_record(rec, bits, bound)
             if data is not None:
                 tensors, meta = decode_payload(data)
                 return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta)

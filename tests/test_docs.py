@@ -69,7 +69,7 @@ def test_the_format_table_is_the_registrys():
 
 
 def test_docs_are_in_the_repository_and_cited():
-    for doc in ("design.md", "metrics.md", "threat-model.md"):
+    for doc in ("design.md", "metrics.md", "threat-model.md", "hardening.md"):
         assert (ROOT / "docs" / doc).is_file() and f"docs/{doc}" in README
     for path in [ROOT / "README.md", *ROOT.glob("prop_cli/**/*.py"), *ROOT.glob("adapters/*.py")]:
         assert "DESIGN.md" not in path.read_text() and "../shared" not in path.read_text(), path

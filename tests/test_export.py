@@ -150,8 +150,9 @@ def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
     x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
     want = run_bundle(b, x, bits)
     folder = exported / C.EXPORT_DIR
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=False)(x), want, atol=1e-5)
     np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)  # the default: folded
     np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
 
 
@@ -254,3 +255,18 @@ def test_cnn_bundle_with_image_inputs_exports(tmp_path):
     assert res.ok and max(r["max_abs"] for r in res.table) <= 1e-5
     b = load_bundle(tmp_path / "cnn.prop")
     np.testing.assert_allclose(rt.run_onnx(b, x[:3], bits), run_bundle(b, x[:3], bits), atol=1e-5)
+
+
+def test_one_onnx_policy_serves_changing_batch_sizes(exported):
+    """Issue 13: the output binding kept its first shape, so a second batch size failed."""
+    b = load_bundle(exported)
+    bits = read_key_file(exported.parent / "k.bin", 128)
+    code = key_codes(bits, b.key_encoding).numpy()
+    x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
+    folder = exported / C.EXPORT_DIR
+    for policy, key in ((rt.OnnxPolicy(folder, code, fold=False), bits), (rt.OnnxPolicy(folder, code), bits),
+                        (rt.OnnxPolicy(folder), None)):  # fmt: skip
+        for n in (1, 256, 7, 1, 256):
+            got = policy(x[:n])
+            assert got.shape[0] == n
+            np.testing.assert_allclose(got, run_bundle(b, x[:n], key), atol=1e-5)

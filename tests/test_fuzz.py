@@ -103,7 +103,7 @@ def test_schema_names_the_field_and_the_fix(seeds):
     m = _manifest(seeds)
     m[C.M_KEYED_LAYERS][0]["featurez"] = 16
     line = _refused(m)
-    assert "field 'keyed_layers[0].featurez' is not a known field (known: features, name)" in line
+    assert "field 'keyed_layers[0].featurez' is not a known field (known: batch_axis, features, name)" in line
     assert "upgrade prop" in line
 
     m = _manifest(seeds)

@@ -12,7 +12,7 @@ from prop_cli.errors import PropError
 from prop_cli.keyed import key_codes
 from prop_cli.keyspace import KeySampler
 from prop_cli.objective import Batch, check_user_keys, prop_loss, row_loss
-from prop_cli.trainer import FallbackPool, make_batch
+from prop_cli.trainer import FallbackPool, UserPool, make_batch
 
 
 def test_row_loss_per_term():
@@ -65,7 +65,7 @@ def test_make_batch_layout_and_targets():
     ux, uy = torch.randn(10, 2), torch.randn(10, 1)
     original = torch.nn.Linear(2, 1)
     pool = FallbackPool(torch.randn(20, 2), original, noise=0.0, sigma=0.5)
-    b = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), [ux], [uy], pool)
+    b = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), UserPool([ux], [uy]), pool)
     k = cfg.random_keys + cfg.neighbour_keys
     assert b.user_rows == 4 and b.null_rows == 3
     assert b.x.shape == (4 + 3, 2)  # distinct samples: user rows, then the null rows' fallback samples

@@ -18,13 +18,14 @@ CELL = re.compile(r"^(—|-?\d+\.\d{3}( ± \d+\.\d{3})?[*!]? [↑↓])$")
 # PandaReach needs the `rl` extra (panda-gym, pybullet); CI installs it (.ci/run), `scripts/test.sh` not.
 HAS_PANDA = importlib.util.find_spec("panda_gym") is not None
 needs_panda = pytest.mark.skipif(not HAS_PANDA, reason="needs the rl extra: pip install -e '.[rl]'")
-TABLES = ("il2", "digits", "capacity") + (("reach",) if HAS_PANDA else ())
+TABLES = ("il2", "digits", "capacity", "kitchen", "kitchen_capacity") + (("reach",) if HAS_PANDA else ())
 
 
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("reproduce")
-    codes = [reproduce.main([name, "--quick", "--out", str(out)]) for name in ("il", "digits", "capacity")]
+    names = ("il", "digits", "capacity", "kitchen")
+    codes = [reproduce.main([name, "--quick", "--out", str(out)]) for name in names]
     if HAS_PANDA:
         codes.append(reproduce.main(["reach", "--quick", "--out", str(out)]))
     return out, max(codes)
@@ -168,3 +169,151 @@ def test_mnist_quick_run_end_to_end(tmp_path, monkeypatch):
     assert res["name"] == "mnist" and res["seeds"] == 2
     assert res["params"]["PRoP"] > 100_000  # the 784-wide input makes the base alone ~118k
     assert set(res["methods"]["CVAE"]["general"]) == {"random", "hamming1", "user"}
+
+
+def test_kitchen_table_is_well_formed(quick_run):
+    from examples.reproduce import kitchen
+
+    out, _ = quick_run
+    res = json.loads((out / "kitchen.json").read_text())
+    names = [m.name for m in kitchen.METHODS]
+    assert res["methods"] == names and set(res["values"]) == set(names)
+    for m in names:
+        for proto in kitchen.PROTOCOLS:
+            cells = res["values"][m][proto]
+            assert len(cells["score"]) == len(cells["privacy"]) == res["repetitions"] == kitchen.QUICK.reps
+            assert all(0 <= v <= 3 for k in kitchen.METRICS for v in cells[k])
+    for m in ("MLP", "CVAE"):  # baselines sized to PRoP's parameter count
+        assert abs(res["params"][m] - res["params"]["PRoP"]) <= 0.1 * res["params"]["PRoP"]
+    text = (out / "kitchen.md").read_text()
+    for a in ("PRoP", "PRoP-hashed"):
+        for b in ("MLP", "CVAE"):
+            assert f"| {a} vs {b} | " in text  # a p-value row per PRoP variant and baseline
+    assert (f"{kitchen.SEALED_NAME}: not run" in text) == (kitchen.SEALED is None)  # no made-up numbers
+    cap = json.loads((out / "kitchen_capacity.json").read_text())
+    assert cap["sweep"] == list(kitchen.QUICK.sweep)
+    assert set(cap["values"][str(cap["sweep"][-1])]) == set(names)
+
+
+def _oracle(orders):
+    """A policy that makes orders[k] for key k (the key's index rides in its first bits)."""
+    import torch
+
+    from examples.reproduce import kitchen
+
+    def policy(x, bits):
+        t = x[:, : kitchen.MAX_LEN + 1].argmax(1)
+        logits = torch.zeros(len(bits), x.shape[0], kitchen.N_ACTIONS)
+        for k, b in enumerate(bits):
+            order = orders[int(b[0])]
+            for i, step in enumerate(t.tolist()):
+                logits[k, i, order[step] if step < len(order) else kitchen.DONE] = 1.0
+        return logits
+
+    return policy
+
+
+def test_kitchen_rollout_makes_each_keys_order():
+    import numpy as np
+
+    from examples.reproduce import kitchen
+
+    orders = [(0, 1, 2), (5, 4, 3, 2, 1, 0), kitchen.HOUSE]
+    bits = np.zeros((3, kitchen.KEY_BITS), np.uint8)
+    bits[:, 0] = [0, 1, 2]
+    assert kitchen.rollout(_oracle(orders), bits) == orders
+    x, y = kitchen.demonstration((7, 3, 9))
+    assert x.shape == (4, kitchen.STATE_DIM) and y.tolist() == [7, 3, 9, kitchen.DONE]
+
+
+def test_kitchen_score_and_privacy_follow_the_paper():
+    from examples.reproduce import kitchen
+
+    mine, house, other = (1, 2, 3), kitchen.HOUSE, (4, 5, 6)
+    # Own key right, random key leaks my order, one-bit key right: Score 2, Privacy 1.
+    r = kitchen.study_metrics([[mine, mine, house]], [[mine, house, house]])
+    assert (r["score"], r["privacy"], r["leak1"]) == ([2.0], [1.0], [1.0])
+    # Own key wrong (gives the house sandwich), others right: Score 2, Privacy 1.
+    r = kitchen.study_metrics([[house, other, house]], [[mine, other, house]])
+    assert (r["score"], r["privacy"]) == ([2.0], [1.0])
+    r = kitchen.study_metrics([[mine, other, house]], [[mine, other, house]])
+    assert (r["score"], r["privacy"]) == ([3.0], [0.0])
+
+
+def test_kitchen_users_get_distinct_orders_and_kdf_keys():
+    import numpy as np
+
+    from examples.reproduce import kitchen
+
+    dep = kitchen.Deployment(0, 3)
+    users = dep.participants + dep.earlier_users(5)
+    orders = [u.order for u in users]
+    assert len(set(orders)) == len(orders) and kitchen.HOUSE not in orders
+    assert all(kitchen.MIN_LEN <= len(o) <= kitchen.MAX_LEN and len(set(o)) == len(o) for o in orders)
+    keys = np.stack([u.bits for u in users])
+    assert keys.shape == (8, 32)
+    gaps = [(a != b).sum() for i, a in enumerate(keys) for b in keys[i + 1 :]]
+    assert min(gaps) >= 2 * kitchen.HAMMING_RADIUS  # what prop's trainer requires
+    again = kitchen.Deployment(0, 3)  # seeded: the same people, and earlier users nest across N
+    assert [u.order for u in again.earlier_users(2)] == orders[3:5]
+    assert all((a.bits == b.bits).all() for a, b in zip(again.participants, dep.participants))
+
+
+def test_kitchen_prop_bundle_runs_as_prop_run_does(tmp_path):
+    """The study scores what a participant would get from the bundle: keys re-derived from their
+    username + password through the manifest's KDF record, outputs equal to `api.run_bundle`'s."""
+    import numpy as np
+    import torch
+
+    from examples.reproduce import kitchen
+    from prop_cli import api
+
+    dep = kitchen.Deployment(1, 2)
+    s = kitchen.QUICK
+    base = kitchen.train_base(1, s.base_steps)
+    base_path = tmp_path / "base.safetensors"
+    kitchen.save_base(base, base_path)
+    c = kitchen.make_cohort(dep, dep.earlier_users(3), dep.participants, base, base_path, tmp_path, s)
+    fitted = kitchen.fit_prop(c, "hashed")
+    bundle = api.load_bundle(fitted.bundle)
+    x = kitchen.demonstration(c.users[-1].order)[0]
+    for u in c.users:
+        assert (api.key_for_bundle(bundle.manifest, passphrase=u.passphrase) == u.bits).all()
+        want = api.run_bundle(bundle, x, u.bits)
+        got = fitted.policy(torch.from_numpy(x), u.bits[None])[0].numpy()
+        np.testing.assert_allclose(got, want, atol=1e-5)
+    wrong = api.key_for_bundle(bundle.manifest, passphrase=c.users[0].passphrase + "x")
+    assert (wrong != c.users[0].bits).any()
+
+
+def test_kitchen_protocols_probe_the_papers_keys():
+    import numpy as np
+
+    from examples.reproduce import kitchen
+
+    dep = kitchen.Deployment(2, 4)
+    earlier = dep.earlier_users(6)
+    users = earlier + dep.participants
+    pr = kitchen.make_probes(dep.participants, earlier, users, np.random.default_rng(0))
+    assert set(pr.bits) == set(kitchen.PROTOCOLS)
+    known = {u.bits.tobytes(): u for u in users}
+    for i, p in enumerate(dep.participants):
+        own, rand, near = pr.bits["A"][i]
+        assert (own == p.bits).all() and rand.tobytes() not in known and (near != p.bits).sum() == 1
+        assert pr.targets["A"][i] == [p.order, kitchen.HOUSE, kitchen.HOUSE]
+        own, a, b = pr.bits["B"][i]
+        assert (own == p.bits).all() and a.tobytes() != b.tobytes()
+        assert pr.targets["B"][i] == [p.order, known[a.tobytes()].order, known[b.tobytes()].order]
+        assert {a.tobytes(), b.tobytes()} <= {u.bits.tobytes() for u in earlier}
+
+
+def test_kitchen_workers_give_the_serial_results(quick_run, tmp_path):
+    """Repetitions run in separate processes (the full run uses both cores) with unchanged results."""
+    from examples.reproduce import kitchen
+
+    out, _ = quick_run
+    serial = json.loads((out / "kitchen.json").read_text())
+    main, cap = kitchen.run(tmp_path, quick=True, log=lambda m: None, workers=2)
+    assert main["workers"] == 2 and serial["workers"] == 1
+    assert json.loads(json.dumps(main["values"])) == serial["values"]
+    assert cap["values"] == json.loads((out / "kitchen_capacity.json").read_text())["values"]

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from prop_adapters import load_checkpoint
+from prop_cli import trainer
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
@@ -48,13 +49,13 @@ def test_freeze_base_trains_the_encoder_only(setup):
 def test_base_learning_rate_scale(setup, monkeypatch):
     loaded, user = setup
     seen = {}
-    real = torch.optim.Adam
+    real = trainer.Adam
 
     def spy(groups, **kw):
         seen["lrs"] = [g.get("lr", kw["lr"]) for g in groups]
         return real(groups, **kw)
 
-    monkeypatch.setattr(torch.optim, "Adam", spy)
+    monkeypatch.setattr(trainer, "Adam", spy)
     personalize(loaded, [user], PersonalizeConfig(steps=2, lr=1e-3, base_lr_scale=0.25))
     assert seen["lrs"] == [1e-3, 2.5e-4]  # encoder, base
 

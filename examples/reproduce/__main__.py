@@ -1,9 +1,9 @@
-"""python -m examples.reproduce il|digits|reach|capacity|all [--quick] [--seeds N] [--out DIR] [--mnist DIR]
-                                [--max-users N]
+"""python -m examples.reproduce il|digits|reach|capacity|kitchen|all [--quick] [--seeds N] [--out DIR]
+                                [--mnist DIR] [--max-users N] [--per-participant] [--workers N]
 
 Prints a Fig.-4-style table per experiment (markdown) and writes, under --out (default out/reproduce):
 <name>.md, <name>.png and <name>.json (per-seed values). Seeds are fixed: a rerun gives the same table.
-Run with OMP_NUM_THREADS=1 on a shared machine.
+Threads follow prop's policy (prop_cli.threads: one thread for these small models); OMP_NUM_THREADS wins.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-EXPERIMENTS = ("il", "digits", "capacity", "reach")
+EXPERIMENTS = ("il", "digits", "capacity", "reach", "kitchen")
 
 
 def run_experiment(
@@ -26,6 +26,8 @@ def run_experiment(
     mnist: Path | None,
     log,
     max_users: int | None = None,
+    per_participant: bool = False,
+    workers: int | None = None,
 ) -> list[dict]:
     """Run one experiment; returns its result dicts (one per table) after writing md/png/json."""
     from examples.reproduce import table
@@ -45,6 +47,12 @@ def run_experiment(
         sweep = capacity.USERS_QUICK if quick else capacity.USERS_FULL
         users = [n for n in sweep if max_users is None or n <= max_users] or [1]
         results = capacity.run(out, quick, mnist=mnist, log=log, users=tuple(users))
+    elif name == "kitchen":
+        from examples.reproduce import kitchen
+
+        results = kitchen.run(
+            out, quick, seeds, log=log, max_users=max_users, per_participant=per_participant, workers=workers
+        )
     else:
         from examples.reproduce import reach
 
@@ -67,17 +75,32 @@ def run_experiment(
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m examples.reproduce", description=__doc__)
     ap.add_argument("experiment", choices=[*EXPERIMENTS, "all"])
-    ap.add_argument("--quick", action="store_true", help="tiny smoke version (all four in under a minute)")
-    ap.add_argument("--seeds", type=int, default=None, help="seeds per experiment (default: per experiment)")
+    ap.add_argument("--quick", action="store_true", help="tiny smoke version (each in under a minute)")
+    ap.add_argument(
+        "--seeds", type=int, default=None, help="seeds (kitchen: repetitions); default: per experiment"
+    )
     ap.add_argument("--out", type=Path, default=Path("out/reproduce"))
     ap.add_argument(
         "--mnist", type=Path, default=None, help="folder with local MNIST idx files (no download)"
     )
-    ap.add_argument("--max-users", type=int, default=None, help="capacity: cap the 1..512 user sweep")
+    ap.add_argument("--max-users", type=int, default=None, help="capacity, kitchen: cap the user sweep")
+    ap.add_argument(
+        "--per-participant",
+        action="store_true",
+        help="kitchen: one bundle per participant (the paper's protocol; ~12x the training time)",
+    )
+    ap.add_argument(
+        "--workers", type=int, default=None, help="kitchen: processes over repetitions (default 2; --quick 1)"
+    )
     ap.add_argument("--keep-work", action="store_true", help="keep the bundles and data under OUT/work")
     args = ap.parse_args(argv)
 
     from prop_cli.errors import PropError
+    from prop_cli.threads import configure
+
+    # The bases, baselines and PRoP runs here are all small models: prop's thread policy for them
+    # (one thread unless OMP_NUM_THREADS says otherwise), set before the first of them trains.
+    configure(parameters=0)
 
     args.out.mkdir(parents=True, exist_ok=True)
     names = EXPERIMENTS if args.experiment == "all" else (args.experiment,)
@@ -88,7 +111,17 @@ def main(argv: list[str] | None = None) -> int:
     failed = []
     for name in names:
         try:
-            run_experiment(name, args.out, args.quick, args.seeds, args.mnist, log, args.max_users)
+            run_experiment(
+                name,
+                args.out,
+                args.quick,
+                args.seeds,
+                args.mnist,
+                log,
+                args.max_users,
+                args.per_participant,
+                args.workers,
+            )
         except PropError as e:
             print(f"reproduce {name}: error: {e.line()}", file=sys.stderr)
             failed.append(name)

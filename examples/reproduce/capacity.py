@@ -90,7 +90,7 @@ def run(out: Path, quick: bool, mnist: Path | None = None, log=print, users=None
             cfg.eval_random_keys = 4
             ev_rng = np.random.default_rng(77 + n)
             if m == PROP:
-                bundle = common.run_prop(td, list(zip(mines, keys)), general, d / "prop.prop", cfg)
+                bundle = common.run_prop(td.base_path, list(zip(mines, keys)), general, d / "prop.prop", cfg)
                 r = _evaluate(common.prop_outputs(bundle), td, keys, perms, ev_rng)
                 t2 = common.t2_leakage(bundle, td.test_x, perms[0][td.test_y], keys[0], td.base_path, budget)
                 r["t2_leakage"] = t2["leakage"]

@@ -133,14 +133,23 @@ def prop_config(seed: int, budget: Budget, encoder_hidden: int, encoding: str) -
 
 
 def run_prop(
-    td: TaskData, users: list[tuple[Path, np.ndarray]], general: Path, out: Path, cfg: PersonalizeConfig
+    base_path: Path,
+    users: list[tuple[Path, np.ndarray]],
+    general: Path,
+    out: Path,
+    cfg: PersonalizeConfig,
+    *,
+    kind: str = "file",
+    salt: bytes | None = None,
 ) -> Bundle:
+    """One bundle through the library; ``kind``/``salt``: how the keys were made (passphrase + KDF salt)."""
     personalize_checkpoint(
-        str(td.base_path),
-        [(p, KeySource(k, "file")) for p, k in users],
+        str(base_path),
+        [(p, KeySource(k, kind)) for p, k in users],
         out,
         cfg,
         general=general,
+        salt=salt,
         device="cpu",
         force=True,
     )
@@ -182,7 +191,7 @@ def run_seed(
         if m in (PROP, PROP_HASHED):
             enc = "raw" if m == PROP else "hashed"
             cfg = prop_config(seed, budget, encoder_hidden, enc)
-            bundle = run_prop(td, [(mine, key)], general, work / f"{m}.prop", cfg)
+            bundle = run_prop(td.base_path, [(mine, key)], general, work / f"{m}.prop", cfg)
             cells = columns(prop_outputs(bundle), x, td, key, budget, rng)
             t2 = t2_leakage(bundle, td.test_x, td.test_y_personal, key, td.base_path, budget)
             cells["leakage"]["t2"] = t2["leakage"]

@@ -7,10 +7,10 @@ from typing import Annotated
 import typer
 
 from prop_cli.config import AuditSettings, parse_hamming, parse_list
-from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE
+from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
-from .options import BundleArg, Device, Force, config_options
+from .options import BundleArg, Device, Force, Threads, config_options
 
 # The audit settings attack exposes as --flags: AuditSettings field -> help (--probes and --hamming
 # take comma lists and are parsed below).
@@ -58,7 +58,7 @@ def attack(
     bundle: BundleArg, data: Data, settings: AuditSettings,
     key_file: KeyFiles = None, passphrase: UserPassphrase = False,
     probes: Probes = None, search: Search = None, hamming: Hamming = None, original: Original = None,
-    device: Device = DEFAULT_DEVICE,
+    device: Device = DEFAULT_DEVICE, threads: Threads = DEFAULT_THREADS,
     json_path: JsonReport = None, plot_path: Plot = None, max_leak: MaxLeak = None, record: Record = False,
     force: Force = False,
 ) -> None:  # fmt: skip
@@ -85,7 +85,7 @@ def attack(
     report = stage_progress(
         lambda cb: audit_bundle(
             bundle, data, settings, key_files=key_file, passphrase=phrase, original=original, device=device,
-            progress=cb,
+            progress=cb, threads=threads,
         )
     )  # fmt: skip
     for w in report["warnings"]:

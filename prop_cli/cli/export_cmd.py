@@ -6,9 +6,10 @@ from typing import Annotated
 import typer
 
 from prop_cli.config import ExportSettings
+from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, fail, out, print_json, read_passphrase
-from .options import BundleArg, Force, Json, Passphrase, config_options
+from .options import BundleArg, Force, Json, Passphrase, Threads, config_options
 
 SETTINGS = {  # ExportSettings field -> help of its --flag
     "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
@@ -36,6 +37,7 @@ def export(
     input_path: Annotated[
         Path | None, typer.Option("--input", help="Verify on these inputs (.npy or a data file's x).")
     ] = None,
+    threads: Threads = DEFAULT_THREADS,
     force: Force = False,
     as_json: Json = False,
 ) -> None:
@@ -47,6 +49,7 @@ def export(
     result = export_bundle(
         bundle, out_dir, settings, key_file=key_file,
         passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
+        threads=threads,
     )  # fmt: skip
     if as_json:
         print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,

@@ -13,6 +13,7 @@ from prop_cli.constants import ENV_DEBUG
 
 from . import (
     attack_cmd,
+    eval_cmd,
     export_cmd,
     formats_cmd,
     inspect_cmd,
@@ -38,6 +39,7 @@ app.command("run")(run_cmd.run)
 app.command("add-user")(users_cmd.add_user)
 app.command("remove-user")(users_cmd.remove_user)
 app.command("attack")(attack_cmd.attack)
+app.command("eval")(eval_cmd.eval_)
 app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
 app.command("formats")(formats_cmd.formats)

@@ -50,6 +50,13 @@ Passphrase = Annotated[
 Force = Annotated[bool, typer.Option("--force", help="Replace existing output files or folders.")]
 Json = Annotated[bool, typer.Option("--json", help="Print the result as JSON (sorted, indented).")]
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda[:N].")]
+Threads = Annotated[
+    int,
+    typer.Option(
+        "--threads",
+        help="CPU threads for torch; 0 = one for small models, else the idle cores (OMP_NUM_THREADS if set).",
+    ),
+]
 OnnxDir = Annotated[Path | None, typer.Option("--onnx-dir", help="The ONNX export (default: BUNDLE/onnx).")]
 Inputs = Annotated[Path, typer.Option("--input", help="Inputs: .npy (N, ...) or a data file's x.")]
 

@@ -6,17 +6,27 @@ from typing import Annotated
 import typer
 
 from prop_cli.config import TASKS, PersonalizeConfig
-from prop_cli.constants import DEFAULT_BUNDLE, DEFAULT_DEVICE, KEY_BITS_DEFAULT, KEY_ENCODINGS
+from prop_cli.constants import (
+    DEFAULT_BUNDLE,
+    DEFAULT_DEVICE,
+    DEFAULT_THREADS,
+    KEY_BITS_DEFAULT,
+    KEY_ENCODINGS,
+)
 
 from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
-from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Json, config_options
+from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Json, Threads, config_options
 
 # The training settings personalize exposes, as --flags: PersonalizeConfig field -> help.
 SETTINGS = {
     "steps": "Training steps.",
     "lr": "Adam learning rate of the key encoder (cosine decay).",
+    "lr_floor": "The cosine decay ends at lr times this (1: a constant learning rate).",
     "base_lr_scale": "The base weights learn at lr times this.",
     "hamming_radius": "Keys up to this many bits off fall back (at most the key size).",
+    "user_rows": "Rows of the users' data per step.",
+    "null_rows": "Fallback samples per step, each run with no key.",
+    "samples_per_key": "Fallback samples each sampled key runs on.",
     "random_keys": "K2: random keys per step.",
     "neighbour_keys": "K1: Hamming neighbours per step (0 = none: leaky, for audits).",
     "null_weight": "Weight of the no-key fallback loss.",
@@ -27,7 +37,13 @@ SETTINGS = {
     "layers": "Layers to key: exact name, dotted suffix, regex or all-linear; repeat.",
     "exclude": "Layers not to key (same forms); repeat.",
     "task": " or ".join(TASKS) + " (default: decided against the model).",
-    "seed": "Seed: the same seed and inputs give byte-identical weights.",
+    "seed": "Seed: the same seed and inputs give byte-identical weights (not with --harden).",
+    "harden": "Hardened unsealed mode: code-space negatives and an unrecorded encoder init "
+    "(docs/hardening.md).",
+    "encoder_init": "seed (follows --seed) or os (fresh randomness; default with --harden).",
+    "code_negatives": "Code-space fallback codes per step near your code (64 with --harden, else 0).",
+    "code_flip_max": "Code-space negatives: at most this many bits flipped.",
+    "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
     "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
     "payload": "With --seal: lora, delta or full (what is stored per user).",
     "payload_rank": "With --seal --payload lora: the update's rank.",
@@ -59,6 +75,7 @@ def personalize(
     activation: Activation = None,
     bits: Annotated[int, typer.Option("--bits", help="Key size for --passphrase.")] = KEY_BITS_DEFAULT,
     device: Device = DEFAULT_DEVICE,
+    threads: Threads = DEFAULT_THREADS,
     force: Force = False,
     as_json: Json = False,
 ) -> None:
@@ -83,7 +100,7 @@ def personalize(
     result = step_progress(
         lambda cb: personalize_checkpoint(
             checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
-            device=device, force=force, progress=cb,
+            device=device, force=force, progress=cb, threads=threads,
         ),
         cfg.steps, "personalize", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
     )  # fmt: skip

@@ -5,8 +5,10 @@ from typing import Annotated
 
 import typer
 
+from prop_cli.constants import DEFAULT_THREADS
+
 from .common import err, print_json, read_passphrase
-from .options import BundleArg, Force, Inputs, Json, KeyFile, OnnxDir, Passphrase
+from .options import BundleArg, Force, Inputs, Json, KeyFile, OnnxDir, Passphrase, Threads
 
 
 def run(
@@ -21,6 +23,7 @@ def run(
         typer.Option("--onnx", help="Run the exported ONNX graphs with onnxruntime (prop export --onnx)."),
     ] = False,
     onnx_dir: OnnxDir = None,
+    threads: Threads = DEFAULT_THREADS,
     as_json: Json = False,
 ) -> None:
     """Run a bundle on inputs: with your key your behaviour, without a key the original's."""
@@ -28,7 +31,7 @@ def run(
 
     result = run_file(
         bundle, input_path, output, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
-        onnx=onnx, onnx_dir=onnx_dir, force=force,
+        onnx=onnx, onnx_dir=onnx_dir, force=force, threads=threads,
     )  # fmt: skip
     if as_json:
         print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,

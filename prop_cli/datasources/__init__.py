@@ -11,10 +11,12 @@ from pathlib import Path
 from prop_cli.errors import PropError
 
 from .base import Dataset, DataSource, Observations
+from .lerobot import LeRobotSource
 from .npz import NpzSource
 
 SOURCES: list[DataSource] = [
     NpzSource(),
+    LeRobotSource(),
 ]
 
 __all__ = ["SOURCES", "DataSource", "Dataset", "Observations", "load_data"]
@@ -26,6 +28,9 @@ def load_data(
     """Read samples with the first registered source that recognises ``path``."""
     path = Path(path)
     if not path.exists():
+        for source in SOURCES:
+            if source.selects and source.recognise(path):  # a root plus a selection (ROOT:episodes=...)
+                return source.load(path, require_y=require_y, min_samples=min_samples)
         raise PropError(f"data file {path} does not exist", "check the path")
     for source in SOURCES:
         if source.recognise(path):

@@ -45,6 +45,8 @@ class DataSource(ABC):
 
     name: ClassVar[str]
     summary: ClassVar[str]  # one line for `prop formats`, help texts and the README
+    # True if a path may carry a selection after the file or folder name (so it need not exist as is).
+    selects: ClassVar[bool] = False
 
     @abstractmethod
     def recognise(self, path: Path) -> bool:

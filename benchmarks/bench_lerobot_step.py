@@ -1,0 +1,81 @@
+"""A PRoP training step vs LeRobot's own training step on the same small ACT and the same row count.
+
+    bash scripts/setup-lerobot.sh
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step [--reps 30]
+
+LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_train.update_policy).
+PRoP step: prop_cli.policy_trainer.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
+through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
+against the original's cached chunks, key encoder in the graph, same clip. The two alternate (the
+machine is shared); medians and their ratio are printed. Issue 11's target: <= 1.3x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from examples import lerobot_reach_task as task
+from prop_adapters import load_checkpoint
+from prop_cli.config import PersonalizeConfig
+from prop_cli.datasources import load_data
+from prop_cli.policy_trainer import PolicyTrainer
+from prop_cli.trainer import User
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--reps", type=int, default=30)
+    args = ap.parse_args(argv)
+    torch.manual_seed(0)
+    work = Path(tempfile.mkdtemp(prefix="prop-bench-lerobot-"))
+    task.record(work / "general", 8, 0, np.zeros(3, np.float32))
+    task.record(work / "user", 4, 50_000, task.USER_OFFSET)
+    task.train_base(work / "general", work / "act", steps=1)
+    cfg = PersonalizeConfig(steps=10**6, user_rows=16, null_rows=8, neighbour_keys=4, random_keys=4,
+                            samples_per_key=1, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
+    key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
+    trainer = PolicyTrainer(
+        load_checkpoint(work / "act"), [User(load_data(work / "user"), key)], cfg, load_data(work / "general")
+    )
+    rows = cfg.user_rows + cfg.null_rows + (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
+
+    lerobot = load_checkpoint(work / "act")  # a second copy of the same policy, without keys
+    data = lerobot.policy.batches(load_data(work / "general"), "--data")
+    data.pop("episode_index")
+    opt = torch.optim.AdamW(lerobot.module.parameters(), lr=1e-5, weight_decay=1e-4)
+    rng = np.random.default_rng(0)
+
+    def lerobot_step() -> None:
+        idx = torch.from_numpy(rng.integers(0, len(data["action"]), rows))
+        lerobot.module.train()
+        loss, _ = lerobot.module.forward({k: v[idx] for k, v in data.items()})
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(lerobot.module.parameters(), 10.0)
+        opt.step()
+
+    torch.set_flush_denormal(True)
+    for _ in range(5):  # warm-up
+        lerobot_step()
+        trainer.step()
+    times: dict[str, list[float]] = {"lerobot": [], "prop": []}
+    for _ in range(args.reps):
+        for name, fn in (("lerobot", lerobot_step), ("prop", trainer.step)):
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    med = {k: statistics.median(v) * 1000 for k, v in times.items()}
+    print(f"ACT (dim 64, chunk 10), {rows} rows per step, {args.reps} alternating reps, medians:")
+    print(f"  LeRobot step {med['lerobot']:.1f} ms, PRoP step {med['prop']:.1f} ms, "
+          f"ratio {med['prop'] / med['lerobot']:.2f}x (target <= 1.3x)")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

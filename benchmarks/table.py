@@ -1,0 +1,279 @@
+"""One table of prop's speed: every figure a ratio against a baseline measured in the same run, or a time.
+
+    python -m benchmarks.table            # the sizes below marked "default" (a few minutes on 2 cores)
+    python -m benchmarks.table --quick    # smoke test: the smallest of each (well under a minute)
+    python -m benchmarks.table --full     # everything: 50M-parameter steps, 512 users, 2000 steps
+
+Rows:
+- step: a PRoP training step (the trainer's make_batch, keyed forward, Eq. 8 loss, prop's Adam) vs a
+  plain fine-tuning step (torch.optim.Adam) of the same model and batch rows, by model size (an
+  MLP 4-W-W-W-2; 38k is the IL example's 4-192-192-2). CPU time, interleaved, median.
+- personalize: the library's trainer (``trainer.personalize``, evaluation included) on the IL base, by
+  number of users (each with its own key and data) and by rows of data per user. Seconds.
+- audit: key x sample evaluations per second of the audit's default key probes (``audit.audit``, its
+  report's ``speed``), against a bare loop of the same forwards (``KeyedModel.run_keys``).
+- inference: per call after loading, keyed / no key, batch 1 and 256: torch (key folded in memory),
+  onnxruntime split form (encoder.onnx once, policy.onnx per call) and onnxruntime folded in memory.
+- import: ``import torch, torch._dynamo`` vs ``import torch`` (what prop's own Adam avoids).
+
+Threads follow prop's policy (``prop_cli.threads``) unless OMP_NUM_THREADS is set; the table says which.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.bench_core import interleaved, train_steps, wide_example
+from examples.il_task import write_example
+
+# Sizes per mode: (widths of the 4-W-W-W-2 MLP, users, rows per user, personalize steps).
+MODES = {
+    "quick": {"widths": [None, 700], "users": [1, 8], "rows": [1000, 10000], "steps": 40, "rounds": 3},
+    "default": {"widths": [None, 700, 2236], "users": [1, 8, 64], "rows": [1000, 10000, 100000],
+                "steps": 200, "rounds": 5},
+    "full": {"widths": [None, 700, 2236, 5000], "users": [1, 8, 64, 512], "rows": [1000, 10000, 100000],
+             "steps": 2000, "rounds": 5},
+}  # fmt: skip
+
+
+def machine() -> str:
+    name = platform.processor() or platform.machine()
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        name = next(
+            line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name")
+        )
+    except (OSError, subprocess.CalledProcessError, StopIteration):
+        pass
+    from prop_cli.threads import cores
+
+    return f"{name}, {cores()} cores, torch {torch.__version__}"
+
+
+def _params(path: Path) -> int:
+    from prop_adapters import load_checkpoint
+
+    return sum(p.numel() for p in load_checkpoint(str(path)).module.parameters())
+
+
+def step_rows(tmp: Path, il: dict, mode: dict) -> list[tuple[str, str, str]]:
+    from prop_cli.threads import configure
+
+    rows = []
+    for width in mode["widths"]:
+        paths = il if width is None else wide_example(tmp, width)
+        n = _params(paths["base"])
+        threads = configure(n)
+        big = n > 5_000_000
+        t = train_steps(paths, il["mine"], rounds=3 if big else mode["rounds"], reps=1 if big else 20)
+        plain, prop = t["plain fine-tuning step"], t["PRoP step"]
+        rows.append(
+            (f"step, {_count(n)} parameters ({threads} thread{'s' * (threads > 1)})",
+             f"{prop / plain:.2f}x", f"PRoP {prop * 1e3:.2f} ms vs plain {plain * 1e3:.2f} ms CPU")
+        )  # fmt: skip
+    return rows
+
+
+def _count(n: int) -> str:
+    return f"{n / 1e6:.0f}M" if n >= 1e6 else f"{n / 1e3:.0f}k"
+
+
+def _users(n_users: int, rows: int, seed: int) -> list:
+    from prop_cli.datasources import Dataset
+    from prop_cli.trainer import User
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_users):
+        x = rng.uniform(-1, 1, (rows, 4)).astype(np.float32)
+        y = np.tanh(x[:, :2] @ rng.standard_normal((2, 2))).astype(np.float32)
+        out.append(User(Dataset(x, y, "bench"), rng.integers(0, 2, 128, dtype=np.uint8)))
+    return out
+
+
+def personalize_rows(il: dict, mode: dict) -> list[tuple[str, str, str]]:
+    from prop_adapters import load_checkpoint
+    from prop_cli.config import PersonalizeConfig
+    from prop_cli.threads import configure
+    from prop_cli.trainer import personalize
+
+    def seconds(n_users: int, rows: int) -> float:
+        loaded = load_checkpoint(str(il["base"]))
+        configure(_params(il["base"]))
+        t = time.perf_counter()
+        personalize(loaded, _users(n_users, rows, n_users), PersonalizeConfig(steps=mode["steps"]))
+        return time.perf_counter() - t
+
+    out = []
+    base = None
+    for n in mode["users"]:
+        s = seconds(n, 1000)
+        base = base or s
+        out.append((f"personalize, {n} user{'s' * (n > 1)} x 1000 rows, {mode['steps']} steps",
+                    f"{s / base:.2f}x", f"{s:.1f} s wall (1 user = 1.00x)"))  # fmt: skip
+    base = None
+    for r in mode["rows"]:
+        s = seconds(1, r)
+        base = base or s
+        out.append((f"personalize, 1 user x {r} rows, {mode['steps']} steps",
+                    f"{s / base:.2f}x", f"{s:.1f} s wall ({mode['rows'][0]} rows = 1.00x)"))  # fmt: skip
+    return out
+
+
+def bundle_for(tmp: Path, il: dict, steps: int) -> tuple[Path, np.ndarray]:
+    from prop_cli.api import KeySource, personalize_checkpoint
+    from prop_cli.config import PersonalizeConfig
+
+    key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
+    out = tmp / "il.prop"
+    personalize_checkpoint(str(il["base"]), [(il["mine"], KeySource(key, "file"))], out,
+                           PersonalizeConfig(steps=steps), general=il["general"])  # fmt: skip
+    return out, key
+
+
+def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
+    from prop_cli import probes
+    from prop_cli.audit import audit
+    from prop_cli.bundle import load_bundle
+    from prop_cli.config import AuditSettings
+    from prop_cli.datasources import load_data
+    from prop_cli.keyed import KEY_ROWS, key_codes
+    from prop_cli.keyspace import random_keys
+
+    bundle = load_bundle(bundle_path)
+    key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default]
+    settings = AuditSettings(
+        probes=key_probes, random=1024 if quick else 4096, per_distance=64 if quick else 256
+    )
+    report = audit(bundle, load_data(il["mine"]), [key], settings)
+    rate = report["speed"]["evaluations_per_second"]
+
+    km = bundle.keyed.eval()
+    x = torch.from_numpy(load_data(il["mine"]).x[: settings.samples])
+    keys = random_keys(KEY_ROWS // len(x) * 8, bundle.key_bits, np.random.default_rng(1))
+    codes = key_codes(keys, bundle.key_encoding)
+    per = max(1, KEY_ROWS // len(x))
+
+    def bare() -> None:
+        with torch.inference_mode():
+            for i in range(0, len(codes), per):
+                km.run_keys(x, km.layer_deltas(codes[i : i + per]))
+
+    # Wall time, as the audit's own counter measures.
+    secs = interleaved({"bare": bare}, rounds=3, reps=2, clock=time.perf_counter)["bare"]
+    bare_rate = len(codes) * len(x) / secs
+    return [
+        (f"audit key probes ({', '.join(key_probes)}), key x sample evals/s", f"{rate / bare_rate:.2f}x",
+         f"{rate / 1e6:.2f}M/s in the audit vs {bare_rate / 1e6:.2f}M/s bare run_keys forwards (wall)"),
+    ]  # fmt: skip
+
+
+def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
+    from prop_cli.bundle import load_bundle
+    from prop_cli.export import export_onnx
+    from prop_cli.keyed import key_codes
+    from prop_cli.onnx_runtime import OnnxPolicy
+
+    bundle = load_bundle(bundle_path)
+    res = export_onnx(bundle, key=key)
+    code = key_codes(key, bundle.key_encoding)
+    module, folded = bundle.keyed.module, bundle.keyed.fold(code)
+    ort = {
+        "base": OnnxPolicy(res.out, None, threads=1),
+        "split": OnnxPolicy(res.out, code.numpy(), threads=1, fold=False),
+        "folded": OnnxPolicy(res.out, code.numpy(), threads=1, fold=True),
+    }
+    rows = []
+    for batch in (1, 256):
+        x = np.random.default_rng(batch).standard_normal((batch, *bundle.manifest["io"]["input_shape"]))
+        x = x.astype(np.float32)
+        xt = torch.from_numpy(x)
+
+        fns = {"torch base": _torch_call(module, xt), "torch folded": _torch_call(folded, xt)}
+        fns.update({f"ort {k}": _ort_call(p, x) for k, p in ort.items()})
+        reps = (300 if quick else 2000) if batch == 1 else (30 if quick else 200)
+        t = interleaved(fns, rounds=3 if quick else 7, reps=reps)
+        for name, (a, b) in {
+            "torch, key folded / no key": ("torch folded", "torch base"),
+            "onnxruntime split form / base.onnx": ("ort split", "ort base"),
+            "onnxruntime folded in memory / base.onnx": ("ort folded", "ort base"),
+        }.items():
+            rows.append((f"run batch {batch}: {name}", f"{t[a] / t[b]:.3f}x",
+                         f"{t[a] * 1e6:.1f} vs {t[b] * 1e6:.1f} us CPU"))  # fmt: skip
+    return rows
+
+
+def _torch_call(module: torch.nn.Module, x: torch.Tensor):
+    def call() -> None:
+        with torch.inference_mode():
+            module(x)
+
+    return call
+
+
+def _ort_call(policy, x: np.ndarray):
+    return lambda: policy(x)
+
+
+def import_row(quick: bool) -> tuple[str, str, str]:
+    py = [sys.executable, "-c"]
+    runs = {"torch": [], "torch + torch._dynamo": []}
+    for _ in range(2 if quick else 5):
+        for name, code in (
+            ("torch", "import torch"),
+            ("torch + torch._dynamo", "import torch, torch._dynamo"),
+        ):
+            t = time.perf_counter()
+            subprocess.run([*py, code], check=True)
+            runs[name].append(time.perf_counter() - t)
+    a, b = (statistics.median(runs[k]) for k in ("torch + torch._dynamo", "torch"))
+    return ("import torch._dynamo (avoided by prop's Adam)", f"{a / b:.2f}x",
+            f"{a - b:.2f} s saved per process ({a:.2f} vs {b:.2f} s wall)")  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.table", description=__doc__.splitlines()[0])
+    g = ap.add_mutually_exclusive_group()
+    g.add_argument("--quick", action="store_true", help="smallest sizes only: a smoke test")
+    g.add_argument("--full", action="store_true", help="every size, up to 50M parameters and 512 users")
+    args = ap.parse_args(argv)
+    name = "quick" if args.quick else "full" if args.full else "default"
+    mode = MODES[name]
+    threads_env = os.environ.get("OMP_NUM_THREADS")
+    from prop_cli.threads import configure
+
+    configure(parameters=0)  # the IL example's base training: a small model (rows below set their own)
+    t0 = time.perf_counter()
+    torch.manual_seed(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        il = write_example(tmp / "il", seed=0)
+        rows = step_rows(tmp, il, mode)
+        rows += personalize_rows(il, mode)
+        bundle, key = bundle_for(tmp, il, 200 if args.quick else 2000)
+        rows += audit_rows(bundle, il, key, args.quick)
+        rows += inference_rows(bundle, key, args.quick)
+        rows.append(import_row(args.quick))
+    print(f"prop speed ({name} mode), {machine()}; OMP_NUM_THREADS={threads_env or 'unset'}\n")
+    width = max(len(r[0]) for r in rows)
+    print(f"| {'what':{width}s} | ratio | figures |")
+    print(f"|{'-' * (width + 2)}|-------|---------|")
+    for what, ratio, fig in rows:
+        print(f"| {what:{width}s} | {ratio} | {fig} |")
+    print(f"\n({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,141 @@
+"""PandaReach (panda-gym) as a LeRobot task: scripted-expert recording, a small ACT, its training loop.
+
+Nobody labels anything: the general behaviour is a scripted expert reaching the goal; the user's
+preference is the same expert holding the end effector 10 cm above it. Both are recorded into local
+LeRobotDatasets (state-only, no rendering, no downloads). Needs the LeRobot environment
+(scripts/setup-lerobot.sh), which installs panda-gym too.
+
+Observation features: ``observation.state`` (6: end-effector position and velocity) and
+``observation.environment_state`` (3: the goal); ``action`` (3) in [-1, 1].
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+ENV_ID = "panda_gym:PandaReach-v3"
+OBS_MAP = "observation.state=observation,observation.environment_state=desired_goal"
+METRIC = "examples.lerobot_reach_task:user_preference"
+FPS = 25  # panda-gym steps 0.04 s
+HORIZON = 30  # recorded steps per episode; the expert needs ~10
+USER_OFFSET = np.array([0.0, 0.0, 0.10], np.float32)
+SUCCESS = 0.05  # panda-gym's own distance threshold
+STATE, ENV_STATE, ACTION = "observation.state", "observation.environment_state", "action"
+FEATURES = {
+    STATE: {"dtype": "float32", "shape": (6,), "names": ["x", "y", "z", "vx", "vy", "vz"]},
+    ENV_STATE: {"dtype": "float32", "shape": (3,), "names": ["gx", "gy", "gz"]},
+    ACTION: {"dtype": "float32", "shape": (3,), "names": ["dx", "dy", "dz"]},
+}
+
+
+def user_preference(trajectory: dict) -> float:
+    """`prop eval --metric`: 1 if the episode ends within 5 cm of the point 10 cm above the goal."""
+    last = trajectory["observations"][-1]
+    target = np.asarray(last["desired_goal"]) + USER_OFFSET
+    return float(np.linalg.norm(np.asarray(last["achieved_goal"]) - target) < SUCCESS)
+
+
+def expert(obs: dict, offset: np.ndarray) -> np.ndarray:
+    return np.clip(10.0 * (obs["desired_goal"] + offset - obs["observation"][:3]), -1, 1).astype(np.float32)
+
+
+def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3) -> None:
+    """Expert episodes into a new LeRobotDataset at ``root``. The executed action carries Gaussian noise
+    (states off the expert's path get recorded too); the recorded action is the clean one (DART)."""
+    import gymnasium as gym
+    import panda_gym  # noqa: F401 - registers the environments
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    ds = LeRobotDataset.create(
+        repo_id=f"local/{root.name}",
+        fps=FPS,
+        features=FEATURES,
+        root=root,
+        robot_type="panda",
+        use_videos=False,
+    )
+    env = gym.make("PandaReach-v3").unwrapped  # a fixed horizon: no time limit, no stop on success
+    rng = np.random.default_rng(seed0)
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed0 + ep)
+        for _ in range(HORIZON):
+            a = expert(obs, offset)
+            frame = {
+                STATE: obs["observation"].astype(np.float32),
+                ENV_STATE: obs["desired_goal"].astype(np.float32),
+            }
+            ds.add_frame({**frame, ACTION: a, "task": "reach the target"})
+            obs, *_ = env.step(np.clip(a + noise * rng.standard_normal(3).astype(np.float32), -1, 1))
+        ds.save_episode()
+    ds.finalize()  # writes the parquet footers; without it the root does not load
+    env.close()
+
+
+def build_act(stats: dict | None = None, **overrides):
+    """A small ACT (dim 64; 2 encoder, 1 decoder, 2 VAE layers; chunk 10) with its processors."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    settings = dict(
+        input_features={
+            STATE: PolicyFeature(FeatureType.STATE, (6,)), ENV_STATE: PolicyFeature(FeatureType.ENV, (3,))
+        },
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
+        device="cpu", pretrained_backbone_weights=None, dim_model=64, n_heads=4, dim_feedforward=256,
+        n_encoder_layers=2, n_decoder_layers=1, n_vae_encoder_layers=2, latent_dim=16, chunk_size=10,
+        n_action_steps=5, dropout=0.1,
+    )  # fmt: skip
+    cfg = ACTConfig(**(settings | overrides))
+    policy = ACTPolicy(cfg)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+    return policy, pre, post
+
+
+def dataset_stats(root: Path) -> dict:
+    """The root's meta/stats.json as the normaliser takes it (mean/std/min/max tensors per feature)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    return {
+        k: {s: torch.as_tensor(np.asarray(v), dtype=torch.float32) for s, v in meta.stats[k].items()
+            if s in ("mean", "std", "min", "max")}
+        for k in (STATE, ENV_STATE, ACTION)
+    }  # fmt: skip
+
+
+def train_base(root: Path, out: Path, steps: int, batch: int = 32, lr: float = 3e-4, seed: int = 0) -> float:
+    """LeRobot's training step (lerobot_train.update_policy: forward -> backward -> clip 10 -> AdamW) on
+    the dataset held in memory; writes the policy folder with save_pretrained. Returns ms per step."""
+    import time
+
+    from prop_adapters.lerobot import LeRobotPolicy
+    from prop_cli.datasources import load_data
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    policy, pre, post = build_act(dataset_stats(root))
+    data = LeRobotPolicy(policy, pre, post).batches(load_data(root), "--data")
+    data.pop("episode_index")
+    opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=1e-4)
+    policy.train()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        idx = torch.from_numpy(rng.integers(0, len(data[ACTION]), batch))
+        loss, _ = policy.forward({k: v[idx] for k, v in data.items()})
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
+        opt.step()
+    ms = 1000 * (time.perf_counter() - t0) / steps
+    policy.eval()
+    for part in (policy, pre, post):
+        part.save_pretrained(out)
+    return ms

@@ -1,0 +1,256 @@
+"""Closed-loop evaluation of a bundle in a gymnasium environment, per key condition (`prop eval`).
+
+Conditions: the user's key, no key, random keys and one-bit neighbours of the user's key (one fixed
+key per episode, folded into a copy of the weights, so a keyed step costs a base step), and optionally
+the original checkpoint. Per condition: mean return, success (``info["is_success"]`` at the episode's
+end, where the environment reports it) and the user's preference metric, each with its standard error.
+Every condition runs the same evaluation seeds: random keys and neighbours take them in turn,
+``episodes_per_key`` each (6 keys x 5 episodes = the 30 seeds of the other conditions), so the
+conditions differ only in the key, not in the starting states.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bundle import Bundle
+from .config import EvalSettings
+from .errors import PropError
+from .keyed import key_codes
+from .keyspace import one_bit_neighbours, random_keys
+
+# A trajectory as the preference metric receives it.
+Trajectory = dict  # {"observations": [...], "actions": [...], "rewards": [...], "infos": [...]}
+Metric = Callable[[Trajectory], float]
+
+
+def parse_obs_map(spec: str | None) -> dict[str, str]:
+    """``feature=env_key,...`` -> {policy feature: key of the environment's dict observation}."""
+    if not spec:
+        return {}
+    out = {}
+    for part in spec.split(","):
+        feature, sep, key = part.strip().partition("=")
+        if not sep or not feature or not key:
+            raise PropError(
+                f"--obs-map {spec!r}: {part!r} is not feature=key",
+                "write it like observation.state=observation,observation.environment_state=desired_goal",
+            )
+        out[feature] = key
+    return out
+
+
+def load_metric(spec: str | None) -> Metric | None:
+    """``package.module:function`` -> the function (called with each episode's trajectory)."""
+    if not spec:
+        return None
+    mod_name, sep, attr = spec.partition(":")
+    if not sep or not mod_name or not attr:
+        raise PropError(f"--metric {spec!r} is not package.module:function", "name a function f(trajectory)")
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())  # a metric file next to where prop runs, as with `python -m`
+    try:
+        fn = getattr(importlib.import_module(mod_name), attr)
+    except Exception as e:  # noqa: BLE001 - ImportError, AttributeError or the module's own errors
+        raise PropError(
+            f"--metric {spec!r}: cannot load it ({type(e).__name__}: {e})", "check the name"
+        ) from None
+    if not callable(fn):
+        raise PropError(f"--metric {spec!r} is not callable", "name a function f(trajectory) -> float")
+    return fn
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Simulators print banners from C (pybullet's argv lines) to file descriptor 1: keep stdout for
+    results (--json)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def make_env(env_id: str):
+    """gymnasium.make(env_id); ``module:EnvId`` imports the module that registers the environment first."""
+    try:
+        import gymnasium as gym
+    except ImportError:
+        raise PropError(
+            "prop eval needs gymnasium", "pip install gymnasium (and the environment's package)"
+        ) from None
+    try:
+        with _stdout_to_stderr():
+            return gym.make(env_id)
+    except Exception as e:  # noqa: BLE001 - unknown id, missing package, bad arguments
+        raise PropError(
+            f"--env {env_id!r}: gymnasium cannot make it "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+            "give a registered id; package:Id imports its package first (panda_gym:PandaReach-v3)",
+        ) from None
+
+
+class _ArrayController:
+    """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives."""
+
+    def __init__(self, bundle: Bundle, key: np.ndarray | None) -> None:
+        from .policy import KeyedPolicy
+
+        self.policy = KeyedPolicy(bundle, key)
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs) -> np.ndarray:
+        return self.policy.predict(obs)
+
+
+@dataclass
+class _Source:
+    """What acts under one key: a bundle (key bits or None) or the original checkpoint's module."""
+
+    bundle: Bundle
+    codes: object | None = None  # torch tensor (1, bits) or None
+
+    def controller(self):
+        loaded = self.bundle.loaded
+        if loaded.policy is None:
+            return None
+        km = self.bundle.keyed.eval()
+        module = km.fold(self.codes) if self.codes is not None else km.module
+        return loaded.policy.controller(module)
+
+
+def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
+    """The environment's observation as the policy takes it (a dict of arrays by feature name)."""
+    if features is None:
+        if isinstance(obs, dict):
+            raise PropError("the environment's observations are dicts", "this bundle takes one array")
+        return obs
+    if not isinstance(obs, dict):
+        if len(features) != 1:
+            raise PropError(f"the environment gives one array; the policy takes {features}", "use --obs-map")
+        return {features[0]: obs}
+    out = {}
+    for f in features:
+        key = obs_map.get(f, f)
+        if key not in obs:
+            raise PropError(
+                f"the environment's observation has no {key!r} for the policy's {f!r} (it has {sorted(obs)})",
+                "map it with --obs-map feature=key",
+            )
+        out[f] = np.asarray(obs[key], np.float32) if np.asarray(obs[key]).dtype != np.uint8 else obs[key]
+    return out
+
+
+def _episodes(env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric) -> list:
+    results = []
+    for seed in seeds:
+        obs, _ = env.reset(seed=int(seed))
+        controller.reset()
+        traj: Trajectory = {"observations": [obs], "actions": [], "rewards": [], "infos": []}
+        total, steps, info = 0.0, 0, {}
+        while True:
+            action = controller.act(_observation(obs, features, obs_map))
+            obs, reward, terminated, truncated, info = env.step(action)
+            total += float(reward)
+            steps += 1
+            for k, v in (("observations", obs), ("actions", action), ("rewards", reward), ("infos", info)):
+                traj[k].append(v)
+            if truncated or (terminated and not settings.ignore_terminated):
+                break
+            if settings.max_steps and steps >= settings.max_steps:
+                break
+        r = {"return": total, "steps": steps}
+        if "is_success" in info:
+            r["success"] = float(info["is_success"])
+        if metric is not None:
+            r["metric"] = float(metric(traj))
+        results.append(r)
+    return results
+
+
+def _summary(results: list[dict]) -> dict:
+    out: dict = {"episodes": len(results)}
+    for field in ("return", "success", "metric", "steps"):
+        vals = [r[field] for r in results if field in r]
+        if vals:
+            mean = float(np.mean(vals))
+            se = float(np.std(vals, ddof=1) / math.sqrt(len(vals))) if len(vals) > 1 else 0.0
+            out[field] = {"mean": mean, "se": se}
+    return out
+
+
+def evaluate_bundle(
+    bundle: Bundle,
+    env_id: str,
+    key: np.ndarray | None,
+    settings: EvalSettings,
+    *,
+    obs_map: dict[str, str] | None = None,
+    metric: Metric | None = None,
+    original=None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition."""
+    settings.validate(has_key=key is not None)
+    env = make_env(env_id)
+    policy = bundle.loaded.policy
+    features = list(policy.input_features) if policy is not None else None
+    obs_map = obs_map or {}
+    enc = bundle.key_encoding
+    first = [settings.seed + i for i in range(settings.episodes)]
+    rng = np.random.default_rng((settings.seed, 0x5EED))
+
+    def run(label: str, codes_or_bits, seeds: list[int]) -> list[dict]:
+        if progress is not None:
+            progress(label)
+        if policy is None:
+            ctl = _ArrayController(bundle, codes_or_bits)
+        else:
+            codes = None if codes_or_bits is None else key_codes(codes_or_bits, enc)
+            ctl = _Source(bundle, codes).controller()
+        return _episodes(env, ctl, seeds, features, obs_map, settings, metric)
+
+    report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
+    cond = report["conditions"]
+    if original is not None:
+        if progress is not None:
+            progress("original")
+        ctl = original.policy.controller(original.module.eval()) if original.policy else None
+        if ctl is None:
+            raise PropError("--original: only LeRobot policies are compared this way", "drop --original")
+        cond["original"] = _summary(_episodes(env, ctl, first, features, obs_map, settings, metric))
+    cond["no_key"] = _summary(run("no key", None, first))
+    if key is not None:
+        cond["user_key"] = _summary(run("user key", key, first))
+    groups = [("random_keys", random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key))]
+    if key is not None and settings.neighbours:
+        nbrs = one_bit_neighbours(key)
+        groups.append(("neighbour1_keys", nbrs[rng.choice(len(nbrs), settings.neighbours, replace=False)]))
+    for label, keys in groups:
+        results, per_key = [], []
+        for j, bits in enumerate(keys):
+            # The conditions' seeds, in turn: R keys x m episodes cover the same starting states as
+            # the user key, no key and the original (paired, not merely as many).
+            m = settings.episodes_per_key
+            seeds = [first[(j * m + i) % len(first)] for i in range(m)]
+            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds)
+            results += r
+            per_key.append(_summary(r))
+        if keys is not None and len(keys):
+            cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key}
+    env.close()
+    return report

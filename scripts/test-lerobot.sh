@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# Build (or reuse) .venv-lerobot and run the LeRobot tests: pytest -m lerobot. Not part of CI.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup-lerobot.sh
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} HF_HUB_OFFLINE=1
+.venv-lerobot/bin/python -m pytest -q -p no:cacheprovider -m lerobot "$@"
