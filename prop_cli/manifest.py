@@ -184,19 +184,26 @@ SCHEMA: dict[str, Rule] = {
         list_of(obj({"name": NAME, "features": DIM, C.M_BATCH_AXIS: _opt(integer(0, 16))}), 1),
         UNSEALED,
     ),
-    C.M_KEY: obj({
-        "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
-        "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
-        "users": _opt(integer(1, 1 << 16)),
-        "source": _opt(choice(("file", "passphrase", "mixed"))),
-        "kdf": _opt(KDF_RECORD, nullable=True),
-    }),  # fmt: skip
-    C.M_ENCODER: _opt(obj({
-        "hidden": list_of(DIM, 0, 256),
-        "scale": number(0, 1e6, open_lo=True),
-        "activation": _opt(choice(("tanh",))),
-        "output": _opt(text()),
-    }), UNSEALED),  # fmt: skip
+    C.M_KEY: obj(
+        {
+            "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
+            "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
+            "users": _opt(integer(1, 1 << 16)),
+            "source": _opt(choice(("file", "passphrase", "mixed"))),
+            "kdf": _opt(KDF_RECORD, nullable=True),
+        }
+    ),  # fmt: skip
+    C.M_ENCODER: _opt(
+        obj(
+            {
+                "hidden": list_of(DIM, 0, 256),
+                "scale": number(0, 1e6, open_lo=True),
+                "activation": _opt(choice(("tanh",))),
+                "output": _opt(text()),
+            }
+        ),
+        UNSEALED,
+    ),  # fmt: skip
     C.M_CONFIG: _opt(RECORD),
     C.M_METRICS: _opt(RECORD),
     C.M_TASK: choice(("classification", "regression")),
@@ -205,24 +212,41 @@ SCHEMA: dict[str, Rule] = {
         (dict,), "an object of file path -> sha256", values=SHA256, key_ok=bundle_path, min_len=1
     ),
     C.M_AUDIT: _opt(RECORD),
-    C.M_PAYLOAD: _opt(obj({
-        "kind": choice(PAYLOAD_KINDS),
-        "rank": integer(0, MAX_DIM),
-        "layers": list_of(obj({"name": NAME, "in_features": DIM, "out_features": DIM}), 1),
-    }), SEALED),  # fmt: skip
-    C.M_RECORDS: _opt(list_of(obj({
-        "id": text(),
-        "file": RECORD_FILE,
-        "salt": hex_string(8, 64),
-        "nonce": hex_string(8, 64),
-        "sha256": SHA256,
-    }), 1), SEALED),  # fmt: skip
-    C.M_KDF: _opt(obj({
-        "scrypt_salt": hex_string(8, 64),
-        "n": integer(2, 1 << 20),
-        "r": integer(1, 64),
-        "p": integer(1, 64),
-    })),  # fmt: skip
+    C.M_PAYLOAD: _opt(
+        obj(
+            {
+                "kind": choice(PAYLOAD_KINDS),
+                "rank": integer(0, MAX_DIM),
+                "layers": list_of(obj({"name": NAME, "in_features": DIM, "out_features": DIM}), 1),
+            }
+        ),
+        SEALED,
+    ),  # fmt: skip
+    C.M_RECORDS: _opt(
+        list_of(
+            obj(
+                {
+                    "id": text(),
+                    "file": RECORD_FILE,
+                    "salt": hex_string(8, 64),
+                    "nonce": hex_string(8, 64),
+                    "sha256": SHA256,
+                }
+            ),
+            1,
+        ),
+        SEALED,
+    ),  # fmt: skip
+    C.M_KDF: _opt(
+        obj(
+            {
+                "scrypt_salt": hex_string(8, 64),
+                "n": integer(2, 1 << 20),
+                "r": integer(1, 64),
+                "p": integer(1, 64),
+            }
+        )
+    ),  # fmt: skip
 }
 
 

@@ -159,6 +159,7 @@ def make_seeds(work: Path, steps: int = 5) -> dict[str, list[Seed]]:
     personalize_checkpoint(str(work / "model.safetensors"), users, work / "b.prop", cfg)
     sealed_cfg = PersonalizeConfig(steps=steps, seal=True, payload="lora", payload_rank=2, eval_random_keys=2)
     personalize_checkpoint(str(work / "model.safetensors"), users, work / "s.prop", sealed_cfg)
+
     def one(kind: str, name: str, load: Callable, checksummed: bool, data: bytes | None = None) -> Seed:
         return Seed(kind, name, {name: data or (work / name).read_bytes()}, load, checksummed)
 
