@@ -4,13 +4,19 @@ With the default hashed encoding the encoder's input is SHAKE-256(key), so this 
 space: at least as strong as searching keys (a rounded code need not be reachable by any key). With
 raw encoding the code is the key. The search maximises divergence from the reference on the inputs
 only; it never sees the owner's targets.
+
+Control: what the same attacker reaches without the bundle, i.e. the same search budget spent on the
+original checkpoint's deltas directly (T2's search, within the encoder's range). Not this search
+through the bundle's encoder on the original: the encoder is part of the bundle and carries the
+user's behaviour into such a "control" (it reached 0.53-0.60 on the IL example), which hid leakage.
 """
 
 from __future__ import annotations
 
 import torch
 
-from .base import Group, Probe, ProbeContext, maximise_divergence, on_original
+from . import latent
+from .base import Group, Probe, ProbeContext, maximise_divergence
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -40,8 +46,13 @@ def run(ctx: ProbeContext) -> list[Group]:
     ]
 
 
+def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+    [direct] = latent.run(ctx.on(ctx.original))
+    return [Group(g.name, direct.values, is_key=False, search=direct.search) for g in found]
+
+
 PROBE = Probe(
     "relaxed", "T1", "search",
     "a continuous code optimised through the encoder (--restarts, --search-steps), and its rounding", run,
-    control=on_original(run),
+    control=control,
 )  # fmt: skip
