@@ -7,6 +7,8 @@
    (saved as safetensors), the user's demonstrations (the negated action), and test states.
 2. `prop keygen`, `prop inspect`, `prop personalize` (defaults), `prop run` with and without the key.
 3. Print base vs personalized behaviour on a few states, and the errors on 2000 held-out states.
+4. The same with a sealed bundle (`--seal`: the base is the original, the user's part is encrypted),
+   where a wrong key runs the original exactly.
 """
 
 from __future__ import annotations
@@ -84,6 +86,21 @@ def main(argv: list[str] | None = None) -> None:
         print(f"\nmse on {len(y)} held-out states       vs expert (original)   vs personal (negated)")
         for name, label in (("key", "with the user's key"), ("nokey", "no key"), ("wrong", "key 1 bit off")):
             print(f"  {label:30s} {mse(outs[name], y):10.4f}            {mse(outs[name], yp):10.4f}")
+
+        sealed = work / "sealed.prop"
+        print("\nthe same user, sealed (private against whoever holds the bundle's files):", flush=True)
+        prop("personalize", paths["base"], "--data", paths["mine"], "--key-file", key, "--out", sealed,
+             "--seal", "--force")  # fmt: skip
+        for name, key_args in (("key", ["--key-file", key]), ("nokey", []),
+                               ("wrong", ["--key-file", work / "k_wrong.bin"])):  # fmt: skip
+            prop("run", sealed, "--input", work / "x.npy", *key_args, "--output", work / f"s_{name}.npy",
+                 "--force")  # fmt: skip
+        souts = {name: np.load(work / f"s_{name}.npy") for name in ("key", "nokey", "wrong")}
+        print(f"\nsealed bundle, mse on {len(y)} states   vs expert (original)   vs personal (negated)")
+        for name, label in (("key", "with the user's key"), ("nokey", "no key"), ("wrong", "key 1 bit off")):
+            print(f"  {label:30s} {mse(souts[name], y):10.4f}            {mse(souts[name], yp):10.4f}")
+        same = np.array_equal(souts["wrong"], souts["nokey"])
+        print(f"  key 1 bit off gives exactly the no-key (original) outputs: {'yes' if same else 'NO'}")
         print(
             f"\ndone in {time.perf_counter() - t0:.0f} s; files in {work}"
             + ("" if args.keep else " (removed)")
