@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from examples import write_task
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
@@ -35,14 +36,6 @@ VARIANTS = {
     "sealed delta": {"seal": True, "payload": "delta"},
     "sealed full": {"seal": True, "payload": "full", "payload_lr": 0.003},
 }
-
-
-def _example(task: str, folder: Path, seed: int) -> dict[str, Path]:
-    if task == "il":
-        from examples.il_task import write_example
-    else:
-        from examples.digits_task import write_example
-    return write_example(folder, seed=seed)
 
 
 def _score(bundle, bits: np.ndarray, test: dict, task: str) -> dict:
@@ -72,7 +65,7 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
         for seed in range(seeds):
             with tempfile.TemporaryDirectory(prefix="prop-sealed-") as tmp:
                 work = Path(tmp)
-                paths = _example(task, work / "ex", seed)
+                paths = write_task(task, work / "ex", seed)
                 test = dict(np.load(paths["test"]))
                 bits = np.random.default_rng(1000 + seed).integers(0, 2, 128).astype(np.uint8)
                 for name, over in VARIANTS.items():

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from examples import write_task
 from prop_cli.api import KeySource, audit_bundle, personalize_checkpoint
 from prop_cli.config import AuditSettings, PersonalizeConfig
 
@@ -36,16 +37,6 @@ ROWS = [
     ("T3 few-shot, k = 1", lambda g: g["name"] == "fewshot k=1"),
     ("T3 few-shot, k = 4..64", lambda g: g["probe"] == "fewshot" and g["name"] != "fewshot k=1"),
 ]
-
-
-def _example(task: str, folder: Path, seed: int) -> dict[str, Path]:
-    if task == "il":
-        from examples.il_task import write_example
-    elif task == "digits":
-        from examples.digits_task import write_example
-    else:
-        from examples.reach_task import write_example
-    return write_example(folder, seed=seed)
 
 
 def _cells(report: dict) -> dict[str, dict]:
@@ -72,7 +63,7 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
         for seed in range(seeds):
             with tempfile.TemporaryDirectory(prefix="prop-privacy-") as tmp:
                 work = Path(tmp)
-                paths = _example(task, work / "ex", seed)
+                paths = write_task(task, work / "ex", seed)
                 bits = np.random.default_rng(2000 + seed).integers(0, 2, 128).astype(np.uint8)
                 key = work / "k.bin"
                 key.write_bytes(np.packbits(bits).tobytes())

@@ -74,3 +74,17 @@ def fit(
 
 
 __all__ = ["fit", "mlp", "save_npz"]
+
+
+def write_task(task: str, folder: Path, seed: int = 0) -> dict[str, Path]:
+    """Write one of the supervised examples (``il``, ``digits``, ``reach``) to ``folder``: base checkpoint,
+    the user's data (``mine``), ``general`` inputs and a ``test`` set."""
+    if task == "il":
+        from examples.il_task import write_example
+    elif task == "digits":
+        from examples.digits_task import write_example
+    elif task == "reach":
+        from examples.reach_task import write_example
+    else:
+        raise ValueError(f"unknown task {task!r}: il, digits or reach")
+    return write_example(folder, seed=seed)

@@ -20,7 +20,7 @@ def outputs_for_codes(km: KeyedModel, x: torch.Tensor, codes: torch.Tensor) -> t
     return torch.cat(outs)
 
 
-def _group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
+def key_group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
     worst_fid = "min" if task == "classification" else "max"
     return {
         "leakage": metrics.summarize(metrics.leakage(o, p, b, task), "max"),
@@ -48,11 +48,25 @@ def user_report(
     rand = random_keys(n_random, len(user_bits), rng, exclude=user_bits)
     o_rand = outputs_for_codes(km, x, key_codes(rand, encoding))
     o_ham = outputs_for_codes(km, x, key_codes(one_bit_neighbours(user_bits), encoding))
+    return outputs_report(b, p, task, o_user, o_null, o_rand, o_ham)
+
+
+def outputs_report(
+    b: torch.Tensor,
+    p: torch.Tensor,
+    task: str,
+    o_user: torch.Tensor,
+    o_null: torch.Tensor,
+    o_rand: torch.Tensor,
+    o_ham: torch.Tensor,
+) -> dict:
+    """The per-user report from outputs: the user's key (B, ...), then null, random and 1-bit keys
+    (K, B, ...); shared by unsealed (encoder) and sealed (trial decryption) bundles."""
     return {
-        "samples": int(x.shape[0]),
+        "samples": int(b.shape[0]),
         "personalization": metrics.personalization(o_user, p, b, task),
         "user_leakage": metrics.leakage(o_user[None], p, b, task).item(),
-        "null": _group(o_null, p, b, task),
-        "random": _group(o_rand, p, b, task),
-        "hamming1": _group(o_ham, p, b, task),
+        "null": key_group(o_null, p, b, task),
+        "random": key_group(o_rand, p, b, task),
+        "hamming1": key_group(o_ham, p, b, task),
     }

@@ -191,7 +191,7 @@ def _export_sealed(
             copy_records(Path(bundle.path), tmp, bundle.manifest)
             meta = stamp(_sealed_meta(bundle, tmp, s.opset, s.atol), C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
-            table = verify_sealed(bundle, tmp, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
+            table = verify_graphs(bundle, tmp, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
             if not all(r["ok"] for r in table):
                 raise _VerificationFailed
     except _VerificationFailed:
@@ -223,26 +223,13 @@ def _sealed_meta(bundle: Bundle, folder: Path, opset: int, atol: float) -> dict:
     }
 
 
-@torch.no_grad()
-def verify_sealed(
-    bundle: Bundle,
-    folder: Path,
-    *,
-    key: np.ndarray | None = None,
-    inputs: np.ndarray | None = None,
-    seed: int = 0,
-    atol: float = ExportSettings.atol,
+def _verify_sealed(
+    bundle: Bundle, folder: Path, key: np.ndarray | None, x: np.ndarray, rng: np.random.Generator, atol: float
 ) -> list[dict]:
     """onnxruntime vs torch for a sealed export: no key, a random key and ``key`` (the user's)."""
     from .onnx_runtime import SealedOnnxPolicy
     from .policy import KeyedPolicy
 
-    rng = np.random.default_rng(seed)
-    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
-    if inputs is None:
-        x = rng.standard_normal((VERIFY_BATCH, *in_shape)).astype(np.float32)
-    else:
-        x = np.ascontiguousarray(inputs[:64], dtype=np.float32)
     keys = [("null", None), ("random", rng.integers(0, 2, bundle.key_bits).astype(np.uint8))]
     if key is not None:
         keys.append(("user", np.asarray(key, np.uint8)))
@@ -343,6 +330,14 @@ def _export(module, args, path: Path, inputs, outputs, axes, opset: int) -> None
 _LEGACY_EXPORTER = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
 
 
+def _verify_inputs(bundle: Bundle, inputs: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
+    """The inputs verification runs on: the given ones (up to 64), or random ones of the bundle's shape."""
+    if inputs is not None:
+        return np.ascontiguousarray(inputs[:64], dtype=np.float32)
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    return rng.standard_normal((VERIFY_BATCH, *in_shape)).astype(np.float32)
+
+
 def _diff(got: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
     """Max abs difference, and the same relative to the largest reference magnitude."""
     d = float(np.max(np.abs(got.astype(np.float64) - ref))) if ref.size else 0.0
@@ -361,13 +356,11 @@ def verify_graphs(
     atol: float = ExportSettings.atol,
 ) -> list[dict]:
     """onnxruntime vs torch for every graph in ``folder`` and every key: a list of table rows."""
-    km = bundle.keyed.eval()
     rng = np.random.default_rng(seed)
-    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
-    if inputs is None:
-        x = rng.standard_normal((VERIFY_BATCH, *in_shape)).astype(np.float32)
-    else:
-        x = np.ascontiguousarray(inputs[:64], dtype=np.float32)
+    x = _verify_inputs(bundle, inputs, rng)
+    if bundle.is_sealed:
+        return _verify_sealed(bundle, folder, key, x, rng, atol)
+    km = bundle.keyed.eval()
     xt = torch.from_numpy(x)
     names = delta_names(len(km.layer_names))
     sess = {g: session(folder / g, threads=1) for g in C.GRAPHS}

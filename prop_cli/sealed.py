@@ -30,6 +30,7 @@ from . import data as data_mod
 from . import metrics
 from .config import PersonalizeConfig
 from .errors import PropError
+from .evaluate import outputs_report
 from .files import dump_json, sha256_file
 from .keyspace import one_bit_neighbours, random_keys
 from .layers import select_layers
@@ -117,14 +118,6 @@ def train_payload(
     return payload.eval(), losses
 
 
-def _group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
-    worst_fid = "min" if task == "classification" else "max"
-    return {
-        "leakage": metrics.summarize(metrics.leakage(o, p, b, task), "max"),
-        "fidelity": metrics.summarize(metrics.fidelity(o, b, task), worst_fid),
-    }
-
-
 @torch.no_grad()
 def sealed_report(
     state: SealedState,
@@ -148,14 +141,7 @@ def sealed_report(
     o_null = run(None)[None]
     o_rand = torch.stack([run(k) for k in random_keys(n_random, len(bits), rng, exclude=bits)])
     o_ham = torch.stack([run(k) for k in one_bit_neighbours(bits)])
-    return {
-        "samples": int(x.shape[0]),
-        "personalization": metrics.personalization(o_user, p, b, task),
-        "user_leakage": metrics.leakage(o_user[None], p, b, task).item(),
-        "null": _group(o_null, p, b, task),
-        "random": _group(o_rand, p, b, task),
-        "hamming1": _group(o_ham, p, b, task),
-    }
+    return outputs_report(b, p, task, o_user, o_null, o_rand, o_ham)
 
 
 # --- records in a bundle -------------------------------------------------------------------------
