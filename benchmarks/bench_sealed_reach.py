@@ -36,7 +36,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.payload import Payload, PayloadSpec
 from prop_cli.policy import KeyedPolicy, WrongKeyWarning
 
-PAYLOADS = {"lora r4": ("lora", 4, 3e-3), "full": ("full", 0, 1e-3)}
+PAYLOADS = {"lora r4": ("lora", 4, 3e-3), "full": ("full", 0, 1e-3)}  # --lr to change the rates
 
 
 def train_payload(env, actor, log_std0, critic0, spec: PayloadSpec, lr: float, iters: int, seed: int, cfg):
@@ -76,7 +76,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--iters", type=int, default=15)
     ap.add_argument("--pretrain", type=int, default=30)
     ap.add_argument("--episodes", type=int, default=20)
+    ap.add_argument("--lr", nargs=2, type=float, metavar=("LORA", "FULL"), help="payload learning rates")
     a = ap.parse_args(argv)
+    if a.lr:
+        PAYLOADS["lora r4"] = ("lora", 4, a.lr[0])
+        PAYLOADS["full"] = ("full", 0, a.lr[1])
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
     cfg = ppo.PPOConfig()
