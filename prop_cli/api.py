@@ -210,7 +210,7 @@ def _array_model(bundle: Bundle, command: str) -> Bundle:
 
 def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
     from .bundle import update_manifest
-    from .sealed import check_distinct, public_metrics, train_users, wrong_key_report
+    from .sealed import check_distinct, public_metrics, train_users, user_report
     from .trainer import _prepare
 
     keys = [k.bits for _, k in users]
@@ -224,9 +224,9 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
         C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
         C.M_PAYLOAD: trained[0].payload.spec.to_dict(),
         # A sealed bundle always has a passphrase salt, so passphrase users can be added later.
+        # No user count: the records list is the count, and add-user / remove-user keep it true.
         C.M_KEY: {
             "bits": len(keys[0]),
-            "users": len(users),
             "source": kinds[0] if len(kinds) == 1 else "mixed",
             "kdf": kdf_record(salt or new_salt()),
         },
@@ -239,9 +239,7 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
         force=force,
     )  # fmt: skip
     bundle = load_bundle(out)
-    reports = [{**u.private, **wrong_key_report(bundle, u, cfg, i)} for i, u in enumerate(trained)]
-    for r in reports:
-        r.pop("config", None)
+    reports = [user_report(bundle, u, cfg, i) for i, u in enumerate(trained)]
     records = written[C.M_RECORDS]
     update_manifest(
         out, C.M_METRICS, {"users": [public_metrics(r, e["id"]) for r, e in zip(reports, records)]}
@@ -456,7 +454,7 @@ def add_user(
         rewrite_records,
         seal_payload,
         train_users,
-        wrong_key_report,
+        user_report,
     )
 
     bundle = _sealed_bundle(bundle_path, "add-user")
@@ -482,8 +480,7 @@ def add_user(
     [user] = train_users(bundle.loaded, [data], [key.bits], task, cfg, device, progress, first_index=index)
     rec = seal_payload(m, user.private, user.payload, key.bits)
     new = rewrite_records(Path(bundle_path), m, [rec], [])
-    report = {**user.private, **wrong_key_report(load_bundle(bundle_path), user, cfg, index)}
-    report.pop("config", None)
+    report = user_report(load_bundle(bundle_path), user, cfg, index)
     users = list((new.get(C.M_METRICS) or {}).get("users", []))
     update_manifest(Path(bundle_path), C.M_METRICS, {"users": [*users, public_metrics(report, rec.id)]})
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)

@@ -314,16 +314,18 @@ def train_users(
     return out
 
 
-def wrong_key_report(bundle, user: SealedUser, cfg: PersonalizeConfig, index: int) -> dict:
-    """The report personalize prints for one sealed user: their validation figures and, run through the
-    written bundle as anyone would run them, no key, random keys and 1-bit neighbours."""
+def user_report(bundle, user: SealedUser, cfg: PersonalizeConfig, index: int) -> dict:
+    """The report personalize and add-user print for one sealed user: their validation figures, and
+    no key, random keys and 1-bit neighbours run through the written bundle as anyone would run them.
+    The training settings stay out (they are sealed with the payload); ``final_losses`` stays in."""
     from .trainer import _EVAL_STREAM, targets_tensor
 
     x = torch.from_numpy(user.val.x)
     p = targets_tensor(user.val, bundle.task)
     rng = np.random.default_rng((cfg.seed, _EVAL_STREAM, index))
     module = bundle.loaded.module.eval()
-    return sealed_report(bundle.sealed, module, x, p, user.bits, bundle.task, cfg.eval_random_keys, rng)
+    keys = sealed_report(bundle.sealed, module, x, p, user.bits, bundle.task, cfg.eval_random_keys, rng)
+    return {**{k: v for k, v in user.private.items() if k != "config"}, **keys}
 
 
 def public_metrics(report: dict, record_id: str) -> dict:
