@@ -119,6 +119,8 @@ class LeRobotAdapter(Adapter):
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         folder = Path(source) / FOLDER_IN_BUNDLE
+        if not (folder / CONFIG).is_file() and (Path(source) / PREPROCESSOR).is_file():
+            folder = Path(source)  # the original LeRobot folder itself (prop attack --original)
         if not (folder / CONFIG).is_file():
             raise PropError(f"bundle {source} has no {FOLDER_IN_BUNDLE}/{CONFIG}", "write the bundle again")
         version, policy, pre, post = _load(folder, weights, source)

@@ -198,12 +198,13 @@ def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[st
 
 
 def _array_model(bundle: Bundle, command: str) -> Bundle:
-    """Refuse, in one line, bundles of policies with dict observations where a command takes arrays."""
+    """Refuse, in one line, bundles of policies with named observation features where a command
+    has no policy path yet (export)."""
     if bundle.loaded.policy is not None:
         raise PropError(
-            f"{command} takes array inputs; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
             "with named observation features",
-            "roll it out with prop eval (prop run, attack and export for such policies are not there yet)",
+            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
         )
     return bundle
 
@@ -312,16 +313,23 @@ def run_file(
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
-    bundle = _array_model(load_bundle(bundle_path), "prop run")
+    bundle = load_bundle(bundle_path)
     n_threads = configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
-    x = load_inputs(input_path, bundle)
-    if onnx or onnx_dir is not None:
+    if bundle.loaded.policy is not None:
+        if onnx or onnx_dir is not None:
+            raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
+        from .policy_view import run_policy
+
+        data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
+        y = run_policy(bundle, data, key)
+    elif onnx or onnx_dir is not None:
+        x = load_inputs(input_path, bundle)
         from .onnx_runtime import run_onnx
 
         y = run_onnx(bundle, x, key, onnx_dir, threads=n_threads)
     else:
-        y = run_bundle(bundle, x, key)
+        y = run_bundle(bundle, load_inputs(input_path, bundle), key)
 
     def save(tmp: Path) -> None:
         with open(tmp, "wb") as f:
@@ -348,11 +356,16 @@ def audit_bundle(
     """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
     check_threads(threads)
-    bundle = _array_model(load_bundle(bundle_path), "prop attack")
+    bundle = load_bundle(bundle_path)
     configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     data = load_data(data_path, require_y=bool(keys))
+    if bundle.loaded.policy is not None:  # named features and action chunks, flattened (policy_view)
+        from .policy_view import array_bundle, flat_dataset
+
+        data = flat_dataset(bundle.loaded.policy, data, "--data")
+        bundle = array_bundle(bundle)
     ref = load_original(bundle, original) if original else None
     return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
 

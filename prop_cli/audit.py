@@ -81,7 +81,7 @@ def _control_model(
     if not all(n in mods and mods[n].weight.shape == base[n].weight.shape for n in km.layer_names):
         return None, "the original module does not have the bundle's keyed layers (names and shapes)"
     module = _unhooked_copy(original).to(km.encoder.net[0].weight.device).eval()
-    return KeyedModel(module, km.encoder, km.layer_names).eval(), where
+    return km.on(module).eval(), where
 
 
 def _summary(v: dict[str, torch.Tensor], task: str) -> dict:
@@ -347,9 +347,14 @@ def load_original(bundle: Bundle, path: str) -> torch.nn.Module:
     adapter = prop_adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
     try:
-        return prop_adapters.rebuild(spec, weights, str(path)).module.eval()
+        loaded = prop_adapters.rebuild(spec, weights, str(path))
     except (RuntimeError, KeyError, ValueError) as e:
         raise PropError(
             f"--original {path} does not fit the bundle's model ({type(e).__name__})",
             "pass the checkpoint the bundle was personalized from",
         ) from None
+    if loaded.policy is not None:  # the bundle is audited as an array model: so is its original
+        from .policy_view import flat_module
+
+        return flat_module(loaded)
+    return loaded.module.eval()

@@ -115,9 +115,24 @@ class KeyedModel(nn.Module):
         # layers (nn.Transformer* without batch_first, as in LeRobot's ACT) take (S, B, D): see
         # prop_cli.batch_axes, which finds them by probing.
         self.batch_axis: dict[str, int] = {}
-        self._hook_ids = {}
-        for i, name in enumerate(self.layer_names):
-            self._hook_ids[name] = mods[name].register_forward_pre_hook(self._make_hook(i)).id
+        # None = not probed yet: may K keys run as K copies of the batch in one forward (rows independent)?
+        self.rows_independent: bool | None = None
+        self._hooks = {
+            name: mods[name].register_forward_pre_hook(self._make_hook(i))
+            for i, name in enumerate(self.layer_names)
+        }
+        self._hook_ids = {name: h.id for name, h in self._hooks.items()}
+
+    def on(self, module: nn.Module) -> KeyedModel:
+        """This encoder and these keyed layers (names, batch axes) over another module that has them."""
+        other = KeyedModel(module, self.encoder, self.layer_names)
+        other.batch_axis = dict(self.batch_axis)
+        return other
+
+    def remove_hooks(self) -> None:
+        """Detach this model from its layers (another KeyedModel takes them over, e.g. a flat view)."""
+        for h in self._hooks.values():
+            h.remove()
 
     def _make_hook(self, i: int):
         name = self.layer_names[i]
@@ -223,11 +238,43 @@ class KeyedModel(nn.Module):
                 out = self.module(x)
             finally:
                 self._rows = None
+        elif k > 1 and self._rows_ok(x, deltas):
+            # No shared prefix (e.g. residual sums before the first keyed layer), but rows are independent:
+            # K copies of the batch, one delta row per row, in one forward.
+            out = self._run_copies(x, deltas)
         else:
             # Rows interact after the first keyed layer: run each key on its own batch, as a user would.
             zeros = torch.zeros(b, dtype=torch.long, device=x.device)
             out = torch.cat([self.run_rows(x, [d[i : i + 1] for d in deltas], zeros) for i in range(k)])
         return out.view(k, b, *out.shape[1:])
+
+    def _run_copies(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> torch.Tensor:
+        k, b = deltas[0].shape[0], x.shape[0]
+        copies = x.repeat(k, *([1] * (x.dim() - 1)))
+        return self.run_rows(copies, deltas, torch.arange(k, device=x.device).repeat_interleave(b))
+
+    def _rows_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
+        if self.rows_independent is None:
+            self.rows_independent = self._probe_rows(x[:2], [d[:2] for d in deltas])
+        return self.rows_independent
+
+    @torch.no_grad()
+    def _probe_rows(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
+        """Two keys as two copies of the batch in one forward == one forward per key (eval mode)?"""
+        k, b = deltas[0].shape[0], x.shape[0]
+        was_training = self.module.training
+        self.module.eval()
+        try:
+            zeros = torch.zeros(b, dtype=torch.long, device=x.device)
+            ref = torch.cat([self.run_rows(x, [d[i : i + 1] for d in deltas], zeros) for i in range(k)])
+            got = self._run_copies(x, deltas)
+            ok = got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
+        except (_RowMismatch, RuntimeError):
+            ok = False
+        finally:
+            self._rows = None
+            self.module.train(was_training)
+        return bool(ok)
 
     def _sharing_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
         # Gathering or broadcasting at the first keyed layer is only valid if everything after it treats

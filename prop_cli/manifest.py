@@ -135,6 +135,19 @@ RECORD_FILE = Rule((str,), f"a file name in the bundle's {C.RECORDS_DIR}/ folder
 NAME = text()  # a module path such as "actor.mu.0"
 DIM = integer(1, MAX_DIM)
 UNSEALED = ("unsealed",)
+
+
+def _shape_ok(v: Any) -> bool:
+    return isinstance(v, list) and 1 <= len(v) <= 16 and all(type(d) is int and 1 <= d <= MAX_DIM for d in v)
+
+
+# Per-sample input shape: one list, or per named observation feature for policies (LeRobot).
+INPUT_SHAPE = Rule(
+    (list, dict),
+    "a list of 1 to 16 sizes, or an object of feature name -> such a list",
+    lambda v: _shape_ok(v) if isinstance(v, list)
+    else 1 <= len(v) <= 256 and all(k and len(k) <= MAX_TEXT and _shape_ok(s) for k, s in v.items()),
+)  # fmt: skip
 SEALED = ("sealed",)
 
 # What each built-in adapter's model spec holds (prop_adapters.*.build reads these). An adapter this
@@ -163,6 +176,7 @@ ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
         "sb3_version": _opt(text(), nullable=True),
     },
     "module": {"arch": text(), "arch_kwargs": RECORD},
+    "lerobot": {"type": choice(("act",)), "lerobot_version": text()},
     "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
 }
 
@@ -207,7 +221,7 @@ SCHEMA: dict[str, Rule] = {
     C.M_CONFIG: _opt(RECORD),
     C.M_METRICS: _opt(RECORD),
     C.M_TASK: choice(("classification", "regression")),
-    C.M_IO: obj({"input_shape": list_of(DIM, 1, 16), "checkpoint": _opt(text(nonempty=False))}),
+    C.M_IO: obj({"input_shape": INPUT_SHAPE, "checkpoint": _opt(text(nonempty=False))}),
     C.M_FILES: Rule(
         (dict,), "an object of file path -> sha256", values=SHA256, key_ok=bundle_path, min_len=1
     ),

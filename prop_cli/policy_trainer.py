@@ -26,11 +26,10 @@ from .batch_axes import probe_batch_axes
 from .config import PersonalizeConfig
 from .datasources import Dataset
 from .errors import PropError
-from .evaluate import _group
+from .evaluate import outputs_report
 from .keyed import KeyedModel, KeyEncoder, key_codes
 from .keyspace import KeySampler, one_bit_neighbours, random_keys
 from .layers import select_layers
-from .metrics import leakage, personalization
 from .objective import check_user_keys
 
 _EVAL_STREAM = 0x5EED_E7A1  # the trainer's stream for evaluation keys (same role as in trainer.py)
@@ -196,11 +195,4 @@ def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: Persona
     o_user = under(key_codes(bits, enc))
     o_rand = under(key_codes(random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits), enc))
     o_ham = under(key_codes(one_bit_neighbours(bits), enc))
-    return {
-        "samples": int(len(p)),
-        "personalization": personalization(o_user[0], p, b, "regression"),
-        "user_leakage": leakage(o_user, p, b, "regression").item(),
-        "null": _group(under(None), p, b, "regression"),
-        "random": _group(o_rand, p, b, "regression"),
-        "hamming1": _group(o_ham, p, b, "regression"),
-    }
+    return outputs_report(b, p, "regression", o_user[0], under(None), o_rand, o_ham)
