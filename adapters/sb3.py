@@ -310,7 +310,7 @@ def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Mo
             "the zip was modified; re-save it with model.save()",
         )
     module._register_state_dict_hook(_alias_hook(_aliases(spec)))
-    if any(isinstance(m, NatureCNN) for m in module.modules()):
+    if any(isinstance(m, nn.Conv2d) for m in module.modules()):
         # With a CNN, the first linear layer (features_extractor[.extractors.<key>].linear.0) reads image
         # features, not the raw observation that layers.default_layers skips the first layer for: key
         # every linear layer (NatureCNN's linear, the policy MLP, the action head).
