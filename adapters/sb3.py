@@ -21,10 +21,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from prop_cli.errors import PropError, brief
+from prop_cli.layers import DEFAULT_LAYERS_ATTR
 
 from . import activations, sb3_zip
 from .base import Adapter, CheckpointOptions, LoadedModel, finish
@@ -35,12 +37,37 @@ DEFAULT_ACTIVATION = {"actor_critic": "tanh", "sac": "relu", "td3": "relu"}
 # policy.pth prefixes: (the deterministic actor's, the rest SB3 keeps for training).
 _PREFIXES = {
     "actor_critic": (
-        ("mlp_extractor.policy_net.", "action_net."),
-        ("mlp_extractor.value_net.", "value_net.", "log_std"),
+        ("features_extractor.", "mlp_extractor.policy_net.", "action_net."),
+        (
+            "pi_features_extractor.",
+            "vf_features_extractor.",
+            "mlp_extractor.value_net.",
+            "value_net.",
+            "log_std",
+        ),
     ),
-    "sac": (("actor.latent_pi.", "actor.mu."), ("actor.log_std.", "critic.", "critic_target.")),
-    "td3": (("actor.mu.",), ("actor_target.", "critic.", "critic_target.")),
+    "sac": (
+        ("actor.features_extractor.", "actor.latent_pi.", "actor.mu."),
+        ("actor.log_std.", "critic.", "critic_target."),
+    ),
+    "td3": (("actor.features_extractor.", "actor.mu."), ("actor_target.", "critic.", "critic_target.")),
 }
+# Where SB3 registers the actor's features extractor once more under another name (the same module):
+# always pi_features_extractor for PPO/A2C, the value side's too when share_features_extractor is set.
+# policy.pth holds each alias as a copy; the bundle's base writes them from the (fine-tuned) module so
+# that SB3's load_state_dict, which loads the aliases after the original, sees one set of weights.
+_EXTRACTOR = {
+    "actor_critic": "features_extractor.",
+    "sac": "actor.features_extractor.",
+    "td3": "actor.features_extractor.",
+}
+_ALIASES = {
+    "actor_critic": (("pi_features_extractor.",), ("vf_features_extractor.",)),
+    "sac": ((), ("critic.features_extractor.",)),
+    "td3": ((), ("critic.features_extractor.",)),
+}
+# NatureCNN's convolutions, fixed in SB3: (kernel, stride) of cnn.0, cnn.2, cnn.4.
+_NATURE = ((8, 4), (4, 2), (3, 1))
 
 
 def _activation(family: str, data: dict, override: str | None, path: str) -> str:
@@ -106,25 +133,74 @@ class _Rescale(nn.Module):
         return self.low + 0.5 * (a + 1.0) * (self.high - self.low)
 
 
-class ActorCriticActor(nn.Module):
-    """PPO/A2C: ``action_net(mlp_extractor.policy_net(flatten(obs)))``; names as in SB3."""
+class NatureCNN(nn.Module):
+    """SB3's NatureCNN under its names (``cnn.*``, ``linear.0``) on CHW images, scaled as preprocess_obs."""
 
-    def __init__(self, policy_net: nn.Sequential, action_net: nn.Linear) -> None:
+    def __init__(self, convs: list[nn.Conv2d], linear: nn.Linear, scale: float) -> None:
         super().__init__()
+        layers: list[nn.Module] = []
+        for conv in convs:
+            layers += [conv, nn.ReLU()]
+        self.cnn = nn.Sequential(*layers, nn.Flatten())
+        self.linear = nn.Sequential(linear, nn.ReLU())
+        self.scale = scale  # 1/255 where normalize_images (SB3's default), else 1
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.linear(self.cnn(x * self.scale))
+
+
+class Features(nn.Module):
+    """SB3's features extractor on prop's one input array: Flatten (MlpPolicy), NatureCNN (CnnPolicy)
+    or CombinedExtractor (MultiInputPolicy: ``extractors.<key>``). A Dict observation arrives flattened,
+    its entries concatenated in ``keys`` order (``observation_array``); it is split here, each entry
+    reshaped, images through their NatureCNN, then concatenated again in that order as SB3 does."""
+
+    def __init__(self, cnn: NatureCNN | None = None, keys: list[dict] | None = None, extractors=None) -> None:
+        super().__init__()
+        if cnn is not None:
+            self.cnn, self.linear = cnn.cnn, cnn.linear
+            self.scale = cnn.scale
+        self.keys = keys
+        if extractors is not None:
+            self.extractors = nn.ModuleDict(extractors)
+        self.image = cnn is not None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.image:
+            return self.linear(self.cnn(x * self.scale))
+        if self.keys is None:
+            return x.flatten(1)
+        parts, at = [], 0
+        for entry in self.keys:
+            n = math.prod(entry["shape"])
+            part = x[:, at : at + n]
+            at += n
+            mod = self.extractors[entry["key"]]
+            parts.append(mod(part.reshape(-1, *entry["shape"])) if entry["image"] else part)
+        return torch.cat(parts, 1)
+
+
+class ActorCriticActor(nn.Module):
+    """PPO/A2C: ``action_net(mlp_extractor.policy_net(features_extractor(obs)))``; names as in SB3."""
+
+    def __init__(self, features: Features, policy_net: nn.Sequential, action_net: nn.Linear) -> None:
+        super().__init__()
+        self.features_extractor = features
         self.mlp_extractor = nn.Module()
         self.mlp_extractor.policy_net = policy_net
         self.action_net = action_net
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.action_net(self.mlp_extractor.policy_net(obs.flatten(1)))
+        return self.action_net(self.mlp_extractor.policy_net(self.features_extractor(obs)))
 
 
 class SquashedActor(nn.Module):
     """SAC (``tanh(actor.mu(actor.latent_pi(obs)))``) or TD3 (``actor.mu(obs)``), rescaled to the bounds."""
 
-    def __init__(self, mu: nn.Module, latent_pi: nn.Sequential | None, rescale: _Rescale) -> None:
+    def __init__(self, features: Features, mu: nn.Module, latent_pi: nn.Sequential | None, rescale: _Rescale):
         super().__init__()
         self.actor = nn.Module()
+        self.actor.features_extractor = features
         if latent_pi is not None:
             self.actor.latent_pi = latent_pi
         self.actor.mu = mu
@@ -132,7 +208,7 @@ class SquashedActor(nn.Module):
         self.rescale = rescale
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = obs.flatten(1)
+        x = self.actor.features_extractor(obs)
         if self.squash:
             x = torch.tanh(self.actor.mu(self.actor.latent_pi(x)))
         else:
@@ -140,14 +216,61 @@ class SquashedActor(nn.Module):
         return self.rescale(x)
 
 
+def _nature(weights: dict[str, torch.Tensor], prefix: str, scale: float, path: str) -> NatureCNN:
+    convs = []
+    for j, (kernel, stride) in enumerate(_NATURE):
+        w = weights.get(f"{prefix}cnn.{2 * j}.weight")
+        if w is None or w.ndim != 4 or tuple(w.shape[2:]) != (kernel, kernel):
+            raise unsupported(path, f"a features extractor '{prefix[:-1]}' that is not SB3's NatureCNN")
+        convs.append(
+            nn.Conv2d(w.shape[1], w.shape[0], kernel, stride, bias=f"{prefix}cnn.{2 * j}.bias" in weights)
+        )
+    return NatureCNN(convs, _linear(weights, prefix + "linear.0", path), scale)
+
+
+def _features(spec: dict, weights: dict[str, torch.Tensor], path: str) -> Features:
+    prefix = _EXTRACTOR[spec["family"]]
+    scale = 1 / 255 if spec.get("normalize_images", True) else 1.0
+    if spec.get("extractor") == "cnn":
+        return Features(cnn=_nature(weights, prefix, scale, path))
+    keys = spec.get("observation_keys")
+    if keys is None:
+        return Features()
+    extractors = {
+        k["key"]: _nature(weights, f"{prefix}extractors.{k['key']}.", scale, path)
+        if k["image"]
+        else nn.Flatten()
+        for k in keys
+    }
+    return Features(keys=keys, extractors=extractors)
+
+
+def _alias_hook(sources: list[tuple[str, str]]):
+    """A state-dict hook writing the features extractor's tensors under SB3's alias names too."""
+
+    def hook(module, state, prefix, _meta):
+        for src, alias in sources:
+            for k in [k for k in state if k.startswith(prefix + src)]:
+                state[prefix + alias + k[len(prefix + src) :]] = state[k].clone()
+        return state
+
+    return hook
+
+
+def _aliases(spec: dict) -> list[tuple[str, str]]:
+    always, shared = _ALIASES[spec["family"]]
+    names = always + (shared if spec.get("share_features_extractor") else ())
+    return [(_EXTRACTOR[spec["family"]], a) for a in names]
+
+
 def split_state(family: str, state: dict[str, torch.Tensor], path: str):
-    """(actor tensors, the rest); anything SB3's MlpPolicy does not have is refused."""
+    """(actor tensors, the rest); anything SB3's policies do not have is refused."""
     actor_pre, rest_pre = _PREFIXES[family]
-    actor = {k: v for k, v in state.items() if k.startswith(actor_pre)}
     rest = {k: v for k, v in state.items() if k.startswith(rest_pre)}
+    actor = {k: v for k, v in state.items() if k.startswith(actor_pre) and k not in rest}
     other = sorted(set(state) - set(actor) - set(rest))
     if other:
-        raise unsupported(path, f"a policy with tensors beyond MlpPolicy's ({', '.join(other[:3])})")
+        raise unsupported(path, f"a policy with tensors beyond SB3's own ({', '.join(other[:3])})")
     if not actor:
         raise unsupported(path, "a policy.pth without the actor's tensors")
     return actor, rest
@@ -155,37 +278,88 @@ def split_state(family: str, state: dict[str, torch.Tensor], path: str):
 
 def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Module:
     family, act = spec["family"], spec["activation"]
+    features = _features(spec, actor, path)
     if family == "actor_critic":
         policy_net = _mlp(actor, "mlp_extractor.policy_net.", act, act, path)
-        module: nn.Module = ActorCriticActor(policy_net, _linear(actor, "action_net", path))
+        module: nn.Module = ActorCriticActor(features, policy_net, _linear(actor, "action_net", path))
     else:
         rescale = _Rescale(spec["action"]["low"], spec["action"]["high"])
         if family == "sac":
             latent = _mlp(actor, "actor.latent_pi.", act, act, path)
-            module = SquashedActor(_linear(actor, "actor.mu", path), latent, rescale)
+            module = SquashedActor(features, _linear(actor, "actor.mu", path), latent, rescale)
         else:
-            module = SquashedActor(_mlp(actor, "actor.mu.", act, "tanh", path), None, rescale)
+            module = SquashedActor(features, _mlp(actor, "actor.mu.", act, "tanh", path), None, rescale)
     try:
         module.load_state_dict(actor, strict=True)
     except RuntimeError as e:
         raise PropError(
             f"{path}: policy.pth does not fit SB3's {spec['policy']} ({str(e).splitlines()[0]})",
-            "the file was modified or is not an MlpPolicy; re-save it with model.save()",
+            "the file was modified or is not the policy its 'data' names; re-save it with model.save()",
         ) from None
-    features = math.prod(spec["observation_shape"])
+    shape = spec["observation_shape"]
     with torch.no_grad():
         try:
-            out = module(torch.zeros(1, features))
-        except (RuntimeError, TypeError, OverflowError):  # sizes that do not fit (or do not exist)
+            out = module(torch.zeros(1, *shape))
+        except (RuntimeError, TypeError, OverflowError, ValueError):  # sizes that do not fit
             out = None
     want = spec["action"].get("n") or spec["action"]["shape"][0]
     if out is None or out.shape[-1] != want:
         raise PropError(
-            f"{path}: policy.pth layer sizes do not match the observation ({features}) and action ({want}) "
+            f"{path}: policy.pth layer sizes do not match the observation {shape} and action ({want}) "
             "sizes in 'data'",
             "the zip was modified; re-save it with model.save()",
         )
+    module._register_state_dict_hook(_alias_hook(_aliases(spec)))
+    if any(isinstance(m, nn.Conv2d) for m in module.modules()):
+        # With a CNN, the first linear layer (features_extractor[.extractors.<key>].linear.0) reads image
+        # features, not the raw observation that layers.default_layers skips the first layer for: key
+        # every linear layer (NatureCNN's linear, the policy MLP, the action head).
+        setattr(
+            module, DEFAULT_LAYERS_ATTR, [n for n, m in module.named_modules() if isinstance(m, nn.Linear)]
+        )
     return module
+
+
+def observation_array(spec: dict, obs) -> np.ndarray:
+    """An environment observation (one, or a batch) as the module takes it: a Dict flattened and
+    concatenated in the policy's key order (``spec["observation_keys"]``), images HWC -> CHW as SB3's
+    VecTransposeImage does; float32, raw values (the module scales images itself)."""
+    keys = spec.get("observation_keys")
+    if keys is None:
+        if isinstance(obs, dict):
+            raise PropError(
+                f"the environment's observations are dicts ({sorted(obs)}); {spec['policy']} takes one array",
+                "evaluate a MultiInputPolicy model, or an environment with Box observations",
+            )
+        return _chw(np.asarray(obs), spec["observation_shape"], "the observation")
+    if not isinstance(obs, dict):
+        raise PropError(
+            f"this {spec['policy']} takes dict observations with keys {[k['key'] for k in keys]}",
+            "give an environment with Dict observations (flattened data: see prop inspect)",
+        )
+    parts = []
+    for k in keys:
+        if k["key"] not in obs:
+            raise PropError(
+                f"the environment's observation has no {k['key']!r} (it has {sorted(obs)})",
+                "use the environment the policy was trained on",
+            )
+        a = _chw(np.asarray(obs[k["key"]]), k["shape"], f"observation {k['key']!r}")
+        parts.append(a.reshape(*a.shape[: a.ndim - len(k["shape"])], -1))
+    return np.concatenate(parts, -1).astype(np.float32)
+
+
+def _chw(a: np.ndarray, shape: list[int], what: str) -> np.ndarray:
+    """``a`` (one or a batch) in ``shape``; an HWC image of a CHW shape is transposed."""
+    n = len(shape)
+    if list(a.shape[-n:]) != list(shape) and n == 3 and list(a.shape[-3:]) == [shape[1], shape[2], shape[0]]:
+        a = np.moveaxis(a, -1, -3)
+    if list(a.shape[-n:]) != list(shape) or a.ndim not in (n, n + 1):
+        raise PropError(
+            f"{what} has shape {list(a.shape)}; the policy takes {shape}",
+            "use the environment the policy was trained on",
+        )
+    return a.astype(np.float32)
 
 
 def _bounds(spec: dict) -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
@@ -232,19 +406,28 @@ class SB3Adapter(Adapter):
         return _loaded(spec, state, str(path))
 
     def _spec(self, data: dict, version: str | None, src: str, options: CheckpointOptions) -> dict:
-        family, policy = sb3_zip.policy_class(data, src)
+        family, policy, kind = sb3_zip.policy_class(data, src)
         if data.get("use_sde") is True:
             raise unsupported(src, "gSDE (use_sde=True)")
+        sb3_zip.check_extractor(data, src)
         spec = {
             "adapter": self.name,
             "algorithm": sb3_zip.algorithm(family, data),
             "family": family,
             "policy": policy,
             "activation": _activation(family, data, options.activation, src),
-            "observation_shape": sb3_zip.observation_shape(data, src),
+            **sb3_zip.observation(data, src, kind),
             "action": sb3_zip.action_space(family, data, src),
             "sb3_version": version,
         }
+        if kind != "flatten":
+            # SB3's defaults: images scaled by 1/255; PPO/A2C share the extractor, SAC/TD3 do not.
+            spec["extractor"] = kind
+            spec["normalize_images"] = bool(sb3_zip.policy_kwarg(data, "normalize_images", True))
+            default_share = family == "actor_critic"
+            spec["share_features_extractor"] = bool(
+                sb3_zip.policy_kwarg(data, "share_features_extractor", default_share)
+            )
         return spec
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
@@ -260,9 +443,16 @@ class SB3Adapter(Adapter):
             algorithm=spec["algorithm"],
             policy=spec["policy"],
             observation_shape=spec["observation_shape"],
+            extractor=spec.get("extractor", "flatten"),
             action_space=spec["action"]["space"],
             sb3_version=spec.get("sb3_version"),
         )
         if spec["action"]["space"] == "Discrete":
             info["actions"] = spec["action"]["n"]
+        if "observation_keys" in spec:  # where each Dict entry sits in the flattened input (data's x)
+            info["observation_layout"], at = [], 0
+            for k in spec["observation_keys"]:
+                n = math.prod(k["shape"])
+                info["observation_layout"].append(f"x[{at}:{at + n}] = {k['key']} {k['shape']}")
+                at += n
         return info

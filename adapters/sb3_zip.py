@@ -22,15 +22,32 @@ from prop_cli.errors import PropError, brief
 from .weights import ZIP_ERRORS, load_state_dict, verify_zip
 
 SUPPORTED = (
-    "PPO and A2C MlpPolicy (Box or Discrete actions), SAC MlpPolicy, TD3 and DDPG MlpPolicy "
-    "(Box actions), all with Box observations and without gSDE"
+    "PPO and A2C (Box or Discrete actions), SAC, TD3 and DDPG (Box actions): MlpPolicy (Box observations), "
+    "CnnPolicy (uint8 image observations, NatureCNN) and MultiInputPolicy (Dict of Box observations), "
+    "without gSDE or a custom features extractor"
 )
-# The module SB3 defines each policy family in, and the class that is its MlpPolicy.
+# The module SB3 defines each policy family in, and its classes: class name -> features extractor kind
+# ("flatten": MlpPolicy, "cnn": NatureCNN, "combined": CombinedExtractor).
 _FAMILIES = {
-    "stable_baselines3.common.policies": ("actor_critic", "ActorCriticPolicy"),
-    "stable_baselines3.sac.policies": ("sac", "SACPolicy"),
-    "stable_baselines3.td3.policies": ("td3", "TD3Policy"),
+    "stable_baselines3.common.policies": (
+        "actor_critic",
+        {
+            "ActorCriticPolicy": "flatten",
+            "ActorCriticCnnPolicy": "cnn",
+            "MultiInputActorCriticPolicy": "combined",
+        },
+    ),
+    "stable_baselines3.sac.policies": (
+        "sac",
+        {"SACPolicy": "flatten", "CnnPolicy": "cnn", "MultiInputPolicy": "combined"},
+    ),
+    "stable_baselines3.td3.policies": (
+        "td3",
+        {"TD3Policy": "flatten", "CnnPolicy": "cnn", "MultiInputPolicy": "combined"},
+    ),
 }
+# Features extractors prop rebuilds, as policy_kwargs writes their class.
+_EXTRACTORS = ("FlattenExtractor", "NatureCNN", "CombinedExtractor")
 SAVE_HINT = "pass the .zip written by model.save() of a Stable-Baselines3 model"
 
 
@@ -75,8 +92,8 @@ def read_zip(path: Path) -> tuple[dict, dict[str, torch.Tensor], str | None]:
     return data, dict(state), version
 
 
-def policy_class(data: dict, path: str) -> tuple[str, str]:
-    """(family, class name) from the plain fields SB3 writes beside the pickled policy class."""
+def policy_class(data: dict, path: str) -> tuple[str, str, str]:
+    """(family, class name, extractor kind) from the plain fields SB3 writes beside the pickled class."""
     pc = data.get("policy_class")
     if not isinstance(pc, dict):
         raise PropError(
@@ -86,10 +103,23 @@ def policy_class(data: dict, path: str) -> tuple[str, str]:
     # The class's own __init__ is written as "<function ActorCriticCnnPolicy.__init__ at 0x...>".
     m = re.match(r"<function (\w+)\.__init__", str(pc.get("__init__", "")))
     name = m.group(1) if m else "a subclass"
-    family, mlp_class = _FAMILIES.get(module, (None, None))
-    if family is None or name != mlp_class:
+    family, classes = _FAMILIES.get(module, (None, {}))
+    if family is None or name not in classes:
         raise unsupported(path, f"policy {name} from {module}")
-    return family, name
+    return family, name, classes[name]
+
+
+def policy_kwarg(data: dict, name: str, default):
+    """A plain value of policy_kwargs (SB3 writes a dict, or plain fields beside a pickled one)."""
+    kwargs = data.get("policy_kwargs")
+    return kwargs.get(name, default) if isinstance(kwargs, dict) else default
+
+
+def check_extractor(data: dict, path: str) -> None:
+    """A custom features_extractor_class would build another network: refuse all but SB3's own."""
+    text = policy_kwarg(data, "features_extractor_class", None)
+    if text is not None and str(text).rpartition(".")[2].rstrip("'>") not in _EXTRACTORS:
+        raise unsupported(path, f"features_extractor_class {text}")
 
 
 def algorithm(family: str, data: dict) -> str:
@@ -138,14 +168,51 @@ def _dim(value: object, field: str, path: str) -> int:
     return d
 
 
-def observation_shape(data: dict, path: str) -> list[int]:
-    kind, space = _space(data, "observation_space", path)
+def _image(dtype: object, shape: list[int]) -> bool:
+    # SB3's is_image_space: a 3-D uint8 Box (bounds 0..255, which the zip's truncated repr cannot show).
+    return dtype == "uint8" and len(shape) == 3
+
+
+def observation(data: dict, path: str, kind: str) -> dict:
+    """The spec's observation fields: ``observation_shape`` (the module's input, per sample) and, for a
+    Dict space, ``observation_keys`` in the policy's order (the order CombinedExtractor concatenates)."""
+    space_kind, space = _space(data, "observation_space", path)
+    if kind == "combined":
+        if space_kind != "Dict":
+            raise unsupported(path, f"MultiInputPolicy with a {space_kind} observation space")
+        keys = _dict_spaces(space.get("spaces"), path)
+        return {"observation_shape": [sum(math.prod(k["shape"]) for k in keys)], "observation_keys": keys}
     shape = space.get("_shape")
-    if kind != "Box" or not isinstance(shape, list) or not shape:
-        raise unsupported(path, f"a {kind} observation space")
-    if space.get("dtype") == "uint8" and len(shape) == 3:
-        raise unsupported(path, "an image observation space (CnnPolicy)")
-    return [_dim(d, "observation_space", path) for d in shape]
+    if space_kind != "Box" or not isinstance(shape, list) or not shape:
+        raise unsupported(path, f"a {space_kind} observation space")
+    shape = [_dim(d, "observation_space", path) for d in shape]
+    image = _image(space.get("dtype"), shape)
+    if kind == "cnn" and not image:
+        raise unsupported(path, f"CnnPolicy on a {space.get('dtype')} observation of shape {shape}")
+    if kind == "flatten" and image:  # MlpPolicy would divide such images by 255: not rebuilt
+        raise unsupported(path, "MlpPolicy on an image observation space")
+    return {"observation_shape": shape}
+
+
+# gymnasium's Dict repr: {'key': Box(low, high, (3,), float32), ...}; low/high may be arrays.
+_SUBSPACE = re.compile(r"'((?:[^'\\]|\\.)+)': (\w+)\((.*?), \((\d+(?:, \d+)*),?\), (\w+)\)", re.S)
+
+
+def _dict_spaces(text: object, path: str) -> list[dict]:
+    if not isinstance(text, str):
+        raise PropError(f"{path}: 'data' has no readable Dict observation_space spaces", SAVE_HINT)
+    found = _SUBSPACE.findall(text)
+    if not found or text.count("': ") != len(found):
+        raise unsupported(path, f"a Dict observation space other than Boxes ({text[:80]})")
+    keys = []
+    for key, kind, _bounds, dims, dtype in found:
+        shape = [_dim(d, "observation_space", path) for d in dims.split(",")]
+        if kind != "Box":
+            raise unsupported(path, f"a {kind} entry ('{key}') in a Dict observation space")
+        keys.append({"key": key, "shape": shape, "image": _image(dtype, shape)})
+    if len({k["key"] for k in keys}) != len(keys):
+        raise PropError(f"{path}: its Dict observation space repeats a key", SAVE_HINT)
+    return keys
 
 
 def action_space(family: str, data: dict, path: str) -> dict:

@@ -412,9 +412,12 @@ def eval_bundle(
     metric: str | None = None,
     original: str | None = None,
     progress: Callable[[str], None] | None = None,
+    vecnormalize: Path | None = None,
 ) -> dict:
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``)."""
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``);
+    ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``prop_cli.vecnormalize``)."""
     from .rollout import evaluate_bundle, load_metric, parse_obs_map
+    from .vecnormalize import read_vecnormalize
 
     settings = settings or EvalSettings()
     bundle = load_bundle(bundle_path)
@@ -422,9 +425,11 @@ def eval_bundle(
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
     ref = _load(original, None) if original else None
+    normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
-        bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress
-    )
+        bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
+        normalizer=normalizer,
+    )  # fmt: skip
 
 
 def _sealed_bundle(bundle_path: Path, command: str) -> Bundle:

@@ -9,6 +9,8 @@ from torch import nn
 from .errors import PropError
 
 ALL_LINEAR = "all-linear"
+# A module attribute (list of layer names) an adapter sets where default_layers' reasoning does not hold.
+DEFAULT_LAYERS_ATTR = "prop_default_layers"
 
 
 def linear_layers(module: nn.Module) -> list[tuple[str, nn.Linear]]:
@@ -70,7 +72,9 @@ def select_layers(
         )
 
     if not patterns:
-        chosen = default_layers(names)
+        # An adapter may name its own default (DEFAULT_LAYERS_ATTR on the module, e.g. SB3 CnnPolicy).
+        own = getattr(module, DEFAULT_LAYERS_ATTR, None)
+        chosen = [n for n in names if n in own] if own else default_layers(names)
     else:
         for p in patterns:
             check(p, flag)

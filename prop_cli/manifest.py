@@ -172,6 +172,12 @@ ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
         "policy": text(),
         "activation": text(),
         "observation_shape": list_of(DIM, 1, 16),
+        "observation_keys": _opt(
+            list_of(obj({"key": text(), "shape": list_of(DIM, 1, 16), "image": BOOL}), 1)
+        ),
+        "extractor": _opt(choice(("flatten", "cnn", "combined"))),
+        "normalize_images": _opt(BOOL),
+        "share_features_extractor": _opt(BOOL),
         "action": _ACTION,
         "sb3_version": _opt(text(), nullable=True),
     },

@@ -26,6 +26,7 @@ from .config import EvalSettings
 from .errors import PropError
 from .keyed import key_codes
 from .keyspace import one_bit_neighbours, random_keys
+from .vecnormalize import ObsNormalizer
 
 # A trajectory as the preference metric receives it.
 Trajectory = dict  # {"observations": [...], "actions": [...], "rewards": [...], "infos": [...]}
@@ -102,19 +103,43 @@ def make_env(env_id: str):
         ) from None
 
 
+def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -> Callable:
+    """The environment's observation -> the one array a module without a policy protocol takes:
+    VecNormalize's statistics first (SB3 normalises the raw dict or array), then the adapter's layout
+    (SB3: Dict entries flattened in the policy's key order, images HWC -> CHW)."""
+    spec = bundle.loaded.spec
+
+    def prepare(obs):
+        if normalizer is not None:
+            obs = normalizer(obs)
+        if spec.get("adapter") == "sb3":
+            from prop_adapters.sb3 import observation_array
+
+            return observation_array(spec, obs)
+        if isinstance(obs, dict):
+            raise PropError(
+                f"the environment's observations are dicts (keys {sorted(obs)})",
+                "this bundle takes one array",
+            )
+        return obs
+
+    return prepare
+
+
 class _ArrayController:
     """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives."""
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None) -> None:
+    def __init__(self, bundle: Bundle, key: np.ndarray | None, prepare: Callable) -> None:
         from .policy import KeyedPolicy
 
         self.policy = KeyedPolicy(bundle, key)
+        self.prepare = prepare
 
     def reset(self) -> None:
         pass
 
     def act(self, obs) -> np.ndarray:
-        return self.policy.predict(obs)
+        return self.policy.predict(self.prepare(obs))
 
 
 @dataclass
@@ -136,9 +161,7 @@ class _Source:
 def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     """The environment's observation as the policy takes it (a dict of arrays by feature name)."""
     if features is None:
-        if isinstance(obs, dict):
-            raise PropError("the environment's observations are dicts", "this bundle takes one array")
-        return obs
+        return obs  # a bundle without a policy protocol: array_observation prepares it
     if not isinstance(obs, dict):
         if len(features) != 1:
             raise PropError(f"the environment gives one array; the policy takes {features}", "use --obs-map")
@@ -203,11 +226,19 @@ def evaluate_bundle(
     metric: Metric | None = None,
     original=None,
     progress: Callable[[str], None] | None = None,
+    normalizer: ObsNormalizer | None = None,
 ) -> dict:
-    """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition."""
+    """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition;
+    ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy."""
     settings.validate(has_key=key is not None)
-    env = make_env(env_id)
     policy = bundle.loaded.policy
+    if normalizer is not None and policy is not None:
+        raise PropError(
+            "--vecnormalize is for Stable-Baselines3 policies; this bundle's policy normalises its inputs",
+            "drop --vecnormalize",
+        )
+    prepare = array_observation(bundle, normalizer)
+    env = make_env(env_id)
     features = list(policy.input_features) if policy is not None else None
     obs_map = obs_map or {}
     enc = bundle.key_encoding
@@ -218,7 +249,7 @@ def evaluate_bundle(
         if progress is not None:
             progress(label)
         if policy is None:
-            ctl = _ArrayController(bundle, codes_or_bits)
+            ctl = _ArrayController(bundle, codes_or_bits, prepare)
         else:
             codes = None if codes_or_bits is None else key_codes(codes_or_bits, enc)
             ctl = _Source(bundle, codes).controller()

@@ -345,8 +345,8 @@ def test_zip_that_is_not_sb3(cli, tmp_path):
 @pytest.mark.parametrize(
     "kwargs,named",
     [
-        ({"policy_class": "ActorCriticCnnPolicy"}, "ActorCriticCnnPolicy"),
-        ({"policy_class": "MultiInputActorCriticPolicy"}, "MultiInputActorCriticPolicy"),
+        ({"policy_class": "ActorCriticCnnPolicy"}, "CnnPolicy on a float32 observation"),
+        ({"policy_class": "MultiInputActorCriticPolicy"}, "MultiInputPolicy with a Box observation space"),
         (
             {
                 "policy_module": "sb3_contrib.common.recurrent.policies",
@@ -359,16 +359,20 @@ def test_zip_that_is_not_sb3(cli, tmp_path):
 )
 def test_unsupported_policy_is_named_with_what_is_supported(cli, tmp_path, kwargs, named):
     err = _bad(cli, tmp_path, make_zip(tmp_path / "m.zip", **kwargs))
-    assert named in err and "is not supported" in err and "PPO and A2C MlpPolicy" in err
+    assert named in err and "is not supported" in err and "PPO and A2C (Box or Discrete" in err
 
 
 def test_unsupported_spaces_and_extra_tensors(tmp_path):
     sd = sb3_state("sac")
     with pytest.raises(PropError, match="Discrete action space.*not supported"):
         load_checkpoint(make_zip(tmp_path / "a.zip", "sac", discrete=True, state=sd))
-    sd["actor.features_extractor.cnn.0.weight"] = torch.zeros(4, 3, 3, 3)
-    with pytest.raises(PropError, match="beyond MlpPolicy"):
+    sd["actor.features_extractor.cnn.0.weight"] = torch.zeros(4, 3, 3, 3)  # a CNN in an MlpPolicy
+    with pytest.raises(PropError, match="does not fit SB3's SACPolicy"):
         load_checkpoint(make_zip(tmp_path / "b.zip", "sac", state=sd))
+    del sd["actor.features_extractor.cnn.0.weight"]
+    sd["adapter.0.weight"] = torch.zeros(4, 3)
+    with pytest.raises(PropError, match="beyond SB3's own"):
+        load_checkpoint(make_zip(tmp_path / "c.zip", "sac", state=sd))
 
 
 def test_pickled_objects_in_policy_pth_are_refused(tmp_path):

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -45,6 +46,14 @@ def eval_(
     original: Annotated[
         str | None, typer.Option("--original", help="Also roll out the original checkpoint (the control).")
     ] = None,
+    vecnormalize: Annotated[
+        Path | None,
+        typer.Option(
+            "--vecnormalize",
+            help="SB3 VecNormalize.save() file: normalise observations as in training (read without "
+            "running its code).",
+        ),
+    ] = None,
     as_json: Json = False,
 ) -> None:
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
@@ -53,6 +62,7 @@ def eval_(
     report = eval_bundle(
         bundle, env, settings, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
+        vecnormalize=vecnormalize,
     )  # fmt: skip
     if as_json:
         print_json(report)
