@@ -10,8 +10,11 @@
 4. `prop eval` closed loop: the original, the user's key, no key, random keys, one-bit neighbours,
    over the recorded horizon (30 steps) under every key: panda-gym ends an episode on reaching the
    goal, before a preference judged at the episode's end could show.
+5. `prop attack` with the user's key and the original ACT (controls): leakage of every probe on the
+   user's frames, whole action chunks in normalised units (report in --out/audit.json).
 
---reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-4.
+--reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-5;
+--attack-only keeps the bundle too and redoes step 5.
 """
 
 from __future__ import annotations
@@ -50,8 +53,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
+    ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
     args = ap.parse_args(argv)
     out = args.out
+    if args.attack_only:
+        attack(out)
+        return
     figures: dict = {}
     if args.reuse and (out / "figures.json").is_file():
         earlier = json.loads((out / "figures.json").read_text())
@@ -101,6 +108,24 @@ def main(argv: list[str] | None = None) -> None:
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
           f"eval {figures['eval_s']} s")  # fmt: skip
+
+    attack(out)
+
+
+def attack(out: Path) -> None:
+    t = time.perf_counter()
+    prop("attack", out / "bundle", "--data", out / "reach-user", "--key-file", out / "user.key",
+         "--original", out / "act", "--json", out / "audit.json")  # fmt: skip
+    report = json.loads((out / "audit.json").read_text())
+    u = report["user"]
+    print(f"\naudit ({time.perf_counter() - t:.0f} s): user key personalization {u['personalization']:.3f}, "
+          f"leakage {u['leakage']:.3f}")  # fmt: skip
+    for g in report["groups"]:
+        lk, c = g["leakage"], g["control"] or {}
+        control = c["leakage"]["worst"] if c.get("available") else None
+        print(f"  {g['probe']:10s} {g['name']:18s} worst {lk['worst']:.4f}  control "
+              f"{'n/a' if control is None else f'{control:.4f}'}  beyond "
+              f"{'n/a' if g['beyond'] is None else format(g['beyond'], '.4f')}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ The CLI parses, calls one function here and prints; everything else lives in the
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +18,7 @@ from prop_adapters import CheckpointOptions
 from . import constants as C
 from .audit import apply_max_leak, audit, load_original
 from .bundle import Bundle, describe_layers, load_bundle, read_manifest, write_bundle, write_sealed_bundle
-from .config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
+from .config import BLACKBOX_KEYS_POLICY, AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from .datasources import SOURCES, load_data
 from .datasources.npz import read_npy
 from .errors import PropError
@@ -366,6 +366,8 @@ def audit_bundle(
 
         data = flat_dataset(bundle.loaded.policy, data, "--data")
         bundle = array_bundle(bundle)
+        if settings.blackbox is None:
+            settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
     ref = load_original(bundle, original) if original else None
     return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
 
@@ -392,9 +394,9 @@ def export_bundle(
     from .export import export_onnx
     from .onnx_runtime import require_onnx
 
-    require_onnx()
     check_threads(threads)
     bundle = _array_model(load_bundle(bundle_path), "prop export")
+    require_onnx()
     configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
@@ -413,13 +415,16 @@ def eval_bundle(
     original: str | None = None,
     progress: Callable[[str], None] | None = None,
     vecnormalize: Path | None = None,
+    video: Path | None = None,
 ) -> dict:
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``);
-    ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``prop_cli.vecnormalize``)."""
-    from .rollout import evaluate_bundle, load_metric, parse_obs_map
+    ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``prop_cli.vecnormalize``); ``video``:
+    a new folder for one mp4 per condition."""
+    from .rollout import check_video, evaluate_bundle, load_metric, parse_obs_map
     from .vecnormalize import read_vecnormalize
 
     settings = settings or EvalSettings()
+    check_video(video)
     bundle = load_bundle(bundle_path)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
@@ -428,7 +433,7 @@ def eval_bundle(
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
-        normalizer=normalizer,
+        normalizer=normalizer, video=video,
     )  # fmt: skip
 
 

@@ -143,6 +143,10 @@ class PersonalizeConfig(_Settings):
         return self
 
 
+BLACKBOX_KEYS = 1_000_000
+BLACKBOX_KEYS_POLICY = 65_536
+
+
 @dataclass
 class AuditSettings(_Settings):
     """What `prop attack` probes and how hard (docs/threat-model.md)."""
@@ -157,7 +161,9 @@ class AuditSettings(_Settings):
     search_batch: int = 32  # samples per search step (0: all); each step draws its own
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
-    blackbox: int = 1_000_000  # random keys of the streamed black-box scan
+    # Random keys of the streamed black-box scan; None: BLACKBOX_KEYS, or BLACKBOX_KEYS_POLICY for
+    # policies (each ACT key is a transformer forward, ~15x an MLP's: 1M keys took 10 minutes).
+    blackbox: int | None = None
     blackbox_screen: int = 8  # samples each scanned key is screened on
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
@@ -169,6 +175,8 @@ class AuditSettings(_Settings):
         self.need(self.search_lr > 0, "search_lr", "positive")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         self.need(self.samples >= 2, "samples", "at least 2")
+        if self.blackbox is None:
+            self.blackbox = BLACKBOX_KEYS
         self.need(self.blackbox >= 0, "blackbox", ">= 0")
         self.need(self.blackbox_screen >= 1, "blackbox_screen", "at least 1")
         self.need(self.blackbox_keep >= 1, "blackbox_keep", "at least 1")

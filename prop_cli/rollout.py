@@ -18,6 +18,7 @@ import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -84,8 +85,9 @@ def _stdout_to_stderr():
         os.close(saved)
 
 
-def make_env(env_id: str):
-    """gymnasium.make(env_id); ``module:EnvId`` imports the module that registers the environment first."""
+def make_env(env_id: str, render: bool = False):
+    """gymnasium.make(env_id); ``module:EnvId`` imports the module that registers the environment first.
+    ``render``: frames from ``env.render()`` (render_mode rgb_array), for --video."""
     try:
         import gymnasium as gym
     except ImportError:
@@ -94,7 +96,7 @@ def make_env(env_id: str):
         ) from None
     try:
         with _stdout_to_stderr():
-            return gym.make(env_id)
+            return gym.make(env_id, render_mode="rgb_array") if render else gym.make(env_id)
     except Exception as e:  # noqa: BLE001 - unknown id, missing package, bad arguments
         raise PropError(
             f"--env {env_id!r}: gymnasium cannot make it "
@@ -178,11 +180,17 @@ def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     return out
 
 
-def _episodes(env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric) -> list:
+def _episodes(
+    env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric, frames=None
+) -> list:
+    """Roll out one episode per seed; ``frames`` (a list): the first episode's rendered frames go in it."""
     results = []
-    for seed in seeds:
+    for n, seed in enumerate(seeds):
         obs, _ = env.reset(seed=int(seed))
         controller.reset()
+        film = frames is not None and n == 0
+        if film:
+            frames.append(_frame(env))
         traj: Trajectory = {"observations": [obs], "actions": [], "rewards": [], "infos": []}
         total, steps, info = 0.0, 0, {}
         while True:
@@ -190,6 +198,8 @@ def _episodes(env, controller, seeds: list[int], features, obs_map, settings: Ev
             obs, reward, terminated, truncated, info = env.step(action)
             total += float(reward)
             steps += 1
+            if film:
+                frames.append(_frame(env))
             for k, v in (("observations", obs), ("actions", action), ("rewards", reward), ("infos", info)):
                 traj[k].append(v)
             if truncated or (terminated and not settings.ignore_terminated):
@@ -203,6 +213,37 @@ def _episodes(env, controller, seeds: list[int], features, obs_map, settings: Ev
             r["metric"] = float(metric(traj))
         results.append(r)
     return results
+
+
+def _frame(env) -> np.ndarray:
+    frame = env.render()
+    if not isinstance(frame, np.ndarray) or frame.ndim != 3:
+        raise PropError("--video: the environment renders no rgb_array frames", "drop --video")
+    return frame
+
+
+def check_video(video: Path | None) -> None:
+    """Before any rollout: the writer is installed and the folder is new (nothing is overwritten)."""
+    if video is None:
+        return
+    try:
+        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise PropError("--video needs imageio and imageio-ffmpeg", "pip install 'prop-cli[video]'") from None
+    if Path(video).exists():
+        raise PropError(f"--video {video} exists", "give a new folder (videos are never overwritten)")
+
+
+def write_videos(video: Path, films: dict[str, list[np.ndarray]], fps: float) -> None:
+    """One mp4 per condition (its first episode), written together at the end: all or nothing."""
+    import imageio.v2 as imageio
+
+    from .files import staged_dir
+
+    with staged_dir(Path(video), what="video folder", flag="--video") as tmp:
+        for label, frames in films.items():
+            imageio.mimsave(tmp / f"{label}.mp4", frames, fps=fps, macro_block_size=1)
 
 
 def _summary(results: list[dict]) -> dict:
@@ -227,10 +268,18 @@ def evaluate_bundle(
     original=None,
     progress: Callable[[str], None] | None = None,
     normalizer: ObsNormalizer | None = None,
+    video: Path | None = None,
 ) -> dict:
     """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition;
-    ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy."""
+    ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy; ``video``:
+    a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's)."""
     settings.validate(has_key=key is not None)
+    check_video(video)
+    films: dict[str, list[np.ndarray]] = {}
+
+    def film(label: str) -> list | None:
+        return None if video is None or label in films else films.setdefault(label, [])
+
     policy = bundle.loaded.policy
     if normalizer is not None and policy is not None:
         raise PropError(
@@ -238,14 +287,14 @@ def evaluate_bundle(
             "drop --vecnormalize",
         )
     prepare = array_observation(bundle, normalizer)
-    env = make_env(env_id)
+    env = make_env(env_id, render=video is not None)
     features = list(policy.input_features) if policy is not None else None
     obs_map = obs_map or {}
     enc = bundle.key_encoding
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
 
-    def run(label: str, codes_or_bits, seeds: list[int]) -> list[dict]:
+    def run(label: str, codes_or_bits, seeds: list[int], name: str) -> list[dict]:
         if progress is not None:
             progress(label)
         if policy is None:
@@ -253,7 +302,7 @@ def evaluate_bundle(
         else:
             codes = None if codes_or_bits is None else key_codes(codes_or_bits, enc)
             ctl = _Source(bundle, codes).controller()
-        return _episodes(env, ctl, seeds, features, obs_map, settings, metric)
+        return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
     cond = report["conditions"]
@@ -263,10 +312,12 @@ def evaluate_bundle(
         ctl = original.policy.controller(original.module.eval()) if original.policy else None
         if ctl is None:
             raise PropError("--original: only LeRobot policies are compared this way", "drop --original")
-        cond["original"] = _summary(_episodes(env, ctl, first, features, obs_map, settings, metric))
-    cond["no_key"] = _summary(run("no key", None, first))
+        cond["original"] = _summary(
+            _episodes(env, ctl, first, features, obs_map, settings, metric, film("original"))
+        )
+    cond["no_key"] = _summary(run("no key", None, first, "no_key"))
     if key is not None:
-        cond["user_key"] = _summary(run("user key", key, first))
+        cond["user_key"] = _summary(run("user key", key, first, "user_key"))
     groups = [("random_keys", random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key))]
     if key is not None and settings.neighbours:
         nbrs = one_bit_neighbours(key)
@@ -278,10 +329,14 @@ def evaluate_bundle(
             # the user key, no key and the original (paired, not merely as many).
             m = settings.episodes_per_key
             seeds = [first[(j * m + i) % len(first)] for i in range(m)]
-            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds)
+            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label)
             results += r
             per_key.append(_summary(r))
         if keys is not None and len(keys):
             cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key}
+    fps = float(env.metadata.get("render_fps") or 25)
     env.close()
+    if video is not None:
+        write_videos(video, films, fps)
+        report["video"] = {"folder": str(video), "files": sorted(f"{k}.mp4" for k in films), "fps": fps}
     return report

@@ -4,6 +4,7 @@ source's checks that run before lerobot is imported. No lerobot needed."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from torch import nn
 
 from prop_cli.batch_axes import probe_batch_axes
 from prop_cli.datasources import load_data
-from prop_cli.datasources.lerobot import parse_episodes
+from prop_cli.datasources.lerobot import parse_episodes, parse_list, split_path
 from prop_cli.errors import PropError
 from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
 
@@ -98,3 +99,12 @@ def test_many_keys_at_once_fall_back_to_one_run_per_key_on_sequence_first_layers
         ref = torch.stack([km.fold(codes[i : i + 1])(x) for i in range(2)])
     assert km.share_prefix is False
     assert torch.allclose(out, ref, atol=1e-5)
+
+
+def test_lerobot_root_selections_split_in_any_order():
+    assert split_path(Path("/d/r")) == (Path("/d/r"), None, None)
+    assert split_path(Path("/d/r:episodes=0-3")) == (Path("/d/r"), "0-3", None)
+    assert split_path(Path("/d/r:episodes=0-3:frames=5-9")) == (Path("/d/r"), "0-3", "5-9")
+    assert split_path(Path("/d/r:frames=5-9:episodes=1")) == (Path("/d/r"), "1", "5-9")
+    with pytest.raises(PropError, match="frame 99999999 is out of range"):
+        parse_list("0-99999999", "r", "frame")

@@ -119,3 +119,49 @@ def test_cnn_with_linear_head_shares_the_conv_prefix():
         folded = torch.stack([km.fold(_codes(2)[i : i + 1])(x) for i in range(2)])
     assert km.share_prefix is True
     assert torch.allclose(out, folded, atol=1e-5)
+
+
+class _ResidualAfterKey(nn.Module):
+    """The keyed layer's output is added to an unkeyed path (as in a transformer's residual): the prefix
+    cannot be shared, but rows are independent, so keys run as copies of the batch in one forward."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.a, self.b = nn.Linear(4, 4), nn.Linear(4, 2)
+
+    def forward(self, x):
+        return self.b(x + self.a(x))
+
+
+def test_independent_rows_run_every_key_in_one_forward():
+    torch.manual_seed(0)
+    module = _ResidualAfterKey()
+    km = _keyed(module, ["a"])
+    x, codes = torch.randn(5, 4), _codes(3)
+    calls = []
+    module.b.register_forward_pre_hook(lambda m, args: calls.append(args[0].shape[0]))
+    with torch.no_grad():
+        deltas = km.layer_deltas(codes)
+        out = km.run_keys(x, deltas)
+        expected = torch.stack([km.fold(codes[k : k + 1])(x) for k in range(3)])
+    assert km.share_prefix is False and km.rows_independent is True
+    assert calls[-4] == 15  # the audit's call: 3 keys x 5 samples in one forward (then 3 folds)
+    assert torch.allclose(out, expected, atol=1e-5)
+
+
+def test_batch_mixing_module_is_not_run_as_copies():
+    torch.manual_seed(0)
+    km = _keyed(_BatchMixing(), ["b"])
+    with torch.no_grad():
+        km.run_keys(torch.randn(5, 4), km.layer_deltas(_codes(3)))
+    assert km.rows_independent is False
+
+
+def test_on_another_module_keeps_batch_axes_and_remove_hooks_detaches():
+    module = _mlp()
+    km = _keyed(module, ["2"])
+    km.batch_axis = {"2": 1}
+    other = km.on(copy.deepcopy(module))
+    assert other.batch_axis == {"2": 1} and other.encoder is km.encoder
+    km.remove_hooks()
+    assert not dict(module.named_modules())["2"]._forward_pre_hooks

@@ -79,6 +79,15 @@ def test_dataset_rows_and_action_chunks_follow_the_episodes(work):
     assert not torch.equal(b["action"][1], b["action"][2])
 
 
+def test_frame_selection_trims_each_episode(work):
+    ds = load_data(f"{work / 'general'}:episodes=1-2:frames=0-11")
+    assert len(ds) == 24 and set(ds.x["frame_index"].tolist()) == set(range(12))
+    b = load_checkpoint(work / "act").policy.batches(ds, "--data")
+    # Frame 11 is the selection's last of its episode: its chunk is its own action, then padding.
+    assert b["action_is_pad"][11].tolist() == [False] + [True] * 9
+    assert not b["action_is_pad"][2].any()
+
+
 def test_bundle_base_loads_in_lerobot_and_keys_change_only_keyed_runs(bundle, work):
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
@@ -120,6 +129,21 @@ def test_eval_rolls_out_every_key_condition(bundle, work):
     assert set(report["conditions"]) == {"original", "no_key", "random_keys"}
     assert report["conditions"]["no_key"]["episodes"] == 2
     assert "metric" in report["conditions"]["no_key"] and "success" in report["conditions"]["no_key"]
+
+
+def test_eval_video_writes_one_mp4_per_condition_and_never_overwrites(bundle, work, tmp_path, cli):
+    pytest.importorskip("imageio_ffmpeg")
+    args = ["eval", bundle, "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--episodes", "1",
+            "--random-keys", "1", "--max-steps", "4", "--video", tmp_path / "v"]  # fmt: skip
+    r = cli(*args)
+    assert r.code == 0, r.err
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["no_key.mp4", "random_keys.mp4"]
+    import imageio.v2 as imageio
+
+    frames = imageio.mimread(tmp_path / "v" / "no_key.mp4")
+    assert len(frames) == 5 and frames[0].ndim == 3  # the reset frame and one per step
+    r = cli(*args)
+    assert r.code == 2 and "exists" in r.err and len(r.err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize(
@@ -165,15 +189,71 @@ def test_npz_data_for_a_lerobot_policy_is_one_line(work, tmp_path, cli):
     assert not (tmp_path / "b").exists()
 
 
-@pytest.mark.parametrize("command", ["run", "attack"])
-def test_array_commands_refuse_policy_bundles_in_one_line(bundle, tmp_path, cli, command):
-    np.save(tmp_path / "x.npy", np.zeros((2, 9), np.float32))
-    args = ["--input", tmp_path / "x.npy", "--output", tmp_path / "y.npy"] if command == "run" else []
-    if command == "attack":
-        np.savez(tmp_path / "d.npz", x=np.zeros((20, 9), np.float32))
-        args = ["--data", tmp_path / "d.npz"]
-    r = cli(command, bundle, *args)
-    assert r.code == 2 and "prop eval" in r.err and len(r.err.strip().splitlines()) == 1
+def test_run_writes_action_chunks_and_no_key_is_lerobots_own_action(bundle, work, tmp_path, cli):
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    (tmp_path / "k.bin").write_bytes(np.packbits(key()).tobytes())
+    (tmp_path / "k.bin").chmod(0o600)
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y0.npy")
+    assert r.code == 0, r.err
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y1.npy", "--key-file",
+            tmp_path / "k.bin")  # fmt: skip
+    assert r.code == 0, r.err
+    y0, y1 = np.load(tmp_path / "y0.npy"), np.load(tmp_path / "y1.npy")
+    data = load_data(work / "user")
+    assert y0.shape == (len(data), 10, 3) and not np.allclose(y0, y1, atol=1e-3)
+    # No key: the first action of each chunk is what LeRobot's base itself acts, in action units.
+    base = ACTPolicy.from_pretrained(str(bundle / "lerobot")).eval()
+    pre, post = make_pre_post_processors(base.config, pretrained_path=str(bundle / "lerobot"))
+    for row in (0, 7):
+        base.reset()
+        obs = {k: torch.from_numpy(data.x[k][row : row + 1]) for k in ("observation.state",
+               "observation.environment_state")}  # fmt: skip
+        with torch.no_grad():
+            action = post(base.select_action(pre(obs)))[0].numpy()
+        assert np.allclose(action, y0[row, 0], atol=1e-5)
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y2.npy", "--onnx")
+    assert r.code == 2 and "--onnx" in r.err and len(r.err.strip().splitlines()) == 1
+    assert not (tmp_path / "y2.npy").exists()
+    r = cli("export", bundle, "--onnx", "--out", tmp_path / "onnx")
+    assert r.code == 2 and "prop run or prop eval" in r.err and not (tmp_path / "onnx").exists()
+
+
+def test_attack_audits_chunks_with_controls_on_the_original(bundle, work):
+    from prop_cli.config import AuditSettings
+
+    s = AuditSettings(probes=["null", "random", "hamming", "relaxed"], hamming=[1, 4], per_distance=8,
+                      random=16, restarts=4, search_steps=3, samples=1000)  # fmt: skip
+    report = api.audit_bundle(bundle, work / "user", s, key_files=[tmp_key(work)], original=str(work / "act"))
+    assert report["bundle"]["task"] == "regression" and report["data"]["samples"] == 3 * task.HORIZON
+    assert report["control_model"].startswith("the original checkpoint")
+    assert report["settings"]["blackbox"] == 65_536  # the policies' default, recorded though not run
+    names = {g["name"]: g for g in report["groups"]}
+    assert {"null", "random", "hamming 1", "hamming 4", "relaxed"} <= set(names)
+    assert all(g["control"]["available"] for g in names.values())
+    # The user key's leakage is the metric on whole normalised chunks: recompute it by hand from the
+    # original's and the keyed policy's chunks and the recorded chunks (every frame of the data).
+    from prop_cli.keyed import key_codes
+    from prop_cli.metrics import leakage
+
+    b = load_bundle(bundle)
+    policy = b.loaded.policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    obs = {k: batch[k] for k in policy.input_features}
+    original = load_checkpoint(work / "act").policy
+    keyed = type(policy)(b.keyed.fold(key_codes(key(), b.key_encoding)), policy.pre, policy.post)
+    with torch.no_grad():
+        ref, out = original.chunk(obs).flatten(1), keyed.chunk(obs).flatten(1)
+    by_hand = leakage(out[None], batch["action"].flatten(1), ref, "regression").item()
+    assert by_hand == pytest.approx(report["user"]["leakage"], abs=1e-4)
+
+
+def tmp_key(work):
+    path = work / "audit.key"
+    path.write_bytes(np.packbits(key()).tobytes())
+    path.chmod(0o600)
+    return path
 
 
 def test_same_seed_same_bundle(bundle, work):

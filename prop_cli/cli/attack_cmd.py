@@ -22,7 +22,7 @@ SETTINGS = {
     "search_lr": "Adam learning rate of the searches.",
     "search_batch": "Samples per search step (0: all of them).",
     "samples": "Samples of --data to audit on.",
-    "blackbox": "Random keys of the streamed black-box scan.",
+    "blackbox": "Random keys of the black-box scan [default: 1,000,000; 65,536 for LeRobot policies].",
     "blackbox_screen": "Samples each black-box key is screened on.",
     "blackbox_keep": "Black-box keys kept per criterion and re-scored.",
     "seed": "Seed for probe keys, samples and search restarts.",

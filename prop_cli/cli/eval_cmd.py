@@ -54,6 +54,12 @@ def eval_(
             "running its code).",
         ),
     ] = None,
+    video: Annotated[
+        Path | None,
+        typer.Option(
+            "--video", help="New folder: one mp4 per condition, its first episode (prop-cli[video])."
+        ),
+    ] = None,
     as_json: Json = False,
 ) -> None:
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
@@ -62,7 +68,7 @@ def eval_(
     report = eval_bundle(
         bundle, env, settings, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
-        vecnormalize=vecnormalize,
+        vecnormalize=vecnormalize, video=video,
     )  # fmt: skip
     if as_json:
         print_json(report)
@@ -79,3 +85,5 @@ def eval_(
     for name, r in report["conditions"].items():
         table.add_row(name, str(r["episodes"]), cell(r, "return"), cell(r, "success"), cell(r, "metric"))
     out.print(table)
+    if "video" in report:
+        err.print(f"wrote {len(report['video']['files'])} videos to {report['video']['folder']}")

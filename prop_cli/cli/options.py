@@ -58,7 +58,12 @@ Threads = Annotated[
     ),
 ]
 OnnxDir = Annotated[Path | None, typer.Option("--onnx-dir", help="The ONNX export (default: BUNDLE/onnx).")]
-Inputs = Annotated[Path, typer.Option("--input", help="Inputs: .npy (N, ...) or a data file's x.")]
+Inputs = Annotated[
+    Path,
+    typer.Option(
+        "--input", help="Inputs: .npy (N, ...), a data file's x, or a LeRobotDataset root (policies)."
+    ),
+]
 
 
 def config_options(cls: type, helps: dict[str, str], into: str = "config") -> Callable:

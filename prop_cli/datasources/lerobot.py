@@ -1,6 +1,9 @@
 """A local LeRobotDataset root (codebase v3.0) as ``--data`` / ``--general-data``; never downloaded.
 
-``ROOT`` reads every episode, ``ROOT:episodes=0-15,20`` a selection. Every frame is one row: ``x`` holds
+``ROOT`` reads every episode, ``ROOT:episodes=0-15,20`` a selection of episodes, ``ROOT:frames=0-99`` the
+frames whose ``frame_index`` is in the list (each episode then ends at its last selected frame: action
+chunks are cut from the selected frames, padded as at an episode's end); both combine as
+``ROOT:episodes=0-3:frames=0-49``. Every frame is one row: ``x`` holds
 each state, environment and image feature (images as CHW float in [0, 1], as LeRobot yields them) plus
 ``episode_index`` and ``frame_index``; ``y`` is the recorded ``action``. Action chunks are cut per
 policy from these rows (``prop_adapters.lerobot``), with the policy's own delta indices.
@@ -24,7 +27,8 @@ from prop_cli.errors import PropError
 from .base import Dataset, DataSource
 
 INFO = Path("meta") / "info.json"
-SELECT = ":episodes="
+SELECTORS = (":episodes=", ":frames=")
+MAX_INDEX = 1 << 24  # bounds what a selection may expand to
 CODEBASE = "v3.0"
 ACTION = "action"
 INDEX_COLUMNS = ("episode_index", "frame_index")
@@ -33,29 +37,40 @@ _BOOKKEEPING = {"timestamp", "frame_index", "episode_index", "index", "task_inde
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
 
 
-def split_path(path: Path) -> tuple[Path, str | None]:
-    """``ROOT:episodes=SPEC`` -> (ROOT, SPEC); a plain root -> (root, None)."""
-    text = str(path)
-    if SELECT in text:
-        root, spec = text.split(SELECT, 1)
-        return Path(root), spec
-    return Path(text), None
+def split_path(path: Path) -> tuple[Path, str | None, str | None]:
+    """``ROOT:episodes=E:frames=F`` -> (ROOT, E, F); either part may be absent (None)."""
+    text, parts = str(path), {}
+    while True:
+        cut = max(text.rfind(m) for m in SELECTORS)
+        if cut < 0:
+            return Path(text), parts.get(":episodes="), parts.get(":frames=")
+        marker = next(m for m in SELECTORS if text.startswith(m, cut))
+        parts.setdefault(marker, text[cut + len(marker) :])
+        text = text[:cut]
 
 
-def parse_episodes(spec: str, total: int, where: str) -> list[int]:
-    """``0-15,20`` -> [0, ..., 15, 20], each checked against the root's total_episodes."""
+def parse_list(spec: str, where: str, what: str) -> list[int]:
+    """``0-15,20`` -> [0, ..., 15, 20] (ranges inclusive)."""
     out: set[int] = set()
     for part in spec.replace(" ", "").split(","):
         m = re.fullmatch(r"(\d+)(?:-(\d+))?", part)
         if not m:
             raise PropError(
-                f"{where}: episode selection {spec!r} is not a list of episodes",
-                "write it like :episodes=0-15,20 (ranges are inclusive)",
+                f"{where}: {what} selection {spec!r} is not a list of {what}s",
+                f"write it like :{what}s=0-15,20 (ranges are inclusive)",
             )
         lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
         if lo > hi:
-            raise PropError(f"{where}: episode range {part!r} runs backwards", "write ranges as low-high")
+            raise PropError(f"{where}: {what} range {part!r} runs backwards", "write ranges as low-high")
+        if hi >= MAX_INDEX:
+            raise PropError(f"{where}: {what} {hi} is out of range", f"select {what}s below {MAX_INDEX}")
         out.update(range(lo, hi + 1))
+    return sorted(out)
+
+
+def parse_episodes(spec: str, total: int, where: str) -> list[int]:
+    """``0-15,20`` -> [0, ..., 15, 20], each checked against the root's total_episodes."""
+    out = parse_list(spec, where, "episode")
     missing = sorted(e for e in out if e >= total)
     if missing:
         raise PropError(
@@ -86,16 +101,19 @@ def read_info(root: Path, where: str) -> dict:
 
 class LeRobotSource(DataSource):
     name = "lerobot"
-    summary = "a local LeRobotDataset root (v3.0; ROOT or ROOT:episodes=0-15,20), with lerobot installed"
+    summary = (
+        "a local LeRobotDataset root (v3.0; ROOT, ROOT:episodes=0-15,20, ROOT:frames=0-99, or both), "
+        "with lerobot installed"
+    )
     selects = True
 
     def recognise(self, path: Path) -> bool:
-        root, _ = split_path(path)
-        return (root / INFO).is_file()
+        return (split_path(path)[0] / INFO).is_file()
 
     def load(self, path: Path, *, require_y: bool = True, min_samples: int = 10) -> Dataset:
-        root, spec = split_path(path)
+        root, spec, frame_spec = split_path(path)
         where = str(path)
+        frames = parse_list(frame_spec, where, "frame") if frame_spec else None
         info = read_info(root, where)
         features = info["features"]
         episodes = parse_episodes(spec, int(info["total_episodes"]), where) if spec else None
@@ -139,6 +157,10 @@ class LeRobotSource(DataSource):
                 y = arr.astype(np.float32)
             elif arr.dtype.kind in "biuf":
                 x[c] = arr if c in INDEX_COLUMNS else arr.astype(np.float32)
+        if frames is not None and "frame_index" in x:
+            keep = np.isin(x["frame_index"], frames)
+            x = {k: v[keep] for k, v in x.items()}
+            y = None if y is None else y[keep]
         n = len(x["episode_index"]) if "episode_index" in x else 0
         if n < min_samples:
             raise PropError(
@@ -147,5 +169,11 @@ class LeRobotSource(DataSource):
         for k, v in x.items():
             if v.dtype.kind == "f" and not np.isfinite(v).all():
                 raise PropError(f"{where}: feature '{k}' has NaN or inf", "drop or fix those frames")
-        meta = {"fps": info["fps"], "root": str(root), "episodes": episodes, "features": features}
+        meta = {
+            "fps": info["fps"],
+            "root": str(root),
+            "episodes": episodes,
+            "frames": frames,
+            "features": features,
+        }
         return Dataset(x=x, y=y, path=where, meta=meta)
