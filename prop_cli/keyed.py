@@ -113,7 +113,7 @@ class KeyedModel(nn.Module):
         self.layer_names = list(layer_names)
         mods = dict(module.named_modules())
         self._rows: _Rows | None = None
-        # None = not probed yet; see _probe_sharing.
+        # None = not probed yet; see _probe_modes.
         self.share_prefix: bool | None = None
         # Axis of the batch in each keyed layer's input (name -> axis; absent = 0). Sequence-first
         # layers (nn.Transformer* without batch_first, as in LeRobot's ACT) take (S, B, D): see
@@ -259,63 +259,57 @@ class KeyedModel(nn.Module):
         return self.run_rows(copies, deltas, torch.arange(k, device=x.device).repeat_interleave(b))
 
     def _rows_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
-        if self.rows_independent is None:
-            self.rows_independent = self._probe_rows(x[:2], [d[:2] for d in deltas])
-        return self.rows_independent
-
-    @torch.no_grad()
-    def _probe_rows(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
-        """Two keys as two copies of the batch in one forward == one forward per key (eval mode)?"""
-        k, b = deltas[0].shape[0], x.shape[0]
-        was_training = self.module.training
-        self.module.eval()
-        try:
-            zeros = torch.zeros(b, dtype=torch.long, device=x.device)
-            ref = torch.cat([self.run_rows(x, [d[i : i + 1] for d in deltas], zeros) for i in range(k)])
-            got = self._run_copies(x, deltas)
-            ok = got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
-        except (_RowMismatch, RuntimeError):
-            ok = False
-        finally:
-            self._rows = None
-            self.module.train(was_training)
-        return bool(ok)
+        self._sharing_ok(x, deltas)
+        return bool(self.rows_independent)
 
     def _sharing_ok(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
         # Gathering or broadcasting at the first keyed layer is only valid if everything after it treats
-        # rows independently. Check once, on two samples x two keys, against one forward per key.
+        # rows independently; running keys as batch copies only if rows do not mix. Checked once, on two
+        # samples x two keys, against one forward per key (one key needs neither: not decided then).
         if self.share_prefix is None:
-            self.share_prefix = self._probe_sharing(x[:2], [d[:2] for d in deltas])
+            if deltas[0].shape[0] < 2:
+                return False
+            self.share_prefix, self.rows_independent = self._probe_modes(x[:2], [d[:2] for d in deltas])
         return self.share_prefix
 
     @torch.no_grad()
-    def _probe_sharing(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> bool:
+    def _probe_modes(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> tuple[bool, bool]:
+        """(prefix sharing gives one forward per key's outputs, batch copies give them)."""
         k, b = deltas[0].shape[0], x.shape[0]
         key_index = torch.arange(k, device=x.device).repeat_interleave(b)
         sample_index = torch.arange(b, device=x.device).repeat(k)
         row_deltas = [d.index_select(0, key_index) for d in deltas]
+
+        def with_rows(rows: _Rows) -> torch.Tensor:
+            self._rows = rows
+            return self.module(x)
+
+        def agrees(run) -> bool:
+            try:
+                got = run()
+            except (_RowMismatch, RuntimeError):
+                return False
+            finally:
+                self._rows = None
+            return got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
+
         was_training = self.module.training
         self.module.eval()
         try:
-            refs = []
-            for i in range(k):  # the truth: each key on its own batch, as a user would run it
-                self._rows = _Rows([d[i : i + 1].expand(b, -1) for d in deltas], None)
-                refs.append(self.module(x))
-            ref = torch.cat(refs)
-            self._rows = _Rows(row_deltas, sample_index)
-            gathered = self.module(x)
-            self._rows = _Rows(deltas, None, grid=True)
-            grid = self.module(x)
-            ok = all(
-                got.shape == ref.shape and torch.allclose(got, ref, atol=1e-5, rtol=1e-4)
-                for got in (gathered, grid)
+            # the truth: each key on its own batch, as a user would run it
+            ref = torch.cat(
+                [with_rows(_Rows([d[i : i + 1].expand(b, -1) for d in deltas], None)) for i in range(k)]
             )
+            share = agrees(lambda: with_rows(_Rows(row_deltas, sample_index))) and agrees(
+                lambda: with_rows(_Rows(deltas, None, grid=True))
+            )
+            copies = agrees(lambda: self._run_copies(x, deltas))
         except (_RowMismatch, RuntimeError):
-            ok = False
+            share = copies = False
         finally:
             self._rows = None
             self.module.train(was_training)
-        return bool(ok)
+        return bool(share), bool(copies)
 
     @torch.no_grad()
     def fold(self, codes: torch.Tensor) -> nn.Module:
