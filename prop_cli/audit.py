@@ -35,6 +35,7 @@ WRONG_KEY_LEAKAGE = 0.5
 # Per-candidate lists in a search's JSON only up to this many candidates (a key scan keeps hundreds).
 PER_RESTART_LISTS = 256
 MAX_SHOTS = 64  # the largest few-shot k
+SATURATED = 0.99  # a control's worst leakage at or above this cannot separate the bundle from the original
 
 
 def _sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
@@ -248,6 +249,8 @@ def audit(
     finally:
         for prm, flag in zip(km.parameters(), grad_flags):
             prm.requires_grad_(flag)
+    if not bundle.is_sealed:  # sealed: white-box searches run on the public base, the control's own model
+        warnings += _saturated_controls(groups, user)
 
     return {
         "schema": C.AUDIT_SCHEMA,
@@ -277,6 +280,27 @@ def audit(
             "wall_seconds": time.perf_counter() - started,
         },
     }
+
+
+def _saturated_controls(groups: list[dict], user: dict | None) -> list[str]:
+    """Searches whose control reaches the leakage ceiling cannot show a leak as "beyond": say so where
+    the search's own pick reaches most of the user's key (seen on ACT action chunks, where unbounded
+    moves of the whole chunk clip leakage at 1 on the original too)."""
+    if user is None:
+        return []
+    out = []
+    for g in groups:
+        c = g["control"]
+        if g["kind"] != "search" or not c or not c.get("available") or c["leakage"] is None:
+            continue
+        pick = (g.get("search") or {}).get("best_leakage")
+        if c["leakage"]["worst"] >= SATURATED and pick is not None and pick >= 0.5 * user["leakage"] > 0:
+            out.append(
+                f"{g['name']}: its control reaches the leakage ceiling ({c['leakage']['worst']:.2f}), so "
+                f"this row cannot show a leak beyond the original; the search's own pick reaches "
+                f"{pick:.2f} (your key: {user['leakage']:.2f})"
+            )
+    return out
 
 
 def _scan_speed(groups: list[dict]) -> dict | None:

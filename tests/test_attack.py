@@ -289,3 +289,16 @@ def test_wrong_key_warns(bundles, cli):
     assert len(warning) == 1 and "may not be this bundle's key" in warning[0]
     r = cli(*args, "--key-file", d / "k.bin")
     assert "prop: warning:" not in r.err
+
+
+def test_a_search_whose_control_saturates_is_named_in_the_warnings():
+    from prop_cli.audit import _saturated_controls
+
+    def row(name, control, pick):
+        return {"name": name, "kind": "search", "search": {"best_leakage": pick},
+                "control": {"available": True, "leakage": {"worst": control}}}  # fmt: skip
+
+    groups = [row("relaxed", 1.0, 0.6), row("latent", 0.4, 0.9), row("fewshot k=1", 1.0, 0.1)]
+    warned = _saturated_controls(groups, {"leakage": 0.62})
+    assert len(warned) == 1 and warned[0].startswith("relaxed: its control reaches the leakage ceiling")
+    assert _saturated_controls(groups, None) == []
