@@ -13,8 +13,11 @@
 5. `prop attack` with the user's key and the original ACT (controls): leakage of every probe on the
    user's frames, whole action chunks in normalised units (report in --out/audit.json).
 
---reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-5;
---attack-only keeps the bundle too and redoes step 5.
+6. The same user sealed: `prop personalize --seal` (a LoRA payload in an AES-GCM record; the base stays
+   the original), `prop eval` and `prop attack` of the sealed bundle (--out/audit-sealed.json).
+
+--reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
+--attack-only keeps the bundle too and redoes step 5; --sealed-only keeps steps 1-5 and redoes step 6.
 """
 
 from __future__ import annotations
@@ -33,6 +36,9 @@ from examples import lerobot_reach_task as task
 
 # 3000 steps: 1500 reached user preference 0.83, 3000 reached 0.97 (examples/RESULTS.md).
 # Eq. 8 per step as in phase 1 (32 rows: 16 user, 8 null, 4 neighbours + 4 random keys x 1).
+# Sealed: the payload alone on the user's frames. Payload lr 1e-3 (3000 steps): personalization 0.509
+# vs 0.444 at the default 1e-2 and 0.463 at 3e-3 (unsealed PRoP: 0.516).
+SEALED = ["--seal", "--steps", "3000", "--user-rows", "32", "--payload-lr", "1e-3"]
 PERSONALIZE = [
     "--steps", "3000", "--user-rows", "16", "--null-rows", "8", "--neighbour-keys", "4", "--random-keys", "4",
     "--samples-per-key", "1", "--null-weight", "2", "--lr", "1e-3", "--base-lr-scale", "0.1",
@@ -54,16 +60,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
     ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
+    ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     args = ap.parse_args(argv)
     out = args.out
     if args.attack_only:
-        attack(out)
+        attack(out, "bundle")
+        return
+    if args.sealed_only:
+        sealed(out, args.episodes)
         return
     figures: dict = {}
     if args.reuse and (out / "figures.json").is_file():
         earlier = json.loads((out / "figures.json").read_text())
         figures = {k: v for k, v in earlier.items() if k.startswith(("record", "base"))}
-        shutil.rmtree(out / "bundle", ignore_errors=True)
     else:
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
@@ -78,48 +87,65 @@ def main(argv: list[str] | None = None) -> None:
         prop("keygen", out / "user.key")
     prop("inspect", out / "act")
     steps = PERSONALIZE if args.steps is None else [*PERSONALIZE[:1], str(args.steps), *PERSONALIZE[2:]]
+    figures |= run_bundle(out, "bundle", [*steps, "--general-data", out / "reach-general"], args.episodes)
+    (out / "figures.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
+    print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
+          f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
+          f"eval {figures['eval_s']} s")  # fmt: skip
+    attack(out, "bundle")
+    sealed(out, args.episodes)
+
+
+def sealed(out: Path, episodes: int) -> None:
+    """Step 6: the same user sealed: a LoRA payload in an encrypted record, the base the original."""
+    figures = run_bundle(out, "sealed", SEALED, episodes)
+    (out / "figures-sealed.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
+    print(f"times: personalize --seal {figures['personalize_s']} s, eval {figures['eval_s']} s")
+    attack(out, "sealed")
+
+
+def run_bundle(out: Path, name: str, personalize: list, episodes: int) -> dict:
+    """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
+    shutil.rmtree(out / name, ignore_errors=True)
+    figures: dict = {}
     t = time.perf_counter()
     report = json.loads(prop(
-        "personalize", out / "act", "--data", out / "reach-user", "--general-data", out / "reach-general",
-        "--key-file", out / "user.key", "--out", out / "bundle", *steps, "--json", capture=True,
+        "personalize", out / "act", "--data", out / "reach-user", "--key-file", out / "user.key",
+        "--out", out / name, *personalize, "--json", capture=True,
     ))  # fmt: skip
     figures["personalize_s"] = round(time.perf_counter() - t, 1)
     figures["offline"] = report["metrics"][0]
     t = time.perf_counter()
     closed = json.loads(prop(
-        "eval", out / "bundle", "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--metric", task.METRIC,
-        "--key-file", out / "user.key", "--original", out / "act", "--episodes", args.episodes,
+        "eval", out / name, "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--metric", task.METRIC,
+        "--key-file", out / "user.key", "--original", out / "act", "--episodes", episodes,
         "--max-steps", task.HORIZON, "--ignore-terminated", "--json",
         capture=True,
     ))  # fmt: skip
     figures["eval_s"] = round(time.perf_counter() - t, 1)
     figures["closed_loop"] = closed["conditions"]
-    (out / "figures.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
-    print(f"\nclosed loop on {task.ENV_ID} (success = reach the goal; preference = end 10 cm above it):")
-    for name, r in closed["conditions"].items():
+    print(f"\n{name}: closed loop on {task.ENV_ID} (success: reach the goal; preference: end 10 cm above)")
+    for cond, r in closed["conditions"].items():
         s, m = r.get("success", {}), r.get("metric", {})
-        print(f"  {name:16s} n={r['episodes']:3d}  success {s.get('mean', 0):.2f} ± {s.get('se', 0):.2f}"
+        print(f"  {cond:16s} n={r['episodes']:3d}  success {s.get('mean', 0):.2f} ± {s.get('se', 0):.2f}"
               f"  preference {m.get('mean', 0):.2f} ± {m.get('se', 0):.2f}")  # fmt: skip
     o = figures["offline"]
     fid = {g: o[g]["fidelity"]["mean"] for g in ("null", "random", "hamming1")}
-    print(f"offline (held-out user episodes, normalised chunk units): personalization "
+    print(f"{name}: offline (held-out user episodes, normalised chunk units): personalization "
           f"{o['personalization']:.3f}; fidelity mse null {fid['null']:.4f}, random {fid['random']:.4f}, "
           f"1-bit {fid['hamming1']:.4f}")  # fmt: skip
-    print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
-          f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
-          f"eval {figures['eval_s']} s")  # fmt: skip
-
-    attack(out)
+    return figures
 
 
-def attack(out: Path) -> None:
+def attack(out: Path, name: str) -> None:
     t = time.perf_counter()
-    prop("attack", out / "bundle", "--data", out / "reach-user", "--key-file", out / "user.key",
-         "--original", out / "act", "--json", out / "audit.json")  # fmt: skip
-    report = json.loads((out / "audit.json").read_text())
+    audit = out / ("audit.json" if name == "bundle" else f"audit-{name}.json")
+    prop("attack", out / name, "--data", out / "reach-user", "--key-file", out / "user.key",
+         "--original", out / "act", "--json", audit)  # fmt: skip
+    report = json.loads(audit.read_text())
     u = report["user"]
-    print(f"\naudit ({time.perf_counter() - t:.0f} s): user key personalization {u['personalization']:.3f}, "
-          f"leakage {u['leakage']:.3f}")  # fmt: skip
+    print(f"\n{name}: audit ({time.perf_counter() - t:.0f} s): user key personalization "
+          f"{u['personalization']:.3f}, leakage {u['leakage']:.3f}")  # fmt: skip
     for g in report["groups"]:
         lk, c = g["leakage"], g["control"] or {}
         control = c["leakage"]["worst"] if c.get("available") else None

@@ -139,10 +139,6 @@ def personalize_checkpoint(
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     if cfg.seal:
-        if loaded.policy is not None:
-            raise PropError(
-                f"--seal is not available for {loaded.spec['adapter']} policies yet", "drop --seal"
-            )
         if general is not None:
             raise PropError(
                 "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
@@ -212,17 +208,22 @@ def _array_model(bundle: Bundle, command: str) -> Bundle:
 def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
     from .bundle import update_manifest
     from .sealed import check_distinct, public_metrics, train_users, user_report
-    from .trainer import _prepare
 
     keys = [k.bits for _, k in users]
     check_distinct(keys)
-    datasets, task = _prepare(loaded, [User(d, b) for d, b in zip(datasets, keys)], None, cfg.task)
-    trained = train_users(loaded, datasets, keys, task, cfg, device, progress)
+    trained, task, axes = train_users(loaded, datasets, keys, cfg.task, cfg, device, progress)
     kinds = sorted({k.kind for _, k in users})
     layers = trained[0].payload.spec.layers
     manifest = {
         C.M_MODEL: loaded.spec,
-        C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
+        C.M_KEYED_LAYERS: [
+            {
+                "name": x["name"],
+                "features": x["in_features"],
+                **({C.M_BATCH_AXIS: axes[x["name"]]} if axes.get(x["name"]) else {}),
+            }
+            for x in layers
+        ],  # fmt: skip
         C.M_PAYLOAD: trained[0].payload.spec.to_dict(),
         # A sealed bundle always has a passphrase salt, so passphrase users can be added later.
         # No user count: the records list is the count, and add-user / remove-user keep it true.
@@ -233,13 +234,13 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
         },
         C.M_CONFIG: cfg.to_dict(),
         C.M_TASK: task,
-        C.M_IO: {"input_shape": list(datasets[0].x.shape[1:]), "checkpoint": str(checkpoint)},
+        C.M_IO: {"input_shape": _input_shape(loaded, trained[0].val), "checkpoint": str(checkpoint)},
     }
     written = write_sealed_bundle(
         out, loaded=loaded, manifest=manifest, users=[(u.payload, u.private, u.bits) for u in trained],
         force=force,
     )  # fmt: skip
-    bundle = load_bundle(out)
+    bundle = _report_view(out)
     reports = [user_report(bundle, u, cfg, i) for i, u in enumerate(trained)]
     records = written[C.M_RECORDS]
     update_manifest(
@@ -249,6 +250,16 @@ def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, dev
     for r in reports[1:]:
         r.pop("final_losses", None)
     return PersonalizeResult(out, task, written[C.M_KEYED_LAYERS], reports, final, read_manifest(out))
+
+
+def _report_view(path: Path) -> Bundle:
+    """A written bundle as the per-user report runs it: policies through their array view."""
+    bundle = load_bundle(path)
+    if bundle.loaded.policy is None:
+        return bundle
+    from .policy_view import array_bundle
+
+    return array_bundle(bundle)
 
 
 def _parameters(module) -> int:
@@ -498,22 +509,17 @@ def add_user(
     cfg.validate(key_bits=bundle.key_bits)
     check_new_key(bundle.sealed, key.bits)
     configure_threads(_parameters(bundle.loaded.module), None)
-    data, task = _user_data(bundle, data_path, cfg)
     index = len(m[C.M_RECORDS])
-    [user] = train_users(bundle.loaded, [data], [key.bits], task, cfg, device, progress, first_index=index)
+    [user], _, _ = train_users(
+        bundle.loaded, [load_data(data_path)], [key.bits], cfg.task or bundle.task, cfg, device, progress,
+        first_index=index,
+    )  # fmt: skip
     rec = seal_payload(m, user.private, user.payload, key.bits)
     new = rewrite_records(Path(bundle_path), m, [rec], [])
-    report = user_report(load_bundle(bundle_path), user, cfg, index)
+    report = user_report(_report_view(Path(bundle_path)), user, cfg, index)
     users = list((new.get(C.M_METRICS) or {}).get("users", []))
     update_manifest(Path(bundle_path), C.M_METRICS, {"users": [*users, public_metrics(report, rec.id)]})
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
-
-
-def _user_data(bundle: Bundle, data_path: Path, cfg: PersonalizeConfig):
-    from . import data as data_mod
-
-    task = cfg.task or bundle.task
-    return data_mod.prepare(bundle.loaded, load_data(data_path), "--data", task)
 
 
 def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str | None = None) -> UserChange:

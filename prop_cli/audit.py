@@ -197,6 +197,8 @@ def audit(
     dev = resolve_device(device)
     if bundle.is_sealed:  # no encoder: white-box probes get a blank one over the public base
         km = blank_keyed(_unhooked_copy(bundle.loaded.module), bundle.layer_names, bundle.key_bits).to(dev)
+        layers = bundle.manifest[C.M_KEYED_LAYERS]  # sequence-first layers (ACT): their batch axes
+        km.batch_axis = {x["name"]: int(x[C.M_BATCH_AXIS]) for x in layers if C.M_BATCH_AXIS in x}
     else:
         km = bundle.keyed.to(dev).eval()
     grad_flags = [p.requires_grad for p in km.parameters()]

@@ -118,7 +118,8 @@ def write_sealed_bundle(
     with staged_dir(out) as tmp:
         copy_base = str(loaded.source).endswith(".safetensors")
         _write_base(tmp, loaded, loaded.module, copy_base)
-        full = _stamp({**manifest, C.M_MODE: C.MODE_SEALED, C.M_RECORDS: []}, tmp, (C.BASE_WEIGHTS,))
+        extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_SEALED, C.M_RECORDS: []}, tmp, (C.BASE_WEIGHTS, *extra))
         for payload, meta, bits in users:
             rec = seal_payload(full, meta, payload, bits)
             full[C.M_RECORDS].append(record_entry(rec, write_record(tmp, rec)))

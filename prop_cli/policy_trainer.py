@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ from .evaluate import outputs_report
 from .keyed import KeyedModel, KeyEncoder, key_codes
 from .keyspace import KeySampler, one_bit_neighbours, random_keys
 from .layers import select_layers
+from .metrics import leakage, personalization
 from .objective import check_user_keys
 
 _EVAL_STREAM = 0x5EED_E7A1  # the trainer's stream for evaluation keys (same role as in trainer.py)
@@ -57,6 +59,12 @@ def _chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
     return torch.cat(
         [policy.chunk(_rows(batch, torch.arange(i, min(n, i + _CHUNK)))) for i in range(0, n, _CHUNK)]
     )
+
+
+def cosine(cfg: PersonalizeConfig):
+    """The learning-rate factor at step t: cosine decay from 1 to ``lr_floor`` over the run."""
+    floor, steps = cfg.lr_floor, cfg.steps
+    return lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / steps))
 
 
 class PolicyTrainer:
@@ -96,10 +104,7 @@ class PolicyTrainer:
         if base:
             groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
         self.opt = torch.optim.Adam(groups, lr=cfg.lr)
-        floor = cfg.lr_floor
-        self.sched = torch.optim.lr_scheduler.LambdaLR(
-            self.opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / cfg.steps))
-        )
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, cosine(cfg))
         self.params = [p for g in groups for p in g["params"]]
         self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding)
         self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
@@ -196,3 +201,64 @@ def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: Persona
     o_rand = under(key_codes(random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits), enc))
     o_ham = under(key_codes(one_bit_neighbours(bits), enc))
     return outputs_report(b, p, "regression", o_user[0], under(None), o_rand, o_ham)
+
+
+def train_policy_payloads(
+    loaded: LoadedModel,
+    datasets: list[Dataset],
+    keys: list[np.ndarray],
+    cfg: PersonalizeConfig,
+    progress=None,
+    first_index: int = 0,
+) -> tuple[list, dict[str, int]]:
+    """Sealed policies (`--seal`): each user's payload trained on their frames alone with the policy's
+    own loss, the base frozen (it stays the original). No fallback terms: a wrong key opens no record
+    and the original runs. Returns the users (``sealed.SealedUser``, validation as flat chunks) and the
+    keyed layers' batch axes (the audit keys the public base at those layers)."""
+    from .payload import Payload
+    from .policy_view import flat_chunks
+    from .sealed import SealedUser, payload_spec
+
+    policy, module = loaded.policy, loaded.module.eval()
+    layers = cfg.layers or policy.default_layers
+    spec = payload_spec(module, replace(cfg, layers=layers))
+    names = [x["name"] for x in spec.layers]
+    splits = [_split(policy.batches(d, "--data"), cfg.val_fraction) for d in datasets]
+    axes = probe_batch_axes(
+        module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])), f"the policy {loaded.source}"
+    )
+    module.requires_grad_(False)
+    out = []
+    for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
+        torch.manual_seed(cfg.seed + i)
+        rng = np.random.default_rng((cfg.seed, i))
+        payload = Payload(spec, torch.Generator().manual_seed(cfg.seed + i))
+        opt = torch.optim.Adam(payload.parameters(), lr=cfg.payload_lr)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, cosine(cfg))
+        losses: dict[str, float] = {}
+        n = len(tr["episode_index"])
+        with payload.attached(module):
+            for step in range(cfg.steps):
+                loss = policy.loss(_rows(tr, torch.from_numpy(rng.integers(0, n, cfg.user_rows))))
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(payload.parameters(), CLIP)
+                opt.step()
+                sched.step()
+                losses = {"personal": loss.item()}
+                if progress is not None:
+                    progress(step + 1, losses)
+        module.eval()
+        payload.eval()
+        folded = type(policy)(payload.fold(module), policy.pre, policy.post)
+        b, o, p = _chunks(policy, val), _chunks(folded, val), val["action"]
+        private = {
+            "personalization": personalization(o, p, b, "regression"),
+            "user_leakage": leakage(o[None], p, b, "regression").item(),
+            "samples": int(len(p)),
+            "final_losses": losses,
+            "config": cfg.to_dict(),
+        }
+        flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
+        out.append(SealedUser(payload, private, bits, flat_val))
+    return out, axes

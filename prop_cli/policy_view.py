@@ -27,7 +27,6 @@ from prop_adapters import LoadedModel
 
 from .bundle import Bundle
 from .datasources import Dataset
-from .errors import PropError
 from .keyed import key_codes
 
 ROWS = 256  # frames per forward when running a whole dataset
@@ -72,14 +71,18 @@ def flatten_features(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
     return torch.cat([batch[k].flatten(1) for k in policy.input_features], dim=1)
 
 
-def flat_dataset(policy, data: Dataset, flag: str) -> Dataset:
-    """A LeRobot Dataset -> x (N, F) normalised features and y (N, chunk * action_dim) recorded chunks
-    (None without actions); rows ordered by episode and frame, as the policy cuts its chunks."""
-    batch = policy.batches(data, flag)
+def flat_chunks(policy, batch: dict[str, torch.Tensor], path: str) -> Dataset:
+    """A policy's batch -> x (N, F) normalised features and y (N, chunk * action_dim) recorded chunks
+    (None without actions)."""
     x = flatten_features(policy, batch).numpy().astype(np.float32)
     y = batch["action"].flatten(1).numpy().astype(np.float32) if "action" in batch else None
-    meta = dict(data.meta, episode_index=batch["episode_index"].numpy(), flattened=True)
-    return Dataset(x=x, y=y, path=data.path, meta=meta)
+    return Dataset(x=x, y=y, path=path, meta={"episode_index": batch["episode_index"].numpy()})
+
+
+def flat_dataset(policy, data: Dataset, flag: str) -> Dataset:
+    """A LeRobot Dataset as the array model takes it; rows ordered by episode and frame, as the policy
+    cuts its chunks."""
+    return flat_chunks(policy, policy.batches(data, flag), data.path)
 
 
 def flat_module(loaded: LoadedModel) -> FlatPolicy:
@@ -95,16 +98,27 @@ def array_bundle(bundle: Bundle) -> Bundle:
     loaded = bundle.loaded
     if loaded.policy is None:
         return bundle
-    if bundle.is_sealed:  # refused at personalize; a hand-made one is refused here the same way
-        raise PropError(
-            f"{bundle.path}: sealed policy bundles are not supported", "personalize without --seal"
-        )
     flat = flat_module(loaded)
+    view_loaded = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
+    if bundle.is_sealed:  # no encoder: records fold into the flat module by the layers' names
+        return replace(bundle, loaded=view_loaded)
     km = bundle.keyed
     km.remove_hooks()
-    view = km.on(flat).eval()
-    view_loaded = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
-    return replace(bundle, loaded=view_loaded, keyed=view)
+    return replace(bundle, loaded=view_loaded, keyed=km.on(flat).eval())
+
+
+def policy_module(bundle: Bundle, key: np.ndarray | None) -> nn.Module:
+    """The policy module that acts under ``key``: unsealed, the key's delta folded into a copy; sealed,
+    the opened record's payload folded in, or the base (the original) when the key opens none."""
+    if key is not None:
+        bundle.check_key(key)
+    if bundle.is_sealed:
+        from .policy import sealed_module
+
+        return sealed_module(bundle, key)
+    if key is None:
+        return bundle.loaded.module
+    return bundle.keyed.fold(key_codes(key, bundle.key_encoding))
 
 
 @torch.no_grad()
@@ -112,9 +126,8 @@ def run_policy(bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str 
     """The bundle's action chunks (N, chunk, action_dim) for every frame of ``data``, in the dataset's
     action units (the policy's postprocessor applied); with a key, that key's behaviour."""
     policy = bundle.loaded.policy
-    if key is not None:
-        bundle.check_key(key)
-        module = bundle.keyed.fold(key_codes(key, bundle.key_encoding))
+    module = policy_module(bundle, key)
+    if module is not bundle.loaded.module:
         policy = type(policy)(module, policy.pre, policy.post)
     batch = policy.batches(replace(data, y=None), flag)
     n = len(batch["episode_index"])

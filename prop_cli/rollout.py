@@ -16,6 +16,7 @@ import importlib
 import math
 import os
 import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,6 @@ import numpy as np
 from .bundle import Bundle
 from .config import EvalSettings
 from .errors import PropError
-from .keyed import key_codes
 from .keyspace import one_bit_neighbours, random_keys
 from .vecnormalize import ObsNormalizer
 
@@ -149,14 +149,17 @@ class _Source:
     """What acts under one key: a bundle (key bits or None) or the original checkpoint's module."""
 
     bundle: Bundle
-    codes: object | None = None  # torch tensor (1, bits) or None
+    bits: np.ndarray | None = None
 
     def controller(self):
         loaded = self.bundle.loaded
         if loaded.policy is None:
             return None
-        km = self.bundle.keyed.eval()
-        module = km.fold(self.codes) if self.codes is not None else km.module
+        from .policy_view import policy_module
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
+            module = policy_module(self.bundle, self.bits)
         return loaded.policy.controller(module)
 
 
@@ -290,7 +293,6 @@ def evaluate_bundle(
     env = make_env(env_id, render=video is not None)
     features = list(policy.input_features) if policy is not None else None
     obs_map = obs_map or {}
-    enc = bundle.key_encoding
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
 
@@ -300,8 +302,7 @@ def evaluate_bundle(
         if policy is None:
             ctl = _ArrayController(bundle, codes_or_bits, prepare)
         else:
-            codes = None if codes_or_bits is None else key_codes(codes_or_bits, enc)
-            ctl = _Source(bundle, codes).controller()
+            ctl = _Source(bundle, codes_or_bits).controller()
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}

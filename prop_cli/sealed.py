@@ -283,15 +283,26 @@ def train_users(
     loaded: LoadedModel,
     datasets: list[data_mod.Dataset],
     keys: list[np.ndarray],
-    task: str,
+    task: str | None,
     cfg: PersonalizeConfig,
     device: str = "cpu",
     progress: Progress | None = None,
     first_index: int = 0,
-) -> list[SealedUser]:
-    """Each user's payload on their own data alone (users are independent), with its validation figure."""
-    from .trainer import resolve_device, targets_tensor
+) -> tuple[list[SealedUser], str, dict[str, int]]:
+    """Each user's payload on their own data alone (users are independent), with its validation figure.
+    Returns the users, the task (``task``: an override) and the keyed layers' batch axes (policies)."""
+    from .trainer import User, _prepare, resolve_device, targets_tensor
 
+    if loaded.policy is not None:  # LeRobot: the policy's own loss on dict batches
+        from .policy_trainer import train_policy_payloads
+
+        if device not in ("cpu", "auto"):
+            raise PropError(
+                f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
+            )
+        users, axes = train_policy_payloads(loaded, datasets, keys, cfg, progress, first_index)
+        return users, "regression", axes
+    datasets, task = _prepare(loaded, [User(d, b) for d, b in zip(datasets, keys)], None, task)
     dev = resolve_device(device)
     module = loaded.module.to(dev).eval()
     spec = payload_spec(module, cfg)
@@ -311,7 +322,7 @@ def train_users(
         }
         out.append(SealedUser(payload.to("cpu"), private, bits, val))
     module.to("cpu")
-    return out
+    return out, task, {}
 
 
 def user_report(bundle, user: SealedUser, cfg: PersonalizeConfig, index: int) -> dict:

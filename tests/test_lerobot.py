@@ -264,3 +264,54 @@ def test_same_seed_same_bundle(bundle, work):
     )  # fmt: skip
     for name in ("base.safetensors", "encoder.safetensors"):
         assert (again / name).read_bytes() == (bundle / name).read_bytes()
+
+
+@pytest.fixture(scope="module")
+def sealed(work):
+    out = work / "sealed"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 30}))
+    api.personalize_checkpoint(str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, cfg)
+    return out
+
+
+def test_sealed_policy_bundle_runs_the_original_without_its_key(sealed, work):
+    from prop_cli.policy import WrongKeyWarning
+    from prop_cli.policy_view import run_policy
+
+    b = load_bundle(sealed)
+    assert b.is_sealed and b.keyed is None and (sealed / "lerobot" / "config.json").is_file()
+    data = load_data(work / "user")
+    orig = load_checkpoint(work / "act").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
+    assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(b, data, key(2)), original)
+    assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+    manifest = json.loads((sealed / "manifest.json").read_text())
+    axes = {x["name"]: x.get("batch_axis", 0) for x in manifest["keyed_layers"]}
+    assert axes["model.encoder.layers.0.linear1"] == 1 and manifest["mode"] == "sealed"
+
+
+def test_sealed_policy_audit_add_user_and_eval(sealed, work, tmp_path):
+    import shutil as sh
+
+    from prop_cli.config import AuditSettings
+
+    probes = ["null", "random", "hamming", "blackbox", "structure", "relaxed"]
+    s = AuditSettings(probes=probes, hamming=[1], per_distance=8, random=16, blackbox=64, restarts=4,
+                      search_steps=3, samples=1000)  # fmt: skip
+    report = api.audit_bundle(sealed, work / "user", s, key_files=[tmp_key(work)])
+    assert report["bundle"]["sealed"] and report["user"]["leakage"] != 0.0
+    for g in report["groups"]:
+        assert g["beyond"] == 0.0, g["name"]
+        if g["probe"] in ("null", "random", "hamming", "blackbox"):
+            assert g["leakage"]["worst"] == 0.0 and g["fidelity"]["worst"] == 0.0
+    two = tmp_path / "two"
+    sh.copytree(sealed, two)
+    change = api.add_user(two, work / "general", KeySource(key(3), "file"))
+    assert change.users == 2 and change.metrics["null"]["leakage"]["worst"] == 0.0
+    few = EvalSettings(episodes=1, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=5)
+    report = api.eval_bundle(two, task.ENV_ID, few, obs_map=task.OBS_MAP, key_file=tmp_key(work))
+    assert {"no_key", "user_key", "random_keys", "neighbour1_keys"} <= set(report["conditions"])
