@@ -144,6 +144,13 @@ class PolicyTrainer:
         return {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
+def check_cpu(device: str) -> None:
+    if device not in ("cpu", "auto"):
+        raise PropError(
+            f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
+        )
+
+
 def personalize_policy(
     loaded: LoadedModel,
     users: list,
@@ -155,10 +162,7 @@ def personalize_policy(
     """Train the keyed policy (Eq. 5) with Eq. 8; returns trainer.Personalized. CPU only in this version."""
     from .trainer import Personalized
 
-    if device not in ("cpu", "auto"):
-        raise PropError(
-            f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
-        )
+    check_cpu(device)
     t = PolicyTrainer(loaded, users, cfg, general)
     flush = torch.set_flush_denormal(True)  # as trainer.py: denormal Adam moments stall CPU steps
     losses: dict[str, float] = {}
@@ -208,6 +212,7 @@ def train_policy_payloads(
     datasets: list[Dataset],
     keys: list[np.ndarray],
     cfg: PersonalizeConfig,
+    device: str = "cpu",
     progress=None,
     first_index: int = 0,
 ) -> tuple[list, dict[str, int]]:
@@ -215,6 +220,7 @@ def train_policy_payloads(
     own loss, the base frozen (it stays the original). No fallback terms: a wrong key opens no record
     and the original runs. Returns the users (``sealed.SealedUser``, validation as flat chunks) and the
     keyed layers' batch axes (the audit keys the public base at those layers)."""
+    check_cpu(device)
     from .payload import Payload
     from .policy_view import flat_chunks
     from .sealed import SealedUser, payload_spec

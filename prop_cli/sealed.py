@@ -296,11 +296,7 @@ def train_users(
     if loaded.policy is not None:  # LeRobot: the policy's own loss on dict batches
         from .policy_trainer import train_policy_payloads
 
-        if device not in ("cpu", "auto"):
-            raise PropError(
-                f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
-            )
-        users, axes = train_policy_payloads(loaded, datasets, keys, cfg, progress, first_index)
+        users, axes = train_policy_payloads(loaded, datasets, keys, cfg, device, progress, first_index)
         return users, "regression", axes
     datasets, task = _prepare(loaded, [User(d, b) for d, b in zip(datasets, keys)], None, task)
     dev = resolve_device(device)
