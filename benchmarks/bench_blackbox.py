@@ -33,12 +33,12 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(1)
     from benchmarks.bench_attack import prepare
+    from prop_cli.attack.probes.base import ProbeContext, Reference
+    from prop_cli.attack.probes.blackbox import CHUNK
+    from prop_cli.attack.probes.screen import ChainForward
     from prop_cli.bundle import load_bundle
     from prop_cli.config import AuditSettings
-    from prop_cli.keys import read_key_file
-    from prop_cli.probes.base import ProbeContext, Reference
-    from prop_cli.probes.blackbox import CHUNK
-    from prop_cli.probes.screen import ChainForward
+    from prop_cli.core.keys import read_key_file
 
     if args.bundle:
         bundle_path, data, key_path = args.bundle, args.data, args.key_file

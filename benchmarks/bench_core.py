@@ -22,14 +22,14 @@ import numpy as np
 import torch
 
 from examples.il_task import write_example
-from prop_adapters import load_checkpoint
+from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
-from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.keyspace import KeySampler
-from prop_cli.layers import select_layers
-from prop_cli.objective import prop_loss
-from prop_cli.optim import Adam
-from prop_cli.trainer import FallbackPool, UserPool, make_batch
+from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.layers import select_layers
+from prop_cli.train.array import FallbackPool, UserPool, make_batch
+from prop_cli.train.objective import prop_loss
+from prop_cli.train.optim import Adam
 
 
 def interleaved(fns: dict, rounds: int = 7, reps: int = 50, clock=time.process_time) -> dict[str, float]:

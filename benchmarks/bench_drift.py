@@ -32,9 +32,8 @@ from examples import fit, mlp, save_npz
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.evaluate import outputs_for_codes
-from prop_cli.keyed import key_codes
-from prop_cli.keyspace import neighbours_at, random_keys
+from prop_cli.core.keyed import key_codes, outputs_for_codes
+from prop_cli.core.keyspace import neighbours_at, random_keys
 
 RANDOM_KEYS = 256
 PER_DISTANCE = 32

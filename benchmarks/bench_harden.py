@@ -53,11 +53,11 @@ def user_key(seed: int) -> np.ndarray:
 
 def train(base: Path, data, key: np.ndarray, cfg) -> tuple:
     """`prop personalize` in memory: (keyed model, original, task, wall seconds)."""
-    import prop_adapters
-    from prop_cli.trainer import User, personalize
+    from prop_cli import adapters
+    from prop_cli.train import User, personalize
 
     t0 = time.perf_counter()
-    res = personalize(prop_adapters.load_checkpoint(str(base)), [User(data, key)], cfg)
+    res = personalize(adapters.load_checkpoint(str(base)), [User(data, key)], cfg)
     seconds = time.perf_counter() - t0
     return (
         res.keyed.eval().requires_grad_(False),
@@ -79,10 +79,10 @@ def null_data(data, original: torch.nn.Module, task: str):
 
 
 def run_case(task: str, seed: int, mode: str, args) -> dict:
-    from prop_cli import metrics
     from prop_cli.config import PersonalizeConfig
+    from prop_cli.core import metrics
+    from prop_cli.core.keyed import key_codes
     from prop_cli.datasources import load_data
-    from prop_cli.keyed import key_codes
 
     d = args.workdir / f"{task}_s{seed}"
     write_task(task, d, seed)

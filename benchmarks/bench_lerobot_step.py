@@ -22,11 +22,11 @@ import numpy as np
 import torch
 
 from examples import lerobot_reach_task as task
-from prop_adapters import load_checkpoint
+from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import load_data
-from prop_cli.policy_trainer import PolicyTrainer
-from prop_cli.trainer import User
+from prop_cli.train import User
+from prop_cli.train.policy import PolicyTrainer
 
 
 def main(argv: list[str] | None = None) -> None:

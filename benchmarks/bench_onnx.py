@@ -32,9 +32,9 @@ from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import KEYED_GRAPH
-from prop_cli.export import export_onnx
-from prop_cli.keyed import key_codes
-from prop_cli.onnx_runtime import OnnxPolicy, session
+from prop_cli.core.keyed import key_codes
+from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
+from prop_cli.deploy.onnx.common import session
 
 
 def _per_step_us(fn, x: np.ndarray, steps: int) -> float:

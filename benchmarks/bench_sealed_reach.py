@@ -6,7 +6,7 @@ Uses examples/reproduce/reach.py: the same env, pretrained PPO policy (30 iterat
 settings, env-step budget and evaluation goals as the paper reproduction. A sealed user's payload
 (prop_cli.payload) is attached to the frozen pretrained actor and trained with the PPO loss on the
 user's rollouts towards A g + c, with no fallback term (a wrong key opens nothing and runs the
-original). The payload is then sealed into a real bundle (prop_cli.bundle.write_sealed_bundle) and
+original). The payload is then sealed into a real bundle (prop_cli.bundle.write_sealed) and
 evaluated through ``KeyedPolicy`` with the user's key, and with wrong keys (which must give the
 original's actions exactly). Unsealed PRoP: reach.finetune (Eq. 8 with L' = PPO), the reproduction's.
 Score: the mean normalised reward of deterministic rollouts towards A g + c (personalized) and g
@@ -28,13 +28,13 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-import prop_adapters
 from examples.reproduce import common, ppo, reach
+from prop_cli import adapters
 from prop_cli import constants as C
-from prop_cli.bundle import load_bundle, write_sealed_bundle
+from prop_cli.bundle import load_bundle, write_sealed
+from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.config import PersonalizeConfig
-from prop_cli.payload import Payload, PayloadSpec
-from prop_cli.policy import KeyedPolicy, WrongKeyWarning
+from prop_cli.core.payload import Payload, PayloadSpec
 
 PAYLOADS = {"lora r4": ("lora", 4, 3e-3), "full": ("full", 0, 1e-3)}  # --lr to change the rates
 
@@ -101,9 +101,9 @@ def main(argv: list[str] | None = None) -> None:
             str(ckpt),
             metadata={"activation": "tanh"},
         )
-        loaded = prop_adapters.load_checkpoint(str(ckpt), prop_adapters.CheckpointOptions())
+        loaded = adapters.load_checkpoint(str(ckpt), adapters.CheckpointOptions())
         mods = dict(loaded.module.named_modules())
-        from prop_cli.layers import select_layers
+        from prop_cli.core.layers import select_layers
 
         layers = [
             {"name": n, "in_features": mods[n].in_features, "out_features": mods[n].out_features}
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
                     C.M_TASK: "regression",
                     C.M_IO: {"input_shape": [reach.OBS], "checkpoint": str(ckpt)},
                 }
-                write_sealed_bundle(out, loaded=loaded, manifest=manifest, users=[(payload, {}, key)])
+                write_sealed(out, loaded=loaded, manifest=manifest, users=[(payload, {}, key)])
                 bundle = load_bundle(out)
                 user = scores(env, KeyedPolicy(bundle, key), a.episodes)
                 rng = np.random.default_rng(seed + 5)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from tests.fuzzing import KINDS, MUTATIONS, fuzz, make_seeds
+from tests.bundle.fuzzing import KINDS, MUTATIONS, fuzz, make_seeds
 
 
 def _table(counts: Counter) -> list[str]:

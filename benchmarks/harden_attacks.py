@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from prop_cli import metrics
-from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.keyspace import neighbours_at
+from prop_cli.core import metrics
+from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyspace import neighbours_at
 
 
 @dataclass

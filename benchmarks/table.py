@@ -62,7 +62,7 @@ def machine() -> str:
 
 
 def _params(path: Path) -> int:
-    from prop_adapters import load_checkpoint
+    from prop_cli.adapters import load_checkpoint
 
     return sum(p.numel() for p in load_checkpoint(str(path)).module.parameters())
 
@@ -91,7 +91,7 @@ def _count(n: int) -> str:
 
 def _users(n_users: int, rows: int, seed: int) -> list:
     from prop_cli.datasources import Dataset
-    from prop_cli.trainer import User
+    from prop_cli.train import User
 
     rng = np.random.default_rng(seed)
     out = []
@@ -103,10 +103,10 @@ def _users(n_users: int, rows: int, seed: int) -> list:
 
 
 def personalize_rows(il: dict, mode: dict) -> list[tuple[str, str, str]]:
-    from prop_adapters import load_checkpoint
+    from prop_cli.adapters import load_checkpoint
     from prop_cli.config import PersonalizeConfig
     from prop_cli.threads import configure
-    from prop_cli.trainer import personalize
+    from prop_cli.train import personalize
 
     def seconds(n_users: int, rows: int) -> float:
         loaded = load_checkpoint(str(il["base"]))
@@ -143,13 +143,13 @@ def bundle_for(tmp: Path, il: dict, steps: int) -> tuple[Path, np.ndarray]:
 
 
 def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
-    from prop_cli import probes
-    from prop_cli.audit import audit
+    from prop_cli.attack import probes
+    from prop_cli.attack.audit import audit
     from prop_cli.bundle import load_bundle
     from prop_cli.config import AuditSettings
+    from prop_cli.core.keyed import KEY_ROWS, key_codes
+    from prop_cli.core.keyspace import random_keys
     from prop_cli.datasources import load_data
-    from prop_cli.keyed import KEY_ROWS, key_codes
-    from prop_cli.keyspace import random_keys
 
     bundle = load_bundle(bundle_path)
     key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default]
@@ -181,9 +181,8 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
 
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
     from prop_cli.bundle import load_bundle
-    from prop_cli.export import export_onnx
-    from prop_cli.keyed import key_codes
-    from prop_cli.onnx_runtime import OnnxPolicy
+    from prop_cli.core.keyed import key_codes
+    from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
 
     bundle = load_bundle(bundle_path)
     res = export_onnx(bundle, key=key)

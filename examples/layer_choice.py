@@ -42,10 +42,10 @@ def _example(task: str, out: Path, seed: int) -> dict[str, Path]:
 
 
 def _layer_names(base: Path) -> list[str]:
-    import prop_adapters
-    from prop_cli.layers import linear_layers
+    from prop_cli import adapters
+    from prop_cli.core.layers import linear_layers
 
-    return [n for n, _ in linear_layers(prop_adapters.load_checkpoint(base).module)]
+    return [n for n, _ in linear_layers(adapters.load_checkpoint(base).module)]
 
 
 def run(task: str, seed: int, steps: int, work: Path) -> list[dict]:

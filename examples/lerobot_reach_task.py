@@ -116,7 +116,7 @@ def train_base(root: Path, out: Path, steps: int, batch: int = 32, lr: float = 3
     the dataset held in memory; writes the policy folder with save_pretrained. Returns ms per step."""
     import time
 
-    from prop_adapters.lerobot import LeRobotPolicy
+    from prop_cli.adapters.lerobot import LeRobotPolicy
     from prop_cli.datasources import load_data
 
     torch.manual_seed(seed)

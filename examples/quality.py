@@ -22,9 +22,8 @@ import torch
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.evaluate import outputs_for_codes
-from prop_cli.keyed import key_codes
-from prop_cli.keyspace import neighbours_at, random_keys
+from prop_cli.core.keyed import key_codes, outputs_for_codes
+from prop_cli.core.keyspace import neighbours_at, random_keys
 
 DISTANCES = range(1, 9)
 KEYS_PER_DISTANCE = 64
@@ -58,7 +57,7 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict | None = None) ->
     x = torch.from_numpy(test["x"])
     y, yp = torch.from_numpy(test["y"]), torch.from_numpy(test["y_personal"])
     with torch.no_grad():
-        from prop_adapters import load_checkpoint
+        from prop_cli.adapters import load_checkpoint
 
         b = load_checkpoint(str(paths["base"])).module(x)
         o_null = bundle.keyed(x)

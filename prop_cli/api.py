@@ -1,49 +1,70 @@
 """The library's front door: one function per CLI command, usable from Python as well.
 
-Data path (docs/design.md): checkpoint -> adapter -> keyed model -> trainer -> bundle -> attack | export.
-The CLI parses, calls one function here and prints; everything else lives in the modules named below.
+Data path (docs/design.md): checkpoint (``adapters``) -> keyed model (``core``) -> training (``train``)
+-> bundle (``bundle``) -> audit (``attack``) | shipping (``deploy``). The CLI parses, calls one function
+here and prints; the work is done in those packages.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-import prop_adapters
-from prop_adapters import CheckpointOptions
-
-from . import constants as C
-from .audit import apply_max_leak, audit, load_original
-from .bundle import Bundle, describe_layers, load_bundle, read_manifest, write_bundle, write_sealed_bundle
-from .config import BLACKBOX_KEYS_POLICY, AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
-from .datasources import SOURCES, load_data
-from .datasources.npz import read_npy
-from .errors import PropError
-from .files import check_output, write_file
-from .hub import resolve_checkpoint
-from .keyed import key_codes
-from .keys import KeySource, generate_key_file, kdf_record, key_for_bundle, new_salt, read_key_file
-from .layers import linear_layers, select_layers
-from .policy import KeyedPolicy
-from .publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
-from .threads import check as check_threads
-from .threads import configure as configure_threads
-from .trainer import User, personalize
+from prop_cli import adapters
+from prop_cli import constants as C
+from prop_cli.adapters import CheckpointOptions
+from prop_cli.adapters.hub import resolve_checkpoint
+from prop_cli.attack import apply_max_leak, audit, target
+from prop_cli.attack.probes import select as select_probes
+from prop_cli.attack.report import plot as plot_audit
+from prop_cli.attack.report import table as audit_table
+from prop_cli.bundle import Bundle, KeyedPolicy, load_bundle, read_manifest, run_bundle
+from prop_cli.bundle.records import (
+    SealedState,
+    check_new_key,
+    public_metrics,
+    rewrite_records,
+    seal_payload,
+    with_records,
+)
+from prop_cli.bundle.runtime import run_policy
+from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
+from prop_cli.core.keyed import key_codes
+from prop_cli.core.keys import (
+    KeySource,
+    generate_key_file,
+    kdf_record,
+    key_for_bundle,
+    read_key_file,
+    user_keys,
+)
+from prop_cli.core.layers import linear_layers, select_layers
+from prop_cli.datasources import SOURCES, load_data
+from prop_cli.datasources.npz import read_npy
+from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
+from prop_cli.errors import PropError
+from prop_cli.files import check_output, write_file
+from prop_cli.threads import check as check_threads
+from prop_cli.threads import configure as configure_threads
+from prop_cli.train import Job, User, personalize, sealed_recipe
+from prop_cli.train.sealed import user_report as sealed_user_report
 
 __all__ = [
     "AuditSettings",
     "CheckpointOptions",
+    "EvalSettings",
     "ExportSettings",
     "KeySource",
     "KeyedPolicy",
     "PersonalizeConfig",
+    "add_user",
     "apply_max_leak",
     "audit",
-    "EvalSettings",
     "audit_bundle",
+    "audit_table",
     "eval_bundle",
     "export_bundle",
     "formats",
@@ -54,13 +75,16 @@ __all__ = [
     "load_bundle",
     "load_inputs",
     "personalize_checkpoint",
+    "plot_audit",
     "push_bundle",
     "read_key_file",
+    "read_manifest",
     "record_audit",
-    "add_user",
     "remove_user",
     "run_bundle",
     "run_file",
+    "select_probes",
+    "user_keys",
 ]
 
 
@@ -77,13 +101,17 @@ class PersonalizeResult:
 def formats() -> dict:
     """The checkpoint formats and data formats prop reads, from their registries (`prop formats`)."""
     return {
-        "checkpoints": [{"name": a.name, "summary": a.summary} for a in prop_adapters.ADAPTERS],
+        "checkpoints": [{"name": a.name, "summary": a.summary} for a in adapters.ADAPTERS],
         "data": [{"name": s.name, "summary": s.summary} for s in SOURCES],
     }
 
 
-def _load(path: str, opts: CheckpointOptions | None) -> prop_adapters.LoadedModel:
-    return prop_adapters.load_checkpoint(resolve_checkpoint(path), opts or CheckpointOptions())
+def _load(path: str, opts: CheckpointOptions | None) -> adapters.LoadedModel:
+    return adapters.load_checkpoint(resolve_checkpoint(path), opts or CheckpointOptions())
+
+
+def _parameters(module) -> int:
+    return sum(p.numel() for p in module.parameters())
 
 
 def inspect_checkpoint(
@@ -99,7 +127,7 @@ def inspect_checkpoint(
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
-        "model": prop_adapters.describe(loaded),
+        "model": adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
         "parameters": _parameters(loaded.module),
         "layers": [
@@ -138,132 +166,25 @@ def personalize_checkpoint(
     loaded = _load(checkpoint, opts)
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
-    if cfg.seal:
-        if general is not None:
-            raise PropError(
-                "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
-            )
-        return _personalize_sealed(
-            checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress
-        )
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None
-    result = personalize(
-        loaded,
-        [User(d, k.bits) for d, (_, k) in zip(datasets, users)],
-        cfg,
-        general=general_ds,
-        device=device,
-        progress=progress,
-    )
+    trained = personalize(
+        loaded, [User(d, k.bits) for d, (_, k) in zip(datasets, users)], cfg, general=general_ds,
+        device=device, progress=progress,
+    )  # fmt: skip
     kinds = sorted({k.kind for _, k in users})
-    keyed = result.keyed
-    manifest = {
+    common = {
         C.M_MODEL: loaded.spec,
-        C.M_KEYED_LAYERS: describe_layers(keyed),
         C.M_KEY: {
             "bits": bits.pop(),
-            "encoding": cfg.key_encoding,
-            "users": len(users),
             "source": kinds[0] if len(kinds) == 1 else "mixed",
             "kdf": kdf_record(salt),
         },
-        C.M_ENCODER: {
-            "hidden": list(cfg.encoder_hidden),
-            "scale": cfg.delta_scale,
-            "activation": "tanh",
-            "output": "1 + scale * tanh",
-        },
         C.M_CONFIG: cfg.to_dict(),
-        C.M_TASK: result.task,
-        C.M_IO: {"input_shape": _input_shape(loaded, datasets[0]), "checkpoint": str(checkpoint)},
-        C.M_METRICS: {"users": result.metrics, "final_losses": result.final_losses},
+        C.M_IO: {"checkpoint": str(checkpoint)},
     }
-    copy_base = cfg.freeze_base and str(loaded.source).endswith(".safetensors")
-    keyed.to("cpu")
-    write_bundle(out, loaded=loaded, keyed=keyed, manifest=manifest, force=force, copy_base=copy_base)
-    return PersonalizeResult(
-        out, result.task, manifest[C.M_KEYED_LAYERS], result.metrics, result.final_losses, manifest
-    )
-
-
-def _input_shape(loaded: prop_adapters.LoadedModel, data) -> list[int] | dict[str, list[int]]:
-    """Per-sample input shape; per feature name for policies with several inputs."""
-    if loaded.policy is not None:
-        return {k: list(v) for k, v in loaded.policy.input_features.items()}
-    return list(data.x.shape[1:])
-
-
-def _array_model(bundle: Bundle, command: str) -> Bundle:
-    """Refuse, in one line, bundles of policies with named observation features where a command
-    has no policy path yet (export)."""
-    if bundle.loaded.policy is not None:
-        raise PropError(
-            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
-            "with named observation features",
-            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
-        )
-    return bundle
-
-
-def _personalize_sealed(checkpoint, loaded, datasets, users, out, cfg, salt, device, force, progress):
-    from .bundle import update_manifest
-    from .sealed import check_distinct, public_metrics, train_users, user_report
-
-    keys = [k.bits for _, k in users]
-    check_distinct(keys)
-    trained, task, axes = train_users(loaded, datasets, keys, cfg.task, cfg, device, progress)
-    kinds = sorted({k.kind for _, k in users})
-    layers = trained[0].payload.spec.layers
-    manifest = {
-        C.M_MODEL: loaded.spec,
-        C.M_KEYED_LAYERS: [
-            {
-                "name": x["name"],
-                "features": x["in_features"],
-                **({C.M_BATCH_AXIS: axes[x["name"]]} if axes.get(x["name"]) else {}),
-            }
-            for x in layers
-        ],  # fmt: skip
-        C.M_PAYLOAD: trained[0].payload.spec.to_dict(),
-        # A sealed bundle always has a passphrase salt, so passphrase users can be added later.
-        # No user count: the records list is the count, and add-user / remove-user keep it true.
-        C.M_KEY: {
-            "bits": len(keys[0]),
-            "source": kinds[0] if len(kinds) == 1 else "mixed",
-            "kdf": kdf_record(salt or new_salt()),
-        },
-        C.M_CONFIG: cfg.to_dict(),
-        C.M_TASK: task,
-        C.M_IO: {"input_shape": _input_shape(loaded, trained[0].val), "checkpoint": str(checkpoint)},
-    }
-    written = write_sealed_bundle(
-        out, loaded=loaded, manifest=manifest, users=[(u.payload, u.private, u.bits) for u in trained],
-        force=force,
-    )  # fmt: skip
-    bundle = _report_view(out)
-    reports = [user_report(bundle, u, cfg, i) for i, u in enumerate(trained)]
-    records = written[C.M_RECORDS]
-    update_manifest(
-        out, C.M_METRICS, {"users": [public_metrics(r, e["id"]) for r, e in zip(reports, records)]}
-    )
-    final = reports[0].pop("final_losses", {})
-    for r in reports[1:]:
-        r.pop("final_losses", None)
-    return PersonalizeResult(out, task, written[C.M_KEYED_LAYERS], reports, final, read_manifest(out))
-
-
-def _report_view(path: Path) -> Bundle:
-    """A written bundle as the per-user report runs it: policies through their array view."""
-    bundle = load_bundle(path)
-    if bundle.loaded.policy is None:
-        return bundle
-    from .policy_view import array_bundle
-
-    return array_bundle(bundle)
-
-
-def _parameters(module) -> int:
-    return sum(p.numel() for p in module.parameters())
+    written = trained.write(out, common, force=force)
+    m = written.manifest
+    return PersonalizeResult(out, m[C.M_TASK], m[C.M_KEYED_LAYERS], written.metrics, written.final_losses, m)
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
@@ -293,12 +214,16 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
     return x
 
 
-def run_bundle(bundle: Bundle, x: np.ndarray, key: np.ndarray | None) -> np.ndarray:
-    """The bundle's raw outputs on ``x``: with a key, that key's behaviour; without, the base's.
-
-    One call folds the key once; in a control loop keep a ``KeyedPolicy(bundle, key)`` instead.
-    """
-    return KeyedPolicy(bundle, key)(x)
+def _array_model(bundle: Bundle, command: str) -> Bundle:
+    """Refuse, in one line, policies with named observation features where a command has no policy
+    path yet (ONNX)."""
+    if bundle.loaded.policy is not None:
+        raise PropError(
+            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            "with named observation features",
+            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
+        )
+    return bundle
 
 
 @dataclass
@@ -325,20 +250,18 @@ def run_file(
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
     bundle = load_bundle(bundle_path)
-    n_threads = configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
+    n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    use_onnx = onnx or onnx_dir is not None
     if bundle.loaded.policy is not None:
-        if onnx or onnx_dir is not None:
+        if use_onnx:
             raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
-        from .policy_view import run_policy
-
         data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
         y = run_policy(bundle, data, key)
-    elif onnx or onnx_dir is not None:
-        x = load_inputs(input_path, bundle)
-        from .onnx_runtime import run_onnx
+    elif use_onnx:
+        from prop_cli.deploy.onnx import run_onnx
 
-        y = run_onnx(bundle, x, key, onnx_dir, threads=n_threads)
+        y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads)
     else:
         y = run_bundle(bundle, load_inputs(input_path, bundle), key)
 
@@ -347,9 +270,9 @@ def run_file(
             np.save(f, y)
 
     write_file(output, save, what="output", flag="--output")
-    # A key that opens no record of a sealed bundle ran the base: report it as such, not as keyed.
-    keyed = key is not None and (not bundle.is_sealed or bundle.sealed.open(key) is not None)
-    return RunResult(Path(output), tuple(y.shape), keyed, onnx or onnx_dir is not None)
+    # A key that unlocks nothing (a sealed bundle's key that opens no record) ran the base: not keyed.
+    keyed = key is not None and bundle.mode.opens(key)
+    return RunResult(Path(output), tuple(y.shape), keyed, use_onnx)
 
 
 def audit_bundle(
@@ -364,28 +287,21 @@ def audit_bundle(
     progress: Callable[[str, int, int], None] | None = None,
     threads: int | None = None,
 ) -> dict:
-    """`prop attack`: the audit report for a bundle (``audit.audit``) from files. The audited user's key
+    """`prop attack`: the audit report for a bundle (``attack.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
     check_threads(threads)
     bundle = load_bundle(bundle_path)
-    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
+    configure_threads(bundle.parameters, threads)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
-    data = load_data(data_path, require_y=bool(keys))
-    if bundle.loaded.policy is not None:  # named features and action chunks, flattened (policy_view)
-        from .policy_view import array_bundle, flat_dataset
-
-        data = flat_dataset(bundle.loaded.policy, data, "--data")
-        bundle = array_bundle(bundle)
-        if settings.blackbox is None:
-            settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
-    ref = load_original(bundle, original) if original else None
+    bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
+    ref = target.load_original(bundle, original) if original else None
     return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
 
 
 def record_audit(bundle_path: Path, report: dict) -> dict:
     """Store the audit's summary in the bundle's manifest (``audit``); weights and hashes untouched."""
-    from .audit_report import record
+    from prop_cli.attack.report import record
 
     return record(Path(bundle_path), report)
 
@@ -401,14 +317,13 @@ def export_bundle(
     force: bool = False,
     threads: int | None = None,
 ):
-    """`prop export --onnx`: the four graphs, verified against torch (``export.export_onnx``)."""
-    from .export import export_onnx
-    from .onnx_runtime import require_onnx
+    """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``)."""
+    from prop_cli.deploy.onnx import export_onnx, require_onnx
 
     check_threads(threads)
     bundle = _array_model(load_bundle(bundle_path), "prop export")
     require_onnx()
-    configure_threads(_parameters(bundle.keyed or bundle.loaded.module), threads)
+    configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
     return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
@@ -428,11 +343,11 @@ def eval_bundle(
     vecnormalize: Path | None = None,
     video: Path | None = None,
 ) -> dict:
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``rollout.evaluate_bundle``);
-    ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``prop_cli.vecnormalize``); ``video``:
-    a new folder for one mp4 per condition."""
-    from .rollout import check_video, evaluate_bundle, load_metric, parse_obs_map
-    from .vecnormalize import read_vecnormalize
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
+    ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
+    ``video``: a new folder for one mp4 per condition."""
+    from prop_cli.adapters.sb3.vecnormalize import read_vecnormalize
+    from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map
 
     settings = settings or EvalSettings()
     check_video(video)
@@ -479,23 +394,12 @@ def add_user(
     """`prop add-user`: train one more user's payload on their data alone and seal it into the bundle.
 
     Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
-    payload kind, rank and layers must stay the bundle's (they are bound into every record)."""
-    from .bundle import update_manifest
-    from .config import PersonalizeConfig as Cfg
-    from .sealed import (
-        check_new_key,
-        public_metrics,
-        rewrite_records,
-        seal_payload,
-        train_users,
-        user_report,
-    )
-
+    payload kind, rank and layers must stay the bundle's (they are bound into every record). The
+    manifest is written once, with the new record and the new user's public figures."""
     bundle = _sealed_bundle(bundle_path, "add-user")
     m = bundle.manifest
     bundle.check_key(key.bits, "the new user's key")
-    base_cfg = Cfg.from_dict(m[C.M_CONFIG])
-    cfg = cfg or base_cfg
+    cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
     if (cfg.payload, cfg.payload_rank if cfg.payload == "lora" else 0) != (spec["kind"], spec["rank"]):
         raise PropError(
@@ -508,17 +412,18 @@ def add_user(
     cfg.seal = True
     cfg.validate(key_bits=bundle.key_bits)
     check_new_key(bundle.sealed, key.bits)
-    configure_threads(_parameters(bundle.loaded.module), None)
+    configure_threads(bundle.parameters, None)
     index = len(m[C.M_RECORDS])
-    [user], _, _ = train_users(
-        bundle.loaded, [load_data(data_path)], [key.bits], cfg.task or bundle.task, cfg, device, progress,
-        first_index=index,
-    )  # fmt: skip
+    recipe = sealed_recipe(bundle.loaded)
+    job = Job(bundle.loaded, cfg, device, progress)
+    [user], _, _ = recipe.train_users(job, [load_data(data_path)], [key.bits], cfg.task or bundle.task, index)
     rec = seal_payload(m, user.private, user.payload, key.bits)
-    new = rewrite_records(Path(bundle_path), m, [rec], [])
-    report = user_report(_report_view(Path(bundle_path)), user, cfg, index)
+    new = with_records(m, [rec], [])
+    state = SealedState(new, bundle.sealed.spec, [*bundle.sealed.records, rec])
+    report = sealed_user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
     users = list((new.get(C.M_METRICS) or {}).get("users", []))
-    update_manifest(Path(bundle_path), C.M_METRICS, {"users": [*users, public_metrics(report, rec.id)]})
+    new[C.M_METRICS] = {"users": [*users, public_metrics(report, rec.id)]}
+    new = rewrite_records(Path(bundle_path), m, new, [rec])
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
 
 
@@ -527,8 +432,6 @@ def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str
     record it removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's
     maintainer when a user lost theirs: whoever can write the files can delete a record anyway, and
     no one can add or change one without its key."""
-    from .sealed import rewrite_records
-
     bundle = _sealed_bundle(bundle_path, "remove-user")
     if (key is None) == (record is None):
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
@@ -545,5 +448,6 @@ def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str
         raise PropError(
             f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
         )
-    new = rewrite_records(Path(bundle_path), bundle.manifest, [], [record])
+    new = with_records(bundle.manifest, [], [record])
+    new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
     return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))

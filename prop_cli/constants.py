@@ -37,11 +37,15 @@ M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256"}], on
 MODE_UNSEALED = "unsealed"
 MODE_SEALED = "sealed"
 MODES = (MODE_UNSEALED, MODE_SEALED)
-M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.manifest)
+M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.bundle.manifest)
 M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
-# How key bits become the encoder's input (prop_cli.keyed.key_codes); the first is the default.
+# How key bits become the encoder's input (prop_cli.core.keyed.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")
+
+# A module attribute (a list of layer names) an adapter sets where the default choice of keyed layers
+# (prop_cli.core.layers.default_layers) does not hold, e.g. SB3's CnnPolicy.
+DEFAULT_LAYERS_ATTR = "prop_default_layers"
 
 # ONNX export (a folder; `prop export --onnx`).
 EXPORT_DIR = "onnx"  # default place: <bundle>/onnx

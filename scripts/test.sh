@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Set up with the test extra (the real Stable-Baselines3 round trips included), then run the linter and
-# the test suite. PROP_TEST_EXTRAS=test,rl also installs panda-gym for the PandaReach smoke test.
+# Set up with the test extra (the real Stable-Baselines3 round trips included), then run the linters (ruff;
+# lint-imports: the layer contracts in pyproject.toml) and the test suite. PROP_TEST_EXTRAS=test,rl also
+# installs panda-gym for the PandaReach smoke test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh "${PROP_TEST_EXTRAS:-test}"
 . .venv/bin/activate
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 ruff check .
+lint-imports --no-cache
 python -m pytest -q -p no:cacheprovider "$@"

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import prop_adapters
-from prop_cli import probes
+from prop_cli import adapters
+from prop_cli.attack import probes
 from prop_cli.datasources import SOURCES
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,8 +82,8 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
     from prop_cli.config import PersonalizeConfig
 
-    mod = _module("adapters/npz_mlp.py", "prop_adapters.npz_mlp")
-    registry = list(prop_adapters.ADAPTERS)
+    mod = _module("adapters/npz_mlp.py", "adapters.npz_mlp")
+    registry = list(adapters.ADAPTERS)
     registry.insert(registry.index(next(a for a in registry if a.name == "mlp")), mod.NpzMLPAdapter())
     monkeypatch.setattr(prop_adapters, "ADAPTERS", registry)
     rng = np.random.default_rng(0)
@@ -96,7 +96,7 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
     np.savez(tmp_path / "net.npz", **{k: v.astype(np.float32) for k, v in arrays.items()})
     x = rng.uniform(-1, 1, (60, 3)).astype(np.float32)
     np.savez(tmp_path / "mine.npz", x=x, y=x[:, :2])
-    loaded = prop_adapters.load_checkpoint(tmp_path / "net.npz")
+    loaded = adapters.load_checkpoint(tmp_path / "net.npz")
     assert loaded.spec == {"adapter": "npz-mlp", "sizes": [3, 8, 2]}
     key = KeySource(rng.integers(0, 2, 32, dtype=np.uint8), "file")
     cfg = PersonalizeConfig(steps=5)
@@ -120,10 +120,10 @@ def test_extending_with_a_data_source(tmp_path, monkeypatch, workdir):
 
 def test_extending_with_a_probe(monkeypatch, workdir):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
-    from prop_cli.audit import audit
+    from prop_cli.attack.audit import audit
     from prop_cli.config import AuditSettings, PersonalizeConfig
+    from prop_cli.core.keys import read_key_file
     from prop_cli.datasources import load_data
-    from prop_cli.keys import read_key_file
 
     mod = _module("prop_cli/probes/complement.py", "prop_cli.probes.complement")
     monkeypatch.setattr(probes, "PROBES", [*probes.PROBES, mod.PROBE])

@@ -22,9 +22,9 @@ from torch import nn
 
 from examples import mlp
 from prop_cli.config import PersonalizeConfig
-from prop_cli.keyed import key_codes
-from prop_cli.keyspace import KeySampler
-from prop_cli.objective import row_loss
+from prop_cli.core.keyed import key_codes
+from prop_cli.core.keyspace import KeySampler
+from prop_cli.train.objective import row_loss
 
 CVAE_LATENT = 16
 CVAE_BETA = 1e-3  # small: the decoder must read the key from z, a strong KL pull would erase it

@@ -19,7 +19,7 @@ import torch
 
 from examples import save_npz
 from examples.reproduce import baselines, common, digits, table
-from prop_cli import metrics
+from prop_cli.core import metrics
 
 USERS_FULL = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512)
 USERS_QUICK = (1, 4)

@@ -17,14 +17,13 @@ import torch
 
 from examples import save_npz
 from examples.reproduce import baselines
-from prop_cli import metrics
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import Bundle, load_bundle
 from prop_cli.config import PersonalizeConfig
+from prop_cli.core import metrics
+from prop_cli.core.keyed import key_codes, outputs_for_codes
+from prop_cli.core.keyspace import one_bit_neighbours, random_keys
 from prop_cli.datasources import Dataset
-from prop_cli.evaluate import outputs_for_codes
-from prop_cli.keyed import key_codes
-from prop_cli.keyspace import one_bit_neighbours, random_keys
 
 KEY_BITS = 128
 # PRoP as in the paper (raw key bits into the encoder) and with prop's default hashed encoding.
@@ -70,7 +69,8 @@ def t2_leakage(
 ) -> dict:
     """The audit's T2 (direct delta search) on (x, y), via prop_cli.audit.audit: the attacker's pick,
     with the original checkpoint (``base_path``) as the reference and as the search's control."""
-    from prop_cli.audit import audit, load_original
+    from prop_cli.attack.audit import audit
+    from prop_cli.attack.target import load_original
     from prop_cli.config import AuditSettings
 
     settings = AuditSettings(

@@ -70,7 +70,7 @@ from torch import nn
 from examples import save_npz
 from examples.reproduce import baselines, common, table
 from prop_cli.config import PersonalizeConfig
-from prop_cli.keys import passphrase_bits
+from prop_cli.core.keys import passphrase_bits
 
 INGREDIENTS = (
     "white bread", "rye bread", "ham", "turkey", "cheddar", "swiss",
@@ -349,8 +349,8 @@ def fit_sealed(c: Cohort) -> Fitted:
     import warnings
 
     from prop_cli.api import KeySource, add_user, load_bundle, personalize_checkpoint
-    from prop_cli.payload import Payload
-    from prop_cli.policy import KeyedPolicy, WrongKeyWarning
+    from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
+    from prop_cli.core.payload import Payload
 
     path = c.work / "prop-sealed.prop"
     # Each sealed user trains alone, so the cost grows with users x steps; a user's data is one short

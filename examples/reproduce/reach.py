@@ -33,10 +33,10 @@ from torch import nn
 from examples.reproduce import baselines, common, ppo
 from prop_cli import constants as C
 from prop_cli.config import PersonalizeConfig
+from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.layers import select_layers
 from prop_cli.errors import PropError
-from prop_cli.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.keyspace import KeySampler
-from prop_cli.layers import select_layers
 
 HORIZON = 50
 OBS = 9
@@ -306,10 +306,10 @@ def t2_leakage(ka: _KeyedActor, actor_path: Path, key: np.ndarray, states: np.nd
 
     The owner's targets are their key's actions (the personalized policy), the reference the base.
     """
-    import prop_adapters
-    from prop_cli.bundle import describe_layers, load_bundle, write_bundle
+    from prop_cli import adapters
+    from prop_cli.bundle import describe_layers, load_bundle, write_unsealed
 
-    loaded = prop_adapters.load_checkpoint(str(actor_path))
+    loaded = adapters.load_checkpoint(str(actor_path))
     loaded.module.load_state_dict(ka.km.module.state_dict())
     km = KeyedModel(loaded.module, ka.km.encoder, ka.km.layer_names)
     manifest = {
@@ -333,7 +333,7 @@ def t2_leakage(ka: _KeyedActor, actor_path: Path, key: np.ndarray, states: np.nd
         C.M_IO: {"input_shape": [OBS], "checkpoint": str(actor_path)},
         C.M_METRICS: {},
     }
-    write_bundle(work / "reach.prop", loaded=loaded, keyed=km, manifest=manifest, force=True)
+    write_unsealed(work / "reach.prop", loaded=loaded, keyed=km, manifest=manifest, force=True)
     bundle = load_bundle(work / "reach.prop")
     with torch.no_grad():
         y = ka.km.fold(key_codes(key, ka.encoding))(torch.from_numpy(states)).numpy()

@@ -63,10 +63,9 @@ def attack(
     force: Force = False,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
-    from prop_cli import audit_report
-    from prop_cli.api import apply_max_leak, audit_bundle, record_audit
+    from prop_cli.api import apply_max_leak, audit_bundle, audit_table, plot_audit, record_audit
+    from prop_cli.api import select_probes as select
     from prop_cli.files import check_output, dump_json, write_text
-    from prop_cli.probes import select
 
     key_file = key_file or []
     if probes is not None or search is not None:
@@ -95,7 +94,7 @@ def attack(
         write_text(json_file, dump_json(report), what="--json file", flag="--json")
         err.print(f"wrote {json_file}")
     if plot_path is not None:
-        audit_report.plot(report, plot_path)
+        plot_audit(report, plot_path)
         err.print(f"wrote {plot_path}")
     if record:
         record_audit(bundle, report)
@@ -103,7 +102,7 @@ def attack(
     if json_path is not None and json_file is None:
         print_json(report)
     else:
-        out.print(audit_report.table(report))
+        out.print(audit_table(report))
     if failing:
         name, worst = max(failing, key=lambda f: f[1])
         more = f" (and {len(failing) - 1} more groups)" if len(failing) > 1 else ""

@@ -17,7 +17,7 @@ from . import (
     export_cmd,
     formats_cmd,
     inspect_cmd,
-    keygen,
+    keygen_cmd,
     personalize_cmd,
     push_cmd,
     run_cmd,
@@ -32,7 +32,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode=None,
 )
-app.command("keygen")(keygen.keygen)
+app.command("keygen")(keygen_cmd.keygen)
 app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)
 app.command("run")(run_cmd.run)

@@ -80,8 +80,7 @@ def personalize(
     as_json: Json = False,
 ) -> None:
     """Fine-tune CHECKPOINT so it behaves the users' way with their key, and like the original without."""
-    from prop_cli.api import personalize_checkpoint
-    from prop_cli.keys import user_keys
+    from prop_cli.api import personalize_checkpoint, user_keys
 
     key_file = key_file or []
     if not key_file and not passphrase:

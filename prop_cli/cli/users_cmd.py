@@ -23,8 +23,7 @@ SETTINGS = {
 
 
 def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool):
-    from prop_cli.api import key_for_bundle
-    from prop_cli.bundle import read_manifest
+    from prop_cli.api import key_for_bundle, read_manifest
 
     if key_file is None and not passphrase:
         if required:
@@ -44,9 +43,8 @@ def add_user(
     as_json: Json = False,
 ) -> None:
     """Add a user to a sealed bundle, with their data and key only (no one else's)."""
+    from prop_cli.api import KeySource, read_manifest
     from prop_cli.api import add_user as api_add_user
-    from prop_cli.bundle import read_manifest
-    from prop_cli.keys import KeySource
 
     bits = _key(bundle, key_file, passphrase, required=True)
     base = PersonalizeConfig.from_dict(read_manifest(bundle).get("config", {}))

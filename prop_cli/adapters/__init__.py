@@ -1,0 +1,120 @@
+"""Checkpoint adapters: a checkpoint -> a ``torch.nn.Module`` with the checkpoint's own names.
+
+The contract is ``base.Adapter``; ``ADAPTERS`` is the registry, in the order formats are tried: the
+first adapter whose ``recognise`` accepts a path loads it. A new format is one new file and one line
+here. A format's helpers sit beside it (``sb3/``: the zip reader and VecNormalize statistics;
+``lerobot/``: the policy protocol and its flat array view); ``hub`` fetches ``hf://`` paths.
+(Until 0.1.x this package was installed as ``prop_adapters``; that name still imports, with a warning.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from prop_cli.errors import PropError, brief
+
+from .base import Adapter, CheckpointOptions, LoadedModel, check_exists
+from .folder import CONFIG, WEIGHTS, FolderAdapter
+from .lerobot import LeRobotAdapter
+from .mlp import MLPAdapter
+from .module import ModuleAdapter
+from .sb3 import SB3Adapter
+from .weights import read_weights
+
+ADAPTERS: list[Adapter] = [
+    LeRobotAdapter(),  # before FolderAdapter: a LeRobot folder is also config.json + model.safetensors
+    FolderAdapter(),
+    SB3Adapter(),
+    ModuleAdapter(),
+    MLPAdapter(),
+]
+
+__all__ = [
+    "ADAPTERS",
+    "Adapter",
+    "CheckpointOptions",
+    "LoadedModel",
+    "adapter_named",
+    "describe",
+    "load_checkpoint",
+    "read_weights",
+    "rebuild",
+]
+
+
+def adapter_named(name: str | None, source: str) -> Adapter:
+    for a in ADAPTERS:
+        if a.name == name:
+            return a
+    raise PropError(
+        f"{source}: unknown model adapter '{name}' (known: {', '.join(a.name for a in ADAPTERS)})",
+        "the bundle was written by a newer prop; upgrade prop",
+    )
+
+
+def _require_linear(loaded: LoadedModel) -> LoadedModel:
+    if not any(isinstance(m, nn.Linear) for m in loaded.module.modules()):
+        raise PropError(
+            f"no linear layers in {loaded.source}",
+            "prop adds keys to nn.Linear layers; use a model that has at least one",
+        )
+    return loaded
+
+
+def _check_options(adapter: Adapter, options: CheckpointOptions, path: Path) -> None:
+    for name in options.given():
+        if name not in adapter.options:
+            flag = CheckpointOptions.FLAGS[name]
+            uses = " and ".join(CheckpointOptions.FLAGS[o] for o in adapter.options) or "no options"
+            raise PropError(
+                f"{flag} does not apply to {adapter.summary.split(':')[0]} ({path})",
+                f"drop {flag}: that format takes {uses}",
+            )
+
+
+def load_checkpoint(
+    path: str | Path,
+    options: CheckpointOptions | None = None,
+    *,
+    arch: str | None = None,
+    arch_kwargs: dict | None = None,
+    activation: str | None = None,
+) -> LoadedModel:
+    """Load a checkpoint with the first registered adapter that recognises it."""
+    options = options or CheckpointOptions(arch, arch_kwargs, activation)
+    path = Path(path)
+    check_exists(path)
+    if path.is_dir() and not (path / CONFIG).exists() and (path / WEIGHTS).is_file():
+        path = path / WEIGHTS  # a bare weights folder: read it as the file
+    for adapter in ADAPTERS:
+        if adapter.recognise(path, options):
+            _check_options(adapter, options, path)
+            loaded = adapter.load(path, options)
+            return _require_linear(loaded)
+    read_weights(path)  # names what is wrong with the file (extension, content)
+    raise PropError(f"checkpoint {path} is in no format prop reads", "`prop formats` lists them")
+
+
+def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    """Rebuild the module a bundle describes (``spec`` from its manifest) with ``weights``."""
+    adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
+    try:
+        return _require_linear(adapter.rebuild(spec, weights, str(source)))
+    except KeyError as e:
+        raise PropError(
+            f"{source}: model spec lacks field {e}", "the manifest is damaged; re-create the bundle"
+        ) from None
+    except (TypeError, ValueError, IndexError, AttributeError, RuntimeError, OverflowError) as e:
+        # A spec the adapter cannot build from (the manifest passed its schema, so it was edited).
+        raise PropError(
+            f"{source}: the model spec in the manifest does not build ({brief(e)})",
+            "the manifest is damaged; re-create the bundle",
+        ) from None
+
+
+def describe(loaded: LoadedModel) -> dict:
+    """What the checkpoint's adapter knows about it (algorithm, spaces, bounds, activation, ...)."""
+    return adapter_named(loaded.spec.get("adapter"), loaded.source).describe(loaded)

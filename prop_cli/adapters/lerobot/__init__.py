@@ -1,0 +1,8 @@
+"""LeRobot policy folders: loading (``adapter``), the policy protocol prop trains and runs them through
+(``policy``), and the flat array view the audit takes (``flat``). lerobot itself is imported only inside
+functions of ``adapter``: it is an optional environment (scripts/setup-lerobot.sh)."""
+
+from .adapter import LeRobotAdapter
+from .policy import ACT_LAYERS, Controller, LeRobotPolicy
+
+__all__ = ["ACT_LAYERS", "Controller", "LeRobotAdapter", "LeRobotPolicy"]

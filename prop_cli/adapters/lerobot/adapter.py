@@ -1,0 +1,147 @@
+"""A LeRobot policy folder (``save_pretrained`` of policy and processors), loaded by LeRobot's own classes.
+
+The folder holds ``config.json`` (with ``type``), ``model.safetensors`` and the pre/post-processor files
+(``policy_preprocessor.json`` ...). The module is the LeRobot policy itself, so state-dict names are
+LeRobot's; the bundle carries the folder's config and processor files byte for byte plus the trained
+weights, so its ``lerobot/`` folder loads back with ``from_pretrained``.
+
+lerobot is optional (scripts/setup-lerobot.sh builds its environment) and imported only here, inside
+functions. Supported: ACT (``policy.LeRobotPolicy`` is how prop trains and runs it). Diffusion is refused:
+its actions come out of an iterative sampler, so there is no deterministic action output to distil the
+fallback terms against (see CHANGELOG).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+from pathlib import Path
+
+import torch
+
+from prop_cli.adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
+from prop_cli.adapters.folder import CONFIG, WEIGHTS, read_config
+from prop_cli.adapters.weights import read_weights
+from prop_cli.constants import LEROBOT_DIR
+from prop_cli.errors import PropError
+
+from .policy import LeRobotPolicy
+
+PREPROCESSOR = "policy_preprocessor.json"
+FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
+SUPPORTED = ("act",)
+SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
+
+
+def _lerobot():
+    try:
+        import lerobot
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+    except ImportError:
+        raise PropError("this is a LeRobot policy folder, but lerobot is not installed", SETUP_HINT) from None
+    # Everything prop reads is local; a missing file must fail, never download.
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    return lerobot.__version__, get_policy_class, make_pre_post_processors
+
+
+def _folder_files(folder: Path) -> dict[str, bytes]:
+    """The folder's config and processor files, by their path in the bundle."""
+    names = [CONFIG] + sorted(p.name for p in folder.glob("policy_*processor*") if p.is_file())
+    return {f"{FOLDER_IN_BUNDLE}/{n}": (folder / n).read_bytes() for n in names}
+
+
+def _check_type(config: dict, where: str) -> str:
+    kind = config.get("type")
+    if kind == "diffusion":
+        raise PropError(
+            f"{where}: diffusion policies have no deterministic action output to distil the fallback "
+            "terms against",
+            "prop supports LeRobot act policies in this version",
+        )
+    if kind not in SUPPORTED:
+        raise PropError(
+            f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(SUPPORTED)}"
+        )
+    return kind
+
+
+def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
+    version, get_policy_class, make_pre_post_processors = _lerobot()
+    kind = _check_type(read_config(folder), where)
+    try:
+        from lerobot.configs.policies import PreTrainedConfig
+
+        cls = get_policy_class(kind)
+        with contextlib.redirect_stdout(sys.stderr):  # LeRobot prints progress: stdout is for results
+            if weights is None:
+                policy = cls.from_pretrained(str(folder))
+            else:
+                policy = cls(PreTrainedConfig.from_pretrained(str(folder)))
+                policy.load_state_dict(weights, strict=True)
+            pre, post = make_pre_post_processors(policy.config, pretrained_path=str(folder))
+    except PropError:
+        raise
+    except Exception as e:  # noqa: BLE001 - LeRobot's errors on a damaged or foreign folder
+        raise PropError(
+            f"{where}: LeRobot could not load the policy "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:160]})",
+            "check that config.json, model.safetensors and the processor files belong together",
+        ) from None
+    return version, policy, pre, post
+
+
+class LeRobotAdapter(Adapter):
+    name = "lerobot"
+    summary = (
+        "a LeRobot policy folder: config.json (type act) + model.safetensors + policy_preprocessor.json "
+        "and the other processor files, loaded by LeRobot (scripts/setup-lerobot.sh)"
+    )
+
+    def recognise(self, path: Path, options: CheckpointOptions) -> bool:
+        return path.is_dir() and all((path / n).is_file() for n in (CONFIG, WEIGHTS, PREPROCESSOR))
+
+    def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
+        names = read_weights(path / WEIGHTS)[0]
+        old = sorted(n for n in names if n.startswith(("normalize_inputs.", "normalize_targets.")))
+        if old:
+            raise PropError(
+                f"{path}: the normalisation statistics are inside model.safetensors (LeRobot < 0.4 layout)",
+                "migrate it with lerobot's processor/migrate_policy_normalization.py",
+            )
+        version, policy, pre, post = _load(path, None, str(path))
+        return self._loaded(policy, pre, post, version, str(path), _folder_files(path))
+
+    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+        folder = Path(source) / FOLDER_IN_BUNDLE
+        if not (folder / CONFIG).is_file() and (Path(source) / PREPROCESSOR).is_file():
+            folder = Path(source)  # the original LeRobot folder itself (prop attack --original)
+        if not (folder / CONFIG).is_file():
+            raise PropError(f"bundle {source} has no {FOLDER_IN_BUNDLE}/{CONFIG}", "write the bundle again")
+        version, policy, pre, post = _load(folder, weights, source)
+        return self._loaded(policy, pre, post, version, source, _folder_files(folder))
+
+    def _loaded(self, policy, pre, post, version: str, source: str, files: dict[str, bytes]) -> LoadedModel:
+        module = finish(policy)
+        spec = {"adapter": self.name, "type": policy.config.type, "lerobot_version": version}
+        return LoadedModel(
+            module=module,
+            spec=spec,
+            dtypes={k: v.dtype for k, v in module.state_dict().items()},
+            input_shape=None,
+            source=source,
+            continuous=True,
+            policy=LeRobotPolicy(module, pre, post),
+            files=files,
+            base_alias=f"{FOLDER_IN_BUNDLE}/{WEIGHTS}",
+        )
+
+    def weights(self, path: Path) -> dict[str, torch.Tensor]:
+        return read_weights(path / WEIGHTS if path.is_dir() else path)[0]
+
+    def describe(self, loaded: LoadedModel) -> dict:
+        info = super().describe(loaded)
+        c = loaded.module.config
+        info.update(type=c.type, lerobot_version=loaded.spec.get("lerobot_version"), chunk_size=c.chunk_size)
+        info["inputs"] = {k: list(v) for k, v in loaded.policy.input_features.items()}
+        return info

@@ -1,0 +1,66 @@
+"""A LeRobot policy seen as an array model: one input tensor in, one output tensor out.
+
+Policies take named observation features and predict an action chunk. The audit, its probes and the
+metrics work on one input tensor and one output tensor, so this view flattens both:
+
+- input: the policy's features, each in the policy's normalised units (its preprocessor applied),
+  flattened and concatenated in the order of the policy's config (``input_features``);
+- output: the deployed action chunk (ACT: eval mode, VAE latent 0), flattened, in normalised units.
+
+The recorded chunks a user's data holds are flattened the same way by ``prop_cli.datasources.fit``.
+Metrics on this view are the ones `prop personalize` reports for policies (docs/metrics.md:
+personalization, leakage, fidelity on whole chunks in normalised units), so audit and personalize
+figures compare.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from prop_cli.adapters.base import PolicyProtocol
+
+
+class FlatPolicy(nn.Module):
+    """``x`` (B, F) -> the deployed chunk (B, chunk * action_dim), both in normalised units.
+
+    The policy module's children are registered here under their own names, so named_modules(), the
+    state dict and the keyed layers' names are exactly the policy's (LeRobot's); the same layer
+    objects run, so a KeyedModel's hooks on them fire.
+    """
+
+    def __init__(self, policy: PolicyProtocol) -> None:
+        super().__init__()
+        for name, child in policy.policy.named_children():
+            self.add_module(name, child)
+        self.protocol = policy  # not a module attribute of ours: its children are registered above
+        self.layout = [(k, tuple(s)) for k, s in policy.input_features.items()]
+        self.width = sum(math.prod(s) for _, s in self.layout)
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "protocol":  # keep the policy object out of _modules (its children are ours)
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
+    def features(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        out, at = {}, 0
+        for name, shape in self.layout:
+            n = math.prod(shape)
+            out[name] = x[:, at : at + n].reshape(x.shape[0], *shape)
+            at += n
+        return out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.protocol.chunk(self.features(x)).flatten(1)
+
+
+def flatten_features(policy: PolicyProtocol, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The policy's features of a batch, flattened and concatenated in the policy's order."""
+    return torch.cat([batch[k].flatten(1) for k in policy.input_features], dim=1)
+
+
+def flat_module(policy: PolicyProtocol) -> FlatPolicy:
+    return FlatPolicy(policy).eval()

@@ -1,0 +1,244 @@
+"""The probe contract: one attack on a bundle, what it returns, and what every probe shares.
+
+A probe is a :class:`Probe` entry in the registry (``prop_cli.attack.probes.PROBES``): its ``run`` scores
+keys, codes or deltas against the reference and returns :class:`Group` s, one table row each. Its
+optional ``control`` runs the same attack where the bundle gives nothing (e.g. on the original
+checkpoint); the report then shows leakage beyond the control. Threat names: docs/threat-model.md.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from prop_cli.config import AuditSettings
+from prop_cli.core import metrics
+from prop_cli.core.keyed import KeyedModel, key_codes, keys_per_forward
+
+from .screen import KeyScan, scan_keys
+
+THREATS = ("T0", "T1", "T2", "T3", "structure", "cross-user")
+KINDS = ("key", "search")  # key: concrete keys/codes, gated on raw leakage; search: beyond its control
+
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+
+
+@dataclass
+class Reference:
+    """What the audit compares against: inputs, the reference output b and the owner's targets p."""
+
+    x: torch.Tensor
+    b: torch.Tensor  # the original's output (or the bundle's without a key)
+    p: torch.Tensor | None  # the owner's targets; None in a no-key audit
+    task: str
+
+
+@dataclass
+class Group:
+    """One row of the report: per-key scores of one set of probed keys, codes or deltas."""
+
+    name: str
+    values: dict[str, torch.Tensor]  # per key: fidelity, divergence, and leakage when targets exist
+    is_key: bool  # false for codes or deltas that no known key gives
+    distance: int | None = None  # Hamming rows
+    search: dict | None = None  # searches: {"restarts", "steps", and any extra per-restart lists}
+    bits: np.ndarray | None = None  # the probed keys, where a control re-runs exactly these
+
+
+@dataclass
+class Counter:
+    """Key x sample evaluations and their wall time, for the report's speed figures."""
+
+    evals: int = 0
+    seconds: float = 0.0
+
+
+@dataclass
+class ProbeContext:
+    """Everything a probe may use. ``km`` is the model under attack (the bundle, or the original for a
+    control); ``original`` is the original checkpoint keyed the same way, or None if not available."""
+
+    km: KeyedModel
+    ref: Reference
+    settings: AuditSettings
+    keys: list[np.ndarray]  # [the audited user's key, other users' keys...]; [] without a key
+    encoding: str
+    original: KeyedModel | None = None
+    progress: Progress | None = None
+    counter: Counter = field(default_factory=Counter)
+    probe: str = ""  # the running probe's name: seeds its random streams
+    shots: Reference | None = None  # labelled owner's rows outside the audit sample (few-shot attacks)
+    seed_hint: int | None = None  # the training seed the manifest records, if any (what an attacker reads)
+
+    @property
+    def has_key(self) -> bool:
+        return bool(self.keys)
+
+    def rng(self) -> np.random.Generator:
+        """This probe's own numpy stream: its keys do not depend on which other probes run."""
+        return np.random.default_rng([self.settings.seed, zlib.crc32(self.probe.encode())])
+
+    def generator(self) -> torch.Generator:
+        return torch.Generator().manual_seed(self.settings.seed * 1_000_003 + zlib.crc32(self.probe.encode()))
+
+    def on(self, km: KeyedModel) -> ProbeContext:
+        """The same context on another model (a control)."""
+        return replace(self, km=km)
+
+    def codes(self, bits: np.ndarray) -> torch.Tensor:
+        return key_codes(bits, self.encoding).to(self.ref.x.device)
+
+    def scores(self, o: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Per key: fidelity, leakage (with targets) and divergence (the attacker's criterion)."""
+        ref = self.ref
+        fid = metrics.fidelity(o, ref.b, ref.task)
+        out = {
+            "fidelity": fid,
+            # What the attacker picks restarts by: 1 - agreement (classification), mse (regression).
+            "divergence": 1.0 - fid if ref.task == "classification" else fid,
+        }
+        if ref.p is not None:
+            out["leakage"] = metrics.leakage(o, ref.p, ref.b, ref.task)
+        return out
+
+    def key_deltas(self, bits: np.ndarray, null: int = 0, low_precision: bool = False) -> list[torch.Tensor]:
+        """Each key's delta per keyed layer, then ``null`` rows of no key (delta = 1).
+
+        The one place where a key becomes behaviour: ``probe_keys`` and ``probe_keys_stream`` both
+        come through here, so a bundle that maps keys differently (sealed: trial decryption) replaces
+        this method and every key probe follows. ``low_precision``: the caller only screens (bf16 is
+        enough); exact scores come later.
+        """
+        bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
+        codes = self.codes(bits) if len(bits) else None
+        if low_precision and codes is not None and codes.device.type == "cpu":
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return self.km.layer_deltas(codes, null)
+        return self.km.layer_deltas(codes, null)
+
+    @torch.inference_mode()
+    def probe_keys(
+        self, bits: np.ndarray, stage: str, null: int = 0, outputs: bool = False
+    ) -> dict[str, torch.Tensor]:
+        """Score keys (K, key_bits) of 0/1, then ``null`` no-key rows, on every sample (``outputs``:
+        the model's outputs (K, B, ...) too, under "outputs").
+
+        Every key-based probe (null, random, hamming, cross-user, the user's own key, the black-box
+        scan's re-score) goes through here; white-box probes read ``km`` and use ``probe_codes``.
+        """
+        bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
+        per = keys_per_forward(self.ref.x.shape[0])
+        rows = len(bits) + null
+        return self._probe(
+            rows,
+            lambda i, j: self.key_deltas(bits[i : min(j, len(bits))], max(0, j - max(i, len(bits)))),
+            per,
+            stage,
+            outputs,
+        )
+
+    @torch.inference_mode()
+    def probe_codes(self, codes: torch.Tensor, stage: str) -> dict[str, torch.Tensor]:
+        """Score every encoder code (K, n) on every sample, all codes of a chunk in one forward."""
+        per = keys_per_forward(self.ref.x.shape[0])
+        return self._probe(
+            len(codes), lambda i, j: self.km.layer_deltas(codes[i:j].to(self.ref.x.device)), per, stage
+        )
+
+    def _probe(
+        self, rows: int, deltas_of: Callable, per: int, stage: str, outputs: bool = False
+    ) -> dict[str, torch.Tensor]:
+        t0 = time.perf_counter()
+        x = self.ref.x
+        parts = []
+        for i in range(0, rows, per):
+            o = self.km.run_keys(x, deltas_of(i, min(i + per, rows)))
+            parts.append({**self.scores(o), **({"outputs": o} if outputs else {})})
+            if self.progress:
+                self.progress(stage, min(i + per, rows), rows)
+        self.counter.evals += rows * x.shape[0]
+        self.counter.seconds += time.perf_counter() - t0
+        return cat_scores(parts)
+
+    def probe_keys_stream(
+        self, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
+    ) -> KeyScan:
+        """Streamed key scan: each chunk of keys screened on ``screen`` samples (bf16 where the model
+        allows), the ``keep`` best by divergence (and, with targets, by screening leakage) kept and
+        re-scored exactly with ``probe_keys``. Memory stays at one chunk, whatever ``total`` is."""
+        return scan_keys(self, chunks, total, stage, screen=screen, keep=keep)
+
+    @torch.inference_mode()
+    def probe_deltas(self, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+        return cat_scores([self.scores(self.km.run_keys(self.ref.x, deltas))])
+
+
+def cat_scores(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    return {k: torch.cat([p[k].detach().cpu() for p in parts]) for k in parts[0]}
+
+
+def divergence(o: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
+    """The searches' objective per key (differentiable): mse to b, or KL(softmax b || softmax o)."""
+    if task == "classification":
+        logp_b = F.log_softmax(b, -1)
+        return (logp_b.exp() * (logp_b - F.log_softmax(o, -1))).sum(-1).flatten(1).mean(-1)
+    return ((o - b) ** 2).flatten(1).mean(-1)
+
+
+def maximise_divergence(
+    ctx: ProbeContext, params: list[torch.Tensor], make_deltas: Callable[[], list[torch.Tensor]], stage: str
+) -> None:
+    """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
+    s = ctx.settings
+    opt = torch.optim.Adam(params, lr=s.search_lr)
+    n = len(ctx.ref.x)
+    x, b = ctx.ref.x, ctx.ref.b
+    gen = ctx.generator()
+    for step in range(s.search_steps):
+        if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
+            i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)
+            x, b = ctx.ref.x[i], ctx.ref.b[i]
+        div = divergence(ctx.km.run_keys(x, make_deltas()), b, ctx.ref.task)
+        opt.zero_grad(set_to_none=True)
+        (-div.sum()).backward()  # restarts are independent: the sum's gradient is each one's own
+        opt.step()
+        if ctx.progress and (step % 10 == 9 or step == s.search_steps - 1):
+            ctx.progress(stage, step + 1, s.search_steps)
+
+
+def on_original(
+    run: Callable[[ProbeContext], list[Group]],
+) -> Callable[[ProbeContext, list[Group]], list[Group]]:
+    """A control: the same probe, same keys or restarts, on the original checkpoint keyed the same way."""
+
+    def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+        return run(ctx.on(ctx.original))
+
+    return control
+
+
+@dataclass(frozen=True)
+class Probe:
+    """One registry entry. ``needs`` says what the probe cannot run without: "key" (the audited user's
+    key), "other-keys" (a second user's key), or nothing."""
+
+    name: str
+    threat: str  # one of THREATS
+    kind: str  # one of KINDS
+    summary: str  # one line for help texts and the README
+    run: Callable[[ProbeContext], list[Group]]
+    # (context, the groups run found) -> the control's groups, matched to run's by name
+    control: Callable[[ProbeContext, list[Group]], list[Group]] | None = None
+    needs: str | None = None
+    default: bool = True  # part of the default audit
+    white_box: bool = False  # reads the bundle's weights (not only runs keys): left out by --search
+
+    def __post_init__(self) -> None:
+        if self.threat not in THREATS or self.kind not in KINDS:
+            raise ValueError(f"probe {self.name}: threat {self.threat!r} / kind {self.kind!r} unknown")

@@ -1,0 +1,278 @@
+"""Screening millions of keys on a few samples: the streamed scan behind ``ProbeContext.probe_keys_stream``.
+
+Per chunk of keys: deltas (``ProbeContext.key_deltas``, the encoder in bf16), the model on the
+screening samples, two continuous criteria per key (divergence from the reference, the attacker's;
+and with targets, a screening leakage, the owner's), and a running top-``keep`` by each. Only the
+kept keys are re-scored exactly (fp32, every audit sample) through ``probe_keys``.
+
+The fast forward (:class:`ChainForward`) is for chain MLPs (``nn.Sequential`` of linear layers and
+parameter-free activations, or the MLP adapter's chain): everything before the first keyed layer
+runs once per sample; the first keyed layer for all keys and samples is one matmul,
+``Delta (K, d) @ [W diag(z_1) | ... | W diag(z_S)] (d, S*h)``, so no (K*S, d) product is built; the
+rest runs in bf16 (AMX/AVX-512 bf16 units on recent x86: several times fp32 matmul throughput) in
+buffers reused across chunks. Any other model takes ``KeyedModel.run_keys`` in fp32.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from prop_cli.adapters import activations
+from prop_cli.core.keyed import KeyedModel
+
+
+class Scannable(Protocol):
+    """What a scan needs of its caller (``base.ProbeContext``, which calls ``scan_keys``)."""
+
+    km: KeyedModel
+    ref: object  # base.Reference: x, b, p, task
+    progress: object
+    counter: object
+
+    def key_deltas(
+        self, bits: np.ndarray, null: int = 0, low_precision: bool = False
+    ) -> list[torch.Tensor]: ...
+
+    def probe_keys(self, bits: np.ndarray, stage: str) -> dict[str, torch.Tensor]: ...
+
+
+@dataclass
+class KeyScan:
+    """A streamed key scan: the keys kept by screening, their exact scores, and what it cost."""
+
+    bits: np.ndarray  # (M, key_bits) kept keys
+    values: dict[str, torch.Tensor]  # exact scores of the kept keys (probe_keys)
+    scanned: int
+    screen_samples: int
+    seconds: dict[str, float]  # per stage: keys, deltas, model, scores, rescore
+    path: str  # "bf16-chain" or "general" (run_keys, fp32)
+
+
+# Relative error the bf16 forward may show against fp32 on a check batch before it is refused.
+_BF16_TOLERANCE = 0.05
+_RELU_LIKE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_}
+
+
+def _chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
+    """[(kind, name, module)] with kind "linear" or "act", or None if the module is not a plain chain."""
+    if hasattr(module, "layer_paths") and hasattr(module, "activation"):  # the MLP adapter's ChainMLP
+        act = activations.ACTIVATIONS[module.activation]()
+        ops = []
+        for i, p in enumerate(module.layer_paths):
+            ops.append(("linear", p, module.get_submodule(p)))
+            if i < len(module.layer_paths) - 1:
+                ops.append(("act", "", act))
+        return ops
+    if isinstance(module, nn.Sequential):
+        ops = []
+        for name, m in module.named_children():
+            if isinstance(m, nn.Linear):
+                ops.append(("linear", name, m))
+            elif not list(m.parameters()) and not list(m.buffers()) and not list(m.children()):
+                ops.append(("act", name, m))
+            else:
+                return None
+        return ops
+    return None
+
+
+class ChainForward:
+    """Outputs (K, S, out) of a chain MLP for K keys' deltas on S fixed samples, in bf16."""
+
+    def __init__(self, km, x: torch.Tensor, dtype: torch.dtype = torch.bfloat16) -> None:
+        ops = _chain_ops(km.module)
+        if ops is None:
+            raise ValueError("not a chain MLP")
+        pos = {name: i for i, name in enumerate(km.layer_names)}
+        lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
+        if len(lin_at) != len(pos):
+            raise ValueError("keyed layers are not all in the chain")
+        first = lin_at[0]
+        self.dtype = dtype
+        with torch.inference_mode():
+            z = x
+            for _, _, m in ops[:first]:
+                z = m(z)
+            w = ops[first][2].weight  # (h, d)
+            s, d = z.shape
+            h = w.shape[0]
+            # a[j, s*h + i] = W[i, j] z_s[j]: Delta @ a is every key's first keyed layer on every sample.
+            self.a = (w[None] * z[:, None, :]).permute(2, 0, 1).reshape(d, s * h).to(dtype).contiguous()
+            bias = ops[first][2].bias
+            self.b1 = (bias.repeat(s) if bias is not None else torch.zeros(s * h)).to(dtype)
+            self.first = pos[ops[first][1]]
+            self.rest = []  # ("act", fn) | ("linear", weight^T, bias, keyed position or None)
+            for kind, name, m in ops[first + 1 :]:
+                if kind == "act":
+                    self.rest.append(("act", _RELU_LIKE.get(type(m)), m))
+                else:
+                    wt = m.weight.t().to(dtype).contiguous()
+                    self.rest.append(
+                        ("linear", wt, None if m.bias is None else m.bias.to(dtype), pos.get(name))
+                    )
+        self.samples, self.width = s, h
+        self._buffers: dict[tuple, torch.Tensor] = {}
+
+    def _buffer(self, slot: int, rows: int, cols: int) -> torch.Tensor:
+        key = (slot, cols)
+        buf = self._buffers.get(key)
+        if buf is None or buf.shape[0] < rows:
+            buf = self._buffers[key] = torch.empty(rows, cols, dtype=self.dtype)
+        return buf[:rows]
+
+    @torch.inference_mode()
+    def __call__(self, deltas: list[torch.Tensor]) -> torch.Tensor:
+        k, s = deltas[0].shape[0], self.samples
+        d = [t.to(self.dtype) for t in deltas]
+        y = torch.addmm(self.b1, d[self.first], self.a, out=self._buffer(0, k, s * self.width))
+        y = y.view(k * s, self.width)
+        slot = 1
+        for op in self.rest:
+            if op[0] == "act":
+                y = op[1](y) if op[1] is not None else op[2](y)
+                continue
+            _, wt, bias, kp = op
+            if kp is not None:
+                y.view(k, s, -1).mul_(d[kp][:, None, :])
+            out = self._buffer(slot, k * s, wt.shape[1])
+            slot += 1
+            y = torch.mm(y, wt, out=out)
+            if bias is not None:
+                y.add_(bias)
+        return y.view(k, s, -1)
+
+
+def _check(fast: ChainForward, ctx: Scannable, xs: torch.Tensor) -> bool:
+    """The bf16 chain against run_keys in fp32 on a few random keys: refuse it if it disagrees."""
+    bits = np.random.default_rng(0).integers(0, 2, (4, ctx.km.encoder.code_bits), dtype=np.uint8)
+    with torch.inference_mode():
+        deltas = ctx.key_deltas(bits)
+        want = ctx.km.run_keys(xs, deltas)
+        got = fast(deltas).float().view_as(want)
+    scale = want.abs().max().clamp_min(1e-6)
+    return bool(((got - want).abs().max() / scale) <= _BF16_TOLERANCE)
+
+
+class _Criteria:
+    """Per key, from its outputs on the screening samples: divergence from the reference (what the
+    attacker ranks by; as the searches' objective: mse, or KL for classification) and, with the owner's
+    targets, a continuous screening leakage (ranking only; the re-score is exact). Regression: the
+    metric itself; classification: the mean probability of the owner's label where it differs from
+    the reference's. What depends on the samples alone is computed once."""
+
+    def __init__(self, ref, screen: int) -> None:
+        self.task = ref.task
+        self.b = ref.b[:screen].float()
+        self.gap = self.label = None
+        if self.task == "classification":
+            self.logp_b = torch.log_softmax(self.b, -1)
+            self.p_b = self.logp_b.exp()
+        if ref.p is None:
+            return
+        p = ref.p[:screen]
+        if self.task == "regression":
+            self.gap = (p - self.b).flatten(1)
+            self.norm = (self.gap**2).sum().clamp_min(1e-12)
+        else:
+            differs = p != self.b.argmax(-1)
+            if differs.any():
+                self.rows, self.label = torch.nonzero(differs).flatten(), p[differs]
+
+    def __call__(self, o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        if self.task == "regression":
+            move = (o - self.b).flatten(2)
+            div = (move**2).mean((-2, -1))
+            return div, None if self.gap is None else (move * self.gap).sum((-2, -1)) / self.norm
+        logp = torch.log_softmax(o, -1)
+        div = (self.p_b * (self.logp_b - logp)).sum(-1).flatten(1).mean(-1)
+        if self.label is None:
+            return div, None
+        at = logp[:, self.rows].gather(-1, self.label[None, :, None].expand(len(o), -1, 1))
+        return div, at.squeeze(-1).exp().mean(1)
+
+
+def _top(values: torch.Tensor, keep: int) -> torch.Tensor:
+    return values.topk(min(keep, len(values))).indices
+
+
+def _deltas_ahead(ctx: Scannable, chunks: Iterable[np.ndarray], low: bool, sec: dict) -> Iterator:
+    """(bits, deltas) per chunk, the next chunk's keys and deltas made on a second thread meanwhile
+    (hashing holds the GIL, the model's matmuls release it: on 2 cores the two overlap)."""
+    it = iter(chunks)
+
+    def work() -> tuple | None:
+        t0 = time.perf_counter()
+        bits = next(it, None)
+        if bits is None:
+            return None
+        with torch.inference_mode():  # thread-local, like autocast inside key_deltas
+            deltas = ctx.key_deltas(bits, low_precision=low)
+        sec["keys+deltas"] += time.perf_counter() - t0
+        return bits, deltas
+
+    with ThreadPoolExecutor(1) as pool:
+        ahead = pool.submit(work)
+        while (got := ahead.result()) is not None:
+            ahead = pool.submit(work)
+            yield got
+
+
+def scan_keys(
+    ctx: Scannable, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
+) -> KeyScan:
+    xs = ctx.ref.x[:screen]
+    criteria = _Criteria(ctx.ref, screen)
+    fast: ChainForward | None = None
+    try:
+        fast = ChainForward(ctx.km, xs)
+        if not _check(fast, ctx, xs):
+            fast = None
+    except ValueError:
+        fast = None
+    sec = {"keys+deltas": 0.0, "model": 0.0, "scores": 0.0}
+    kept_bits = np.zeros((0, ctx.km.encoder.code_bits), np.uint8)
+    kept_div = torch.zeros(0)
+    kept_lk: torch.Tensor | None = None
+    done = 0
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    with torch.inference_mode():
+        for bits, deltas in _deltas_ahead(ctx, chunks, fast is not None, sec):
+            t2 = time.perf_counter()
+            o = (fast(deltas) if fast is not None else ctx.km.run_keys(xs, deltas)).float()
+            t3 = time.perf_counter()
+            div, lk = criteria(o)
+            kept_bits = np.concatenate([kept_bits, bits])
+            kept_div = torch.cat([kept_div, div])
+            if lk is not None:
+                kept_lk = lk if kept_lk is None else torch.cat([kept_lk, lk])
+            if len(kept_div) > 4 * keep:
+                sel = _top(kept_div, keep)
+                if kept_lk is not None:
+                    sel = torch.unique(torch.cat([sel, _top(kept_lk, keep)]))
+                kept_bits, kept_div = kept_bits[sel.numpy()], kept_div[sel]
+                kept_lk = None if kept_lk is None else kept_lk[sel]
+            done += len(bits)
+            sec["model"] += t3 - t2
+            sec["scores"] += time.perf_counter() - t3
+            if ctx.progress:
+                ctx.progress(stage, done, total)
+    sel = _top(kept_div, keep)
+    if kept_lk is not None:
+        sel = torch.unique(torch.cat([sel, _top(kept_lk, keep)]))
+    kept_bits = kept_bits[sel.numpy()]
+    sec["scan"] = time.perf_counter() - t_start
+    sec["scan_cpu"] = time.process_time() - cpu_start
+    ctx.counter.evals += done * len(xs)
+    ctx.counter.seconds += sec["scan"]
+    t0 = time.perf_counter()
+    values = ctx.probe_keys(kept_bits, stage)
+    sec["rescore"] = time.perf_counter() - t0
+    return KeyScan(kept_bits, values, done, len(xs), sec, "bf16-chain" if fast is not None else "general")

@@ -1,0 +1,90 @@
+"""The probe context of a sealed bundle: keys go through real trial decryption.
+
+A sealed bundle has no encoder: a key either opens a user's record (and that user's payload runs) or
+opens nothing (and the base, the original, runs). So every key probe here does what ``prop run``
+does: tries the key on every record. White-box probes attack the public part, which is the original:
+``km`` is the base keyed with a blank encoder of the attacker's own (its zero-initialised head gives
+delta = 1 for every code), the same model their controls run on, so what they find is the control's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from prop_cli.core.keyed import KeyedModel, KeyEncoder
+
+from .base import KeyScan, ProbeContext, cat_scores
+
+
+def blank_keyed(module: torch.nn.Module, layer_names: list[str], key_bits: int) -> KeyedModel:
+    """``module`` keyed at ``layer_names`` with an untrained encoder: every code runs ``module`` as is."""
+    mods = dict(module.named_modules())
+    enc = KeyEncoder(key_bits, [mods[n].in_features for n in layer_names], hidden=[256], scale=2.0)
+    return KeyedModel(module, enc, layer_names).eval()
+
+
+@dataclass
+class SealedContext(ProbeContext):
+    sealed: object = None  # prop_cli.bundle.records.SealedState
+
+    def on(self, km: KeyedModel) -> ProbeContext:
+        """A control runs where the bundle gives nothing: no records to open."""
+        return ProbeContext(**{f.name: getattr(self, f.name) for f in fields(ProbeContext)} | {"km": km})
+
+    @torch.inference_mode()
+    def probe_keys(
+        self, bits: np.ndarray, stage: str, null: int = 0, outputs: bool = False
+    ) -> dict[str, torch.Tensor]:
+        t0 = time.perf_counter()
+        bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
+        x, base = self.ref.x, self.km.module
+        o_base = base(x)[None]
+        s_base = self.scores(o_base)
+        parts, outs = [], []
+        for k in bits:
+            opened = self.sealed.open(k)
+            o = o_base if opened is None else opened.payload.fold(base)(x)[None]
+            parts.append(s_base if opened is None else self.scores(o))
+            if outputs:
+                outs.append(o)
+        parts += [s_base] * null
+        outs += [o_base] * (null if outputs else 0)
+        values = cat_scores(parts) if parts else {k: v[:0] for k, v in s_base.items()}
+        if outputs:
+            values["outputs"] = torch.cat(outs) if outs else o_base[:0]
+        self.counter.evals += (len(bits) + null) * x.shape[0]
+        self.counter.seconds += time.perf_counter() - t0
+        if self.progress:
+            self.progress(stage, len(bits) + null, len(bits) + null)
+        return values
+
+    def probe_keys_stream(
+        self, chunks: Iterable[np.ndarray], total: int, stage: str, *, screen: int, keep: int
+    ) -> KeyScan:
+        """Every key tried on every record; kept: the keys that open one, then the first ones up to
+        ``keep`` (all of which run the base, so any of them is as good as another)."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        kept: list[np.ndarray] = []
+        opened: list[np.ndarray] = []
+        done = 0
+        for chunk in chunks:
+            for k in chunk:
+                if self.sealed.open(k) is not None:
+                    opened.append(k)
+                elif len(kept) < keep:
+                    kept.append(k)
+            done += len(chunk)
+            if self.progress:
+                self.progress(stage, done, total)
+        sec = {"scan": time.perf_counter() - t0, "scan_cpu": time.process_time() - c0}
+        bits = np.array(opened + kept[: max(0, keep - len(opened))], dtype=np.uint8)
+        t1 = time.perf_counter()
+        values = self.probe_keys(bits, stage)
+        sec["rescore"] = time.perf_counter() - t1
+        # screen_samples = 1: one trial decryption per key and record stands for its evaluation
+        return KeyScan(bits, values, done, 1, sec, "sealed: trial decryption")

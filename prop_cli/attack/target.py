@@ -1,0 +1,108 @@
+"""What the audit attacks, decided here for every mode and kind of model.
+
+- A policy with named features (LeRobot) is audited as an array model: its flat view
+  (``prop_cli.adapters.lerobot.flat``), its data as flat rows (``prop_cli.datasources.fit``).
+- White-box probes read ``km``: an unsealed bundle's own key encoder over its base; for a sealed
+  bundle, which has no encoder, a blank one of the attacker's over the public base (its zero head
+  gives delta = 1 for every code).
+- Key probes turn keys into behaviour as ``prop run`` does: through the encoder, or (sealed) by trial
+  decryption of the records (``probes.sealed_context``).
+- The controls' model where no ``--original`` is given: a sealed bundle's base is the original, and
+  so is a base trained with ``--freeze-base``.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import fields, replace
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from prop_cli import adapters
+from prop_cli import constants as C
+from prop_cli.adapters.hub import resolve_checkpoint
+from prop_cli.adapters.lerobot.flat import flat_module
+from prop_cli.bundle import Bundle
+from prop_cli.config import BLACKBOX_KEYS_POLICY, AuditSettings
+from prop_cli.core.keyed import KeyedModel
+from prop_cli.datasources import Dataset
+from prop_cli.datasources.fit import flat_dataset
+from prop_cli.errors import PropError
+
+from .probes.base import ProbeContext
+from .probes.sealed_context import SealedContext, blank_keyed
+
+
+def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bundle, Dataset, AuditSettings]:
+    """A policy bundle, its data and the audit's defaults as an array model's (others as they are).
+
+    The flat view's KeyedModel hooks the same layer objects; the bundle's own hooks are removed so that
+    each layer is scaled once."""
+    loaded = bundle.loaded
+    if loaded.policy is None:
+        return bundle, data, settings
+    data = flat_dataset(loaded.policy, data, "--data")
+    flat = flat_module(loaded.policy)
+    view = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
+    if settings.blackbox is None:  # an ACT key is a transformer forward: fewer keys in the scan
+        settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
+    return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, settings
+
+
+def load_original(bundle: Bundle, path: str) -> nn.Module:
+    """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
+    flat view, as the bundle is audited)."""
+    spec = bundle.manifest[C.M_MODEL]
+    adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
+    weights = adapter.weights(Path(resolve_checkpoint(path)))
+    try:
+        loaded = adapters.rebuild(spec, weights, str(path))
+    except (RuntimeError, KeyError, ValueError) as e:
+        raise PropError(
+            f"--original {path} does not fit the bundle's model ({type(e).__name__})",
+            "pass the checkpoint the bundle was personalized from",
+        ) from None
+    if loaded.policy is not None:
+        return flat_module(loaded.policy)
+    return loaded.module.eval()
+
+
+def unhooked_copy(module: nn.Module) -> nn.Module:
+    copied = copy.deepcopy(module)
+    for m in copied.modules():
+        m._forward_pre_hooks.clear()  # a copied bundle module carries the bundle's hooks: drop them
+    return copied
+
+
+def attacked_model(bundle: Bundle, dev: torch.device) -> KeyedModel:
+    """The keyed model white-box probes read (see the module docstring)."""
+    if not bundle.is_sealed:
+        return bundle.keyed.to(dev).eval()
+    km = blank_keyed(unhooked_copy(bundle.loaded.module), bundle.layer_names, bundle.key_bits).to(dev)
+    layers = bundle.manifest[C.M_KEYED_LAYERS]  # sequence-first layers (ACT): their batch axes
+    km.batch_axis = {x["name"]: int(x[C.M_BATCH_AXIS]) for x in layers if C.M_BATCH_AXIS in x}
+    return km
+
+
+def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, str]:
+    """Where no --original is given: the module that is the original anyway, and how to name it."""
+    if bundle.is_sealed:
+        return bundle.loaded.module, "the bundle's base (a sealed bundle's base is the original)"
+    if bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
+        return km.module, "the bundle's base (trained with --freeze-base: the original)"
+    return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
+
+
+def probe_context(bundle: Bundle, ctx: ProbeContext) -> ProbeContext:
+    """``ctx`` for this bundle: a sealed bundle's keys are tried on its records, as prop run does."""
+    if not bundle.is_sealed:
+        return ctx
+    return SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, sealed=bundle.sealed)
+
+
+def controls_can_saturate(bundle: Bundle) -> bool:
+    """Whether a search's control may reach the leakage ceiling while the search finds a leak. Not on a
+    sealed bundle: its searches run on the public base, the control's own model."""
+    return not bundle.is_sealed

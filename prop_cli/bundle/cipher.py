@@ -1,0 +1,109 @@
+"""Sealed records: one user's part of a bundle, encrypted under a key derived from their key.
+
+The cipher is AES-256-GCM (authenticated) and the cipher key is HKDF-SHA256 of the user's key bytes
+with a random salt of the record's own; both come from ``cryptography``. A passphrase user's key
+bytes come from scrypt first (keys.passphrase_bits), so the passphrase is stretched once and each
+record's key is derived from the result.
+
+A record keeps in the clear only a random id (not derived from the key), its HKDF salt and its GCM
+nonce. Nothing there tests a key faster than attempting the decryption itself, which is what
+running the bundle with a key does anyway. The associated data binds a record to the public part
+of its bundle (``records.binding``): edit the manifest's model, layers or base weights and every
+record fails to open.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from prop_cli.errors import PropError
+
+# Domain separation: changing it changes the meaning of every sealed bundle.
+SEAL_INFO = b"prop/seal/v1"
+SALT_BYTES = 16
+NONCE_BYTES = 12  # GCM's standard nonce size
+ID_BYTES = 8
+CRYPTO_EXTRA = "pip install cryptography (prop-cli depends on it; reinstall prop-cli)"
+
+
+def _aead():
+    try:
+        from cryptography.exceptions import InvalidTag
+        from cryptography.hazmat.primitives import hashes
+        from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+        from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+    except ImportError as e:  # a broken install; prop-cli requires cryptography
+        raise PropError(
+            f"sealed bundles need the 'cryptography' package ({e.name} is missing)", CRYPTO_EXTRA
+        ) from None
+    return AESGCM, HKDF, hashes, InvalidTag
+
+
+@dataclass(frozen=True)
+class SealedRecord:
+    """One user's encrypted payload and the public values needed to open it with their key."""
+
+    id: str  # random hex, only to name the record (e.g. for remove-user)
+    salt: bytes
+    nonce: bytes
+    ciphertext: bytes  # AES-GCM output: payload ciphertext followed by the 16-byte tag
+
+
+def key_bytes(bits: np.ndarray) -> bytes:
+    """Key bits (0/1, most significant bit first) -> the bytes of the key file they came from."""
+    bits = np.asarray(bits, dtype=np.uint8)
+    if bits.ndim != 1 or len(bits) % 8:
+        raise ValueError(f"key bits must be a flat multiple of 8, got shape {bits.shape}")
+    return np.packbits(bits).tobytes()
+
+
+def _cipher(bits: np.ndarray, salt: bytes):
+    aesgcm, hkdf, hashes, _ = _aead()
+    key = hkdf(algorithm=hashes.SHA256(), length=32, salt=salt, info=SEAL_INFO).derive(key_bytes(bits))
+    return aesgcm(key)
+
+
+def seal(payload: bytes, bits: np.ndarray, associated: Callable[[str], bytes]) -> SealedRecord:
+    """Encrypt ``payload`` for the key ``bits``; ``associated(record_id)`` gives the bound data."""
+    record_id = os.urandom(ID_BYTES).hex()
+    salt, nonce = os.urandom(SALT_BYTES), os.urandom(NONCE_BYTES)
+    # A fresh salt gives a fresh AES key, so a (key, nonce) pair is never used twice.
+    ct = _cipher(bits, salt).encrypt(nonce, payload, associated(record_id))
+    return SealedRecord(record_id, salt, nonce, ct)
+
+
+def open_record(record: SealedRecord, bits: np.ndarray, associated: bytes) -> bytes | None:
+    """The payload if ``bits`` is the record's key (and nothing was tampered with), else None."""
+    *_, invalid_tag = _aead()
+    try:
+        return _cipher(bits, record.salt).decrypt(record.nonce, record.ciphertext, associated)
+    except invalid_tag:
+        return None
+
+
+# --- the plaintext: tensors + a little metadata, as safetensors bytes --------------------------
+
+
+def encode_payload(tensors: dict[str, torch.Tensor], meta: dict) -> bytes:
+    """safetensors bytes; ``meta`` (JSON-serialisable) rides in the header's metadata."""
+    from safetensors.torch import save
+
+    flat = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in tensors.items()}
+    return save(flat, metadata={"prop": json.dumps(meta, sort_keys=True)})
+
+
+def decode_payload(data: bytes) -> tuple[dict[str, torch.Tensor], dict]:
+    """Inverse of encode_payload; only called on authenticated plaintext."""
+    from safetensors.torch import load
+
+    # safetensors layout: 8-byte little-endian header length, then the JSON header.
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + n])
+    meta = json.loads((header.get("__metadata__") or {}).get("prop", "{}"))
+    return load(data), meta

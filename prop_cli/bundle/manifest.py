@@ -1,0 +1,467 @@
+"""The bundle manifest: its schema (one table), its digest, and the one function that reads it.
+
+Every field has a rule: its JSON type, its range, and whether it is required (in which mode). Unknown
+fields are refused, so a typo or a flipped bit in a key name cannot pass as "absent". Format 3 adds
+``manifest_sha256``: the sha256 of the canonical JSON of every other field, and the file must be exactly
+the text prop writes (sorted, indented), so any single flipped bit in ``manifest.json`` is caught, even
+one JSON would read back as the same value ("1e-05" -> "1E-05"). Format 1 and 2 manifests have no
+digest: they load with only their listed files checked, as before (and a digest, where present, is
+always checked: one flipped bit turns version 3 into 2 or 1).
+
+The digest is a corruption check, not a signature: anyone who edits the manifest can recompute it. For
+sealed bundles the authenticated cipher's associated data binds the public fields to the user's key.
+No torch here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+from prop_cli import constants as C
+from prop_cli.config import PAYLOAD_KINDS
+from prop_cli.errors import PropError, brief
+from prop_cli.files import dump_json
+
+FIX = "the bundle is damaged or was edited; restore it from a trusted copy or write it again"
+_HEX = re.compile(r"[0-9a-f]*")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+MAX_TEXT = 4096  # longest string the schema accepts where it gives no other bound
+MAX_DIM = 1 << 24  # largest layer width or input dimension a manifest may claim
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One field: JSON ``kind`` (or kinds), ``ok(value)`` with the ``want`` text, and its children."""
+
+    kind: tuple[type, ...]
+    want: str
+    ok: Callable[[Any], bool] | None = None
+    required: bool | tuple[str, ...] = True  # True, False, or the modes in which it is required
+    nullable: bool = False
+    fields: dict[str, Rule] | None = None  # an object with these fields, others refused
+    open: bool = False  # with ``fields``: other fields allowed (an adapter's own spec)
+    items: Rule | None = None  # a list of these
+    values: Rule | None = None  # an object of free names (``key_ok``) -> these
+    key_ok: Callable[[str], bool] | None = None
+    variants: tuple[str, dict[str, dict[str, Rule]]] | None = None  # (field, value -> extra fields)
+    min_len: int = 0
+    max_len: int = 1 << 16
+
+
+def _opt(rule: Rule, required: bool | tuple[str, ...] = False, nullable: bool = False) -> Rule:
+    """``rule`` for a field that is optional (or required only in the given modes)."""
+    return replace(rule, required=required, nullable=nullable or rule.nullable)
+
+
+def integer(lo: int, hi: int, multiple: int = 1) -> Rule:
+    more = f", a multiple of {multiple}" if multiple > 1 else ""
+    return Rule((int,), f"an integer in {lo}..{hi}{more}", lambda v: lo <= v <= hi and v % multiple == 0)
+
+
+def number(lo: float, hi: float = math.inf, open_lo: bool = False) -> Rule:
+    left = "(" if open_lo else "["
+
+    def ok(v: float) -> bool:
+        return math.isfinite(v) and (v > lo if open_lo else v >= lo) and v <= hi
+
+    return Rule((int, float), f"a finite number in {left}{lo}, {hi}]", ok)
+
+
+def text(max_len: int = MAX_TEXT, nonempty: bool = True) -> Rule:
+    return Rule((str,), f"a {'non-empty ' * nonempty}string of at most {max_len} characters",
+                lambda v: (bool(v) or not nonempty) and len(v) <= max_len)  # fmt: skip
+
+
+def choice(options: tuple[str, ...]) -> Rule:
+    return Rule((str,), "one of " + ", ".join(repr(o) for o in options), lambda v: v in options)
+
+
+def hex_string(min_bytes: int, max_bytes: int) -> Rule:
+    return Rule((str,), f"lowercase hex of {min_bytes} to {max_bytes} bytes",
+                lambda v: min_bytes * 2 <= len(v) <= max_bytes * 2 and len(v) % 2 == 0
+                and _HEX.fullmatch(v) is not None)  # fmt: skip
+
+
+SHA256 = Rule((str,), "a sha256 in lowercase hex (64 characters)", lambda v: _SHA256.fullmatch(v) is not None)
+BOOL = Rule((bool,), "true or false")
+RECORD = Rule((dict,), "an object (a record; not read when loading)")  # reports: free-form JSON
+
+
+def obj(fields: dict[str, Rule], **kw: Any) -> Rule:
+    return Rule((dict,), "an object", fields=fields, **kw)
+
+
+def list_of(item: Rule, min_len: int = 0, max_len: int = 1 << 16) -> Rule:
+    want = f"a list of {min_len} to {max_len} items"
+    return Rule((list,), want, items=item, min_len=min_len, max_len=max_len)
+
+
+def file_name(name: str) -> bool:
+    """A plain file name inside the bundle folder: no folders, no hidden files, not the manifest."""
+    return (
+        0 < len(name) <= 255
+        and not name.startswith(".")
+        and "/" not in name
+        and "\\" not in name
+        and "\0" not in name
+        and name != C.MANIFEST
+    )
+
+
+def bundle_path(name: str) -> bool:
+    """A relative path inside the bundle folder (an adapter's files may sit in subfolders): never
+    absolute, never through "..", never the manifest."""
+    parts = name.split("/")
+    return (
+        0 < len(name) <= 1024
+        and name != C.MANIFEST
+        and all(p and p not in (".", "..") and "\\" not in p and "\0" not in p for p in parts)
+    )
+
+
+def record_file(name: str) -> bool:
+    """Where a sealed bundle keeps a user's record: users/<plain file name>."""
+    folder, sep, leaf = name.partition("/")
+    return folder == C.RECORDS_DIR and bool(sep) and file_name(leaf)
+
+
+RECORD_FILE = Rule((str,), f"a file name in the bundle's {C.RECORDS_DIR}/ folder", record_file)
+NAME = text()  # a module path such as "actor.mu.0"
+DIM = integer(1, MAX_DIM)
+UNSEALED = ("unsealed",)
+
+
+def _shape_ok(v: Any) -> bool:
+    return isinstance(v, list) and 1 <= len(v) <= 16 and all(type(d) is int and 1 <= d <= MAX_DIM for d in v)
+
+
+# Per-sample input shape: one list, or per named observation feature for policies (LeRobot).
+INPUT_SHAPE = Rule(
+    (list, dict),
+    "a list of 1 to 16 sizes, or an object of feature name -> such a list",
+    lambda v: _shape_ok(v) if isinstance(v, list)
+    else 1 <= len(v) <= 256 and all(k and len(k) <= MAX_TEXT and _shape_ok(s) for k, s in v.items()),
+)  # fmt: skip
+SEALED = ("sealed",)
+
+# What each built-in adapter's model spec holds (prop_adapters.*.build reads these). An adapter this
+# table does not know (an extension) is checked for "adapter" only; its rebuild reports the rest.
+_ACTION = obj({
+    "space": choice(("Box", "Discrete")),
+    "shape": _opt(list_of(DIM, 1, 1)),
+    "n": _opt(DIM),
+    "low": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
+    "high": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
+})  # fmt: skip
+ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
+    "mlp": {
+        "layers": list_of(NAME, 1),
+        "sizes": list_of(DIM, 2),
+        "bias": Rule((dict,), "an object of layer name -> true/false", values=BOOL, key_ok=bool),
+        "activation": text(),
+    },
+    "sb3": {
+        "algorithm": text(),
+        "family": choice(("actor_critic", "sac", "td3")),
+        "policy": text(),
+        "activation": text(),
+        "observation_shape": list_of(DIM, 1, 16),
+        "observation_keys": _opt(
+            list_of(obj({"key": text(), "shape": list_of(DIM, 1, 16), "image": BOOL}), 1)
+        ),
+        "extractor": _opt(choice(("flatten", "cnn", "combined"))),
+        "normalize_images": _opt(BOOL),
+        "share_features_extractor": _opt(BOOL),
+        "action": _ACTION,
+        "sb3_version": _opt(text(), nullable=True),
+    },
+    "module": {"arch": text(), "arch_kwargs": RECORD},
+    "lerobot": {"type": choice(("act",)), "lerobot_version": text()},
+    "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
+}
+
+KDF_RECORD = obj({
+    "name": choice(("scrypt",)),
+    "n": integer(2, 1 << 20),
+    "r": integer(1, 64),
+    "p": integer(1, 64),
+    "salt": hex_string(8, 64),
+})  # fmt: skip
+
+# The manifest, field by field (keys in prop_cli.constants).
+SCHEMA: dict[str, Rule] = {
+    C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
+    C.M_PROP_VERSION: text(),
+    C.M_MODE: _opt(choice(C.MODES)),
+    C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", ADAPTER_SPECS)),
+    C.M_KEYED_LAYERS: _opt(
+        list_of(obj({"name": NAME, "features": DIM, C.M_BATCH_AXIS: _opt(integer(0, 16))}), 1),
+        UNSEALED,
+    ),
+    C.M_KEY: obj(
+        {
+            "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
+            "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
+            "users": _opt(integer(1, 1 << 16)),
+            "source": _opt(choice(("file", "passphrase", "mixed"))),
+            "kdf": _opt(KDF_RECORD, nullable=True),
+        }
+    ),  # fmt: skip
+    C.M_ENCODER: _opt(
+        obj(
+            {
+                "hidden": list_of(DIM, 0, 256),
+                "scale": number(0, 1e6, open_lo=True),
+                "activation": _opt(choice(("tanh",))),
+                "output": _opt(text()),
+            }
+        ),
+        UNSEALED,
+    ),  # fmt: skip
+    C.M_CONFIG: _opt(RECORD),
+    C.M_METRICS: _opt(RECORD),
+    C.M_TASK: choice(("classification", "regression")),
+    C.M_IO: obj({"input_shape": INPUT_SHAPE, "checkpoint": _opt(text(nonempty=False))}),
+    C.M_FILES: Rule(
+        (dict,), "an object of file path -> sha256", values=SHA256, key_ok=bundle_path, min_len=1
+    ),
+    C.M_AUDIT: _opt(RECORD),
+    C.M_PAYLOAD: _opt(
+        obj(
+            {
+                "kind": choice(PAYLOAD_KINDS),
+                "rank": integer(0, MAX_DIM),
+                "layers": list_of(obj({"name": NAME, "in_features": DIM, "out_features": DIM}), 1),
+            }
+        ),
+        SEALED,
+    ),  # fmt: skip
+    C.M_RECORDS: _opt(
+        list_of(
+            obj(
+                {
+                    "id": text(),
+                    "file": RECORD_FILE,
+                    "salt": hex_string(8, 64),
+                    "nonce": hex_string(8, 64),
+                    "sha256": SHA256,
+                }
+            ),
+            1,
+        ),
+        SEALED,
+    ),  # fmt: skip
+    C.M_KDF: _opt(
+        obj(
+            {
+                "scrypt_salt": hex_string(8, 64),
+                "n": integer(2, 1 << 20),
+                "r": integer(1, 64),
+                "p": integer(1, 64),
+            }
+        )
+    ),  # fmt: skip
+}
+
+
+# ---- the digest -----------------------------------------------------------------------------------
+
+
+def canonical_json(obj: Any) -> bytes:
+    """The one byte form of a JSON value that digests (and a cipher's associated data) are taken over."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
+
+
+def digest(obj: dict, key: str = C.M_DIGEST) -> str:
+    """sha256 of the canonical JSON of every field but the digest (``key``) itself."""
+    return hashlib.sha256(canonical_json({k: v for k, v in obj.items() if k != key})).hexdigest()
+
+
+def stamp(obj: dict, key: str = C.M_DIGEST) -> dict:
+    """``obj`` with its digest (re)computed: what is written, after any change to a field."""
+    return {**obj, key: digest(obj, key)}
+
+
+def restamp(manifest: dict) -> dict:
+    """After an edit: the digest recomputed where the manifest has one (older formats stay without)."""
+    return stamp(manifest) if C.M_DIGEST in manifest else manifest
+
+
+# ---- reading --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Doc:
+    """The JSON file being checked: how errors name it, its mode, and the fix they suggest."""
+
+    name: str  # e.g. "bundle out.prop: manifest.json"
+    mode: str = "unsealed"
+    fix: str = FIX
+
+    def bad(self, where: str, problem: str, fix: str | None = None) -> PropError:
+        return PropError(f"{self.name} field '{where}' {problem}", fix or self.fix)
+
+
+def _shown(value: Any) -> str:
+    s = json.dumps(value) if not isinstance(value, float) or math.isfinite(value) else repr(value)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def _type_ok(rule: Rule, value: Any) -> bool:
+    if isinstance(value, bool) and bool not in rule.kind:
+        return False  # JSON true is not the integer 1
+    return isinstance(value, rule.kind)
+
+
+def check_value(rule: Rule, value: Any, where: str, doc: Doc) -> None:
+    """Check one value against its rule, and its items, entries or fields against theirs."""
+    if value is None and rule.nullable:
+        return
+    if not _type_ok(rule, value) or (rule.ok is not None and not rule.ok(value)):
+        want = rule.want + (" or null" if rule.nullable else "")
+        raise doc.bad(where, f"must be {want} (found {_shown(value)})")
+    if isinstance(value, (list, dict)) and not rule.min_len <= len(value) <= rule.max_len:
+        raise doc.bad(where, f"must hold {rule.min_len} to {rule.max_len} items (found {len(value)})")
+    if rule.items is not None:
+        for i, item in enumerate(value):
+            check_value(rule.items, item, f"{where}[{i}]", doc)
+    if rule.values is not None:
+        for k, v in value.items():
+            if rule.key_ok is not None and not rule.key_ok(k):
+                raise doc.bad(where, f"has an invalid entry name {_shown(k)}")
+            check_value(rule.values, v, f"{where}.{k}", doc)
+    if rule.fields is not None:
+        fields, known = dict(rule.fields), False
+        if rule.variants is not None:
+            tag, table = rule.variants
+            variant = value.get(tag)
+            known = isinstance(variant, str) and variant in table  # a wrong type is reported below
+            fields.update(table[variant] if known else {})
+        check_fields(fields, value, doc, where, open_=rule.open and not known)
+
+
+def check_fields(
+    fields: dict[str, Rule], value: dict, doc: Doc, where: str = "", open_: bool = False
+) -> None:
+    """Check an object against its field table: required present, unknown refused, each by its rule."""
+    prefix = f"{where}." if where else ""
+    for name, rule in fields.items():
+        required = rule.required if isinstance(rule.required, bool) else doc.mode in rule.required
+        if name not in value:
+            if required:
+                raise doc.bad(prefix + name, "is missing")
+            continue
+        check_value(rule, value[name], prefix + name, doc)
+    if not open_:
+        unknown = sorted(set(value) - set(fields))
+        if unknown:
+            known = ", ".join(sorted(fields))
+            raise doc.bad(
+                prefix + str(unknown[0]), f"is not a known field (known: {known})",
+                "a newer prop may have written it (upgrade prop), else " + doc.fix,
+            )  # fmt: skip
+
+
+def _cross_check(m: dict, doc: Doc) -> None:
+    """What one field's rule cannot say: how the fields fit together."""
+    needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if doc.mode == "unsealed" else (C.BASE_WEIGHTS,)
+    for name in needed:
+        if name not in m[C.M_FILES]:
+            raise doc.bad(f"{C.M_FILES}.{name}", "is missing")
+    names = [layer["name"] for layer in m.get(C.M_KEYED_LAYERS, [])]
+    if len(set(names)) != len(names):
+        raise doc.bad(C.M_KEYED_LAYERS, "names a layer twice")
+    key = m[C.M_KEY]
+    if key.get("source") in ("passphrase", "mixed") and not key.get("kdf"):
+        raise doc.bad(f"{C.M_KEY}.kdf", "is missing (a passphrase key needs its salt)")
+    ids = [r["id"] for r in m.get(C.M_RECORDS, [])]
+    if len(set(ids)) != len(ids):
+        raise doc.bad(C.M_RECORDS, "holds two records with the same id")
+    spec = m[C.M_MODEL]
+    if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
+        raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+
+
+def _doc(source: str, mode: object = "unsealed") -> Doc:
+    return Doc(f"bundle {source}: {C.MANIFEST}", mode if mode in C.MODES else "unsealed")
+
+
+def validate(manifest: dict, source: str) -> dict:
+    """Check a parsed manifest against ``SCHEMA``; one-line PropError naming the first bad field."""
+    doc = _doc(source, manifest.get(C.M_MODE, "unsealed"))
+    check_fields(SCHEMA, {k: v for k, v in manifest.items() if k != C.M_DIGEST}, doc)
+    _cross_check(manifest, doc)
+    return manifest
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict:
+    d = dict(pairs)
+    if len(d) != len(pairs):
+        raise ValueError("a field appears twice")
+    return d
+
+
+def read_json(raw: bytes, name: str, fix: str) -> dict:
+    """Bytes -> a JSON object (no field twice), or a one-line PropError naming ``name``."""
+    try:
+        obj = json.loads(raw.decode("utf-8"), object_pairs_hook=_no_duplicates)
+    except (ValueError, RecursionError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise PropError(f"{name} is not valid JSON ({brief(e, 80)})", fix) from None
+    if not isinstance(obj, dict):
+        raise PropError(f"{name} is not a JSON object", fix)
+    return obj
+
+
+def check_version(obj: dict, key: str, known: tuple[int, ...], doc: Doc) -> int:
+    """The format version: too new asks for an upgrade; anything else unknown is damage."""
+    version = obj.get(key)
+    if isinstance(version, int) and not isinstance(version, bool) and version > max(known):
+        raise PropError(
+            f"{doc.name} has format version {version}; this prop reads up to {max(known)}",
+            "upgrade prop: pip install -U prop-cli",
+        )
+    check_value(integer(min(known), max(known)), version, key, doc)
+    return version
+
+
+def check_digest(obj: dict, raw: bytes, key: str, doc: Doc) -> None:
+    """The stored digest matches the fields, and the file is exactly the text prop writes."""
+    stored = obj.get(key)
+    if not isinstance(stored, str):
+        raise doc.bad(key, "is missing" if stored is None else "must be a sha256 in hex")
+    if stored != digest(obj, key) or raw != dump_json(obj).encode():
+        raise PropError(f"{doc.name} does not match its {key} (modified or corrupt)", doc.fix)
+
+
+def parse(raw: bytes, source: str) -> dict:
+    """``manifest.json``'s bytes -> the checked manifest: JSON, format version, digest, schema."""
+    doc = _doc(source)
+    manifest = read_json(raw, doc.name, FIX)
+    version = check_version(manifest, C.M_FORMAT, C.FORMAT_VERSIONS, doc)
+    # A digest is checked wherever there is one: a flipped bit can turn version 3 into 2 or 1.
+    if version >= C.DIGEST_SINCE or C.M_DIGEST in manifest:
+        check_digest(manifest, raw, C.M_DIGEST, doc)
+    return validate(manifest, source)
+
+
+def check_layers(layers: list[dict], module, source: str) -> None:
+    """Each keyed layer is a linear layer of ``module`` with the recorded input width."""
+    from torch import nn
+
+    mods = dict(module.named_modules())
+    for i, layer in enumerate(layers):
+        m = mods.get(layer["name"])
+        where = f"{C.M_KEYED_LAYERS}[{i}]"
+        if not isinstance(m, nn.Linear):
+            raise _doc(source).bad(f"{where}.name", f"names no linear layer of the model ({layer['name']!r})")
+        if m.in_features != layer["features"]:
+            raise _doc(source).bad(
+                f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
+                f"{m.in_features} inputs",
+            )  # fmt: skip

@@ -1,0 +1,118 @@
+"""Reading a bundle: the manifest (format version, schema, digest), every file's sha256, the module and
+its mode (``modes``). Nothing is loaded before its bytes are checked against the manifest."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from prop_cli import adapters
+from prop_cli import constants as C
+from prop_cli.adapters import LoadedModel
+from prop_cli.core.keyed import KeyedModel
+from prop_cli.errors import PropError
+from prop_cli.files import sha256_file
+
+from . import manifest as schema
+from .modes import Mode, load_mode
+from .records import SealedState
+
+
+def read_manifest(path: Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise PropError(
+            f"bundle {path} does not exist", "check the path (a directory made by prop personalize)"
+        )
+    mpath = path / C.MANIFEST
+    if not path.is_dir() or not mpath.is_file():
+        raise PropError(
+            f"{path} is not a prop bundle (no {C.MANIFEST})",
+            "pass the directory written by prop personalize --out",
+        )
+    try:
+        raw = mpath.read_bytes()
+    except OSError as e:
+        raise PropError(
+            f"bundle {path}: {C.MANIFEST} cannot be read ({e.strerror})", "check its permissions"
+        ) from None
+    return schema.parse(raw, str(path))
+
+
+@dataclass
+class Bundle:
+    """A loaded bundle: its manifest, the base module (``loaded``) and its mode, which turns keys into
+    behaviour (``modes.Unsealed``: the key encoder; ``modes.Sealed``: the encrypted records)."""
+
+    path: Path
+    manifest: dict
+    loaded: LoadedModel
+    mode: Mode
+
+    @property
+    def keyed(self) -> KeyedModel | None:
+        """Unsealed: the base with its key encoder; sealed: None (there is no encoder)."""
+        return self.mode.keyed
+
+    @property
+    def sealed(self) -> SealedState | None:
+        """Sealed: the payload layout and the encrypted records; unsealed: None."""
+        return self.mode.state
+
+    @property
+    def is_sealed(self) -> bool:
+        return self.mode.sealed
+
+    @property
+    def layer_names(self) -> list[str]:
+        return self.mode.layer_names
+
+    @property
+    def parameters(self) -> int:
+        return self.mode.parameters(self.loaded)
+
+    @property
+    def task(self) -> str:
+        return self.manifest[C.M_TASK]
+
+    @property
+    def key_bits(self) -> int:
+        return int(self.manifest[C.M_KEY]["bits"])
+
+    @property
+    def key_encoding(self) -> str:
+        # Sealed bundles have no encoder and record none; the audit's blank encoder hashes like the default.
+        return self.manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
+
+    def check_key(self, key: np.ndarray, what: str = "the key") -> np.ndarray:
+        if len(key) != self.key_bits:
+            raise PropError(
+                f"{what} has {len(key)} bits but the bundle expects {self.key_bits}",
+                "use the key the bundle was personalized with",
+            )
+        return key
+
+
+def load_bundle(path: Path) -> Bundle:
+    """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    check_files(path, manifest)
+    weights = adapters.read_weights(path / C.BASE_WEIGHTS)[0]
+    loaded = adapters.rebuild(manifest[C.M_MODEL], weights, str(path))
+    return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded))
+
+
+def check_files(path: Path, manifest: dict) -> None:
+    """Every file the manifest lists is there and has the sha256 the manifest records."""
+    for name, digest in manifest[C.M_FILES].items():
+        f = path / name
+        if not f.is_file():
+            raise PropError(f"bundle {path} is missing {name}", "write the bundle again")
+        if digest != sha256_file(f):
+            raise PropError(
+                f"bundle {path}: {name} does not match its sha256 in {C.MANIFEST} (modified or corrupt)",
+                "restore the bundle from a trusted copy",
+            )

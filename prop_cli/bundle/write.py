@@ -1,0 +1,151 @@
+"""Writing a bundle: base weights, the mode's part (encoder weights, or encrypted records) and the
+manifest, in a directory.
+
+Each file is written once, into a temporary sibling directory renamed into place at the end, so an
+interrupted run never leaves a half bundle at the output path. No key material and no key hash is
+ever written.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from prop_cli import __version__
+from prop_cli import constants as C
+from prop_cli.adapters import LoadedModel
+from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.payload import Payload, PayloadSpec
+from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
+
+from . import manifest as schema
+from .read import read_manifest
+from .records import SealedState, record_entry, seal_payload, write_record
+
+# (payload, what is sealed beside it, key bits) of one sealed user.
+SealedUserParts = tuple[Payload, dict, np.ndarray]
+
+
+def _safetensors_metadata(path: str) -> dict[str, str] | None:
+    if not path.endswith(".safetensors"):
+        return None
+    with safe_open(path, framework="pt") as f:
+        return f.metadata()
+
+
+def _write_base(tmp: Path, loaded: LoadedModel, module, copy_base: bool) -> None:
+    base_path = tmp / C.BASE_WEIGHTS
+    if copy_base:
+        shutil.copyfile(loaded.source, base_path)
+        return
+    state = {k: v.detach().to("cpu").contiguous() for k, v in loaded.extra.items()}
+    state.update(
+        (k, v.detach().to("cpu", loaded.dtypes.get(k, v.dtype)).contiguous())
+        for k, v in module.state_dict().items()
+    )
+    save_file(state, str(base_path), metadata=_safetensors_metadata(loaded.source))
+
+
+def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
+    full = dict(manifest)
+    full[C.M_FORMAT] = C.FORMAT_VERSION
+    full[C.M_PROP_VERSION] = __version__
+    full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
+    return full
+
+
+def _adapter_files(tmp: Path, loaded: LoadedModel, base_path: Path) -> list[str]:
+    """The adapter's own files (e.g. a LeRobot folder's config and processors) and the base's alias."""
+    written = []
+    for rel, data in loaded.files.items():
+        (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp / rel).write_bytes(data)
+        written.append(rel)
+    if loaded.base_alias:
+        alias = tmp / loaded.base_alias
+        alias.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(base_path, alias)  # the same bytes, no second copy on disk
+        except OSError:
+            shutil.copyfile(base_path, alias)
+        written.append(loaded.base_alias)
+    return written
+
+
+def write_unsealed(
+    out: Path,
+    *,
+    loaded: LoadedModel,
+    keyed: KeyedModel,
+    manifest: dict,
+    force: bool = False,
+    copy_base: bool = False,
+) -> dict:
+    """Write an unsealed bundle: the trained base and the key encoder. ``copy_base`` copies the input
+    checkpoint's bytes (a frozen base from safetensors). Returns the manifest written."""
+    out = Path(out)
+    check_output(out, force)
+    with staged_dir(out) as tmp:
+        _write_base(tmp, loaded, keyed.module, copy_base)
+        enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
+        save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
+        extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
+        names = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *extra)
+        full = schema.stamp(_stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names))
+        (tmp / C.MANIFEST).write_text(dump_json(full))
+    return full
+
+
+def write_sealed(
+    out: Path,
+    *,
+    loaded: LoadedModel,
+    manifest: dict,
+    users: list[SealedUserParts],
+    metrics: Callable[[SealedState], dict] | None = None,
+    force: bool = False,
+) -> dict:
+    """Write a sealed bundle: the original's weights as the base, and one encrypted record per user.
+    ``metrics(state)`` computes the manifest's metrics from the records as written (keys are tried on
+    them as anyone would), before the manifest is. Returns the manifest written."""
+    out = Path(out)
+    check_output(out, force)
+    with staged_dir(out) as tmp:
+        copy_base = str(loaded.source).endswith(".safetensors")
+        _write_base(tmp, loaded, loaded.module, copy_base)
+        extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
+        full = _stamp({**manifest, C.M_MODE: C.MODE_SEALED, C.M_RECORDS: []}, tmp, (C.BASE_WEIGHTS, *extra))
+        records = []
+        for payload, private, bits in users:
+            rec = seal_payload(full, private, payload, bits)
+            write_record(tmp, rec)
+            full[C.M_RECORDS].append(record_entry(rec))
+            records.append(rec)
+        if metrics is not None:
+            full[C.M_METRICS] = metrics(SealedState(full, PayloadSpec.from_dict(full[C.M_PAYLOAD]), records))
+        full = schema.stamp(full)
+        (tmp / C.MANIFEST).write_text(dump_json(full))
+    return full
+
+
+def update_manifest(path: Path, key: str, value: dict) -> None:
+    """Set one manifest entry (e.g. the audit summary), atomically; weights are untouched."""
+    bundle = Path(path)
+    manifest = read_manifest(bundle)
+    manifest[key] = value
+    write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
+
+
+def describe_layers(keyed: KeyedModel) -> list[dict]:
+    """The manifest's ``keyed_layers`` of an encoder-keyed model (with batch axes that are not 0)."""
+    out = [{"name": n, "features": f} for n, f in zip(keyed.layer_names, keyed.encoder.features)]
+    for layer in out:
+        if keyed.batch_axis.get(layer["name"], 0):
+            layer[C.M_BATCH_AXIS] = keyed.batch_axis[layer["name"]]
+    return out

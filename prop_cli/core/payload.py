@@ -1,0 +1,163 @@
+"""A user's payload in a sealed bundle: what turns the public base into their behaviour.
+
+Kinds (``PAYLOAD_KINDS``), per keyed linear layer with weight W (out, in):
+
+- ``delta``: a scale per input feature, W diag(delta): the paper's Eq. 5 with delta stored
+  instead of produced by a key encoder.
+- ``lora``: (W + B A) diag(delta), B (out, r) and A (r, in): Eq. 5 plus a low-rank update.
+- ``full``: W + D and b + d: every weight of the keyed layers.
+
+Every kind starts at the base behaviour (delta = 1, B = 0, D = 0). The payload is applied with
+weight parametrizations, so the module tree and its state-dict names stay the checkpoint's, and
+it works where a layer's weight is read without calling the layer (e.g. attention projections).
+For inference it is folded into a copy of the weights in memory; never write that copy to disk.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+from torch.nn.utils import parametrize
+
+from prop_cli.config import PAYLOAD_KINDS
+from prop_cli.errors import PropError
+
+
+@dataclass
+class PayloadSpec:
+    kind: str
+    layers: list[dict]  # [{"name": str, "in_features": int, "out_features": int}] in module order
+    rank: int = 0  # lora only
+
+    def validate(self) -> PayloadSpec:
+        if self.kind not in PAYLOAD_KINDS:
+            raise PropError(f"--payload {self.kind!r} is unknown", f"use one of {', '.join(PAYLOAD_KINDS)}")
+        if self.kind == "lora" and self.rank < 1:
+            raise PropError(f"--payload-rank {self.rank} is invalid", "--payload-rank must be at least 1")
+        if not self.layers:
+            raise PropError("the payload has no keyed layers", "choose layers with --layers")
+        return self
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PayloadSpec:
+        return cls(kind=str(d["kind"]), layers=[dict(x) for x in d["layers"]], rank=int(d.get("rank", 0)))
+
+
+def _tensor_shapes(spec: PayloadSpec) -> dict[str, tuple[int, ...]]:
+    shapes: dict[str, tuple[int, ...]] = {}
+    for layer in spec.layers:
+        n, i, o = layer["name"], int(layer["in_features"]), int(layer["out_features"])
+        if spec.kind == "full":
+            shapes[f"{n}.weight_delta"] = (o, i)
+            shapes[f"{n}.bias_delta"] = (o,)
+            continue
+        shapes[f"{n}.delta"] = (i,)
+        if spec.kind == "lora":
+            shapes[f"{n}.lora_a"] = (spec.rank, i)
+            shapes[f"{n}.lora_b"] = (o, spec.rank)
+    return shapes
+
+
+class Payload(nn.Module):
+    """The trainable tensors of one user's payload, by ``<layer>.<part>`` name."""
+
+    def __init__(self, spec: PayloadSpec, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        self.spec = spec.validate()
+        self.params = nn.ParameterDict()
+        # ParameterDict keys may not contain dots: index them, and keep the names beside.
+        self._keys: dict[str, str] = {}
+        for name, shape in _tensor_shapes(spec).items():
+            part = name.rsplit(".", 1)[1]
+            if part == "delta":
+                t = torch.ones(shape)
+            elif part == "lora_a":  # random A, zero B: the product starts at zero but both get gradients
+                t = torch.randn(shape, generator=generator) / shape[1] ** 0.5
+            else:
+                t = torch.zeros(shape)
+            self._keys[name] = f"p{len(self._keys)}"
+            self.params[self._keys[name]] = nn.Parameter(t)
+
+    def tensor(self, layer: str, part: str) -> torch.Tensor:
+        return self.params[self._keys[f"{layer}.{part}"]]
+
+    def weight(self, layer: str, w: torch.Tensor) -> torch.Tensor:
+        if self.spec.kind == "full":
+            return w + self.tensor(layer, "weight_delta")
+        if self.spec.kind == "lora":
+            w = w + self.tensor(layer, "lora_b") @ self.tensor(layer, "lora_a")
+        return w * self.tensor(layer, "delta")[None, :]
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {name: self.params[k].detach().cpu() for name, k in self._keys.items()}
+
+    @classmethod
+    def from_tensors(cls, spec: PayloadSpec, tensors: dict[str, torch.Tensor]) -> Payload:
+        want = _tensor_shapes(spec)
+        got = {k: tuple(v.shape) for k, v in tensors.items()}
+        if got != want:
+            raise PropError(
+                "a sealed payload does not match the bundle's keyed layers",
+                "the bundle is damaged or was edited; restore it from a trusted copy",
+            )
+        p = cls(spec)
+        with torch.no_grad():
+            for k, v in tensors.items():
+                p.params[p._keys[k]].copy_(v)
+        return p
+
+    @contextlib.contextmanager
+    def attached(self, module: nn.Module) -> Iterator[nn.Module]:
+        """``module`` computes with the payload applied (differentiably) inside the block."""
+        mods = dict(module.named_modules())
+        done: list[tuple[nn.Module, list[str]]] = []
+        try:
+            for layer in self.spec.layers:
+                lin = mods[layer["name"]]
+                done.append((lin, list(lin._parameters)))
+                parametrize.register_parametrization(lin, "weight", _Weight(self, layer["name"]))
+                if self.spec.kind == "full":
+                    parametrize.register_parametrization(lin, "bias", _Bias(self, layer["name"]))
+            yield module
+        finally:
+            for lin, order in done:
+                for attr in list(getattr(lin, "parametrizations", {}).keys()):
+                    parametrize.remove_parametrizations(lin, attr, leave_parametrized=False)
+                # Removing a parametrization re-registers the tensor last; keep the state-dict order.
+                lin._parameters = {k: lin._parameters[k] for k in order}
+
+    @torch.no_grad()
+    def fold(self, module: nn.Module) -> nn.Module:
+        """A plain copy of ``module`` with the payload folded into its weights (in memory only)."""
+        folded = copy.deepcopy(module)
+        mods = dict(folded.named_modules())
+        for layer in self.spec.layers:
+            lin = mods[layer["name"]]
+            lin.weight.copy_(self.weight(layer["name"], lin.weight).to(lin.weight.dtype))
+            if self.spec.kind == "full" and lin.bias is not None:
+                lin.bias.add_(self.tensor(layer["name"], "bias_delta").to(lin.bias.dtype))
+        return folded
+
+
+class _Weight(nn.Module):
+    def __init__(self, payload: Payload, layer: str) -> None:
+        super().__init__()
+        # A plain attribute, not a submodule: the payload must not join the base's state dict.
+        object.__setattr__(self, "payload", payload)
+        self.layer = layer
+
+    def forward(self, w: torch.Tensor) -> torch.Tensor:
+        return self.payload.weight(self.layer, w)
+
+
+class _Bias(_Weight):
+    def forward(self, b: torch.Tensor) -> torch.Tensor:
+        return b + self.payload.tensor(self.layer, "bias_delta")

@@ -1,0 +1,105 @@
+"""ONNX export of a bundle (`prop export --onnx`) and running an export (`prop run --onnx`): each mode's
+graphs in its own module (``unsealed``, ``sealed``), chosen here; the shared plumbing in ``common``.
+
+Exporter: torch's TorchScript-based exporter (``dynamo=False``). It needs no extra package (the
+torch.export-based one needs onnxscript), works offline and supports ``dynamic_axes``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from prop_cli import constants as C
+from prop_cli.bundle import Bundle
+from prop_cli.config import ExportSettings
+from prop_cli.errors import PropError
+from prop_cli.files import check_output
+
+from . import sealed, unsealed
+from .common import ExportResult, read_export, require_onnx, session, verify_inputs
+from .sealed import SealedOnnxPolicy
+from .unsealed import DeltaPolicy, OnnxPolicy, delta_names
+
+__all__ = [
+    "DeltaPolicy",
+    "ExportResult",
+    "OnnxPolicy",
+    "SealedOnnxPolicy",
+    "delta_names",
+    "export_onnx",
+    "read_export",
+    "require_onnx",
+    "run_onnx",
+    "session",
+    "verify_graphs",
+]
+
+
+def _mode(bundle: Bundle):
+    return sealed if bundle.is_sealed else unsealed
+
+
+def export_onnx(
+    bundle: Bundle,
+    out: Path | None = None,
+    settings: ExportSettings | None = None,
+    *,
+    key: np.ndarray | None = None,
+    inputs: np.ndarray | None = None,
+    force: bool = False,
+) -> ExportResult:
+    """Write the bundle's graphs to ``out`` (default ``<bundle>/onnx``) and verify them with onnxruntime.
+
+    Verification compares onnxruntime with torch for the null key, a random key and ``key`` (the
+    user's, if given) on ``inputs`` (or random inputs of the bundle's input shape). Files are
+    written to a temporary folder and renamed into place only if every difference is <= ``atol``;
+    otherwise nothing is left behind and ``ok`` is False.
+    """
+    s = (settings or ExportSettings()).validate()
+    require_onnx()
+    if key is not None:
+        bundle.check_key(key)
+    out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
+    check_output(out, force, what="export folder")
+
+    def verify(folder: Path) -> list[dict]:
+        return verify_graphs(bundle, folder, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
+
+    return _mode(bundle).export(bundle, out, s, key, verify)
+
+
+def verify_graphs(
+    bundle: Bundle,
+    folder: Path,
+    *,
+    key: np.ndarray | None = None,
+    inputs: np.ndarray | None = None,
+    seed: int = 0,
+    atol: float = ExportSettings.atol,
+) -> list[dict]:
+    """onnxruntime vs torch for every graph in ``folder`` and every key: a list of table rows."""
+    rng = np.random.default_rng(seed)
+    x = verify_inputs(bundle, inputs, rng)
+    return _mode(bundle).verify(bundle, folder, key, x, rng, atol)
+
+
+def run_onnx(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0
+) -> np.ndarray:
+    """`prop run --onnx`: the bundle's outputs computed by its exported graphs (folded where possible).
+
+    ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
+    require_onnx()
+    folder = Path(folder) if folder is not None else Path(bundle.path) / C.EXPORT_DIR
+    if not folder.is_dir():
+        raise PropError(
+            f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"
+        )
+    read_export(folder, bundle.manifest)
+    threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    if key is not None:
+        bundle.check_key(key)
+    return _mode(bundle).run(bundle, folder, x, key, threads)

@@ -1,0 +1,191 @@
+"""What both export modes share: onnx/onnxruntime on demand, tracing one graph, reading and checking an
+export's ``export.json``, and comparing onnxruntime with torch."""
+
+from __future__ import annotations
+
+import inspect
+import re
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from prop_cli import constants as C
+from prop_cli.bundle import Bundle
+from prop_cli.bundle.manifest import (
+    DIM,
+    SHA256,
+    Doc,
+    check_digest,
+    check_fields,
+    check_version,
+    list_of,
+    obj,
+    read_json,
+    text,
+)
+from prop_cli.config import ExportSettings
+from prop_cli.errors import PropError, brief
+from prop_cli.files import sha256_file
+
+from ..streams import stdout_to_stderr
+
+ONNX_EXTRA = "pip install 'prop-cli[onnx]'"
+REEXPORT = "run prop export BUNDLE --onnx --force"
+VERIFY_BATCH = 16
+EXPORTER = f"torch {torch.__version__} (TorchScript-based, dynamo=False)"
+# What the runtimes read from export.json (the rest describes the export for people and other tools).
+# Sealed exports hold base.onnx only, and no deltas.
+EXPORT_FIELDS = {
+    "graphs": obj({g: replace(SHA256, required=False) for g in C.GRAPHS}, min_len=1),
+    "deltas": replace(list_of(obj({"input": text(), "layer": text(), "features": DIM,
+                                   "base_weight": replace(text(), nullable=True)}, open=True)),
+                      required=False),
+}  # fmt: skip
+# torch >= 2.5 takes `dynamo`; older versions only have the TorchScript exporter.
+_LEGACY_EXPORTER = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
+
+
+class VerificationFailed(Exception):
+    """onnxruntime and torch differ by more than atol: nothing is written."""
+
+
+@dataclass
+class ExportResult:
+    out: Path
+    opset: int
+    atol: float
+    files: list[str]
+    table: list[dict]  # one row per (graph, key): max_abs, max_rel, ok
+    ok: bool
+    meta: dict = field(repr=False, default_factory=dict)
+
+
+def require_onnx():
+    """(onnx, onnxruntime), or a PropError naming the extra to install."""
+    try:
+        import onnx
+        import onnxruntime
+    except ImportError as e:
+        raise PropError(f"ONNX support needs the 'onnx' extra ({e.name} is not installed)", ONNX_EXTRA) from e
+    return onnx, onnxruntime
+
+
+def session_options(ort, threads: int):
+    so = ort.SessionOptions()
+    so.intra_op_num_threads, so.inter_op_num_threads, so.log_severity_level = threads, 1, 3
+    return so
+
+
+def session(path: Path, threads: int = 0):
+    _, ort = require_onnx()
+    return open_session(ort, path, session_options(ort, threads))
+
+
+def open_session(ort, path: Path, so):
+    """An onnxruntime session; a graph it cannot load (damaged, edited, too new) is a PropError."""
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as e:  # noqa: BLE001 - onnxruntime's own exception types (Fail, InvalidGraph, ...)
+        raise PropError(f"onnxruntime cannot load {path} ({brief(e)})", REEXPORT) from None
+
+
+def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
+    """Read and check ``export.json`` (graph hashes; with a manifest, that it matches the bundle)."""
+    folder = Path(folder)
+    mpath = folder / C.EXPORT_META
+    if not mpath.is_file():
+        raise PropError(
+            f"{folder} holds no ONNX export ({C.EXPORT_META} missing)", "run prop export BUNDLE --onnx"
+        )
+    doc = Doc(str(mpath), fix=REEXPORT)
+    try:
+        raw = mpath.read_bytes()
+    except OSError as e:
+        raise PropError(f"{mpath} cannot be read ({e.strerror})", "check its permissions") from None
+    meta = read_json(raw, str(mpath), REEXPORT)
+    if check_version(meta, "format", C.EXPORT_FORMATS, doc) >= 2 or C.EXPORT_DIGEST in meta:
+        check_digest(meta, raw, C.EXPORT_DIGEST, doc)
+    check_fields(EXPORT_FIELDS, meta, doc, open_=True)
+    graphs = meta["graphs"]
+    for g, digest in graphs.items():
+        if not (folder / g).is_file() or sha256_file(folder / g) != digest:
+            raise PropError(f"{folder / g} is missing or modified", REEXPORT)
+    if bundle_manifest is not None and meta.get("bundle_files") != bundle_manifest.get(C.M_FILES):
+        raise PropError(
+            f"the ONNX export in {folder} was made from another bundle (or an older version of it)",
+            "run prop export BUNDLE --onnx --force",
+        )
+    return meta
+
+
+def export_graph(module, args, path: Path, inputs, outputs, axes, opset: int) -> None:
+    """Trace ``module`` to ``path`` with torch's TorchScript-based exporter (``dynamo=False``: no extra
+    package, works offline, supports ``dynamic_axes``); a failure names the operation in one line."""
+    try:
+        # On failure the exporter prints its IR graph to stdout, where our results go: divert it.
+        with warnings.catch_warnings(), torch.no_grad(), stdout_to_stderr():
+            # The legacy exporter warns that it is legacy, on every call; we chose it knowingly.
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                module,
+                args,
+                str(path),
+                input_names=inputs,
+                output_names=outputs,
+                dynamic_axes=axes,
+                opset_version=opset,
+                do_constant_folding=True,
+                **_LEGACY_EXPORTER,
+            )
+    except Exception as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        op = re.search(r"'((?:aten|prim|onnx)::\w+)'", str(e))
+        what = f"operation {op.group(1)}" if op else type(e).__name__
+        raise PropError(
+            f"cannot export {path.name} to ONNX opset {opset}: {what} failed ({msg[:200]})",
+            f"try another --opset ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}), "
+            "or replace that operation in the model",
+        ) from e
+
+
+def verify_inputs(bundle: Bundle, inputs: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
+    """The inputs verification runs on: the given ones (up to 64), or random ones of the bundle's shape."""
+    if inputs is not None:
+        return np.ascontiguousarray(inputs[:64], dtype=np.float32)
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    return rng.standard_normal((VERIFY_BATCH, *in_shape)).astype(np.float32)
+
+
+def diff_row(graph: str, key: str, got: np.ndarray, ref: np.ndarray, atol: float) -> dict:
+    """One verification row: max abs difference, and the same relative to the largest reference value."""
+    got, ref = np.asarray(got).astype(np.float64), np.asarray(ref).astype(np.float64)
+    d = float(np.max(np.abs(got - ref))) if ref.size else 0.0
+    scale = float(np.max(np.abs(ref))) if ref.size else 0.0
+    return {"graph": graph, "key": key, "max_abs": d, "max_rel": d / max(scale, 1e-12), "ok": bool(d <= atol)}
+
+
+def gemm_params(path: Path, layers: list[str]) -> dict[str, tuple[str, str | None]]:
+    """Keyed layer -> (weight, bias) initializers in ``path`` where the layer is a Gemm with transB=1
+    whose initializers nothing else uses: only then is W diag(delta) a column scaling of that weight,
+    and the layer's weights can be replaced in memory (a weight used elsewhere, shared or tied, cannot
+    be scaled for this layer alone)."""
+    onnx, _ = require_onnx()
+    graph = onnx.load(str(path)).graph
+    inits = {i.name for i in graph.initializer}
+    uses: dict[str, int] = {}
+    for node in graph.node:
+        for name in node.input:
+            uses[name] = uses.get(name, 0) + 1
+    found: dict[str, tuple[str, str | None]] = {}
+    for node in graph.node:
+        attrs = {a.name: a.i for a in node.attribute}
+        if node.op_type != "Gemm" or attrs.get("transB") != 1 or len(node.input) < 2:
+            continue
+        w = node.input[1]
+        bias = node.input[2] if len(node.input) > 2 and node.input[2] in inits else None
+        if w in inits and uses.get(w) == 1 and w.endswith(".weight") and w[: -len(".weight")] in layers:
+            found[w[: -len(".weight")]] = (w, bias if bias and uses.get(bias) == 1 else None)
+    return found

@@ -1,0 +1,141 @@
+"""ONNX export of a sealed bundle, and running it.
+
+A sealed bundle exports as ``base.onnx`` (the original) plus its encrypted records: the runtime
+(``SealedOnnxPolicy``) opens the user's record with their key and folds the payload into the keyed
+layers' initializers in this process's memory. No graph holds a payload in the clear.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from prop_cli import constants as C
+from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle.manifest import stamp
+from prop_cli.bundle.records import copy_records, load_state, public_part
+from prop_cli.config import ExportSettings
+from prop_cli.errors import PropError
+from prop_cli.files import dump_json, sha256_file, staged_dir
+
+from . import common
+from .common import ExportResult, VerificationFailed
+
+
+def export(
+    bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify
+) -> ExportResult:
+    """Write ``base.onnx``, the records and ``export.json`` to ``out``, if ``verify(folder)`` passes."""
+    onnx, _ = common.require_onnx()
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    batch = {0: "batch"}
+    try:
+        with staged_dir(out, what="export folder") as tmp:
+            x0 = torch.zeros(2, *in_shape)
+            module = bundle.loaded.module.eval()
+            axes = {"x": batch, "y": batch}
+            common.export_graph(module, (x0,), tmp / C.BASE_GRAPH, ["x"], ["y"], axes, s.opset)
+            onnx.checker.check_model(str(tmp / C.BASE_GRAPH))
+            copy_records(Path(bundle.path), tmp, bundle.manifest)
+            meta = stamp(_meta(bundle, tmp, s.opset, s.atol), C.EXPORT_DIGEST)
+            (tmp / C.EXPORT_META).write_text(dump_json(meta))
+            table = verify(tmp)
+            if not all(r["ok"] for r in table):
+                raise VerificationFailed
+    except VerificationFailed:
+        return ExportResult(out, s.opset, s.atol, [], table, False, meta)
+    files = [C.BASE_GRAPH, C.EXPORT_META, *(r["file"] for r in bundle.manifest[C.M_RECORDS])]
+    return ExportResult(out, s.opset, s.atol, files, table, True, meta)
+
+
+def _meta(bundle: Bundle, folder: Path, opset: int, atol: float) -> dict:
+    m = bundle.manifest
+    params = common.gemm_params(folder / C.BASE_GRAPH, bundle.layer_names)
+    return {
+        "format": C.EXPORT_FORMAT,
+        "mode": C.MODE_SEALED,
+        "exporter": common.EXPORTER,
+        "opset": opset,
+        "verified_atol": atol,
+        "bundle_files": dict(m[C.M_FILES]),
+        "input_shape": list(m[C.M_IO]["input_shape"]),
+        # What opening a record needs: the bound public fields (associated data) and the records.
+        "sealed": public_part(m),
+        "layers": [
+            {"layer": n, "weight": params.get(n, (None, None))[0], "bias": params.get(n, (None, None))[1]}
+            for n in bundle.layer_names
+        ],
+        "graphs": {C.BASE_GRAPH: sha256_file(folder / C.BASE_GRAPH)},
+    }
+
+
+def verify(
+    bundle: Bundle, folder: Path, key: np.ndarray | None, x: np.ndarray, rng: np.random.Generator, atol: float
+) -> list[dict]:
+    """onnxruntime vs torch for a sealed export: no key, a random key and ``key`` (the user's)."""
+    keys = [("null", None), ("random", rng.integers(0, 2, bundle.key_bits).astype(np.uint8))]
+    if key is not None:
+        keys.append(("user", np.asarray(key, np.uint8)))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the random key opens nothing, by design
+        for key_name, bits in keys:
+            ref = KeyedPolicy(bundle, bits)(x)
+            got = SealedOnnxPolicy(folder, bits, threads=1)(x)
+            rows.append(common.diff_row(C.BASE_GRAPH, key_name, got, ref, atol))
+    return rows
+
+
+class SealedOnnxPolicy:
+    """A sealed bundle's export run with onnxruntime: ``base.onnx``, with the user's payload folded
+    into the keyed layers' initializers in this process's memory when ``key_bits`` opens a record.
+    A key that opens nothing runs the base (the original), as the bundle does; nothing is written."""
+
+    def __init__(self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0) -> None:
+        onnx, ort = common.require_onnx()
+        folder = Path(folder)
+        self.meta = common.read_export(folder)
+        self.opened = None
+        so = common.session_options(ort, threads)
+        self._keep: list = []
+        if key_bits is not None:
+            self.opened = load_state(folder, self.meta["sealed"]).open(np.asarray(key_bits, np.uint8))
+        if self.opened is not None:
+            from onnx import numpy_helper
+
+            missing = [x["layer"] for x in self.meta["layers"] if not x["weight"]]
+            full = self.opened.payload.spec.kind == "full"
+            missing += [x["layer"] for x in self.meta["layers"] if full and x["weight"] and not x["bias"]]
+            if missing:
+                raise PropError(
+                    f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
+                    "run the bundle with torch (prop run without --onnx)",
+                )
+            inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+            with torch.no_grad():
+                for x in self.meta["layers"]:
+                    w = torch.from_numpy(numpy_helper.to_array(inits[x["weight"]]).copy())
+                    self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
+                    if full:
+                        b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
+                        self._override(
+                            so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")
+                        )
+        self.session = ort.InferenceSession(
+            str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"]
+        )
+
+    def _override(self, so, ort, name: str, t) -> None:
+        v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(t.detach().numpy(), np.float32))
+        self._keep.append(v)  # must outlive the session
+        so.add_initializer(name, v)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]
+
+
+def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
+    return SealedOnnxPolicy(folder, None if key is None else bundle.check_key(key), threads=threads)(x)

@@ -1,0 +1,294 @@
+"""ONNX export of an unsealed bundle, and running it.
+
+Four graphs are written (names in ``constants.GRAPHS``):
+
+- ``base.onnx``     x -> y: what the base weights compute with no key (a drop-in for the original).
+- ``keyed.onnx``    (x, code) -> y with the key encoder inside the graph.
+- ``encoder.onnx``  code -> delta_1..delta_L, one scale vector per keyed layer.
+- ``policy.onnx``   (x, delta_1..delta_L) -> y: a control loop computes delta once per session with
+  ``encoder.onnx``, then each step costs a base step plus one multiply per keyed layer.
+
+The key input is the encoder's ±1 *code*, not the key bits: the default "hashed" encoding is
+SHAKE-256 of the bits, which ONNX cannot express. The runtime computes the code with
+:func:`prop_cli.core.keyed.key_codes` (or the three-line hashlib recipe in docs/deploy.md).
+
+No graph holds key material or weights folded with a key: the key enters only as a graph input at
+run time, and the graphs are traced with placeholder inputs (zeros, a code of ones, deltas of ones).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from prop_cli import constants as C
+from prop_cli.bundle import Bundle
+from prop_cli.bundle.manifest import stamp
+from prop_cli.config import ExportSettings
+from prop_cli.core.keyed import KeyedModel, key_codes
+from prop_cli.errors import PropError
+from prop_cli.files import dump_json, sha256_file, staged_dir
+
+from .common import (
+    EXPORTER,
+    ExportResult,
+    VerificationFailed,
+    diff_row,
+    export_graph,
+    gemm_params,
+    open_session,
+    read_export,
+    require_onnx,
+    session,
+    session_options,
+)
+
+
+def delta_names(n_layers: int) -> list[str]:
+    return [f"delta_{i + 1}" for i in range(n_layers)]
+
+
+class DeltaPolicy(nn.Module):
+    """Export-only view of the keyed model: ``(x, delta_1..delta_L) -> y``.
+
+    Pre-hooks on the keyed layers multiply the layer input by a delta given as a graph input,
+    shape (1, d_i), broadcast over the batch (and any middle axes). This is Eq. 5's
+    W diag(delta) z without KeyedModel's row-gathering state, which does not trace to ONNX.
+    Use as a context manager: the hooks are removed from the bundle's module on exit.
+    """
+
+    def __init__(self, module: nn.Module, layer_names: list[str]) -> None:
+        super().__init__()
+        self.module = module
+        self._deltas: tuple[torch.Tensor, ...] | None = None
+        mods = dict(module.named_modules())
+        self._handles = [
+            mods[name].register_forward_pre_hook(self._hook(i)) for i, name in enumerate(layer_names)
+        ]
+
+    def _hook(self, i: int):
+        def pre(mod: nn.Module, args: tuple):
+            if self._deltas is None:
+                return None
+            return (args[0] * self._deltas[i], *args[1:])
+
+        return pre
+
+    def forward(self, x: torch.Tensor, *deltas: torch.Tensor) -> torch.Tensor:
+        self._deltas = deltas
+        try:
+            return self.module(x)
+        finally:
+            self._deltas = None
+
+    def __enter__(self) -> DeltaPolicy:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for h in self._handles:
+            h.remove()
+
+
+class _KeyedGraph(nn.Module):
+    """(x, code) -> y: the encoder feeding the delta policy."""
+
+    def __init__(self, encoder: nn.Module, policy: DeltaPolicy) -> None:
+        super().__init__()
+        self.encoder, self.policy = encoder, policy
+
+    def forward(self, x: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        return self.policy(x, *self.encoder(code))
+
+
+class _EncoderGraph(nn.Module):
+    def __init__(self, encoder: nn.Module) -> None:
+        super().__init__()
+        self.encoder = encoder
+
+    def forward(self, code: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return tuple(self.encoder(code))
+
+
+def _export_all(km: KeyedModel, folder: Path, in_shape: tuple, names: list[str], opset: int) -> None:
+    # Placeholder trace inputs only: nothing derived from a real key may reach the exporter.
+    x0 = torch.zeros(2, *in_shape)
+    code0 = torch.ones(1, km.encoder.code_bits)
+    ones = tuple(torch.ones(1, f) for f in km.encoder.features)
+    batch = {"x": {0: "batch"}, "y": {0: "batch"}}
+    with DeltaPolicy(km.module, km.layer_names) as policy:
+        export_graph(km.module, (x0,), folder / C.BASE_GRAPH, ["x"], ["y"], batch, opset)
+        export_graph(policy, (x0, *ones), folder / C.POLICY_GRAPH, ["x", *names], ["y"], batch, opset)
+        graph = _KeyedGraph(km.encoder, policy)
+        export_graph(graph, (x0, code0), folder / C.KEYED_GRAPH, ["x", "code"], ["y"], batch, opset)
+    axes = {n: {0: "keys"} for n in ["code", *names]}
+    export_graph(_EncoderGraph(km.encoder), (code0,), folder / C.ENCODER_GRAPH, ["code"], names, axes, opset)
+
+
+def export(
+    bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify
+) -> ExportResult:
+    """Write the four graphs and ``export.json`` to ``out``, if ``verify(folder)`` (onnxruntime against
+    torch) passes; otherwise nothing is left behind and the result is not ok."""
+    onnx, _ = require_onnx()
+    km = bundle.keyed.eval()
+    names = delta_names(len(km.layer_names))
+    in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+    try:
+        with staged_dir(out, what="export folder") as tmp:
+            _export_all(km, tmp, in_shape, names, s.opset)
+            for g in C.GRAPHS:
+                onnx.checker.check_model(str(tmp / g))
+            table = verify(tmp)
+            meta = _export_meta(bundle, tmp, names, s.opset, s.atol)
+            if not all(r["ok"] for r in table):
+                raise VerificationFailed  # staged_dir removes the folder: nothing is left behind
+            meta = stamp(meta, C.EXPORT_DIGEST)
+            (tmp / C.EXPORT_META).write_text(dump_json(meta))
+    except VerificationFailed:
+        return ExportResult(out, s.opset, s.atol, [], table, False, meta)
+    return ExportResult(out, s.opset, s.atol, [*C.GRAPHS, C.EXPORT_META], table, True, meta)
+
+
+@torch.no_grad()
+def verify(
+    bundle: Bundle, folder: Path, key: np.ndarray | None, x: np.ndarray, rng: np.random.Generator, atol: float
+) -> list[dict]:
+    """onnxruntime vs torch for every graph: no key, a random key and ``key`` (the user's)."""
+    km = bundle.keyed.eval()
+    xt = torch.from_numpy(x)
+    names = delta_names(len(km.layer_names))
+    sess = {g: session(folder / g, threads=1) for g in C.GRAPHS}
+    rows: list[dict] = []
+
+    def add(graph: str, key_name: str, got, ref: torch.Tensor) -> None:
+        rows.append(diff_row(graph, key_name, got, ref.numpy(), atol))
+
+    base = km.module(xt)
+    add(C.BASE_GRAPH, "null", sess[C.BASE_GRAPH].run(["y"], {"x": x})[0], base)
+    ones = {n: np.ones((1, f), np.float32) for n, f in zip(names, km.encoder.features)}
+    add(C.POLICY_GRAPH, "null", sess[C.POLICY_GRAPH].run(["y"], {"x": x, **ones})[0], base)
+
+    keys = [("random", rng.integers(0, 2, bundle.key_bits).astype(np.uint8))]
+    if key is not None:
+        keys.append(("user", np.asarray(key, np.uint8)))
+    for key_name, bits in keys:
+        code = key_codes(bits, bundle.key_encoding)
+        deltas = km.layer_deltas(code)
+        ref = km.run_keys(xt, deltas)[0]  # the training-time path, not the export wrapper
+        code_np = code.numpy()
+        got_d = sess[C.ENCODER_GRAPH].run(names, {"code": code_np})
+        add(
+            C.ENCODER_GRAPH,
+            key_name,
+            np.concatenate([g.ravel() for g in got_d]),
+            torch.cat([d.ravel() for d in deltas]),
+        )
+        feed = dict(zip(names, got_d))
+        add(C.POLICY_GRAPH, key_name, sess[C.POLICY_GRAPH].run(["y"], {"x": x, **feed})[0], ref)
+        add(C.KEYED_GRAPH, key_name, sess[C.KEYED_GRAPH].run(["y"], {"x": x, "code": code_np})[0], ref)
+    return rows
+
+
+def _export_meta(bundle: Bundle, folder: Path, names: list[str], opset: int, atol: float) -> dict:
+    """export.json: enough to feed the graphs without prop, and to tie them to their bundle."""
+    m = bundle.manifest
+    params = gemm_params(folder / C.BASE_GRAPH, [layer["name"] for layer in m[C.M_KEYED_LAYERS]])
+    return {
+        "format": C.EXPORT_FORMAT,
+        "exporter": EXPORTER,
+        "opset": opset,
+        "verified_atol": atol,
+        "bundle_files": dict(m[C.M_FILES]),  # sha256 of the bundle's weights: detects a stale export
+        "input_shape": list(m[C.M_IO]["input_shape"]),
+        "key": {"bits": int(m[C.M_KEY]["bits"]), "encoding": m[C.M_KEY]["encoding"]},
+        "code": "float32 (1, bits) of ±1; see docs/deploy.md for computing it from the key",
+        "deltas": [
+            {
+                "input": n,
+                "layer": layer["name"],
+                "features": int(layer["features"]),
+                "base_weight": params[layer["name"]][0] if layer["name"] in params else None,
+            }
+            for n, layer in zip(names, m[C.M_KEYED_LAYERS])
+        ],
+        "graphs": {g: sha256_file(folder / g) for g in C.GRAPHS},
+    }
+
+
+class OnnxPolicy:
+    """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
+
+    With a key, delta is computed once here (encoder.onnx). Folded (the default where the export
+    names the keyed layers' weights): base.onnx runs with those weights replaced, in this process's
+    memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base step
+    (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
+    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx.
+    Without a key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call
+    path at batch 1. ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    """
+
+    def __init__(
+        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool | None = None
+    ) -> None:
+        _, ort = require_onnx()
+        folder = Path(folder)
+        self.meta = read_export(folder)
+        self.names = [d["input"] for d in self.meta["deltas"]]
+        self._keep: list = []  # OrtValues the session reads from must outlive it
+        bound: dict = {}
+        if key_code is None:
+            self.session = session(folder / C.BASE_GRAPH, threads)
+        else:
+            code = np.asarray(key_code, np.float32).reshape(1, -1)
+            deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+            if fold is None:
+                fold = all(d.get("base_weight") for d in self.meta["deltas"])
+            if fold:
+                self.session = self._folded(folder, deltas, threads, ort)
+            else:
+                self.session = session(folder / C.POLICY_GRAPH, threads)
+                bound = {n: ort.OrtValue.ortvalue_from_numpy(d) for n, d in zip(self.names, deltas)}
+                self._keep += bound.values()
+        self._binding = self.session.io_binding()
+        for n, v in bound.items():
+            self._binding.bind_ortvalue_input(n, v)
+        self._binding.bind_output("y")
+        self._rows: int | None = None  # the batch size the output binding was last run with
+
+    def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
+        onnx, _ = require_onnx()
+        from onnx import numpy_helper
+
+        weights = [d.get("base_weight") for d in self.meta["deltas"]]
+        if not all(weights):
+            raise PropError(
+                f"{folder / C.BASE_GRAPH} does not expose the keyed layers' weights by name",
+                "run without fold (the split form, policy.onnx)",
+            )
+        inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+        so = session_options(ort, threads)
+        for name, d in zip(weights, deltas):
+            w = numpy_helper.to_array(inits[name]) * d.reshape(1, -1)  # Gemm B (out, in), transB=1
+            v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(w, np.float32))
+            self._keep.append(v)
+            so.add_initializer(name, v)
+        return open_session(ort, folder / C.BASE_GRAPH, so)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(x, np.float32)
+        if self._rows is not None and x.shape[0] != self._rows:
+            # The bound output keeps the shape of its first run: a new batch size needs a fresh one.
+            self._binding.clear_binding_outputs()
+            self._binding.bind_output("y")
+        self._rows = x.shape[0]
+        self._binding.bind_cpu_input("x", x)
+        self.session.run_with_iobinding(self._binding)
+        return self._binding.copy_outputs_to_cpu()[0]
+
+
+def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
+    code = None if key is None else key_codes(key, bundle.key_encoding).numpy()
+    return OnnxPolicy(folder, code, threads=threads)(x)

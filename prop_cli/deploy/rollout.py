@@ -1,0 +1,324 @@
+"""Closed-loop evaluation of a bundle in a gymnasium environment, per key condition (`prop eval`).
+
+Conditions: the user's key, no key, random keys and one-bit neighbours of the user's key (one fixed
+key per episode, folded into a copy of the weights, so a keyed step costs a base step), and optionally
+the original checkpoint. Per condition: mean return, success (``info["is_success"]`` at the episode's
+end, where the environment reports it) and the user's preference metric, each with its standard error.
+Every condition runs the same evaluation seeds: random keys and neighbours take them in turn,
+``episodes_per_key`` each (6 keys x 5 episodes = the 30 seeds of the other conditions), so the
+conditions differ only in the key, not in the starting states.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+import sys
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from prop_cli.adapters.sb3 import observation_array
+from prop_cli.adapters.sb3.vecnormalize import ObsNormalizer
+from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle.runtime import module_for_key
+from prop_cli.config import EvalSettings
+from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.errors import PropError
+from prop_cli.files import staged_dir
+
+from .streams import stdout_to_stderr
+
+# A trajectory as the preference metric receives it.
+Trajectory = dict  # {"observations": [...], "actions": [...], "rewards": [...], "infos": [...]}
+Metric = Callable[[Trajectory], float]
+
+
+def parse_obs_map(spec: str | None) -> dict[str, str]:
+    """``feature=env_key,...`` -> {policy feature: key of the environment's dict observation}."""
+    if not spec:
+        return {}
+    out = {}
+    for part in spec.split(","):
+        feature, sep, key = part.strip().partition("=")
+        if not sep or not feature or not key:
+            raise PropError(
+                f"--obs-map {spec!r}: {part!r} is not feature=key",
+                "write it like observation.state=observation,observation.environment_state=desired_goal",
+            )
+        out[feature] = key
+    return out
+
+
+def load_metric(spec: str | None) -> Metric | None:
+    """``package.module:function`` -> the function (called with each episode's trajectory)."""
+    if not spec:
+        return None
+    mod_name, sep, attr = spec.partition(":")
+    if not sep or not mod_name or not attr:
+        raise PropError(f"--metric {spec!r} is not package.module:function", "name a function f(trajectory)")
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())  # a metric file next to where prop runs, as with `python -m`
+    try:
+        fn = getattr(importlib.import_module(mod_name), attr)
+    except Exception as e:  # noqa: BLE001 - ImportError, AttributeError or the module's own errors
+        raise PropError(
+            f"--metric {spec!r}: cannot load it ({type(e).__name__}: {e})", "check the name"
+        ) from None
+    if not callable(fn):
+        raise PropError(f"--metric {spec!r} is not callable", "name a function f(trajectory) -> float")
+    return fn
+
+
+def make_env(env_id: str, render: bool = False):
+    """gymnasium.make(env_id); ``module:EnvId`` imports the module that registers the environment first.
+    ``render``: frames from ``env.render()`` (render_mode rgb_array), for --video."""
+    try:
+        import gymnasium as gym
+    except ImportError:
+        raise PropError(
+            "prop eval needs gymnasium", "pip install gymnasium (and the environment's package)"
+        ) from None
+    try:  # simulators print banners from C (pybullet's argv lines): keep stdout for results (--json)
+        with stdout_to_stderr():
+            return gym.make(env_id, render_mode="rgb_array") if render else gym.make(env_id)
+    except Exception as e:  # noqa: BLE001 - unknown id, missing package, bad arguments
+        raise PropError(
+            f"--env {env_id!r}: gymnasium cannot make it "
+            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
+            "give a registered id; package:Id imports its package first (panda_gym:PandaReach-v3)",
+        ) from None
+
+
+def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -> Callable:
+    """The environment's observation -> the one array a module without a policy protocol takes:
+    VecNormalize's statistics first (SB3 normalises the raw dict or array), then the adapter's layout
+    (SB3: Dict entries flattened in the policy's key order, images HWC -> CHW)."""
+    spec = bundle.loaded.spec
+
+    def prepare(obs):
+        if normalizer is not None:
+            obs = normalizer(obs)
+        if spec.get("adapter") == "sb3":
+            return observation_array(spec, obs)
+        if isinstance(obs, dict):
+            raise PropError(
+                f"the environment's observations are dicts (keys {sorted(obs)})",
+                "this bundle takes one array",
+            )
+        return obs
+
+    return prepare
+
+
+class _ArrayController:
+    """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives."""
+
+    def __init__(self, bundle: Bundle, key: np.ndarray | None, prepare: Callable) -> None:
+        self.policy = KeyedPolicy(bundle, key)
+        self.prepare = prepare
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs) -> np.ndarray:
+        return self.policy.predict(self.prepare(obs))
+
+
+@dataclass
+class _Source:
+    """What acts under one key: a bundle (key bits or None) or the original checkpoint's module."""
+
+    bundle: Bundle
+    bits: np.ndarray | None = None
+
+    def controller(self):
+        loaded = self.bundle.loaded
+        if loaded.policy is None:
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
+            module = module_for_key(self.bundle, self.bits)
+        return loaded.policy.controller(module)
+
+
+def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
+    """The environment's observation as the policy takes it (a dict of arrays by feature name)."""
+    if features is None:
+        return obs  # a bundle without a policy protocol: array_observation prepares it
+    if not isinstance(obs, dict):
+        if len(features) != 1:
+            raise PropError(f"the environment gives one array; the policy takes {features}", "use --obs-map")
+        return {features[0]: obs}
+    out = {}
+    for f in features:
+        key = obs_map.get(f, f)
+        if key not in obs:
+            raise PropError(
+                f"the environment's observation has no {key!r} for the policy's {f!r} (it has {sorted(obs)})",
+                "map it with --obs-map feature=key",
+            )
+        out[f] = np.asarray(obs[key], np.float32) if np.asarray(obs[key]).dtype != np.uint8 else obs[key]
+    return out
+
+
+def _episodes(
+    env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric, frames=None
+) -> list:
+    """Roll out one episode per seed; ``frames`` (a list): the first episode's rendered frames go in it."""
+    results = []
+    for n, seed in enumerate(seeds):
+        obs, _ = env.reset(seed=int(seed))
+        controller.reset()
+        film = frames is not None and n == 0
+        if film:
+            frames.append(_frame(env))
+        traj: Trajectory = {"observations": [obs], "actions": [], "rewards": [], "infos": []}
+        total, steps, info = 0.0, 0, {}
+        while True:
+            action = controller.act(_observation(obs, features, obs_map))
+            obs, reward, terminated, truncated, info = env.step(action)
+            total += float(reward)
+            steps += 1
+            if film:
+                frames.append(_frame(env))
+            for k, v in (("observations", obs), ("actions", action), ("rewards", reward), ("infos", info)):
+                traj[k].append(v)
+            if truncated or (terminated and not settings.ignore_terminated):
+                break
+            if settings.max_steps and steps >= settings.max_steps:
+                break
+        r = {"return": total, "steps": steps}
+        if "is_success" in info:
+            r["success"] = float(info["is_success"])
+        if metric is not None:
+            r["metric"] = float(metric(traj))
+        results.append(r)
+    return results
+
+
+def _frame(env) -> np.ndarray:
+    frame = env.render()
+    if not isinstance(frame, np.ndarray) or frame.ndim != 3:
+        raise PropError("--video: the environment renders no rgb_array frames", "drop --video")
+    return frame
+
+
+def check_video(video: Path | None) -> None:
+    """Before any rollout: the writer is installed and the folder is new (nothing is overwritten)."""
+    if video is None:
+        return
+    try:
+        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise PropError("--video needs imageio and imageio-ffmpeg", "pip install 'prop-cli[video]'") from None
+    if Path(video).exists():
+        raise PropError(f"--video {video} exists", "give a new folder (videos are never overwritten)")
+
+
+def write_videos(video: Path, films: dict[str, list[np.ndarray]], fps: float) -> None:
+    """One mp4 per condition (its first episode), written together at the end: all or nothing."""
+    import imageio.v2 as imageio
+
+    with staged_dir(Path(video), what="video folder", flag="--video") as tmp:
+        for label, frames in films.items():
+            imageio.mimsave(tmp / f"{label}.mp4", frames, fps=fps, macro_block_size=1)
+
+
+def _summary(results: list[dict]) -> dict:
+    out: dict = {"episodes": len(results)}
+    for field in ("return", "success", "metric", "steps"):
+        vals = [r[field] for r in results if field in r]
+        if vals:
+            mean = float(np.mean(vals))
+            se = float(np.std(vals, ddof=1) / math.sqrt(len(vals))) if len(vals) > 1 else 0.0
+            out[field] = {"mean": mean, "se": se}
+    return out
+
+
+def evaluate_bundle(
+    bundle: Bundle,
+    env_id: str,
+    key: np.ndarray | None,
+    settings: EvalSettings,
+    *,
+    obs_map: dict[str, str] | None = None,
+    metric: Metric | None = None,
+    original=None,
+    progress: Callable[[str], None] | None = None,
+    normalizer: ObsNormalizer | None = None,
+    video: Path | None = None,
+) -> dict:
+    """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition;
+    ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy; ``video``:
+    a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's)."""
+    settings.validate(has_key=key is not None)
+    check_video(video)
+    films: dict[str, list[np.ndarray]] = {}
+
+    def film(label: str) -> list | None:
+        return None if video is None or label in films else films.setdefault(label, [])
+
+    policy = bundle.loaded.policy
+    if normalizer is not None and policy is not None:
+        raise PropError(
+            "--vecnormalize is for Stable-Baselines3 policies; this bundle's policy normalises its inputs",
+            "drop --vecnormalize",
+        )
+    prepare = array_observation(bundle, normalizer)
+    env = make_env(env_id, render=video is not None)
+    features = list(policy.input_features) if policy is not None else None
+    obs_map = obs_map or {}
+    first = [settings.seed + i for i in range(settings.episodes)]
+    rng = np.random.default_rng((settings.seed, 0x5EED))
+
+    def run(label: str, codes_or_bits, seeds: list[int], name: str) -> list[dict]:
+        if progress is not None:
+            progress(label)
+        if policy is None:
+            ctl = _ArrayController(bundle, codes_or_bits, prepare)
+        else:
+            ctl = _Source(bundle, codes_or_bits).controller()
+        return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
+
+    report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
+    cond = report["conditions"]
+    if original is not None:
+        if progress is not None:
+            progress("original")
+        ctl = original.policy.controller(original.module.eval()) if original.policy else None
+        if ctl is None:
+            raise PropError("--original: only LeRobot policies are compared this way", "drop --original")
+        cond["original"] = _summary(
+            _episodes(env, ctl, first, features, obs_map, settings, metric, film("original"))
+        )
+    cond["no_key"] = _summary(run("no key", None, first, "no_key"))
+    if key is not None:
+        cond["user_key"] = _summary(run("user key", key, first, "user_key"))
+    groups = [("random_keys", random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key))]
+    if key is not None and settings.neighbours:
+        nbrs = one_bit_neighbours(key)
+        groups.append(("neighbour1_keys", nbrs[rng.choice(len(nbrs), settings.neighbours, replace=False)]))
+    for label, keys in groups:
+        results, per_key = [], []
+        for j, bits in enumerate(keys):
+            # The conditions' seeds, in turn: R keys x m episodes cover the same starting states as
+            # the user key, no key and the original (paired, not merely as many).
+            m = settings.episodes_per_key
+            seeds = [first[(j * m + i) % len(first)] for i in range(m)]
+            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label)
+            results += r
+            per_key.append(_summary(r))
+        if keys is not None and len(keys):
+            cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key}
+    fps = float(env.metadata.get("render_fps") or 25)
+    env.close()
+    if video is not None:
+        write_videos(video, films, fps)
+        report["video"] = {"folder": str(video), "files": sorted(f"{k}.mp4" for k in films), "fps": fps}
+    return report

@@ -1,0 +1,69 @@
+"""Hardened unsealed mode (`prop personalize --harden`): what the trainer adds to the paper's Eq. 8.
+
+Two measures, each kept because it measurably helps (docs/hardening.md has the figures):
+
+- Code-space negatives: fallback rows whose codes lie near the users' codes *in code space*, where a
+  white-box attacker searches (the relaxed search T1 optimises a continuous code through the
+  encoder). Eq. 8's Hamming neighbours are neighbours in key space; with hashed keys a key one bit
+  off is a random code, so they never teach the encoder what to do between the user's code and the
+  rest of the code cube. Without these rows the user's behaviour is the basin T1 slides into.
+- An encoder initialisation drawn from the operating system's randomness: the manifest's seed then
+  cannot recreate the encoder's starting weights, whose difference from the trained ones points at
+  the user's code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+
+from prop_cli.config import PersonalizeConfig
+
+
+@contextlib.contextmanager
+def encoder_init(cfg: PersonalizeConfig) -> Iterator[None]:
+    """Build the key encoder inside this block: seeded by ``cfg.seed`` (the default, reproducible),
+    or, with ``encoder_init == "os"``, from fresh OS randomness that nothing in the bundle records.
+    The global torch RNG is restored afterwards, so the rest of training still follows the seed."""
+    if cfg.encoder_init != "os":
+        yield
+        return
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int.from_bytes(os.urandom(8), "little") >> 1)  # 63 bits, never stored
+        yield
+
+
+def code_negatives(
+    user_codes: torch.Tensor, n: int, flip_max: int, relax_min: float, rng: np.random.Generator
+) -> torch.Tensor:
+    """``n`` fallback codes near the users' ±1 codes, in code space, in four equal shares:
+
+    the code with 1..flip_max bits flipped; relaxed points c + t (r - c), t in [relax_min, 1], towards
+    uniform ±1 codes r; the same towards uniform points r in [-1, 1]^bits (where relaxed searches
+    start); and c + sigma * noise, sigma in [relax_min, 1], clipped to [-1, 1].
+    """
+    if n == 0:
+        return user_codes.new_zeros(0, user_codes.shape[1])
+    dev = user_codes.device
+    bits = user_codes.shape[1]
+    c = user_codes[torch.from_numpy(rng.integers(0, len(user_codes), n)).to(dev)].clone()
+    q = n // 4
+    n_flip, n_relax = n - 3 * q, 2 * q
+
+    def t(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(a.astype(np.float32)).to(dev)
+
+    m = rng.integers(1, min(flip_max, bits) + 1, n_flip)
+    flip = torch.from_numpy(rng.random((n_flip, bits)).argsort(1) < m[:, None]).to(dev)
+    c[:n_flip] = torch.where(flip, -c[:n_flip], c[:n_flip])
+    towards = np.concatenate([rng.integers(0, 2, (q, bits)) * 2.0 - 1.0, rng.uniform(-1.0, 1.0, (q, bits))])
+    seg = slice(n_flip, n_flip + n_relax)
+    c[seg] = c[seg] + t(rng.uniform(relax_min, 1.0, (n_relax, 1))) * (t(towards) - c[seg])
+    sigma = t(rng.uniform(relax_min, 1.0, (q, 1)))
+    noise = t(rng.standard_normal((q, bits)))
+    c[n - q :] = (c[n - q :] + sigma * noise).clamp(-1, 1)
+    return c

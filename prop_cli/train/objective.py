@@ -1,0 +1,70 @@
+"""The PRoP objective (paper Eq. 7, made tractable as Eq. 8).
+
+Per step: the personalized loss of each user's key on that user's data, plus the fallback loss
+(distillation towards the frozen original) for the null key, K2 = uniform random keys and
+K1 = Hamming neighbours of the user keys within ``radius`` (drawn by ``core.keyspace.KeySampler``,
+in key-bit space whatever the key encoding, so the objective is the paper's in both encodings).
+
+A step's rows are laid out as [user rows | sampled-key fallback rows | null rows]; ``prop_loss``
+relies on that order (built by ``array.make_batch``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from prop_cli.errors import PropError
+
+
+def check_user_keys(keys: list[np.ndarray], radius: int) -> None:
+    """Users whose keys are within 2 * radius would have overlapping K1 sets: refuse them."""
+    for i in range(len(keys)):
+        for j in range(i + 1, len(keys)):
+            d = int((keys[i] != keys[j]).sum())
+            if d < 2 * radius:
+                raise PropError(
+                    f"the keys of users {i + 1} and {j + 1} are {d} bits apart, closer than twice "
+                    f"--hamming-radius ({2 * radius})",
+                    "give each user an independent key (prop keygen) or lower --hamming-radius",
+                )
+
+
+@dataclass
+class Batch:
+    """One step: distinct samples x, and rows (sample, key) with their targets."""
+
+    x: torch.Tensor
+    sample_index: torch.Tensor
+    key_index: torch.Tensor  # into [user codes..., sampled codes..., null]
+    codes: torch.Tensor  # (K, n) ±1 codes of user keys then sampled keys; null is the row after
+    user_rows: int
+    null_rows: int
+    user_targets: torch.Tensor  # targets of the first user_rows rows
+    fallback_targets: torch.Tensor  # original's outputs for the remaining rows
+
+
+def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) -> torch.Tensor:
+    """Per-row loss: MSE for float targets, cross-entropy for labels, KL to soft targets for distill."""
+    if task == "classification":
+        if distill:
+            logp = F.log_softmax(target, -1)
+            return (logp.exp() * (logp - F.log_softmax(out, -1))).sum(-1)
+        return F.cross_entropy(out, target, reduction="none")
+    return ((out - target) ** 2).flatten(1).mean(-1)
+
+
+def prop_loss(
+    out: torch.Tensor, batch: Batch, task: str, null_weight: float
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 8: mean personalized loss + mean keyed fallback loss + null_weight * mean null loss."""
+    u, n0 = batch.user_rows, batch.null_rows
+    personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
+    fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
+    null = fb[-n0:].mean()
+    keyed = fb[:-n0].mean() if fb.shape[0] > n0 else out.new_zeros(())
+    total = personal + keyed + null_weight * null
+    return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}

@@ -1,0 +1,184 @@
+"""Recipe: a policy that brings its own loss (LeRobot ACT), unsealed: Eq. 8 with the policy's own terms.
+
+User term: the policy's own training loss (ACT: L1 on the action chunk, padding masked, plus its
+VAE's KL) on the user's frames, every row under the user's key. Fallback terms (the null key, weighted
+by ``null_weight``; K1 Hamming neighbours and K2 random keys): L1 between the keyed policy's deployed
+chunk and the frozen original's chunk on general observations, the targets computed once
+("distill"). Measured against the policy's loss on general data and against relabelled actions, the
+distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest to
+the original's (examples/RESULTS.md, "LeRobot ACT").
+
+Two forwards per step: the user rows in training mode (the policy's loss needs its training path),
+the fallback rows in eval mode (the path the policy is deployed with). Rows carry their own keys.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from prop_cli.adapters import LoadedModel
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.batch_axes import probe_batch_axes
+from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyspace import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.layers import select_layers
+from prop_cli.datasources import Dataset
+from prop_cli.errors import PropError
+
+from .loop import Optimiser, run_steps
+from .objective import check_user_keys
+from .recipe import Job, Recipe, User
+from .report import eval_rng, outputs_report
+from .unsealed import Personalized
+
+_CHUNK = 256  # rows per forward when caching the original's chunks
+CLIP = 10.0  # gradient-norm clip, as LeRobot's training loop
+
+
+def rows(batch: dict[str, torch.Tensor], idx: torch.Tensor) -> dict[str, torch.Tensor]:
+    return {k: v[idx] for k, v in batch.items()}
+
+
+def split_episodes(batch: dict[str, torch.Tensor], fraction: float) -> tuple[dict, dict]:
+    """Hold out the last ``fraction`` of the episodes (whole episodes: frames of one are correlated)."""
+    eps = batch["episode_index"].unique()
+    n_val = min(len(eps) - 1, max(1, round(fraction * len(eps))))
+    if n_val < 1:
+        raise PropError("--data has one episode; prop holds out whole episodes", "record at least two")
+    val = torch.isin(batch["episode_index"], eps[-n_val:])
+    return rows(batch, ~val), rows(batch, val)
+
+
+@torch.no_grad()
+def chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """The policy's deployed chunk for every frame of ``batch``, a few hundred frames per forward."""
+    n = len(batch["episode_index"])
+    return torch.cat(
+        [policy.chunk(rows(batch, torch.arange(i, min(n, i + _CHUNK)))) for i in range(0, n, _CHUNK)]
+    )
+
+
+def check_cpu(device: str) -> None:
+    if device not in ("cpu", "auto"):
+        raise PropError(
+            f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
+        )
+
+
+class PolicyTrainer:
+    """The state of one personalize run and its step (kept apart so benchmarks time exactly this step)."""
+
+    def __init__(
+        self, loaded: LoadedModel, users: list[User], cfg: PersonalizeConfig, general: Dataset | None
+    ) -> None:
+        policy = self.policy = loaded.policy
+        cfg.validate(key_bits=len(users[0].key_bits))
+        check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
+        self.cfg, self.users = cfg, users
+        module = self.module = loaded.module
+        names = select_layers(module, cfg.layers or policy.default_layers, cfg.exclude)
+        torch.manual_seed(cfg.seed)
+        self.rng = rng = np.random.default_rng(cfg.seed)
+
+        self.splits = [split_episodes(policy.batches(u.data, "--data"), cfg.val_fraction) for u in users]
+        self.pool = [tr for tr, _ in self.splits]
+        fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
+        self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
+        self.original = copy.deepcopy(module).requires_grad_(False).eval()
+        self.original_policy = type(policy)(self.original, policy.pre, policy.post)
+        self.targets = chunks(self.original_policy, self.fb)
+
+        mods = dict(module.named_modules())
+        features = [mods[n].in_features for n in names]
+        encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
+        self.km = KeyedModel(module, encoder, names)
+        self.km.batch_axis = probe_batch_axes(
+            module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
+        )
+        if cfg.freeze_base:
+            module.requires_grad_(False)
+        base = [p for p in module.parameters() if p.requires_grad]
+        groups = [{"params": list(encoder.parameters())}]
+        if base:
+            groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
+        self.optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, clip=CLIP)
+        self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding)
+        self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
+        self.per_user = max(1, cfg.user_rows // len(users))
+
+    def step(self) -> dict[str, float]:
+        cfg, km, rng, policy = self.cfg, self.km, self.rng, self.policy
+        # User rows: the policy's own loss, each user's rows under that user's key.
+        picks = [
+            torch.from_numpy(rng.integers(0, len(tr["episode_index"]), self.per_user)) for tr in self.pool
+        ]
+        ub = {k: torch.cat([rows(tr, p)[k] for tr, p in zip(self.pool, picks)]) for k in self.pool[0]}
+        user_of_row = torch.arange(len(self.users)).repeat_interleave(self.per_user)
+        d_user = [d.index_select(0, user_of_row) for d in km.layer_deltas(self.user_codes)]
+        personal = km.call_rows(d_user, policy.loss, ub)
+        # Fallback rows: null rows, then each sampled key on samples_per_key of the same frames.
+        sampled = np.concatenate(
+            [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
+        )
+        gi = torch.from_numpy(rng.integers(0, len(self.targets), cfg.null_rows))
+        k_rows = torch.arange(len(sampled)).repeat_interleave(cfg.samples_per_key)
+        idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
+        deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
+        key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
+        pred = km.call_rows(
+            [d.index_select(0, key_of_row) for d in deltas], policy.chunk, rows(self.fb, idx)
+        )
+        per_row = (pred - self.targets[idx]).abs().flatten(1).mean(1)
+        null = per_row[: len(gi)].mean()
+        keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
+        self.optim.update(personal + keyed + cfg.null_weight * null)
+        return {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
+
+
+@torch.no_grad()
+def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: PersonalizeConfig, rng) -> dict:
+    """personalization, leakage and fidelity (docs/metrics.md) on held-out frames' action chunks.
+
+    ``b`` = the original's chunk, ``p`` = the user's recorded chunk (normalised units; padded steps
+    repeat the episode's last action, as LeRobot pads), ``o`` = the keyed policy's chunk under a key.
+    """
+    p, b = val["action"], chunks(original, val)
+
+    def under(codes: torch.Tensor | None) -> torch.Tensor:
+        if codes is None:
+            return chunks(policy, val)[None]
+        every = km.layer_deltas(codes)
+        return torch.stack(
+            [km.call_rows([d[i : i + 1] for d in every], chunks, policy, val) for i in range(len(codes))]
+        )
+
+    enc = cfg.key_encoding
+    o_user = under(key_codes(bits, enc))
+    o_rand = under(key_codes(random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits), enc))
+    o_ham = under(key_codes(one_bit_neighbours(bits), enc))
+    return outputs_report(b, p, "regression", o_user[0], under(None), o_rand, o_ham)
+
+
+class PolicyRecipe(Recipe):
+    def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
+        """Train the keyed policy (Eq. 5) with Eq. 8. CPU only in this version."""
+        loaded, cfg = job.loaded, job.cfg
+        check_cpu(job.device)
+        t = PolicyTrainer(loaded, users, cfg, general)
+        losses = run_steps(t.step, cfg.steps, job.progress)
+        t.module.eval()
+        reports = [
+            chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i))
+            for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+        ]
+        shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
+        return Personalized(
+            t.km, t.original, "regression", reports, losses, loaded=loaded, cfg=cfg, input_shape=shape,
+            users=len(users),
+        )  # fmt: skip
+
+
+RECIPE = PolicyRecipe()

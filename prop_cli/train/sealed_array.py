@@ -1,0 +1,80 @@
+"""Recipe: an array model, sealed: each user's payload fitted on their data alone, the base frozen (it
+stays the original). No fallback terms: a wrong key opens no record and the original runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from prop_cli.adapters import LoadedModel
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.device import resolve_device
+from prop_cli.core.payload import Payload, PayloadSpec
+from prop_cli.datasources import Dataset
+from prop_cli.datasources.fit import split
+
+from .data import prepare_users, targets_tensor
+from .loop import Optimiser, run_steps
+from .objective import row_loss
+from .recipe import Job, Progress, SealedUser
+from .sealed import SealedRecipeBase, payload_spec, private_report
+
+
+def train_payload(
+    module: torch.nn.Module,
+    spec: PayloadSpec,
+    train: Dataset,
+    task: str,
+    cfg: PersonalizeConfig,
+    dev: torch.device,
+    progress: Progress | None = None,
+) -> tuple[Payload, dict[str, float]]:
+    """Fit one user's payload on their data, the base frozen."""
+    gen = torch.Generator().manual_seed(cfg.seed)
+    payload = Payload(spec, gen).to(dev)
+    x = torch.from_numpy(train.x).to(dev)
+    y = targets_tensor(train, task).to(dev)
+    rng = np.random.default_rng(cfg.seed)
+    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor)
+    module.requires_grad_(False)
+    with payload.attached(module) as m:
+
+        def step() -> dict[str, float]:
+            idx = torch.from_numpy(rng.integers(0, len(x), cfg.user_rows)).to(dev)
+            loss = row_loss(m(x[idx]), y[idx], task, distill=False).mean()
+            optim.update(loss)
+            return {"personal": loss.item()}
+
+        losses = run_steps(step, cfg.steps, progress)
+    return payload.eval(), losses
+
+
+class SealedArrayRecipe(SealedRecipeBase):
+    def train_users(
+        self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
+        first_index: int = 0,
+    ) -> tuple[list[SealedUser], str, dict[str, int]]:
+        loaded, cfg = job.loaded, job.cfg
+        datasets, task = prepare_users(loaded, datasets, None, task)
+        dev = resolve_device(job.device)
+        module = loaded.module.to(dev).eval()
+        spec = payload_spec(module, cfg)
+        out = []
+        for i, (ds, bits) in enumerate(zip(datasets, keys), first_index):
+            tr, val = split(ds, cfg.val_fraction, cfg.seed + i)
+            payload, losses = train_payload(module, spec, tr, task, cfg, dev, job.progress)
+            xv, pv = torch.from_numpy(val.x).to(dev), targets_tensor(val, task).to(dev)
+            with torch.no_grad():
+                o, b = payload.fold(module)(xv), module(xv)
+            out.append(SealedUser(payload.to("cpu"), private_report(o, pv, b, task, losses, cfg), bits, val))
+        module.to("cpu")
+        return out, task, {}
+
+    def report_view(self, loaded: LoadedModel) -> torch.nn.Module:
+        return loaded.module
+
+    def input_shape(self, loaded: LoadedModel, val: Dataset) -> list:
+        return list(val.x.shape[1:])
+
+
+RECIPE = SealedArrayRecipe()

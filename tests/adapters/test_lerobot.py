@@ -1,0 +1,316 @@
+"""LeRobot policies and datasets under prop (pytest -m lerobot; scripts/test-lerobot.sh).
+
+A tiny ACT and two tiny LeRobotDatasets are made here from the scripted PandaReach expert: no
+downloads. Skipped where lerobot is not installed (the default environment and CI).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("lerobot")
+pytestmark = pytest.mark.lerobot
+
+from examples import lerobot_reach_task as task  # noqa: E402
+from prop_cli import api  # noqa: E402
+from prop_cli.adapters import load_checkpoint  # noqa: E402
+from prop_cli.bundle import load_bundle  # noqa: E402
+from prop_cli.config import EvalSettings, PersonalizeConfig  # noqa: E402
+from prop_cli.core.keys import KeySource  # noqa: E402
+from prop_cli.datasources import load_data  # noqa: E402
+from prop_cli.errors import PropError  # noqa: E402
+
+TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
+            eval_random_keys=4, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("lerobot")
+    task.record(d / "general", 4, 0, np.zeros(3, np.float32))
+    task.record(d / "user", 3, 50_000, task.USER_OFFSET)
+    task.train_base(d / "general", d / "act", steps=5)
+    return d
+
+
+def key(seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 2, 128).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def bundle(work):
+    out = work / "bundle"
+    api.personalize_checkpoint(
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        general=work / "general",
+    )  # fmt: skip
+    return out
+
+
+def test_folder_loads_through_lerobot_with_act_default_layers(work):
+    info = api.inspect_checkpoint(str(work / "act"))
+    assert info["adapter"] == "lerobot" and info["model"]["type"] == "act"
+    keyed = [x["name"] for x in info["layers"] if x["keyed"]]
+    assert keyed == [
+        "model.encoder.layers.0.linear1", "model.encoder.layers.0.linear2", "model.encoder.layers.1.linear1",
+        "model.encoder.layers.1.linear2", "model.decoder.layers.0.linear1", "model.decoder.layers.0.linear2",
+        "model.action_head",
+    ]  # fmt: skip
+
+
+def test_dataset_rows_and_action_chunks_follow_the_episodes(work):
+    ds = load_data(f"{work / 'general'}:episodes=1-2")
+    assert sorted(set(ds.x["episode_index"].tolist())) == [1, 2] and len(ds) == 2 * task.HORIZON
+    policy = load_checkpoint(work / "act").policy
+    b = policy.batches(ds, "--data")
+    chunk = policy.config.chunk_size
+    assert b["action"].shape == (len(ds), chunk, 3)
+    # The last frame of an episode: its own action, then padding (LeRobot repeats the last frame).
+    last = task.HORIZON - 1
+    assert b["action_is_pad"][last].tolist() == [False] + [True] * (chunk - 1)
+    assert not b["action_is_pad"][0].any()
+    # Frame 1's chunk is the actions of frames 1..chunk (each frame's chunk starts with its own action).
+    assert torch.equal(b["action"][1], b["action"][1 : chunk + 1, 0])
+    assert not torch.equal(b["action"][1], b["action"][2])
+
+
+def test_frame_selection_trims_each_episode(work):
+    ds = load_data(f"{work / 'general'}:episodes=1-2:frames=0-11")
+    assert len(ds) == 24 and set(ds.x["frame_index"].tolist()) == set(range(12))
+    b = load_checkpoint(work / "act").policy.batches(ds, "--data")
+    # Frame 11 is the selection's last of its episode: its chunk is its own action, then padding.
+    assert b["action_is_pad"][11].tolist() == [False] + [True] * 9
+    assert not b["action_is_pad"][2].any()
+
+
+def test_bundle_base_loads_in_lerobot_and_keys_change_only_keyed_runs(bundle, work):
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    base = ACTPolicy.from_pretrained(str(bundle / "lerobot")).eval()
+    pre, post = make_pre_post_processors(base.config, pretrained_path=str(bundle / "lerobot"))
+    b = load_bundle(bundle)
+    assert list(base.state_dict()) == list(b.loaded.module.state_dict())
+    obs = load_data(work / "general")
+    batch = b.loaded.policy.batches(obs, "--data")
+    x = {k: batch[k] for k in b.loaded.policy.input_features}
+    with torch.no_grad():
+        lerobot_chunk = base.model(dict(x))[0]
+        no_key = b.loaded.policy.chunk(x)
+        from prop_cli.core.keyed import key_codes
+
+        user = b.keyed.fold(key_codes(key(), b.key_encoding)).model(dict(x))[0]
+    assert torch.allclose(lerobot_chunk, no_key, atol=1e-6)
+    assert not torch.allclose(user, no_key, atol=1e-3)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    axes = {x["name"]: x.get("batch_axis", 0) for x in manifest["keyed_layers"]}
+    assert axes["model.encoder.layers.0.linear1"] == 1 and axes["model.action_head"] == 0
+    assert manifest["model"]["adapter"] == "lerobot" and pre is not None and post is not None
+
+
+def test_bundle_holds_no_key_material(bundle):
+    k = np.packbits(key()).tobytes()
+    for f in bundle.rglob("*"):
+        if f.is_file():
+            assert k not in f.read_bytes()
+
+
+def test_eval_rolls_out_every_key_condition(bundle, work):
+    report = api.eval_bundle(
+        bundle, task.ENV_ID,
+        EvalSettings(episodes=2, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=20),
+        obs_map=task.OBS_MAP, metric=task.METRIC, original=str(work / "act"), key_file=None,
+    )  # fmt: skip
+    assert set(report["conditions"]) == {"original", "no_key", "random_keys"}
+    assert report["conditions"]["no_key"]["episodes"] == 2
+    assert "metric" in report["conditions"]["no_key"] and "success" in report["conditions"]["no_key"]
+
+
+def test_eval_video_writes_one_mp4_per_condition_and_never_overwrites(bundle, work, tmp_path, cli):
+    pytest.importorskip("imageio_ffmpeg")
+    args = ["eval", bundle, "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--episodes", "1",
+            "--random-keys", "1", "--max-steps", "4", "--video", tmp_path / "v"]  # fmt: skip
+    r = cli(*args)
+    assert r.code == 0, r.err
+    assert sorted(p.name for p in (tmp_path / "v").iterdir()) == ["no_key.mp4", "random_keys.mp4"]
+    import imageio.v2 as imageio
+
+    frames = imageio.mimread(tmp_path / "v" / "no_key.mp4")
+    assert len(frames) == 5 and frames[0].ndim == 3  # the reset frame and one per step
+    r = cli(*args)
+    assert r.code == 2 and "exists" in r.err and len(r.err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "layer", ["model.encoder.layers.0.self_attn.out_proj", "model.vae_encoder.layers.0.linear1"]
+)
+def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer):
+    cfg = PersonalizeConfig(**(TINY | {"layers": [layer], "steps": 1}))
+    with pytest.raises(PropError, match="not called when the policy acts"):
+        api.personalize_checkpoint(
+            str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg
+        )
+    assert not (tmp_path / "b").exists()
+
+
+def test_unsupported_and_old_folders_are_refused(work, tmp_path, cli):
+    diff = tmp_path / "diffusion"
+    shutil.copytree(work / "act", diff)
+    cfg = json.loads((diff / "config.json").read_text())
+    (diff / "config.json").write_text(json.dumps(cfg | {"type": "diffusion"}))
+    r = cli("inspect", diff)
+    assert r.code == 2 and "diffusion policies have no deterministic action output" in r.err
+    assert len(r.err.strip().splitlines()) == 1
+    (diff / "config.json").write_text(json.dumps(cfg | {"type": "pi0"}))
+    assert "policy type 'pi0' is not supported" in cli("inspect", diff).err
+    from safetensors.torch import load_file, save_file
+
+    old = tmp_path / "old"
+    shutil.copytree(work / "act", old)
+    w = load_file(str(old / "model.safetensors"))
+    save_file(
+        w | {"normalize_inputs.buffer_observation_state.mean": torch.zeros(6)}, str(old / "model.safetensors")
+    )
+    r = cli("inspect", old)
+    assert r.code == 2 and "migrate_policy_normalization" in r.err
+
+
+def test_npz_data_for_a_lerobot_policy_is_one_line(work, tmp_path, cli):
+    np.savez(tmp_path / "d.npz", x=np.zeros((20, 9), np.float32), y=np.zeros((20, 3), np.float32))
+    (tmp_path / "k.bin").write_bytes(np.packbits(key()).tobytes())
+    r = cli("personalize", work / "act", "--data", tmp_path / "d.npz", "--key-file", tmp_path / "k.bin",
+            "--out", tmp_path / "b", "--steps", "1")  # fmt: skip
+    assert r.code == 2 and "no feature 'observation.state'" in r.err
+    assert not (tmp_path / "b").exists()
+
+
+def test_run_writes_action_chunks_and_no_key_is_lerobots_own_action(bundle, work, tmp_path, cli):
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    (tmp_path / "k.bin").write_bytes(np.packbits(key()).tobytes())
+    (tmp_path / "k.bin").chmod(0o600)
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y0.npy")
+    assert r.code == 0, r.err
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y1.npy", "--key-file",
+            tmp_path / "k.bin")  # fmt: skip
+    assert r.code == 0, r.err
+    y0, y1 = np.load(tmp_path / "y0.npy"), np.load(tmp_path / "y1.npy")
+    data = load_data(work / "user")
+    assert y0.shape == (len(data), 10, 3) and not np.allclose(y0, y1, atol=1e-3)
+    # No key: the first action of each chunk is what LeRobot's base itself acts, in action units.
+    base = ACTPolicy.from_pretrained(str(bundle / "lerobot")).eval()
+    pre, post = make_pre_post_processors(base.config, pretrained_path=str(bundle / "lerobot"))
+    for row in (0, 7):
+        base.reset()
+        obs = {k: torch.from_numpy(data.x[k][row : row + 1]) for k in ("observation.state",
+               "observation.environment_state")}  # fmt: skip
+        with torch.no_grad():
+            action = post(base.select_action(pre(obs)))[0].numpy()
+        assert np.allclose(action, y0[row, 0], atol=1e-5)
+    r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / "y2.npy", "--onnx")
+    assert r.code == 2 and "--onnx" in r.err and len(r.err.strip().splitlines()) == 1
+    assert not (tmp_path / "y2.npy").exists()
+    r = cli("export", bundle, "--onnx", "--out", tmp_path / "onnx")
+    assert r.code == 2 and "prop run or prop eval" in r.err and not (tmp_path / "onnx").exists()
+
+
+def test_attack_audits_chunks_with_controls_on_the_original(bundle, work):
+    from prop_cli.config import AuditSettings
+
+    s = AuditSettings(probes=["null", "random", "hamming", "relaxed"], hamming=[1, 4], per_distance=8,
+                      random=16, restarts=4, search_steps=3, samples=1000)  # fmt: skip
+    report = api.audit_bundle(bundle, work / "user", s, key_files=[tmp_key(work)], original=str(work / "act"))
+    assert report["bundle"]["task"] == "regression" and report["data"]["samples"] == 3 * task.HORIZON
+    assert report["control_model"].startswith("the original checkpoint")
+    assert report["settings"]["blackbox"] == 65_536  # the policies' default, recorded though not run
+    names = {g["name"]: g for g in report["groups"]}
+    assert {"null", "random", "hamming 1", "hamming 4", "relaxed"} <= set(names)
+    assert all(g["control"]["available"] for g in names.values())
+    # The user key's leakage is the metric on whole normalised chunks: recompute it by hand from the
+    # original's and the keyed policy's chunks and the recorded chunks (every frame of the data).
+    from prop_cli.core.keyed import key_codes
+    from prop_cli.core.metrics import leakage
+
+    b = load_bundle(bundle)
+    policy = b.loaded.policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    obs = {k: batch[k] for k in policy.input_features}
+    original = load_checkpoint(work / "act").policy
+    keyed = type(policy)(b.keyed.fold(key_codes(key(), b.key_encoding)), policy.pre, policy.post)
+    with torch.no_grad():
+        ref, out = original.chunk(obs).flatten(1), keyed.chunk(obs).flatten(1)
+    by_hand = leakage(out[None], batch["action"].flatten(1), ref, "regression").item()
+    assert by_hand == pytest.approx(report["user"]["leakage"], abs=1e-4)
+
+
+def tmp_key(work):
+    path = work / "audit.key"
+    path.write_bytes(np.packbits(key()).tobytes())
+    path.chmod(0o600)
+    return path
+
+
+def test_same_seed_same_bundle(bundle, work):
+    again = work / "again"
+    api.personalize_checkpoint(
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], again, PersonalizeConfig(**TINY),
+        general=work / "general",
+    )  # fmt: skip
+    for name in ("base.safetensors", "encoder.safetensors"):
+        assert (again / name).read_bytes() == (bundle / name).read_bytes()
+
+
+@pytest.fixture(scope="module")
+def sealed(work):
+    out = work / "sealed"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 30}))
+    api.personalize_checkpoint(str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, cfg)
+    return out
+
+
+def test_sealed_policy_bundle_runs_the_original_without_its_key(sealed, work):
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    b = load_bundle(sealed)
+    assert b.is_sealed and b.keyed is None and (sealed / "lerobot" / "config.json").is_file()
+    data = load_data(work / "user")
+    orig = load_checkpoint(work / "act").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
+    assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(b, data, key(2)), original)
+    assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+    manifest = json.loads((sealed / "manifest.json").read_text())
+    axes = {x["name"]: x.get("batch_axis", 0) for x in manifest["keyed_layers"]}
+    assert axes["model.encoder.layers.0.linear1"] == 1 and manifest["mode"] == "sealed"
+
+
+def test_sealed_policy_audit_add_user_and_eval(sealed, work, tmp_path):
+    import shutil as sh
+
+    from prop_cli.config import AuditSettings
+
+    probes = ["null", "random", "hamming", "blackbox", "structure", "relaxed"]
+    s = AuditSettings(probes=probes, hamming=[1], per_distance=8, random=16, blackbox=64, restarts=4,
+                      search_steps=3, samples=1000)  # fmt: skip
+    report = api.audit_bundle(sealed, work / "user", s, key_files=[tmp_key(work)])
+    assert report["bundle"]["sealed"] and report["user"]["leakage"] != 0.0
+    for g in report["groups"]:
+        assert g["beyond"] == 0.0, g["name"]
+        if g["probe"] in ("null", "random", "hamming", "blackbox"):
+            assert g["leakage"]["worst"] == 0.0 and g["fidelity"]["worst"] == 0.0
+    two = tmp_path / "two"
+    sh.copytree(sealed, two)
+    change = api.add_user(two, work / "general", KeySource(key(3), "file"))
+    assert change.users == 2 and change.metrics["null"]["leakage"]["worst"] == 0.0
+    few = EvalSettings(episodes=1, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=5)
+    report = api.eval_bundle(two, task.ENV_ID, few, obs_map=task.OBS_MAP, key_file=tmp_key(work))
+    assert {"no_key", "user_key", "random_keys", "neighbour1_keys"} <= set(report["conditions"])

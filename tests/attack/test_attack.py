@@ -1,0 +1,305 @@
+"""prop attack: probe keys, the audit's verdicts on a leaky and a well-trained bundle, its outputs."""
+
+from __future__ import annotations
+
+import builtins
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from prop_cli import constants as C
+from prop_cli.api import KeySource, personalize_checkpoint
+from prop_cli.attack.audit import audit
+from prop_cli.attack.probes import select
+from prop_cli.bundle import load_bundle
+from prop_cli.config import AuditSettings, PersonalizeConfig, parse_hamming
+from prop_cli.core.keys import read_key_file
+from prop_cli.datasources import load_data
+from prop_cli.errors import PropError
+from prop_cli.files import sha256_file
+from tests.conftest import write_keys, write_user_data
+
+# Small audits: the verdicts below do not need the default 4096 random keys or 200 search steps.
+QUICK = [
+    "--random",
+    "128",
+    "--per-distance",
+    "128",
+    "--search-steps",
+    "30",
+    "--restarts",
+    "4",
+    "--blackbox",
+    "1024",
+]
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory) -> Path:
+    """A leaky bundle (raw key bits, no neighbour negatives) and a well-trained one, same user."""
+    d = tmp_path_factory.mktemp("attack")
+    rng = np.random.default_rng(0)
+    write_user_data(d, 200, rng)
+    np.savez(d / "public.npz", x=rng.uniform(-1, 1, (50, 4)).astype(np.float32))
+    write_keys(d, ("k.bin", "k2.bin"), rng)
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    ckpt = str(d / "model.safetensors")
+    leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0)
+    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "leaky.prop", leaky)
+    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "good.prop", PersonalizeConfig(steps=300))
+    return d
+
+
+# --- parsing and probe keys -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "spec,want",
+    [("1..8", list(range(1, 9))), ("1,2,4", [1, 2, 4]), ("3", [3]), ("4,1..2", [1, 2, 4])],
+)
+def test_parse_hamming(spec, want):
+    assert parse_hamming(spec) == want
+
+
+@pytest.mark.parametrize("spec", ["", "0", "3..1", "a", "1..x", "1,,-2", "1...3"])
+def test_parse_hamming_rejects_bad_specs(spec):
+    with pytest.raises(PropError, match="--hamming"):
+        parse_hamming(spec)
+
+
+def test_probe_selection_and_the_older_search_flag():
+    keys = ["null", "random", "hamming", "blackbox"]
+    assert select() == [*keys, "structure", "relaxed", "latent", "fewshot", "cross-user"]
+    assert select(["latent", "null"]) == ["null", "latent"]  # registry order
+    assert select(search=["latent"]) == [*keys, "latent", "cross-user"]  # black-box key probes + searches
+    assert select(search=[]) == [*keys, "cross-user"]
+    with pytest.raises(PropError, match="--search"):
+        select(search=["gradient"])
+    with pytest.raises(PropError, match="--search 'random' is not a search"):
+        select(search=["random"])
+    with pytest.raises(PropError, match="--probes"):
+        select(["gradient"])
+
+
+# --- it must be able to fail ----------------------------------------------------------------------
+
+
+def test_leaky_bundle_fails_the_audit(bundles, cli):
+    d = bundles
+    r = cli(
+        "attack", d / "leaky.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1,2", "--search", "none", *QUICK, "--max-leak", "0.5", "--json", d / "leaky.json",
+    )  # fmt: skip
+    assert r.code == 1, r.err
+    assert "leak check failed" in r.err and "hamming" in r.err and "--max-leak 0.5" in r.err
+    assert r.err.strip().splitlines()[-1].startswith("prop: leak check failed")
+    report = json.loads((d / "leaky.json").read_text())
+    ham1 = next(g for g in report["groups"] if g["name"] == "hamming 1")
+    assert ham1["keys"] == 128  # every 1-bit neighbour
+    assert ham1["leakage"]["mean"] > 0.5  # the 1-bit neighbours unlock most of the behaviour
+    assert report["max_leak"] == {"threshold": 0.5, "passed": False, "failing": ["hamming 1", "hamming 2"]}
+    assert "T0 hamming 1" in r.out and "FAILED" in r.out
+
+
+def test_well_trained_bundle_passes_the_black_box_audit(bundles, cli):
+    d = bundles
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1..3", "--search", "none", *QUICK, "--max-leak", "0.5", "--json", d / "good.json",
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    report = json.loads((d / "good.json").read_text())
+    assert report["user"]["personalization"] > 0.8  # the key works: passing is not vacuous
+    assert report["max_leak"]["passed"] is True
+    ham = [g for g in report["groups"] if g["distance"]]
+    assert [g["distance"] for g in ham] == [1, 2, 3]
+    assert all(g["leakage"]["mean"] < 0.1 for g in ham)
+
+
+# --- the report -----------------------------------------------------------------------------------
+
+
+def test_json_report_schema(bundles, cli):
+    d = bundles
+    out = d / "full.json"
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", "--key-file",
+        d / "k2.bin", "--hamming", "1", *QUICK, "--samples", "64", "--seed", "3", "--json", out,
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    rep = json.loads(out.read_text())
+    assert rep["schema"] == "prop-audit/2" and rep["mode"] == "owner"
+    assert rep["bundle"]["manifest_sha256"] == sha256_file(d / "good.prop" / C.MANIFEST)
+    assert rep["settings"]["seed"] == 3 and rep["settings"]["hamming"] == [1]
+    assert rep["data"]["samples"] == 64
+    names = [g["name"] for g in rep["groups"]]
+    fewshot = [f"fewshot k={k}" for k in (1, 4, 16, 64)]
+    assert names == ["null", "random", "hamming 1", "blackbox", "structure", "relaxed", "relaxed-rounded",
+                     "latent", *fewshot, "user 2"]  # fmt: skip
+    for g in rep["groups"]:
+        assert set(g["leakage"]) == {"n", "mean", "ci95", "worst"}
+        assert g["leakage"]["ci95"][0] <= g["leakage"]["mean"] <= g["leakage"]["ci95"][1]
+        assert 0 <= g["leakage"]["worst"] <= 1 and g["leakage"]["n"] == g["keys"]
+    relaxed = rep["groups"][names.index("relaxed-rounded")]["search"]
+    assert relaxed["restarts"] == 4 and len(relaxed["divergence"]) == 4
+    assert relaxed["best_divergence"] == max(relaxed["divergence"])
+    assert len(relaxed["code_distance"]) == 4
+    assert rep["groups"][names.index("user 2")]["leakage"]["worst"] < 0.2  # another user's key
+    assert "T1 relaxed" in r.out and "T2 latent" in r.out and "personalization" in r.out
+
+
+def test_latent_search_moves_further_than_random_keys(bundles):
+    d = bundles
+    b = load_bundle(d / "good.prop")
+    s = AuditSettings(hamming=[], random=64, probes=["random", "latent"], restarts=2, search_steps=25)
+    rep = audit(b, load_data(d / "mine.npz"), [read_key_file(d / "k.bin")], s)
+    g = {x["name"]: x for x in rep["groups"]}
+    assert g["latent"]["search"]["best_fidelity"] > 10 * g["random"]["fidelity"]["mean"]
+
+
+def test_no_key_audit_reports_reachable_divergence(bundles, cli):
+    d = bundles
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", *QUICK, "--json", "-")
+    assert r.code == 0, r.err
+    rep = json.loads(r.out)
+    assert rep["mode"] == "no-key" and rep["user"] is None
+    names = ["null", "random", "blackbox", "structure", "relaxed", "relaxed-rounded", "latent"]
+    assert [g["name"] for g in rep["groups"]] == names  # few-shot needs the key and targets
+    assert all(g["leakage"] is None for g in rep["groups"])
+    assert rep["groups"][-1]["fidelity"]["mean"] > 0  # the search moves the output
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--max-leak", "0.1")
+    assert r.code == 2 and "--max-leak" in r.err
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--hamming", "1")
+    assert r.code == 2 and "--hamming" in r.err
+
+
+def test_usage_errors_exit_2(bundles, cli):
+    d = bundles
+    base = ["attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin"]
+    r = cli(*base, "--hamming", "2..1")
+    assert r.code == 2 and "--hamming" in r.err
+    r = cli(*base, "--search", "bogus")
+    assert r.code == 2 and "--search" in r.err
+    r = cli(*base, "--hamming", "200")
+    assert r.code == 2 and "--hamming" in r.err
+    (d / "exists.json").write_text("{}")
+    r = cli(*base, "--json", d / "exists.json")
+    assert r.code == 2 and "--force" in r.err
+    r = cli("attack", d / "good.prop", "--data", d / "public.npz", "--key-file", d / "k.bin")
+    assert r.code == 2 and "'y'" in r.err
+
+
+def test_record_writes_summary_and_bundle_still_verifies(bundles, cli, tmp_path):
+    import shutil
+
+    bundle = tmp_path / "rec.prop"
+    shutil.copytree(bundles / "good.prop", bundle)
+    weights = sha256_file(bundle / C.BASE_WEIGHTS)
+    r = cli(
+        "attack", bundle, "--data", bundles / "mine.npz", "--key-file", bundles / "k.bin",
+        "--hamming", "1", "--search", "none", *QUICK, "--record", "--max-leak", "0.5",
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    manifest = json.loads((bundle / C.MANIFEST).read_text())
+    rec = manifest[C.M_AUDIT]
+    assert rec["schema"] == "prop-audit/2" and rec["max_leak"]["passed"] is True
+    assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1", "blackbox"]
+    assert load_bundle(bundle).manifest[C.M_AUDIT] == rec  # hashes of the weights still match
+    assert sha256_file(bundle / C.BASE_WEIGHTS) == weights
+    key_hex = (bundles / "k.bin").read_bytes().hex()
+    assert key_hex not in (bundle / C.MANIFEST).read_text()
+
+
+def test_plot_writes_png(bundles, cli):
+    pytest.importorskip("matplotlib")
+    d = bundles
+    png = d / "audit.png"
+    r = cli(
+        "attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin",
+        "--hamming", "1,2", *QUICK, "--plot", png,
+    )  # fmt: skip
+    assert r.code == 0, r.err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_plot_without_matplotlib_says_how_to_install(monkeypatch, tmp_path):
+    from prop_cli.attack import report as audit_report
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *args, **kwargs):
+        if name.startswith("matplotlib"):
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    with pytest.raises(PropError, match=r"pip install prop-cli\[plot\]"):
+        audit_report.plot({"bundle": {"task": "regression"}, "user": None, "groups": []}, tmp_path / "x.png")
+
+
+# --- controls (where the bundle gives nothing) and the gate ---------------------------------------
+
+
+def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it(bundles, cli):
+    d = bundles
+    base = ["attack", d / "good.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin"]
+    quick = ["--probes", "null,latent", "--restarts", "2", "--search-steps", "20", "--samples", "64"]
+    r = cli(*base, *quick, "--json", "-")
+    assert r.code == 0, r.err
+    latent = next(g for g in json.loads(r.out)["groups"] if g["name"] == "latent")
+    assert latent["kind"] == "search" and latent["probe"] == "latent"
+    assert latent["control"] == {
+        "available": False,
+        "reason": "no original checkpoint: pass --original (the bundle's base was trained with the key)",
+    }
+    assert latent["gate"] == {"on": "raw", "value": latent["leakage"]["worst"]}  # no control: raw
+    r = cli(*base, *quick, "--original", d / "model.safetensors", "--json", "-")
+    assert r.code == 0, r.err
+    rep = json.loads(r.out)
+    assert rep["reference"] == "original" and "--original" in rep["control_model"]
+    latent = next(g for g in rep["groups"] if g["name"] == "latent")
+    c = latent["control"]
+    assert c["available"] and c["keys"] == 2 and 0 <= c["leakage"]["worst"] <= 1
+    assert latent["beyond"] == pytest.approx(max(0.0, latent["leakage"]["worst"] - c["leakage"]["worst"]))
+    assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"]}
+    null = rep["groups"][0]
+    assert null["control"]["available"] and null["control"]["leakage"]["worst"] == 0  # the original itself
+    assert null["gate"] == {"on": "raw", "value": null["leakage"]["worst"]}  # key probes: raw leakage
+
+
+def test_frozen_base_is_its_own_control(tmp_path, bundles):
+    d = bundles
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    cfg = PersonalizeConfig(steps=30, freeze_base=True)
+    personalize_checkpoint(str(d / "model.safetensors"), [(d / "mine.npz", key)], tmp_path / "f.prop", cfg)
+    s = AuditSettings(probes=["latent"], restarts=2, search_steps=10, samples=32)
+    rep = audit(load_bundle(tmp_path / "f.prop"), load_data(d / "mine.npz"), [key.bits], s)
+    latent = rep["groups"][0]
+    assert latent["control"]["available"] and "--freeze-base" in rep["control_model"]
+
+
+def test_wrong_key_warns(bundles, cli):
+    """Issue 10, fix 10: a key at base level gets a one-line hint that it may not be the bundle's."""
+    d = bundles
+    args = ["attack", d / "good.prop", "--data", d / "mine.npz", "--probes", "null", "--samples", "32"]
+    r = cli(*args, "--key-file", d / "k2.bin")
+    assert r.code == 0, r.err
+    warning = [ln for ln in r.err.splitlines() if ln.startswith("prop: warning:")]
+    assert len(warning) == 1 and "may not be this bundle's key" in warning[0]
+    r = cli(*args, "--key-file", d / "k.bin")
+    assert "prop: warning:" not in r.err
+
+
+def test_a_search_whose_control_saturates_is_named_in_the_warnings():
+    from prop_cli.attack.audit import _saturated_controls
+
+    def row(name, control, pick):
+        return {"name": name, "kind": "search", "search": {"best_leakage": pick},
+                "control": {"available": True, "leakage": {"worst": control}}}  # fmt: skip
+
+    groups = [row("relaxed", 1.0, 0.6), row("latent", 0.4, 0.9), row("fewshot k=1", 1.0, 0.1)]
+    warned = _saturated_controls(groups, {"leakage": 0.62})
+    assert len(warned) == 1 and warned[0].startswith("relaxed: its control reaches the leakage ceiling")
+    assert _saturated_controls(groups, None) == []

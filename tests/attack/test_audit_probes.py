@@ -1,0 +1,169 @@
+"""The audit's attacks on the files: structure, few-shot, black-box scan, their controls and the gate."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli.api import KeySource, personalize_checkpoint
+from prop_cli.attack.probes.base import ProbeContext, Reference
+from prop_cli.attack.probes.screen import ChainForward
+from prop_cli.attack.target import load_original
+from prop_cli.bundle import load_bundle
+from prop_cli.config import AuditSettings, PersonalizeConfig
+from prop_cli.core.keys import read_key_file
+from tests.conftest import write_keys, write_user_data
+
+# Every probe, the new ones small: what the verdicts below need, not the default budget.
+SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restarts", "4",
+         "--search-steps", "20", "--blackbox", "4096", "--samples", "64"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def default_bundle(tmp_path_factory) -> Path:
+    """A bundle made with today's `prop personalize` defaults, on a tiny MLP."""
+    d = tmp_path_factory.mktemp("probes")
+    rng = np.random.default_rng(1)
+    write_user_data(d, 400, rng)
+    write_keys(d, ("k.bin",), rng)
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    personalize_checkpoint(str(d / "model.safetensors"), [(d / "mine.npz", key)], d / "mine.prop",
+                           PersonalizeConfig())  # fmt: skip
+    return d
+
+
+def _attack(cli, d: Path, *extra: str):
+    r = cli("attack", d / "mine.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", *SMALL, *extra,
+            "--json", "-")  # fmt: skip
+    return r, json.loads(r.out) if r.out.strip().startswith("{") else None
+
+
+def test_a_bundle_with_todays_defaults_fails_max_leak(default_bundle, cli):
+    r, rep = _attack(cli, default_bundle, "--probes", "null,structure", "--max-leak", "0.05")
+    assert r.code == 1
+    assert rep["max_leak"]["passed"] is False and "structure" in rep["max_leak"]["failing"]
+    st = next(g for g in rep["groups"] if g["name"] == "structure")
+    assert st["gate"]["on"] == "raw" and st["gate"]["value"] > 0.5  # the user's code, read off the encoder
+    assert min(m.get("min_code_distance", 128) for m in st["search"]["methods"].values()) <= 3
+    assert "leak check failed" in r.err
+
+
+def test_every_probe_reports_control_and_the_gate_follows_the_kind(default_bundle, cli):
+    d = default_bundle
+    r, rep = _attack(cli, d, "--original", d / "model.safetensors")
+    assert r.code == 0, r.err
+    rows = {g["name"]: g for g in rep["groups"]}
+    for name in ("null", "random", "blackbox", "hamming 1", "structure", "relaxed", "latent", "fewshot k=1",
+                 "fewshot k=64"):  # fmt: skip
+        g = rows[name]
+        assert g["control"]["available"], name
+        assert g["beyond"] == pytest.approx(
+            max(0.0, g["leakage"]["worst"] - g["control"]["leakage"]["worst"])
+        )
+        want = ("beyond-control", g["beyond"]) if g["kind"] == "search" else ("raw", g["leakage"]["worst"])
+        assert (g["gate"]["on"], g["gate"]["value"]) == pytest.approx(want), name
+    assert rows["structure"]["kind"] == "key" and rows["fewshot k=1"]["kind"] == "search"
+    # A fresh encoder holds nothing: its candidates give delta = 1, the original itself.
+    assert rows["structure"]["control"]["leakage"]["worst"] == pytest.approx(0.0, abs=1e-6)
+    assert rows["fewshot k=4"]["control"]["search"]["candidates"] == ["delta", "fine-tune keyed layers"]
+    bb = rows["blackbox"]["search"]
+    assert bb["scanned"] == 4096 and bb["rescored"] == rows["blackbox"]["keys"] <= 2 * 256
+    assert len(bb["top_by_divergence"]) == 10 and "code_distance" in bb["top_by_divergence"][0]
+    assert rep["speed"]["blackbox"]["scanned"] == 4096
+
+
+def test_the_table_and_plot_carry_control_and_beyond(default_bundle, cli, tmp_path):
+    d = default_bundle
+    r = cli("attack", d / "mine.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", *SMALL,
+            "--probes", "structure,fewshot", "--original", d / "model.safetensors",
+            "--plot", tmp_path / "a.png")  # fmt: skip
+    assert r.code == 0, r.err
+    head = next(ln for ln in r.out.splitlines() if "probe" in ln and "control" in ln)
+    assert "beyond" in head
+    row = next(ln for ln in r.out.splitlines() if ln.strip().startswith("T3 fewshot k=1"))
+    assert len(row.split()) >= 9  # keys, mean ± ci, worst, pick, control, beyond, fidelity
+    assert (tmp_path / "a.png").stat().st_size > 0
+
+
+def _context(d: Path, settings: AuditSettings) -> ProbeContext:
+    bundle = load_bundle(d / "mine.prop")
+    data = np.load(d / "mine.npz")
+    km = bundle.keyed.eval().requires_grad_(False)
+    x = torch.from_numpy(data["x"][:64])
+    with torch.inference_mode():
+        b = load_original(bundle, str(d / "model.safetensors"))(x)
+    ref = Reference(x, b.clone(), torch.from_numpy(data["y"][:64]), bundle.task)
+    key = read_key_file(d / "k.bin", bundle.key_bits)
+    return ProbeContext(km, ref, settings, [key], bundle.key_encoding, probe="test")
+
+
+def test_blackbox_stream_finds_a_planted_leaky_key(default_bundle):
+    """One leaky key (the user's own) hidden in 20 chunks of random keys: the scan keeps and returns it."""
+    ctx = _context(default_bundle, AuditSettings())
+    key = ctx.keys[0]
+    rng = np.random.default_rng(5)
+    chunks = [rng.integers(0, 2, (256, len(key)), dtype=np.uint8) for _ in range(20)]
+    chunks[13][77] = key
+    scan = ctx.probe_keys_stream(iter(chunks), 20 * 256, "t", screen=4, keep=8)
+    assert scan.scanned == 20 * 256 and len(scan.bits) <= 16  # memory: the kept keys only
+    best = int(torch.argmax(scan.values["leakage"]))
+    assert np.array_equal(scan.bits[best], key) and scan.values["leakage"][best] > 0.5
+    assert int(torch.argmax(scan.values["divergence"])) == best  # the attacker's pick too
+    assert scan.path == "bf16-chain"
+
+
+def test_bf16_chain_matches_the_general_path(default_bundle):
+    ctx = _context(default_bundle, AuditSettings())
+    bits = np.random.default_rng(0).integers(0, 2, (32, 128), dtype=np.uint8)
+    with torch.inference_mode():
+        deltas = ctx.key_deltas(bits)
+        want = ctx.km.run_keys(ctx.ref.x[:8], deltas)
+        got = ChainForward(ctx.km, ctx.ref.x[:8])(deltas).float()
+    assert got.shape == want.shape
+    assert (got - want).abs().max() <= 0.05 * want.abs().max()
+
+
+def test_a_model_that_is_not_a_chain_takes_the_general_path(default_bundle, monkeypatch):
+    ctx = _context(default_bundle, AuditSettings())
+    monkeypatch.setattr("prop_cli.attack.probes.screen._chain_ops", lambda module: None)
+    key = ctx.keys[0]
+    chunks = [np.random.default_rng(1).integers(0, 2, (64, 128), dtype=np.uint8), key[None]]
+    scan = ctx.probe_keys_stream(iter(chunks), 65, "t", screen=4, keep=4)
+    assert scan.path == "general" and any(np.array_equal(b, key) for b in scan.bits)
+
+
+def test_every_key_probe_goes_through_probe_keys(default_bundle, monkeypatch):
+    """The sealed-bundle seam: key probes never turn keys into behaviour anywhere else."""
+    seen: list[int] = []
+    real = ProbeContext.key_deltas
+
+    def spy(self, bits, null=0, low_precision=False):
+        seen.append(len(np.atleast_2d(bits)) if len(bits) else 0)
+        return real(self, bits, null, low_precision)
+
+    monkeypatch.setattr(ProbeContext, "key_deltas", spy)
+    ctx = _context(default_bundle, AuditSettings(random=8, per_distance=2, hamming=[1], blackbox=300))
+    from prop_cli.attack import probes
+
+    for name in ("null", "random", "hamming", "blackbox"):
+        seen.clear()
+        probes.probe_named(name).run(ctx)
+        assert seen, name
+
+
+@pytest.mark.parametrize("task", ["regression", "classification"])
+def test_screening_divergence_is_the_searches_objective(task):
+    from prop_cli.attack.probes.base import divergence
+    from prop_cli.attack.probes.screen import _Criteria
+
+    g = torch.Generator().manual_seed(0)
+    b = torch.randn(6, 3, generator=g)
+    p = torch.randn(6, 3, generator=g) if task == "regression" else torch.tensor([0, 1, 2, 0, 1, 2])
+    o = torch.randn(5, 6, 3, generator=g)
+    div, lk = _Criteria(Reference(torch.zeros(6, 1), b, p, task), 6)(o)
+    assert torch.allclose(div, divergence(o, b, task), atol=1e-6)
+    assert lk.shape == (5,)

@@ -1,0 +1,67 @@
+"""KeyedPolicy: a key folded once, then SB3-style predict (issue 10, fix 3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli.api import KeyedPolicy, KeySource, load_bundle, personalize_checkpoint, run_bundle
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.keys import read_key_file
+from tests.adapters.test_sb3 import make_zip, sb3_state
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory):
+    d = tmp_path_factory.mktemp("policy")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (80, 3)).astype(np.float32)
+    (d / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+    (d / "k.bin").chmod(0o600)
+    key = KeySource(read_key_file(d / "k.bin"), "file")
+    np.savez(d / "box.npz", x=x, y=np.clip(-x[:, :2], -2, 2).astype(np.float32))
+    np.savez(d / "discrete.npz", x=x, y=(x[:, 0] > 0).astype(np.int64) * 3)
+    cfg = PersonalizeConfig(steps=30)
+    for name, data, kw in (
+        ("ppo", "box.npz", {}),
+        ("cartpole", "discrete.npz", {"discrete": True, "act": 4}),
+    ):
+        make_zip(d / f"{name}.zip", state=sb3_state("actor_critic", **kw), **kw)
+        personalize_checkpoint(str(d / f"{name}.zip"), [(d / data, key)], d / f"{name}.prop", cfg)
+    return d, key.bits
+
+
+def test_fold_happens_once_not_per_call(bundles):
+    d, key = bundles
+    b = load_bundle(d / "ppo.prop")
+    calls = []
+    b.keyed.encoder.register_forward_hook(lambda *a: calls.append(1))
+    policy = KeyedPolicy(b, key)
+    obs = np.zeros((1, 3), np.float32)
+    for _ in range(50):
+        policy.predict(obs)
+    assert len(calls) == 1  # the encoder ran once, at construction
+    run_bundle(b, obs, key)
+    assert len(calls) == 2
+
+
+def test_predict_like_sb3_single_batch_and_clipped(bundles):
+    d, key = bundles
+    b = load_bundle(d / "ppo.prop")
+    policy = KeyedPolicy(b, key)
+    obs = np.random.default_rng(1).uniform(-1, 1, (16, 3)).astype(np.float32)
+    raw = policy(obs * 50)  # far outside the data: the Gaussian mean leaves the bounds
+    act = policy.predict(obs * 50)
+    np.testing.assert_array_equal(act, np.clip(raw, -2, 2))  # PPO predict clips to the Box
+    assert policy.predict(obs[0]).shape == (2,)  # one observation in, one action out
+    np.testing.assert_allclose(policy.predict(obs[0]), policy.predict(obs)[0], rtol=1e-6)
+    np.testing.assert_allclose(KeyedPolicy(b)(obs), b.keyed.module(torch.from_numpy(obs)).detach().numpy())
+
+
+def test_predict_discrete_gives_the_argmax(bundles):
+    d, key = bundles
+    policy = KeyedPolicy(load_bundle(d / "cartpole.prop"), key)
+    obs = np.random.default_rng(2).uniform(-1, 1, (8, 3)).astype(np.float32)
+    np.testing.assert_array_equal(policy.predict(obs), policy(obs).argmax(-1))
+    assert policy.predict(obs[0]).shape == ()

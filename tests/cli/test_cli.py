@@ -1,0 +1,425 @@
+"""End-to-end CLI behaviour: the happy path, files, and every bad input the core issue lists."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from prop_cli import constants as C
+from tests.conftest import FAST, make_mlp_checkpoint
+
+
+def personalize(cli, wd, *extra, out="mine.prop"):
+    return cli(
+        "personalize",
+        wd / "model.safetensors",
+        "--data",
+        wd / "mine.npz",
+        "--key-file",
+        wd / "k.bin",
+        "--out",
+        wd / out,
+        *FAST,
+        *extra,
+    )
+
+
+def assert_clean_error(res, *words):
+    assert res.code == 2, (res.code, res.err)
+    lines = [ln for ln in res.err.strip().splitlines() if ln.startswith("prop: error:")]
+    assert len(lines) == 1, res.err
+    assert "Traceback" not in res.err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+
+
+def test_help_lists_commands(cli):
+    res = cli("--help")
+    assert res.code == 0
+    for cmd in ("keygen", "inspect", "personalize", "run"):
+        assert cmd in res.out
+
+
+def test_keygen_and_inspect(cli, workdir):
+    res = cli("keygen", workdir / "new.bin", "--bits", "256")
+    assert res.code == 0
+    assert (workdir / "new.bin").stat().st_size == 32
+    assert (workdir / "new.bin").stat().st_mode & 0o777 == 0o600
+    res = cli("inspect", workdir / "model.safetensors", "--json")
+    info = json.loads(res.out)
+    assert [(la["name"], la["keyed"]) for la in info["layers"]] == [
+        ("0", False),
+        ("2", True),
+        ("4", True),
+    ]
+    res = cli("inspect", workdir / "model.safetensors", "--layers", "4", "--json")
+    assert [la["keyed"] for la in json.loads(res.out)["layers"]] == [False, False, True]
+
+
+def test_personalize_run_roundtrip(cli, workdir):
+    res = personalize(cli, workdir, "--general-data", workdir / "general.npz", "--json")
+    assert res.code == 0, res.err
+    report = json.loads(res.out)
+    assert set(report["metrics"][0]) >= {"personalization", "null", "random", "hamming1"}
+    bundle = workdir / "mine.prop"
+    assert sorted(p.name for p in bundle.iterdir()) == sorted([C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, C.MANIFEST])
+    # Same names, shapes and dtypes as the input checkpoint.
+    base, orig = load_file(bundle / C.BASE_WEIGHTS), load_file(workdir / "model.safetensors")
+    assert {k: (v.shape, v.dtype) for k, v in base.items()} == {
+        k: (v.shape, v.dtype) for k, v in orig.items()
+    }
+    text = (bundle / C.MANIFEST).read_text()
+    manifest = json.loads(text)
+    assert text == json.dumps(manifest, sort_keys=True, indent=2) + "\n"
+    assert manifest[C.M_FORMAT] == C.FORMAT_VERSION
+    assert manifest[C.M_CONFIG]["steps"] == 40
+
+    r1 = cli(
+        "run",
+        bundle,
+        "--input",
+        workdir / "x.npy",
+        "--key-file",
+        workdir / "k.bin",
+        "--output",
+        workdir / "y.npy",
+    )
+    r0 = cli("run", bundle, "--input", workdir / "x.npy", "--output", workdir / "y0.npy")
+    assert r1.code == 0 and r0.code == 0, (r1.err, r0.err)
+    y, y0 = np.load(workdir / "y.npy"), np.load(workdir / "y0.npy")
+    assert y.shape == y0.shape == (8, 2)
+    assert not np.allclose(y, y0)  # the key changes the behaviour
+
+
+def test_no_key_material_in_bundle(cli, workdir):
+    assert personalize(cli, workdir).code == 0
+    key = (workdir / "k.bin").read_bytes()
+    needles = [
+        key,
+        key.hex().encode(),
+        hashlib.sha256(key).hexdigest().encode(),
+        hashlib.sha256(key).digest(),
+    ]
+    for f in (workdir / "mine.prop").iterdir():
+        blob = f.read_bytes()
+        for n in needles:
+            assert n not in blob, f.name
+
+
+def test_freeze_base_keeps_file_and_no_key_is_original(cli, workdir):
+    assert personalize(cli, workdir, "--freeze-base").code == 0
+    src = (workdir / "model.safetensors").read_bytes()
+    assert (workdir / "mine.prop" / C.BASE_WEIGHTS).read_bytes() == src
+    cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y0.npy")
+    from prop_cli.adapters import load_checkpoint
+
+    with torch.no_grad():
+        ref = (
+            load_checkpoint(str(workdir / "model.safetensors"))
+            .module(torch.from_numpy(np.load(workdir / "x.npy")))
+            .numpy()
+        )
+    assert np.array_equal(np.load(workdir / "y0.npy"), ref)
+
+
+def test_same_seed_same_bytes(cli, workdir):
+    assert personalize(cli, workdir, out="a.prop").code == 0
+    assert personalize(cli, workdir, out="b.prop").code == 0
+    for name in (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS):
+        assert (workdir / "a.prop" / name).read_bytes() == (workdir / "b.prop" / name).read_bytes()
+    ma = json.loads((workdir / "a.prop" / C.MANIFEST).read_text())
+    mb = json.loads((workdir / "b.prop" / C.MANIFEST).read_text())
+    ma[C.M_IO].pop("checkpoint"), mb[C.M_IO].pop("checkpoint")
+    assert ma == mb
+
+
+def test_no_overwrite_without_force(cli, workdir):
+    assert personalize(cli, workdir).code == 0
+    before = (workdir / "mine.prop" / C.MANIFEST).read_text()
+    assert_clean_error(personalize(cli, workdir), "already exists", "--force")
+    assert (workdir / "mine.prop" / C.MANIFEST).read_text() == before
+    assert personalize(cli, workdir, "--force", "--seed", "1").code == 0
+    assert not [p for p in workdir.iterdir() if p.name.startswith(".mine.prop")]
+    np.save(workdir / "y.npy", np.zeros(1))
+    res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, "y.npy", "--force")
+
+
+def test_passphrase_from_env(cli, workdir, monkeypatch):
+    monkeypatch.setenv(C.ENV_PASSPHRASE, "correct horse battery staple")
+    res = cli(
+        "personalize",
+        workdir / "model.safetensors",
+        "--data",
+        workdir / "mine.npz",
+        "--passphrase",
+        "--out",
+        workdir / "p.prop",
+        *FAST,
+    )
+    assert res.code == 0, res.err
+    manifest = json.loads((workdir / "p.prop" / C.MANIFEST).read_text())
+    assert manifest[C.M_KEY]["kdf"]["name"] == "scrypt" and len(manifest[C.M_KEY]["kdf"]["salt"]) == 32
+    blob = b"".join(f.read_bytes() for f in (workdir / "p.prop").iterdir())
+    assert b"correct horse" not in blob
+    assert (
+        cli(
+            "run",
+            workdir / "p.prop",
+            "--input",
+            workdir / "x.npy",
+            "--passphrase",
+            "--output",
+            workdir / "y.npy",
+        ).code
+        == 0
+    )
+
+
+# --- bad input: one line, exit 2, no traceback, nothing written --------------------------------
+
+
+def _bad_npz(wd, **fields):
+    np.savez(wd / "bad.npz", **fields)
+    return wd / "bad.npz"
+
+
+@pytest.mark.parametrize(
+    "case, words",
+    [
+        ("missing_ckpt", ["nope.safetensors", "does not exist"]),
+        ("empty_ckpt", ["empty.safetensors", "empty"]),
+        ("corrupt_ckpt", ["corrupt.safetensors"]),
+        ("no_linear", ["nolinear.safetensors"]),
+        ("no_x", ["bad.npz", "x"]),
+        ("no_y", ["bad.npz", "y"]),
+        ("lengths", ["bad.npz"]),
+        ("features", ["bad.npz", "features"]),
+        ("nan", ["bad.npz"]),
+        ("few", ["bad.npz"]),
+        ("empty_key", ["empty.bin"]),
+        ("layers", ["--layers", "nomatch", "0, 2, 4"]),
+        ("collide", ["closer than twice"]),
+        ("unwritable", ["not writable"]),
+    ],
+)
+def test_bad_input(cli, workdir, case, words):
+    wd = workdir
+    ckpt, data, key, out, extra = (
+        wd / "model.safetensors",
+        wd / "mine.npz",
+        wd / "k.bin",
+        wd / "o.prop",
+        [],
+    )
+    x = np.zeros((50, 4), np.float32)
+    y = np.zeros((50, 2), np.float32)
+    if case == "missing_ckpt":
+        ckpt = wd / "nope.safetensors"
+    elif case == "empty_ckpt":
+        ckpt = wd / "empty.safetensors"
+        ckpt.write_bytes(b"")
+    elif case == "corrupt_ckpt":
+        ckpt = wd / "corrupt.safetensors"
+        ckpt.write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00not json at all!")
+    elif case == "no_linear":
+        ckpt = wd / "nolinear.safetensors"
+        save_file({"scale": torch.ones(3)}, str(ckpt))
+    elif case == "no_x":
+        data = _bad_npz(wd, y=y)
+    elif case == "no_y":
+        data = _bad_npz(wd, x=x)
+    elif case == "lengths":
+        data = _bad_npz(wd, x=x, y=y[:40])
+    elif case == "features":
+        data = _bad_npz(wd, x=np.zeros((50, 5), np.float32), y=y)
+    elif case == "nan":
+        x[3, 1] = np.nan
+        data = _bad_npz(wd, x=x, y=y)
+    elif case == "few":
+        data = _bad_npz(wd, x=x[:3], y=y[:3])
+    elif case == "empty_key":
+        key = wd / "empty.bin"
+        key.write_bytes(b"")
+    elif case == "layers":
+        extra = ["--layers", "nomatch"]
+    elif case == "collide":
+        extra = ["--data", data, "--key-file", key]
+    elif case == "unwritable":
+        ro = wd / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        out = ro / "o.prop"
+        if os.access(ro, os.W_OK):  # root ignores permissions
+            pytest.skip("running as root: permissions are not enforced")
+    res = cli("personalize", ckpt, "--data", data, "--key-file", key, "--out", out, *FAST, *extra)
+    assert_clean_error(res, *words)
+    assert not out.exists()
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".o.prop")]
+
+
+def test_unwritable_output_parent_missing(cli, workdir):
+    res = personalize(cli, workdir, out="missing/dir/o.prop")
+    assert_clean_error(res, "does not exist")
+
+
+@pytest.fixture
+def bundle(cli, workdir):
+    assert personalize(cli, workdir).code == 0
+    return workdir / "mine.prop"
+
+
+def test_tampered_bundle(cli, workdir, bundle):
+    f = bundle / C.BASE_WEIGHTS
+    blob = bytearray(f.read_bytes())
+    blob[-1] ^= 1
+    f.write_bytes(bytes(blob))
+    res = cli("run", bundle, "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, C.BASE_WEIGHTS, "sha256")
+    assert not (workdir / "y.npy").exists()
+
+
+def test_newer_format_version(cli, workdir, bundle):
+    m = json.loads((bundle / C.MANIFEST).read_text())
+    m[C.M_FORMAT] = C.FORMAT_VERSION + 1
+    (bundle / C.MANIFEST).write_text(json.dumps(m))
+    res = cli("run", bundle, "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, "format version", "upgrade")
+
+
+def test_wrong_key_size_for_bundle(cli, workdir, bundle):
+    (workdir / "short.bin").write_bytes(b"\x01" * 8)
+    res = cli(
+        "run",
+        bundle,
+        "--input",
+        workdir / "x.npy",
+        "--key-file",
+        workdir / "short.bin",
+        "--output",
+        workdir / "y.npy",
+    )
+    assert_clean_error(res, "short.bin", "128")
+
+
+def test_wrong_input_shape_for_run(cli, workdir, bundle):
+    np.save(workdir / "x5.npy", np.zeros((3, 5), np.float32))
+    res = cli("run", bundle, "--input", workdir / "x5.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, "x5.npy", "(4,)")
+
+
+def test_debug_env_shows_traceback(cli, workdir, monkeypatch):
+    monkeypatch.setenv(C.ENV_DEBUG, "1")
+    from prop_cli.errors import PropError
+
+    with pytest.raises(PropError):
+        cli("inspect", workdir / "nope.safetensors")
+
+
+def test_missing_key_flags(cli, workdir):
+    res = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz", *FAST)
+    assert_clean_error(res, "--key-file")
+
+
+def test_make_checkpoint_prefix(workdir):
+    # conftest helper sanity: prefixes are honoured (used by adapter tests elsewhere)
+    p = make_mlp_checkpoint(workdir / "p.safetensors", prefix="net.")
+    assert "net.0.weight" in load_file(p)
+
+
+# ---- issue 10: what a new user hit ----------------------------------------------------------------
+
+
+def test_overwrite_hints_name_the_commands_real_flag(cli, workdir):
+    """Fix 4: run's hint said --out (its flag is --output); attack's named no flag."""
+    assert personalize(cli, workdir).code == 0
+    np.save(workdir / "y.npy", np.zeros(1))
+    res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+    assert_clean_error(res, "choose another --output or pass --force")
+    (workdir / "a.json").write_text("{}")
+    (workdir / "a.png").write_bytes(b"")
+    base = ["attack", workdir / "mine.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin"]
+    assert_clean_error(cli(*base, "--json", workdir / "a.json"), "choose another --json or pass --force")
+    assert_clean_error(cli(*base, "--plot", workdir / "a.png"), "choose another --plot or pass --force")
+
+
+def test_hamming_radius_above_the_key_size_is_refused(cli, workdir):
+    """Fix 5: --hamming-radius 200 was accepted for a 128-bit key."""
+    res = personalize(cli, workdir, "--hamming-radius", "200")
+    assert_clean_error(res, "--hamming-radius 200", "at most the key size (128 bits)")
+    assert not (workdir / "mine.prop").exists()
+
+
+def test_output_that_is_not_a_terminal_is_neither_wrapped_nor_split(cli, workdir):
+    """Fix 9: piped output wrapped at 80 columns and split table cells; personalize showed no progress."""
+    deep = workdir / ("a_directory_name_long_enough_to_push_the_title_past_eighty_columns_" * 2)
+    deep.mkdir()
+    res = personalize(cli, workdir, "--steps", "20", out=deep / "b.prop")
+    assert res.code == 0, res.err
+    steps = [ln for ln in res.err.splitlines() if ln.startswith("personalize: step ")]
+    assert steps[0].startswith("personalize: step 2/20") and steps[-1].startswith("personalize: step 20/20")
+    assert any(str(deep / "b.prop") in ln for ln in res.out.splitlines())  # the path on one line
+    res = cli("attack", deep / "b.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin",
+              "--hamming", "1", "--random", "16", "--restarts", "2", "--search-steps", "5",
+              "--blackbox", "256")  # fmt: skip
+    assert res.code == 0, res.err
+    lines = res.out.splitlines()
+    assert any(f"audit of {deep / 'b.prop'} (regression" in ln for ln in lines)
+    rows = [ln.split() for ln in lines if ln.strip().startswith(("T0 ", "T1 ", "T2 "))]
+    assert [r[:2] for r in rows[:3]] == [["T0", "null"], ["T0", "random"], ["T0", "hamming"]]
+    assert all(len(r) >= 5 for r in rows)  # every cell of a row on the row's line
+
+
+@pytest.mark.parametrize("command", ["run", "personalize"])
+def test_no_temp_file_possible_is_one_line(cli, workdir, command, monkeypatch):
+    """Fix 11: where no temporary file can be created, a traceback and exit 1."""
+    import tempfile
+
+    def refuse(*a, **kw):
+        raise PermissionError(13, "Permission denied")
+
+    if command == "run":
+        assert personalize(cli, workdir).code == 0
+        monkeypatch.setattr(tempfile, "mkstemp", refuse)
+        res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
+        assert_clean_error(res, "cannot write output", "no file can be created", "--output")
+        assert not (workdir / "y.npy").exists()
+    else:
+        monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+        assert_clean_error(personalize(cli, workdir), "cannot write bundle", "Permission denied", "--out")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_output_under_proc_is_one_line(cli, workdir):
+    assert personalize(cli, workdir).code == 0
+    res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", "/proc/y.npy")
+    assert_clean_error(res, "/proc/y.npy")
+
+
+def test_every_command_has_json(cli):
+    """Fix 12: the README says every command has --json; run and keygen had none."""
+    from prop_cli.cli.main import app
+
+    for cmd in app.registered_commands:
+        res = cli(cmd.name, "--help")
+        assert "--json" in res.out, cmd.name
+
+
+def test_run_and_keygen_json(cli, workdir):
+    res = cli("keygen", workdir / "new.bin", "--json")
+    assert res.code == 0 and json.loads(res.out) == {
+        "bits": 128,
+        "mode": "0600",
+        "path": str(workdir / "new.bin"),
+    }
+    assert personalize(cli, workdir).code == 0
+    res = cli(
+        "run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy", "--json"
+    )
+    assert res.code == 0 and json.loads(res.out)["shape"] == [8, 2]

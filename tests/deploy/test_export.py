@@ -1,0 +1,273 @@
+"""prop export --onnx and prop run --onnx: graphs verified by onnxruntime, no key material inside."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli import constants as C
+from prop_cli.api import CheckpointOptions, KeySource, personalize_checkpoint, run_bundle
+from prop_cli.bundle import load_bundle
+from prop_cli.config import ExportSettings, PersonalizeConfig
+from prop_cli.core.keyed import key_codes
+from prop_cli.core.keys import read_key_file
+from prop_cli.deploy import onnx as ex
+from prop_cli.deploy import onnx as rt
+from prop_cli.errors import PropError
+from tests.conftest import make_mlp_checkpoint
+
+pytest.importorskip("onnxruntime")
+
+
+def _make_bundle(root: Path, seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    make_mlp_checkpoint(root / "model.safetensors")
+    x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
+    np.savez(root / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    np.save(root / "x.npy", x[:8])
+    key = rng.integers(0, 256, 16, dtype=np.uint8).tobytes()
+    (root / "k.bin").write_bytes(key)
+    (root / "k.bin").chmod(0o600)
+    bits = np.unpackbits(np.frombuffer(key, np.uint8))
+    out = root / "mine.prop"
+    personalize_checkpoint(
+        str(root / "model.safetensors"),
+        [(root / "mine.npz", KeySource(bits, "file"))],
+        out,
+        PersonalizeConfig(steps=40, seed=seed),
+    )
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> Path:
+    """A personalized bundle, exported (with the user's key for verification) to BUNDLE/onnx."""
+    root = tmp_path_factory.mktemp("export")
+    bundle = _make_bundle(root)
+    b = load_bundle(bundle)
+    res = ex.export_onnx(b, key=read_key_file(root / "k.bin", 128))
+    assert res.ok
+    return bundle
+
+
+def test_export_cli_writes_and_verifies_every_graph(cli, tmp_path, exported):
+    root = exported.parent
+    out = tmp_path / "graphs"
+    r = cli("export", exported, "--onnx", "--out", out, "--key-file", root / "k.bin", "--json")
+    assert r.code == 0, r.err
+    res = json.loads(r.out)
+    assert res["ok"] and res["opset"] == ExportSettings.opset
+    assert sorted(res["files"]) == sorted([*C.GRAPHS, C.EXPORT_META])
+    seen = {(row["graph"], row["key"]) for row in res["verification"]}
+    for g in ("policy.onnx", "keyed.onnx", "encoder.onnx"):
+        assert {(g, "random"), (g, "user")} <= seen
+    assert {("base.onnx", "null"), ("policy.onnx", "null")} <= seen
+    assert all(row["max_abs"] <= 1e-5 for row in res["verification"])
+    meta = json.loads((out / C.EXPORT_META).read_text())
+    assert meta["key"] == {"bits": 128, "encoding": "hashed"}
+    assert [d["input"] for d in meta["deltas"]] == ["delta_1", "delta_2"]
+    # The human table goes to stdout too.
+    r = cli("export", exported, "--onnx", "--out", out, "--force")
+    assert r.code == 0 and "policy.onnx" in r.out and "max abs diff" in r.out
+
+
+def test_graphs_have_dynamic_batch_and_documented_inputs(exported):
+    import onnxruntime as ort
+
+    folder = exported / C.EXPORT_DIR
+    ins = {g: [i.name for i in ort.InferenceSession(str(folder / g)).get_inputs()] for g in C.GRAPHS}
+    assert ins == {
+        "base.onnx": ["x"],
+        "keyed.onnx": ["x", "code"],
+        "encoder.onnx": ["code"],
+        "policy.onnx": ["x", "delta_1", "delta_2"],
+    }
+    b = load_bundle(exported)
+    for n in (1, 5):
+        x = np.random.default_rng(n).standard_normal((n, 4)).astype(np.float32)
+        y = ort.InferenceSession(str(folder / "base.onnx")).run(None, {"x": x})[0]
+        np.testing.assert_allclose(y, run_bundle(b, x, None), atol=1e-5)
+
+
+def _needles(bundle: Path) -> dict[str, list[bytes]]:
+    """Byte strings that must never appear in an export: the key, its code, its deltas, folded weights."""
+    b = load_bundle(bundle)
+    key = (bundle.parent / "k.bin").read_bytes()
+    code = key_codes(np.unpackbits(np.frombuffer(key, np.uint8)), b.key_encoding)
+    needles = {"key bytes": [key], "code": [code.numpy().astype(np.float32).tobytes()]}
+    with torch.no_grad():
+        deltas = [d[0].numpy().astype(np.float32) for d in b.keyed.layer_deltas(code)]
+        needles["delta"] = [d.tobytes() for d in deltas] + [d[:4].tobytes() for d in deltas]
+        folded = dict(b.keyed.fold(code).named_parameters())
+        needles["folded weights"] = [
+            folded[f"{name}.weight"][0, :4].numpy().astype(np.float32).tobytes()
+            for name in b.keyed.layer_names
+        ]
+    return needles
+
+
+def test_no_key_material_or_folded_weights_in_the_export(exported):
+    blobs = {p.name: p.read_bytes() for p in (exported / C.EXPORT_DIR).iterdir()}
+    assert set(blobs) == {*C.GRAPHS, C.EXPORT_META}
+    for what, needles in _needles(exported).items():
+        for needle in needles:
+            for name, blob in blobs.items():
+                assert needle not in blob, f"{what} found in {name}"
+    # Positive control: the search does find weights that are meant to be there.
+    b = load_bundle(exported)
+    w = b.keyed.module.state_dict()["2.weight"][0, :4].numpy().astype(np.float32).tobytes()
+    assert w in blobs["base.onnx"] and w in blobs["policy.onnx"]
+
+
+def test_run_onnx_matches_torch_with_and_without_key(cli, tmp_path, exported):
+    root = exported.parent
+    key = ["--key-file", root / "k.bin"]
+    outs = {}
+    for name, extra in {
+        "onnx_key": ["--onnx", *key],
+        "torch_key": key,
+        "onnx": ["--onnx"],
+        "torch": [],
+    }.items():
+        r = cli("run", exported, "--input", root / "x.npy", "--output", tmp_path / f"{name}.npy", *extra)
+        assert r.code == 0, r.err
+        outs[name] = np.load(tmp_path / f"{name}.npy")
+    np.testing.assert_allclose(outs["onnx_key"], outs["torch_key"], atol=1e-5)
+    np.testing.assert_allclose(outs["onnx"], outs["torch"], atol=1e-5)
+    assert np.abs(outs["onnx_key"] - outs["onnx"]).max() > 1e-3  # the key changes the behaviour
+
+
+def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
+    b = load_bundle(exported)
+    bits = read_key_file(exported.parent / "k.bin", 128)
+    code = key_codes(bits, b.key_encoding).numpy()
+    x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
+    want = run_bundle(b, x, bits)
+    folder = exported / C.EXPORT_DIR
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=False)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)  # the default: folded
+    np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
+
+
+def test_existing_output_needs_force(cli, exported):
+    r = cli("export", exported, "--onnx")
+    assert r.code == 2 and "already exists" in r.err and "--force" in r.err
+
+
+def test_failed_verification_writes_nothing(cli, tmp_path, exported):
+    out = tmp_path / "graphs"
+    r = cli("export", exported, "--onnx", "--out", out, "--atol", "1e-12")
+    assert r.code == 1
+    assert "NO" in r.out and "verification failed" in r.err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_stale_or_modified_export_is_refused(cli, tmp_path, exported):
+    root = exported.parent
+    other = tmp_path / "other.prop"
+    shutil.copytree(exported, other)
+    # A different bundle: re-personalized weights (another seed) under the old export.
+    (tmp_path / "b").mkdir()
+    fresh = _make_bundle(tmp_path / "b", seed=1)
+    r = cli(
+        "run",
+        fresh,
+        "--onnx-dir",
+        exported / C.EXPORT_DIR,
+        "--input",
+        root / "x.npy",
+        "--output",
+        tmp_path / "y.npy",
+    )
+    assert r.code == 2 and "another bundle" in r.err
+    (other / C.EXPORT_DIR / "policy.onnx").write_bytes(b"tampered")
+    r = cli(
+        "run",
+        other,
+        "--onnx",
+        "--key-file",
+        root / "k.bin",
+        "--input",
+        root / "x.npy",
+        "--output",
+        tmp_path / "y.npy",
+    )
+    assert r.code == 2 and "modified" in r.err
+    r = cli("run", fresh, "--onnx", "--input", root / "x.npy", "--output", tmp_path / "y.npy")
+    assert r.code == 2 and "prop export" in r.err
+
+
+def test_unexportable_operation_is_named(tmp_path):
+    class FFT(torch.nn.Module):
+        def forward(self, x):
+            return torch.fft.rfft(x).abs()
+
+    with pytest.raises(PropError, match=r"aten::fft_rfft") as e:
+        args = (torch.zeros(2, 4),), tmp_path / "f.onnx", ["x"], ["y"], {"x": {0: "b"}}, 18
+        ex.common.export_graph(FFT(), *args)
+    assert "--opset" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_bad_options(cli, exported):
+    assert "--onnx" in cli("export", exported).err
+    r = cli("export", exported, "--onnx", "--opset", "7", "--force")
+    assert r.code == 2 and "--opset 7" in r.err
+
+
+def test_missing_extra_names_the_install_command(cli, monkeypatch, exported):
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    with pytest.raises(PropError, match=r"prop-cli\[onnx\]"):
+        rt.require_onnx()
+    r = cli("export", exported, "--onnx", "--force")
+    assert r.code == 2 and "pip install 'prop-cli[onnx]'" in r.err
+
+
+def test_cnn_bundle_with_image_inputs_exports(tmp_path):
+    """A user module (conv features, linear head): rank-4 inputs, keyed layers in the head."""
+    from safetensors.torch import save_file
+
+    from prop_cli.adapters import load_checkpoint
+    from tests.fixtures_arch import make_cnn
+
+    torch.manual_seed(0)
+    save_file(make_cnn().state_dict(), str(tmp_path / "cnn.safetensors"))
+    loaded = load_checkpoint(str(tmp_path / "cnn.safetensors"), arch="tests.fixtures_arch:make_cnn")
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((64, 1, 6, 6)).astype(np.float32)
+    with torch.no_grad():
+        y = loaded.module(torch.from_numpy(x)).argmax(1).numpy()
+    np.savez(tmp_path / "d.npz", x=x, y=((y + 1) % 3).astype(np.int64))
+    bits = rng.integers(0, 2, 128).astype(np.uint8)
+    personalize_checkpoint(
+        str(tmp_path / "cnn.safetensors"),
+        [(tmp_path / "d.npz", KeySource(bits, "file"))],
+        tmp_path / "cnn.prop",
+        PersonalizeConfig(steps=20),
+        opts=CheckpointOptions(arch="tests.fixtures_arch:make_cnn"),
+    )
+    res = ex.export_onnx(load_bundle(tmp_path / "cnn.prop"), key=bits)
+    assert res.ok and max(r["max_abs"] for r in res.table) <= 1e-5
+    b = load_bundle(tmp_path / "cnn.prop")
+    np.testing.assert_allclose(rt.run_onnx(b, x[:3], bits), run_bundle(b, x[:3], bits), atol=1e-5)
+
+
+def test_one_onnx_policy_serves_changing_batch_sizes(exported):
+    """Issue 13: the output binding kept its first shape, so a second batch size failed."""
+    b = load_bundle(exported)
+    bits = read_key_file(exported.parent / "k.bin", 128)
+    code = key_codes(bits, b.key_encoding).numpy()
+    x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
+    folder = exported / C.EXPORT_DIR
+    for policy, key in ((rt.OnnxPolicy(folder, code, fold=False), bits), (rt.OnnxPolicy(folder, code), bits),
+                        (rt.OnnxPolicy(folder), None)):  # fmt: skip
+        for n in (1, 256, 7, 1, 256):
+            got = policy(x[:n])
+            assert got.shape[0] == n
+            np.testing.assert_allclose(got, run_bundle(b, x[:n], key), atol=1e-5)

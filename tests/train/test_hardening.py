@@ -1,0 +1,81 @@
+"""Hardened unsealed mode (--harden): its preset, code-space negatives, the unrecorded encoder init."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli.adapters import load_checkpoint
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.keyed import KeyEncoder
+from prop_cli.datasources import Dataset
+from prop_cli.errors import PropError
+from prop_cli.train import User, personalize
+from prop_cli.train.hardening import code_negatives, encoder_init
+from tests.conftest import make_mlp_checkpoint
+
+
+def test_preset_fills_only_what_was_not_given():
+    plain = PersonalizeConfig().validate()
+    assert (plain.encoder_init, plain.code_negatives) == ("seed", 0)
+    hard = PersonalizeConfig(harden=True).validate()
+    assert (hard.encoder_init, hard.code_negatives) == ("os", 64)
+    mixed = PersonalizeConfig(harden=True, code_negatives=16, encoder_init="seed").validate()
+    assert (mixed.encoder_init, mixed.code_negatives) == ("seed", 16)
+    assert hard.batch_rows == plain.batch_rows + 64 * plain.samples_per_key
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "flag"),
+    [("encoder_init", "urandom", "--encoder-init"), ("code_negatives", -1, "--code-negatives"),
+     ("code_flip_max", 0, "--code-flip-max"), ("code_relax_min", 0.0, "--code-relax-min")],
+)  # fmt: skip
+def test_bad_hardening_settings_name_their_flag(field, value, flag):
+    with pytest.raises(PropError, match=flag):
+        PersonalizeConfig(**{field: value}).validate()
+
+
+def test_code_negatives_stay_in_the_cube_near_the_user_code():
+    rng = np.random.default_rng(0)
+    user = torch.where(torch.rand(2, 64) < 0.5, -1.0, 1.0)
+    c = code_negatives(user, 40, flip_max=5, relax_min=0.2, rng=rng)
+    assert c.shape == (40, 64) and c.abs().max() <= 1
+    flipped = c[:10]  # first share: ±1 codes 1..flip_max bits from one of the user codes
+    assert set(flipped.unique().tolist()) <= {-1.0, 1.0}
+    dist = (flipped[:, None] != user[None]).sum(-1).min(1).values
+    assert ((dist >= 1) & (dist <= 5)).all()
+    assert not (c[10:, None] == user[None]).all(-1).any()  # the rest moved away from the user codes
+    assert code_negatives(user, 0, 5, 0.2, rng).shape == (0, 64)
+
+
+def _encoder(cfg: PersonalizeConfig) -> torch.Tensor:
+    torch.manual_seed(cfg.seed)
+    with encoder_init(cfg):
+        enc = KeyEncoder(32, [8], [16], 2.0)
+    return enc.net[0].weight.detach().clone()
+
+
+def test_os_init_is_not_the_seeds_and_leaves_the_seeded_stream_alone():
+    seeded = PersonalizeConfig(seed=5).validate()
+    os_init = PersonalizeConfig(seed=5, harden=True).validate()
+    assert torch.equal(_encoder(seeded), _encoder(seeded))
+    a, b = _encoder(os_init), _encoder(os_init)
+    assert not torch.equal(a, b) and not torch.equal(a, _encoder(seeded))
+    torch.manual_seed(1)
+    with encoder_init(os_init):
+        torch.rand(3)
+    after = torch.rand(3)
+    torch.manual_seed(1)
+    assert torch.equal(after, torch.rand(3))
+
+
+def test_hardened_training_runs_and_keeps_its_settings(tmp_path):
+    loaded = load_checkpoint(make_mlp_checkpoint(tmp_path / "m.safetensors"))
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (60, 4)).astype(np.float32)
+    user = User(Dataset(x, (-x[:, :2]).astype(np.float32), "d"), rng.integers(0, 2, 32, dtype=np.uint8))
+    cfg = PersonalizeConfig(steps=5, harden=True, code_negatives=8)
+    res = personalize(loaded, [user], cfg)
+    assert (cfg.encoder_init, cfg.code_negatives) == ("os", 8)
+    assert set(res.final_losses) == {"personal", "fallback", "null"}

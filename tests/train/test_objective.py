@@ -1,0 +1,101 @@
+"""The Eq. 8 objective: each loss term, and the row order a step's batch is built in."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.keyed import key_codes
+from prop_cli.core.keyspace import KeySampler
+from prop_cli.errors import PropError
+from prop_cli.train.array import FallbackPool, UserPool, make_batch
+from prop_cli.train.objective import Batch, check_user_keys, prop_loss, row_loss
+
+
+def test_row_loss_per_term():
+    out, target = torch.tensor([[1.0, 2.0], [0.0, 0.0]]), torch.tensor([[1.0, 0.0], [1.0, 1.0]])
+    torch.testing.assert_close(row_loss(out, target, "regression", distill=False), torch.tensor([2.0, 1.0]))
+    logits, labels = torch.tensor([[2.0, 0.0], [0.0, 1.0]]), torch.tensor([0, 0])
+    torch.testing.assert_close(
+        row_loss(logits, labels, "classification", distill=False),
+        F.cross_entropy(logits, labels, reduction="none"),
+    )
+    kl = row_loss(logits, logits, "classification", distill=True)  # KL to its own softmax: zero
+    torch.testing.assert_close(kl, torch.zeros(2))
+    teacher = torch.tensor([[0.0, 3.0], [0.0, 1.0]])
+    p = F.softmax(teacher, -1)
+    want = (p * (p.log() - F.log_softmax(logits, -1))).sum(-1)
+    torch.testing.assert_close(row_loss(logits, teacher, "classification", distill=True), want)
+
+
+def _batch(user=2, keyed=3, null=2, d=1) -> tuple[Batch, torch.Tensor]:
+    rows = user + keyed + null
+    out = torch.arange(rows, dtype=torch.float32)[:, None].repeat(1, d)
+    batch = Batch(
+        x=torch.zeros(rows, 1), sample_index=torch.arange(rows), key_index=torch.arange(rows),
+        codes=torch.zeros(1, 8), user_rows=user, null_rows=null,
+        user_targets=torch.zeros(user, d), fallback_targets=torch.zeros(keyed + null, d),
+    )  # fmt: skip
+    return batch, out
+
+
+def test_prop_loss_reads_rows_as_user_then_keyed_then_null():
+    batch, out = _batch()  # outputs 0..6; every target 0: each row's loss is its index squared
+    total, parts = prop_loss(out, batch, "regression", null_weight=10.0)
+    assert parts["personal"] == pytest.approx((0 + 1) / 2)  # rows 0, 1
+    assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3)  # rows 2, 3, 4
+    assert parts["null"] == pytest.approx((25 + 36) / 2)  # rows 5, 6
+    assert total.item() == pytest.approx(parts["personal"] + parts["fallback"] + 10 * parts["null"])
+
+
+def test_prop_loss_without_sampled_keys_has_no_keyed_term():
+    batch, out = _batch(keyed=0)
+    _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
+    assert parts["fallback"] == 0.0 and parts["null"] == pytest.approx((4 + 9) / 2)
+
+
+def test_make_batch_layout_and_targets():
+    cfg = PersonalizeConfig(user_rows=4, null_rows=3, random_keys=2, neighbour_keys=4, samples_per_key=2,
+                            fallback_noise=0.0)  # fmt: skip
+    rng = np.random.default_rng(0)
+    key = rng.integers(0, 2, 16, dtype=np.uint8)
+    ux, uy = torch.randn(10, 2), torch.randn(10, 1)
+    original = torch.nn.Linear(2, 1)
+    pool = FallbackPool(torch.randn(20, 2), original, noise=0.0, sigma=0.5)
+    b = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), UserPool([ux], [uy]), pool)
+    k = cfg.random_keys + cfg.neighbour_keys
+    assert b.user_rows == 4 and b.null_rows == 3
+    assert b.x.shape == (4 + 3, 2)  # distinct samples: user rows, then the null rows' fallback samples
+    assert len(b.key_index) == 4 + k * 2 + 3 and b.codes.shape == (1 + k, 16)
+    assert (b.key_index[:4] == 0).all()  # the user's code
+    assert b.key_index[4:-3].tolist() == [1 + i for i in range(k) for _ in range(2)]  # each sampled key x2
+    assert (b.key_index[-3:] == 1 + k).all()  # the row after the codes: the null key
+    assert (b.sample_index[-3:] == torch.arange(4, 7)).all()
+    with torch.no_grad():  # fallback targets are the original's outputs on each row's sample
+        torch.testing.assert_close(b.fallback_targets, original(b.x[b.sample_index[4:]]))
+    assert torch.equal(b.codes[0], key_codes(key, "hashed")[0])
+
+
+def test_fallback_pool_perturbs_a_share_and_labels_it_with_the_original():
+    original = torch.nn.Linear(3, 2)
+    x = torch.randn(50, 3)
+    pool = FallbackPool(x, original, noise=0.5, sigma=0.5)
+    xs, ts = pool.draw(8, np.random.default_rng(0))
+    given = [(xs[i] == x).all(1).any().item() for i in range(8)]
+    assert given == [True] * 4 + [False] * 4  # the last half is new inputs around the given ones
+    with torch.no_grad():
+        torch.testing.assert_close(ts, original(xs))
+    xs0, _ = FallbackPool(x, original, noise=0.0, sigma=0.5).draw(8, np.random.default_rng(0))
+    assert all((xs0[i] == x).all(1).any() for i in range(8))
+
+
+def test_users_with_close_keys_are_refused():
+    a = np.zeros(32, np.uint8)
+    b = a.copy()
+    b[:5] = 1
+    check_user_keys([a, b], radius=2)  # 5 bits apart, radius 2: K1 sets do not overlap
+    with pytest.raises(PropError, match="5 bits apart"):
+        check_user_keys([a, b], radius=3)

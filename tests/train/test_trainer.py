@@ -1,0 +1,91 @@
+"""The trainer on a tiny model: what it returns, frozen bases, learning rates, settings it refuses."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli.adapters import load_checkpoint
+from prop_cli.config import PersonalizeConfig
+from prop_cli.datasources import Dataset
+from prop_cli.errors import PropError
+from prop_cli.train import User, loop, personalize
+from tests.conftest import make_mlp_checkpoint
+
+
+@pytest.fixture
+def setup(tmp_path):
+    loaded = load_checkpoint(make_mlp_checkpoint(tmp_path / "m.safetensors"))
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (120, 4)).astype(np.float32)
+    user = User(Dataset(x, (-x[:, :2]).astype(np.float32), "mine"), rng.integers(0, 2, 64, dtype=np.uint8))
+    return loaded, user
+
+
+def test_returns_a_keyed_model_task_and_one_report_per_user(setup):
+    loaded, user = setup
+    res = personalize(loaded, [user], PersonalizeConfig(steps=60))
+    assert res.task == "regression" and len(res.metrics) == 1
+    m = res.metrics[0]
+    assert m["samples"] == 24 and set(m) >= {"personalization", "null", "random", "hamming1"}
+    assert m["hamming1"]["leakage"]["n"] == 64  # every 1-bit neighbour of a 64-bit key
+    assert set(res.final_losses) == {"personal", "fallback", "null"}
+    assert res.keyed.layer_names == ["2", "4"]
+
+
+def test_freeze_base_trains_the_encoder_only(setup):
+    loaded, user = setup
+    before = copy.deepcopy(loaded.module.state_dict())
+    res = personalize(loaded, [user], PersonalizeConfig(steps=20, freeze_base=True))
+    for k, v in res.keyed.module.state_dict().items():
+        assert torch.equal(v, before[k])
+    assert any(p.abs().sum() > 0 for p in res.keyed.encoder.net[-1].parameters())  # the encoder moved
+
+
+def test_base_learning_rate_scale(setup, monkeypatch):
+    loaded, user = setup
+    seen = {}
+    real = loop.Adam
+
+    def spy(groups, **kw):
+        seen["lrs"] = [g.get("lr", kw["lr"]) for g in groups]
+        return real(groups, **kw)
+
+    monkeypatch.setattr(loop, "Adam", spy)
+    personalize(loaded, [user], PersonalizeConfig(steps=2, lr=1e-3, base_lr_scale=0.25))
+    assert seen["lrs"] == [1e-3, 2.5e-4]  # encoder, base
+
+
+def test_hamming_radius_above_the_key_size_is_refused(setup):
+    """Issue 10, fix 5: --hamming-radius 200 was accepted for a 128-bit key."""
+    loaded, user = setup
+    with pytest.raises(PropError, match=r"--hamming-radius 65 is invalid.*at most the key size \(64 bits\)"):
+        personalize(loaded, [user], PersonalizeConfig(steps=2, hamming_radius=65))
+
+
+def test_task_override_and_mixed_users(setup):
+    loaded, user = setup
+    labels = User(Dataset(user.data.x, np.arange(120) % 2, "labels"), user.key_bits)
+    assert personalize(loaded, [labels], PersonalizeConfig(steps=2)).task == "classification"
+    floats = User(Dataset(user.data.x, (np.arange(120) % 2).astype(np.float32), "floats"), user.key_bits)
+    assert (
+        personalize(loaded, [floats], PersonalizeConfig(steps=2, task="classification")).task
+        == "classification"
+    )
+    other = User(labels.data, 1 - user.key_bits)
+    with pytest.raises(PropError, match="different kinds of y"):
+        personalize(loaded, [user, other], PersonalizeConfig(steps=2))
+
+
+def test_same_seed_same_weights(tmp_path):
+    outs = []
+    for _ in range(2):
+        loaded = load_checkpoint(make_mlp_checkpoint(tmp_path / "m.safetensors"))
+        rng = np.random.default_rng(0)
+        x = rng.uniform(-1, 1, (60, 4)).astype(np.float32)
+        u = User(Dataset(x, x[:, :2].copy(), "d"), rng.integers(0, 2, 32, dtype=np.uint8))
+        outs.append(personalize(loaded, [u], PersonalizeConfig(steps=10, seed=3)).keyed.state_dict())
+    assert all(torch.equal(outs[0][k], outs[1][k]) for k in outs[0])
