@@ -12,7 +12,7 @@ T3 with k = 1, 4, 16, 64 samples (code fit, delta fit; control: fine-tuning the 
 The searches' control is the same attack on a bundle trained the same way (same mode, key and
 seed) on the user's inputs labelled by the original: it holds nothing of the user. (The bundle's
 encoder on the original checkpoint is no control: the encoder carries the personalization.)
-Leakage is prop_cli.metrics.leakage on 256 held-out samples. --quick: IL, seed 0, 200 steps, 16k
+Leakage is prop_cli.core.metrics.leakage on 256 held-out samples. --quick: IL, seed 0, 200 steps, 16k
 keys, few-shot k = 1, 4 (a smoke run, not a measurement). Goals (issue 9): hardened T1-64 beyond
 control <= 0.05, 1M random keys worst <= 0.05, Hamming 1..8 no worse than default.
 """

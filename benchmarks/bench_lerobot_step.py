@@ -4,7 +4,7 @@
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step [--reps 30]
 
 LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_train.update_policy).
-PRoP step: prop_cli.policy_trainer.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
+PRoP step: prop_cli.train.policy.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
 through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
 against the original's cached chunks, key encoder in the graph, same clip. The two alternate (the
 machine is shared); medians and their ratio are printed. Issue 11's target: <= 1.3x.

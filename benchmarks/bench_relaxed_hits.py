@@ -3,7 +3,7 @@
     python -m benchmarks.bench_relaxed_hits OUT_DIR [--tasks il digits] [--seed 0] [--pool 256]
 
 Per task: the example with today's `prop personalize` defaults, then the audit's relaxed probe
-(``prop_cli.probes.relaxed``) run once per setting with ``--pool`` restarts. Restarts are independent
+(``prop_cli.attack.probes.relaxed``) run once per setting with ``--pool`` restarts. Restarts are independent
 (per-restart loss, elementwise Adam), so the chance that the attacker's pick (the largest divergence)
 among R restarts leaks > 0.5 is estimated from subsets of the pool. Prints one table; the audit's
 defaults (docs/metrics.md, "T1 hit rate") were chosen from it.

@@ -14,15 +14,13 @@ to the no-key output. Reach (PPO) has its own script: benchmarks/bench_sealed_re
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from examples import write_task
+from examples import task_runs
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
@@ -61,44 +59,39 @@ def _score(bundle, bits: np.ndarray, test: dict, task: str) -> dict:
 
 def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
     rows = []
-    for task in tasks:
-        for seed in range(seeds):
-            with tempfile.TemporaryDirectory(prefix="prop-sealed-") as tmp:
-                work = Path(tmp)
-                paths = write_task(task, work / "ex", seed)
-                test = dict(np.load(paths["test"]))
-                bits = np.random.default_rng(1000 + seed).integers(0, 2, 128).astype(np.uint8)
-                for name, over in VARIANTS.items():
-                    cfg = PersonalizeConfig(seed=seed, **over)
-                    if quick:
-                        cfg.steps = 300
-                    t0 = time.perf_counter()
-                    out = work / f"{len(rows)}.prop"
-                    personalize_checkpoint(
-                        str(paths["base"]), [(paths["mine"], KeySource(bits, "file"))], out, cfg, device="cpu"
-                    )
-                    seconds = time.perf_counter() - t0
-                    bundle = load_bundle(out)
-                    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file() and "users" in f.parts)
-                    if not bundle.is_sealed:
-                        size = (out / "encoder.safetensors").stat().st_size
-                    rows.append(
-                        {
-                            "task": task,
-                            "seed": seed,
-                            "variant": name,
-                            "seconds": seconds,
-                            "user_bytes": size,
-                            **_score(bundle, bits, test, task),
-                        }  # fmt: skip
-                    )
-                    r = rows[-1]
-                    print(
-                        f"{task:6s} seed {seed} {name:16s} personalization {r['personalization']:.4f}  "
-                        f"wrong keys identical {r['wrong_keys_identical']:.3f}  worst change "
-                        f"{r['wrong_keys_worst_change']:.3g}  {r['user_bytes']} B  {seconds:.1f} s",
-                        flush=True,
-                    )
+    for task, seed, work, paths, bits in task_runs(tasks, seeds, "prop-sealed-", 1000):
+        test = dict(np.load(paths["test"]))
+        for name, over in VARIANTS.items():
+            cfg = PersonalizeConfig(seed=seed, **over)
+            if quick:
+                cfg.steps = 300
+            t0 = time.perf_counter()
+            out = work / f"{len(rows)}.prop"
+            personalize_checkpoint(
+                str(paths["base"]), [(paths["mine"], KeySource(bits, "file"))], out, cfg, device="cpu"
+            )
+            seconds = time.perf_counter() - t0
+            bundle = load_bundle(out)
+            size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file() and "users" in f.parts)
+            if not bundle.is_sealed:
+                size = (out / "encoder.safetensors").stat().st_size
+            rows.append(
+                {
+                    "task": task,
+                    "seed": seed,
+                    "variant": name,
+                    "seconds": seconds,
+                    "user_bytes": size,
+                    **_score(bundle, bits, test, task),
+                }  # fmt: skip
+            )
+            r = rows[-1]
+            print(
+                f"{task:6s} seed {seed} {name:16s} personalization {r['personalization']:.4f}  "
+                f"wrong keys identical {r['wrong_keys_identical']:.3f}  worst change "
+                f"{r['wrong_keys_worst_change']:.3g}  {r['user_bytes']} B  {seconds:.1f} s",
+                flush=True,
+            )
     return rows
 
 

@@ -4,7 +4,7 @@
 
 Uses examples/reproduce/reach.py: the same env, pretrained PPO policy (30 iterations, seed 0), PPO
 settings, env-step budget and evaluation goals as the paper reproduction. A sealed user's payload
-(prop_cli.payload) is attached to the frozen pretrained actor and trained with the PPO loss on the
+(prop_cli.core.payload) is attached to the frozen pretrained actor and trained with the PPO loss on the
 user's rollouts towards A g + c, with no fallback term (a wrong key opens nothing and runs the
 original). The payload is then sealed into a real bundle (prop_cli.bundle.write_sealed) and
 evaluated through ``KeyedPolicy`` with the user's key, and with wrong keys (which must give the

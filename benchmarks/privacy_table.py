@@ -1,4 +1,4 @@
-"""The README's privacy table: every threat x mode (unsealed, hardened, sealed), measured by `prop attack`.
+"""docs/privacy.md's table: every threat x mode (unsealed, hardened, sealed), measured by `prop attack`.
 
     python -m benchmarks.privacy_table [--tasks il,digits,reach] [--seeds 1] [--quick] [--json out.json]
 
@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from examples import write_task
+from examples import task_runs
 from prop_cli.api import KeySource, audit_bundle, personalize_checkpoint
 from prop_cli.config import AuditSettings, PersonalizeConfig
 
@@ -59,51 +58,46 @@ def _cells(report: dict) -> dict[str, dict]:
 
 def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
     rows = []
-    for task in tasks:
-        for seed in range(seeds):
-            with tempfile.TemporaryDirectory(prefix="prop-privacy-") as tmp:
-                work = Path(tmp)
-                paths = write_task(task, work / "ex", seed)
-                bits = np.random.default_rng(2000 + seed).integers(0, 2, 128).astype(np.uint8)
-                key = work / "k.bin"
-                key.write_bytes(np.packbits(bits).tobytes())
-                key.chmod(0o600)
-                for mode, over in MODES.items():
-                    cfg = PersonalizeConfig(seed=seed, **over)
-                    settings = AuditSettings()
-                    if quick:
-                        cfg.steps = 200
-                        settings = AuditSettings(blackbox=20_000, restarts=8, search_steps=20, random=256)
-                    out = work / f"{mode}.prop"
-                    t0 = time.perf_counter()
-                    res = personalize_checkpoint(
-                        str(paths["base"]), [(paths["mine"], KeySource(bits, "file"))], out, cfg, device="cpu"
-                    )
-                    t1 = time.perf_counter()
-                    report = audit_bundle(
-                        out, paths["mine"], settings, key_files=[key], original=str(paths["base"])
-                    )
-                    rows.append(
-                        {
-                            "task": task,
-                            "seed": seed,
-                            "mode": mode,
-                            "personalization": res.metrics[0]["personalization"],
-                            "user_leakage": report["user"]["leakage"],
-                            "cells": _cells(report),
-                            "train_seconds": t1 - t0,
-                            "audit_seconds": time.perf_counter() - t1,
-                        }
-                    )
-                    r = rows[-1]
-                    print(
-                        f"{task} seed {seed} {mode}: personalization {r['personalization']:.4f}, "
-                        f"train {r['train_seconds']:.0f} s, audit {r['audit_seconds']:.0f} s",
-                        flush=True,
-                    )
-                    for label, c in r["cells"].items():
-                        ctl = "n/a" if c["control"] is None else f"{c['control']:.3f}"
-                        print(f"    {label:32s} {c['bundle']:.3f} / {ctl} / {c['beyond']}", flush=True)
+    for task, seed, work, paths, bits in task_runs(tasks, seeds, "prop-privacy-", 2000):
+        key = work / "k.bin"
+        key.write_bytes(np.packbits(bits).tobytes())
+        key.chmod(0o600)
+        for mode, over in MODES.items():
+            cfg = PersonalizeConfig(seed=seed, **over)
+            settings = AuditSettings()
+            if quick:
+                cfg.steps = 200
+                settings = AuditSettings(blackbox=20_000, restarts=8, search_steps=20, random=256)
+            out = work / f"{mode}.prop"
+            t0 = time.perf_counter()
+            res = personalize_checkpoint(
+                str(paths["base"]), [(paths["mine"], KeySource(bits, "file"))], out, cfg, device="cpu"
+            )
+            t1 = time.perf_counter()
+            report = audit_bundle(
+                out, paths["mine"], settings, key_files=[key], original=str(paths["base"])
+            )
+            rows.append(
+                {
+                    "task": task,
+                    "seed": seed,
+                    "mode": mode,
+                    "personalization": res.metrics[0]["personalization"],
+                    "user_leakage": report["user"]["leakage"],
+                    "cells": _cells(report),
+                    "train_seconds": t1 - t0,
+                    "audit_seconds": time.perf_counter() - t1,
+                }
+            )
+            r = rows[-1]
+            print(
+                f"{task} seed {seed} {mode}: personalization {r['personalization']:.4f}, "
+                f"train {r['train_seconds']:.0f} s, audit {r['audit_seconds']:.0f} s",
+                flush=True,
+            )
+            for label, c in r["cells"].items():
+                ctl = "n/a" if c["control"] is None else f"{c['control']:.3f}"
+                print(f"    {label:32s} {c['bundle']:.3f} / {ctl} / {c['beyond']}", flush=True)
     return rows
 
 

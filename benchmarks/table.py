@@ -8,7 +8,7 @@ Rows:
 - step: a PRoP training step (the trainer's make_batch, keyed forward, Eq. 8 loss, prop's Adam) vs a
   plain fine-tuning step (torch.optim.Adam) of the same model and batch rows, by model size (an
   MLP 4-W-W-W-2; 38k is the IL example's 4-192-192-2). CPU time, interleaved, median.
-- personalize: the library's trainer (``trainer.personalize``, evaluation included) on the IL base, by
+- personalize: the library's trainer (``prop_cli.train.personalize``, evaluation included) on the IL base, by
   number of users (each with its own key and data) and by rows of data per user. Seconds.
 - audit: key x sample evaluations per second of the audit's default key probes (``audit.audit``, its
   report's ``speed``), against a bare loop of the same forwards (``KeyedModel.run_keys``).

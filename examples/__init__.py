@@ -7,8 +7,9 @@ every example builds and trains its base checkpoint.
 
 from __future__ import annotations
 
+import tempfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -88,3 +89,16 @@ def write_task(task: str, folder: Path, seed: int = 0) -> dict[str, Path]:
     else:
         raise ValueError(f"unknown task {task!r}: il, digits or reach")
     return write_example(folder, seed=seed)
+
+
+def task_runs(
+    tasks: list[str], seeds: int, prefix: str, key_seed: int
+) -> Iterator[tuple[str, int, Path, dict[str, Path], np.ndarray]]:
+    """(task, seed, a fresh work folder, the written task's paths, a 128-bit key seeded by
+    ``key_seed + seed``) for every task and seed; each folder is removed when the next run starts."""
+    for task in tasks:
+        for seed in range(seeds):
+            with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+                work = Path(tmp)
+                bits = np.random.default_rng(key_seed + seed).integers(0, 2, 128).astype(np.uint8)
+                yield task, seed, work, write_task(task, work / "ex", seed), bits

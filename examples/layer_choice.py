@@ -8,7 +8,7 @@ Printed per choice (means over seeds; metrics on the user's held-out validation 
 ``prop personalize`` reports them): personalization of the user's key, fidelity of random keys and of
 the null key to the original, the leakage of the worst of 64 random keys, and the leakage of the user
 key's 1-bit neighbours (mean and worst).
-The choice ``prop_cli.layers.default_layers`` makes is the one this measurement supports.
+The choice ``prop_cli.core.layers.default_layers`` makes is the one this measurement supports.
 """
 
 from __future__ import annotations

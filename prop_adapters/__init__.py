@@ -4,8 +4,8 @@ with a DeprecationWarning; it goes in prop 0.3."""
 
 import sys
 
-from prop_cli import _moved
+from prop_cli import compat
 
-_moved.install()
+compat.install()
 del sys.modules[__name__]  # the import that runs this file returns the alias imported next
 __import__(__name__)

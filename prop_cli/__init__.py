@@ -1,7 +1,7 @@
 """prop: add private keys to existing neural-network checkpoints (PRoP)."""
 
-from . import _moved
+from . import compat
 
 __version__ = "0.1.0"
 
-_moved.install()  # the import paths of 0.1.x, for one release (prop_cli._moved)
+compat.install()  # the import paths of 0.1.x, for one release (prop_cli.compat)

@@ -153,7 +153,7 @@ def personalize_checkpoint(
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
-    ``users`` pairs each user's data file with their key (``keys.user_keys`` builds them from key files
+    ``users`` pairs each user's data file with their key (``core.keys.user_keys`` builds them from key files
     and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
     ``prop_cli.threads`` chooses from the model's size and the idle cores).
     """
@@ -311,9 +311,9 @@ def export_bundle(
     out: Path | None = None,
     settings: ExportSettings | None = None,
     *,
+    input_path: Path | None = None,
     key_file: Path | None = None,
     passphrase: str | None = None,
-    input_path: Path | None = None,
     force: bool = False,
     threads: int | None = None,
 ):
@@ -330,19 +330,11 @@ def export_bundle(
 
 
 def eval_bundle(
-    bundle_path: Path,
-    env_id: str,
-    settings: EvalSettings | None = None,
-    *,
-    key_file: Path | None = None,
-    passphrase: str | None = None,
-    obs_map: str | None = None,
-    metric: str | None = None,
-    original: str | None = None,
-    progress: Callable[[str], None] | None = None,
-    vecnormalize: Path | None = None,
-    video: Path | None = None,
-) -> dict:
+    bundle_path: Path, env_id: str, settings: EvalSettings | None = None, *,
+    key_file: Path | None = None, passphrase: str | None = None, obs_map: str | None = None,
+    metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
+    vecnormalize: Path | None = None, video: Path | None = None,
+) -> dict:  # fmt: skip
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""

@@ -13,7 +13,7 @@ from .constants import KEY_ENCODINGS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
-PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.payload)
+PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.core.payload)
 ENCODER_INITS = ("seed", "os")
 # `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
 HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}
@@ -30,10 +30,19 @@ def _flag(name: str) -> str:
 
 
 class _Settings:
-    """What the three dataclasses share: a checker naming the CLI flag, and dict round trips."""
+    """What the settings dataclasses share: checkers naming the CLI flag, and dict round trips."""
 
     def need(self, ok: bool, name: str, rule: str, flag: str | None = None) -> None:
         _need(ok, flag or _flag(name), getattr(self, name), rule)
+
+    def at_least(self, **lows: int) -> None:
+        """Each named field is a number >= its low (0: ">= 0", else "at least N")."""
+        for name, low in lows.items():
+            self.need(getattr(self, name) >= low, name, f"at least {low}" if low else ">= 0")
+
+    def positive(self, *names: str) -> None:
+        for name in names:
+            self.need(getattr(self, name) > 0, name, "positive")
 
     def to_dict(self) -> dict:
         return asdict(self)  # type: ignore[call-overload]
@@ -79,7 +88,7 @@ class PersonalizeConfig(_Settings):
     layers: list[str] | None = None  # None = default choice (see layers.default_layers)
     exclude: list[str] | None = None
     eval_random_keys: int = 64
-    task: str | None = None  # None: decided against the model (prop_cli.data.resolve_task)
+    task: str | None = None  # None: decided against the model (prop_cli.datasources.fit.resolve_task)
     # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
     # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
     seal: bool = False
@@ -88,7 +97,7 @@ class PersonalizeConfig(_Settings):
     payload: str = "lora"
     payload_rank: int = 4
     payload_lr: float = 0.01  # Adam on the payload; cosine-decays like lr
-    # Hardened unsealed mode (prop_cli.hardening, docs/hardening.md): a preset of the fields below.
+    # Hardened unsealed mode (prop_cli.train.hardening, docs/hardening.md): a preset of the fields below.
     # Those left None take HARDEN_PRESET's value with harden, PLAIN_PRESET's without (validate fills them).
     harden: bool = False
     # "seed": the encoder's initialisation follows `seed` (byte-identical reruns, but the manifest's
@@ -107,38 +116,25 @@ class PersonalizeConfig(_Settings):
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
-        self.need(self.steps >= 1, "steps", "at least 1")
-        self.need(self.lr > 0, "lr", "positive")
+        self.at_least(steps=1, user_rows=1, null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1,
+                      hamming_radius=1, null_weight=0, eval_random_keys=1, payload_rank=1)  # fmt: skip
+        self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale", "payload_lr")
         self.need(0 < self.lr_floor <= 1, "lr_floor", "in (0, 1]")
-        self.need(self.base_lr_scale > 0, "base_lr_scale", "positive")
-        self.need(self.user_rows >= 1, "user_rows", "at least 1")
-        self.need(self.null_rows >= 1, "null_rows", "at least 1")
-        self.need(self.random_keys >= 0, "random_keys", ">= 0")
-        self.need(self.neighbour_keys >= 0, "neighbour_keys", ">= 0")
-        self.need(self.samples_per_key >= 1, "samples_per_key", "at least 1")
-        self.need(self.hamming_radius >= 1, "hamming_radius", "at least 1")
         if key_bits is not None:
             self.need(
                 self.hamming_radius <= key_bits, "hamming_radius", f"at most the key size ({key_bits} bits)"
             )
-        self.need(self.null_weight >= 0, "null_weight", ">= 0")
         self.need(0 <= self.fallback_noise <= 1, "fallback_noise", "in [0, 1]")
-        self.need(self.fallback_sigma > 0, "fallback_sigma", "positive")
-        self.need(self.delta_scale > 0, "delta_scale", "positive")
         self.need(self.key_encoding in KEY_ENCODINGS, "key_encoding", " or ".join(KEY_ENCODINGS))
         self.need(0 < self.val_fraction < 1, "val_fraction", "in (0, 1)")
-        self.need(self.eval_random_keys >= 1, "eval_random_keys", "at least 1")
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
         self.need(self.payload in PAYLOAD_KINDS, "payload", " or ".join(PAYLOAD_KINDS))
-        self.need(self.payload_rank >= 1, "payload_rank", "at least 1")
-        self.need(self.payload_lr > 0, "payload_lr", "positive")
         for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
-        self.need(self.code_negatives >= 0, "code_negatives", ">= 0")
-        self.need(self.code_flip_max >= 1, "code_flip_max", "at least 1")
+        self.at_least(code_negatives=0, code_flip_max=1)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
         return self
 
@@ -168,18 +164,12 @@ class AuditSettings(_Settings):
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
-        self.need(self.per_distance >= 1, "per_distance", "at least 1")
-        self.need(self.random >= 0, "random", ">= 0")
-        self.need(self.restarts >= 1, "restarts", "at least 1")
-        self.need(self.search_steps >= 1, "search_steps", "at least 1")
-        self.need(self.search_lr > 0, "search_lr", "positive")
+        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2)
+        self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
-        self.need(self.samples >= 2, "samples", "at least 2")
         if self.blackbox is None:
             self.blackbox = BLACKBOX_KEYS
-        self.need(self.blackbox >= 0, "blackbox", ">= 0")
-        self.need(self.blackbox_screen >= 1, "blackbox_screen", "at least 1")
-        self.need(self.blackbox_keep >= 1, "blackbox_keep", "at least 1")
+        self.at_least(blackbox=0, blackbox_screen=1, blackbox_keep=1)
         if self.probes is not None:
             unknown = [p for p in self.probes if p not in known_probes]
             _need(not unknown, "--probes", ",".join(self.probes), "a list of: " + ", ".join(known_probes))
@@ -244,7 +234,7 @@ class ExportSettings(_Settings):
         self.need(
             self.MIN_OPSET <= self.opset <= self.MAX_OPSET, "opset", f"in {self.MIN_OPSET}..{self.MAX_OPSET}"
         )
-        self.need(self.atol > 0, "atol", "positive")
+        self.positive("atol")
         return self
 
 
@@ -263,12 +253,8 @@ class EvalSettings(_Settings):
     seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
 
     def validate(self, has_key: bool) -> EvalSettings:
-        self.need(self.episodes >= 1, "episodes", "at least 1")
-        self.need(self.random_keys >= 0, "random_keys", ">= 0")
-        self.need(self.neighbours >= 0, "neighbours", ">= 0")
-        self.need(self.episodes_per_key >= 1, "episodes_per_key", "at least 1")
+        self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0)
         self.need(self.max_steps >= 0, "max_steps", ">= 0 (0: the environment's limit)")
-        self.need(self.seed >= 0, "seed", ">= 0")
         if self.neighbours and not has_key:
             self.neighbours = 0  # neighbours are keys a few bits from the user's: none without it
         return self

@@ -1,4 +1,6 @@
-"""The README and docs/ say what the code does: API names, the format table, the Extending sketches."""
+"""The README and docs/ say what the code does: API names, module paths, links, the format and probe
+tables, the layout map, the Extending sketches. The README holds what a user needs first; the rest
+lives in docs/ (README "Documentation")."""
 
 from __future__ import annotations
 
@@ -16,39 +18,208 @@ from prop_cli.attack import probes
 from prop_cli.datasources import SOURCES
 
 ROOT = Path(__file__).resolve().parents[1]
-README = (ROOT / "README.md").read_text()
+README_PATH = ROOT / "README.md"
+README = README_PATH.read_text()
+DOCS = sorted((ROOT / "docs").glob("*.md"))
+# The files the README and docs/ are made of: the README and every docs/*.md.
+OWN = [README_PATH, *DOCS]
+# The Extending sketches' files: shown in docs/extending.md, not shipped.
+SKETCHES = (
+    "prop_cli/adapters/npz_mlp.py",
+    "prop_cli/datasources/csv.py",
+    "prop_cli/attack/probes/complement.py",
+)
 
 
-def _blocks() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", README, flags=re.S)
+def _doc(name: str) -> str:
+    return (ROOT / "docs" / name).read_text()
+
+
+def _prose(text: str) -> str:
+    """Markdown without its fenced code blocks (their `#` lines are comments, not headings)."""
+    return re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+
+
+def _links(text: str) -> list[str]:
+    """Targets of the Markdown links outside code blocks."""
+    return re.findall(r"\]\(([^)\s]+)\)", _prose(text))
+
+
+def _relative_md_links(path: Path) -> list[Path]:
+    out = []
+    for target in _links(path.read_text()):
+        file = target.split("#", 1)[0]
+        if file.endswith(".md") and "://" not in file:
+            out.append((path.parent / file).resolve())
+    return out
+
+
+# Every Markdown file a reader reaches from the README: the README, docs/, and what they link to.
+LINKED = sorted({*OWN, *(p for f in OWN for p in _relative_md_links(f) if p.is_file())})
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def _anchors(text: str) -> set[str]:
+    return {_slug(h) for h in re.findall(r"^#{1,6} (.+)$", _prose(text), flags=re.M)}
+
+
+def _section(text: str, heading: str) -> str:
+    """From the line ``heading`` to the next heading of the same or a higher level (code blocks skipped)."""
+    level = len(heading.split(" ", 1)[0])
+    lines = text.splitlines()
+    start = lines.index(heading) + 1
+    code = False
+    for i in range(start, len(lines)):
+        code ^= lines[i].startswith("```")
+        found = re.match(r"(#+) ", lines[i])
+        if not code and found and len(found.group(1)) <= level:
+            return "\n".join(lines[start:i])
+    return "\n".join(lines[start:])
+
+
+def _blocks(text: str) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
 def _file_block(path: str) -> str:
-    (block,) = [b for b in _blocks() if b.startswith(f"# file: {path}\n")]
+    (block,) = [b for b in _blocks(_doc("extending.md")) if b.startswith(f"# file: {path}\n")]
     return block
 
 
-def _module(path: str, name: str) -> types.ModuleType:
+def _module(path: str, name: str, monkeypatch) -> types.ModuleType:
     mod = types.ModuleType(name)
     mod.__file__ = path
-    sys.modules[name] = mod
+    monkeypatch.setitem(sys.modules, name, mod)
     exec(compile(_file_block(path), path, "exec"), mod.__dict__)
     return mod
 
 
-def test_every_name_the_readme_imports_exists():
+def _is_module_file(module: str) -> bool:
+    """A module of the current layout (not an old path kept as a deprecated alias)."""
+    base = ROOT / module.replace(".", "/")
+    return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
+
+
+IMPORT = r"from (prop_cli[\w.]*|prop_adapters[\w.]*) import (?:\(([^)]*)\)|([\w, ]+)$)"
+
+
+def _imports(text: str) -> list[tuple[str, list[str]]]:
+    found = re.findall(IMPORT, text, flags=re.M)
+    return [(m, [n.strip() for n in (a or b).split(",") if n.strip()]) for m, a, b in found]
+
+
+# ---- the README: short, and the two commands first -------------------------------------------------
+
+
+def test_the_readme_is_short():
+    """Issue 19: the reference, the privacy tables and the extension guide live in docs/."""
+    assert len(README.splitlines()) < 250
+
+
+def test_the_readme_quick_start_is_two_commands_that_exist():
+    section = _section(README, "## Quick start (two commands)")
+    block = re.search(r"```\n(.*?)```", section, flags=re.S).group(1)
+    commands = [ln.split("#", 1)[0].strip() for ln in block.splitlines() if ln.strip()]
+    assert commands == ["bash scripts/demo.sh", "bash scripts/test.sh"]
+    for command in commands:
+        assert (ROOT / command.split()[1]).is_file(), command
+
+
+def test_docs_are_in_the_repository_and_cited():
+    expected = (
+        "audit.md", "bundle-format.md", "cli.md", "deploy.md", "design.md", "extending.md",
+        "formats.md", "hardening.md", "metrics.md", "privacy.md", "sealed.md", "speed.md",
+        "threat-model.md",
+    )  # fmt: skip
+    for doc in expected:
+        assert (ROOT / "docs" / doc).is_file(), doc
+    for doc in DOCS:  # every page of docs/ is reachable from the README
+        assert f"](docs/{doc.name}" in README, doc.name
+    for path in [*OWN, *ROOT.glob("prop_cli/**/*.py"), *ROOT.glob("adapters/*.py")]:
+        assert "DESIGN.md" not in path.read_text() and "../shared" not in path.read_text(), path
+
+
+# ---- names, module paths and links -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", LINKED, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_name_the_docs_import_exists(path):
     """Issue 10, fix 1: the README's `from prop_cli.api import load_bundle` raised ImportError."""
-    pattern = r"from (prop_cli[\w.]*|prop_adapters[\w.]*) import (?:\(([^)]*)\)|([\w, ]+)$)"
-    imports = [(m, a or b) for m, a, b in re.findall(pattern, README, flags=re.M)]
-    assert any(mod == "prop_cli.api" and "load_bundle" in names for mod, names in imports)
-    for mod, names in imports:
+    for mod, names in _imports(path.read_text()):
         m = importlib.import_module(mod)
-        for name in (n.strip() for n in names.split(",") if n.strip()):
-            assert hasattr(m, name), f"{mod}.{name}"
+        for name in names:
+            assert hasattr(m, name), f"{path.name}: {mod}.{name}"
+
+
+def test_the_readme_imports_the_api():
+    assert any(m == "prop_cli.api" and "load_bundle" in n for m, n in _imports(README))
+
+
+@pytest.mark.parametrize("path", OWN, ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_docs_name_modules_by_their_current_paths(path):
+    """Imports, dotted names (`prop_cli.core.keys.user_keys`) and file paths (`prop_cli/bundle/...py`)
+    in the README and docs/ are those of the current layout, not the deprecated 0.1 paths."""
+    text = path.read_text()
+    for mod, _ in _imports(text):
+        assert _is_module_file(mod), f"{path.name}: `from {mod} import` is an old path"
+    old = re.search(r"\bprop_adapters\.\w", text)
+    assert not old, f"{path.name}: prop_adapters.* moved to prop_cli.adapters.*"
+    for dotted in sorted(set(re.findall(r"\bprop_cli(?:\.\w+)+", text))):
+        parts = dotted.split(".")
+        n = max(i for i in range(1, len(parts) + 1) if _is_module_file(".".join(parts[:i])))
+        obj = importlib.import_module(".".join(parts[:n]))
+        for attr in parts[n:]:
+            obj = getattr(obj, attr, None)
+            # a module here is an old path (a deprecated alias): current modules are files
+            assert obj is not None and not isinstance(obj, types.ModuleType), f"{path.name}: {dotted}"
+    for span in re.findall(r"`([\w./-]+\.py)`", text):
+        if span in SKETCHES or "/" not in span:
+            continue
+        assert (ROOT / span).is_file() or (ROOT / "prop_cli" / span).is_file(), f"{path.name}: {span}"
+
+
+@pytest.mark.parametrize("path", OWN, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_points_to_a_file(path):
+    text = path.read_text()
+    for target in _links(text):
+        if re.match(r"[a-z]+:", target):  # https:, mailto:
+            continue
+        file, _, anchor = target.partition("#")
+        dest = (path.parent / file).resolve() if file else path
+        assert dest.exists(), f"{path.name}: ({target}) points to a missing file"
+        if anchor and dest.suffix == ".md":
+            assert anchor in _anchors(dest.read_text()), f"{path.name}: ({target}) no such heading"
+    # paths named in the text, from the repository root: "docs/sealed.md", "examples/RESULTS.md"
+    for named in re.findall(r"\b((?:docs|examples)/[\w.-]+\.md)\b", _prose(text)):
+        assert (ROOT / named).is_file(), f"{path.name}: {named}"
+
+
+def test_design_maps_the_layout():
+    """docs/design.md's "Layout" names every module and package of prop_cli, and only those."""
+    section = _section(_doc("design.md"), "## Layout")
+    tree = re.search(r"```\n(.*?)```", section, flags=re.S).group(1)
+    pkg = ROOT / "prop_cli"
+    files = {p.name for p in pkg.rglob("*.py")}
+    for path in pkg.rglob("*.py"):
+        if path.name == "__init__.py" or (path.name.endswith("_cmd.py") and "<command>_cmd.py" in tree):
+            continue
+        assert re.search(rf"(?<![\w<>]){re.escape(path.name)}", tree), path.relative_to(ROOT)
+    for folder in (p.parent for p in pkg.rglob("__init__.py") if p.parent != pkg):
+        assert f"{folder.name}/" in tree, folder.relative_to(ROOT)
+    for named in re.findall(r"(?<![\w<>])(\w+\.py)", tree):
+        assert named in files, f"design.md Layout names {named}, which prop_cli does not have"
+    assert "prop_adapters/" in tree and (ROOT / "prop_adapters" / "__init__.py").is_file()
+
+
+# ---- the tables the registries make ------------------------------------------------------------------
 
 
 def test_the_python_api_example_runs(workdir, monkeypatch):
-    (block,) = [b for b in _blocks() if "personalize_checkpoint(" in b and "KeyedPolicy(bundle" in b]
+    (block,) = [b for b in _blocks(README) if "personalize_checkpoint(" in b and "KeyedPolicy(bundle" in b]
     quick = block.replace("steps=2000", "steps=20").replace(
         "AuditSettings(blackbox=100_000)",
         "AuditSettings(random=16, restarts=2, search_steps=5, blackbox=256, per_distance=8)",
@@ -64,28 +235,34 @@ def test_the_format_table_is_the_registrys():
     from prop_cli.api import formats
     from prop_cli.cli.formats_cmd import formats_markdown
 
-    table = README.split("<!-- formats:start -->\n")[1].split("<!-- formats:end -->")[0].strip()
+    text = _doc("formats.md")
+    table = text.split("<!-- formats:start -->\n")[1].split("<!-- formats:end -->")[0].strip()
     assert table == formats_markdown(formats()), "regenerate it with: prop formats --markdown"
 
 
-def test_docs_are_in_the_repository_and_cited():
-    for doc in ("design.md", "metrics.md", "threat-model.md", "hardening.md"):
-        assert (ROOT / "docs" / doc).is_file() and f"docs/{doc}" in README
-    for path in [ROOT / "README.md", *ROOT.glob("prop_cli/**/*.py"), *ROOT.glob("adapters/*.py")]:
-        assert "DESIGN.md" not in path.read_text() and "../shared" not in path.read_text(), path
+def test_the_audit_docs_probe_table_is_the_registry():
+    section = _doc("audit.md").split("\n## ", 1)[0]  # the probes, before the report's schema
+    rows = [ln for ln in section.splitlines() if ln.startswith("| `")]
+    listed = [
+        ln.split("`")[1] for ln in rows if "| T" in ln or "| structure |" in ln or "| cross-user |" in ln
+    ]
+    assert list(dict.fromkeys(listed)) == probes.names()
+    for p in probes.PROBES:
+        row = next(ln for ln in rows if ln.startswith(f"| `{p.name}`"))
+        assert f"| {p.threat} | {p.kind} |" in row, p.name
 
 
-# ---- Extending: one file + one registry line each -----------------------------------------------
+# ---- Extending (docs/extending.md): one file + one registry line each ---------------------------------
 
 
 def test_extending_with_an_adapter(tmp_path, monkeypatch):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
     from prop_cli.config import PersonalizeConfig
 
-    mod = _module("adapters/npz_mlp.py", "adapters.npz_mlp")
+    mod = _module("prop_cli/adapters/npz_mlp.py", "prop_cli.adapters.npz_mlp", monkeypatch)
     registry = list(adapters.ADAPTERS)
     registry.insert(registry.index(next(a for a in registry if a.name == "mlp")), mod.NpzMLPAdapter())
-    monkeypatch.setattr(prop_adapters, "ADAPTERS", registry)
+    monkeypatch.setattr(adapters, "ADAPTERS", registry)
     rng = np.random.default_rng(0)
     arrays = {
         "W0": rng.normal(size=(8, 3)),
@@ -109,7 +286,7 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
 def test_extending_with_a_data_source(tmp_path, monkeypatch, workdir):
     from prop_cli.datasources import load_data
 
-    mod = _module("prop_cli/datasources/csv.py", "prop_cli.datasources.csv")
+    mod = _module("prop_cli/datasources/csv.py", "prop_cli.datasources.csv", monkeypatch)
     monkeypatch.setattr(sys.modules["prop_cli.datasources"], "SOURCES", [*SOURCES, mod.CsvSource()])
     rows = np.random.default_rng(0).uniform(-1, 1, (20, 6))
     np.savetxt(tmp_path / "d.csv", rows, delimiter=",", header="x0,x1,x2,x3,y0,y1", comments="")
@@ -125,7 +302,7 @@ def test_extending_with_a_probe(monkeypatch, workdir):
     from prop_cli.core.keys import read_key_file
     from prop_cli.datasources import load_data
 
-    mod = _module("prop_cli/probes/complement.py", "prop_cli.probes.complement")
+    mod = _module("prop_cli/attack/probes/complement.py", "prop_cli.attack.probes.complement", monkeypatch)
     monkeypatch.setattr(probes, "PROBES", [*probes.PROBES, mod.PROBE])
     key = read_key_file(workdir / "k.bin")
     users = [(workdir / "mine.npz", KeySource(key, "file"))]
@@ -144,15 +321,3 @@ def test_extending_with_a_probe(monkeypatch, workdir):
             [],
             AuditSettings(probes=["complement"]),
         )
-
-
-def test_the_readme_probe_table_is_the_registry():
-    section = README.split("## Auditing with prop attack", 1)[1].split("\n## ", 1)[0]
-    rows = [ln for ln in section.splitlines() if ln.startswith("| `")]
-    listed = [
-        ln.split("`")[1] for ln in rows if "| T" in ln or "| structure |" in ln or "| cross-user |" in ln
-    ]
-    assert list(dict.fromkeys(listed)) == probes.names()
-    for p in probes.PROBES:
-        row = next(ln for ln in rows if ln.startswith(f"| `{p.name}`"))
-        assert f"| {p.threat} | {p.kind} |" in row, p.name

@@ -106,7 +106,7 @@ def train(
 ) -> nn.Module:
     """Eq. 8 with the trainer's row counts: ``users`` = [(x, y, key bits)], fallback inputs ``pool``.
 
-    ``encoding`` is how key bits become the model's key input (prop_cli.keyed.key_codes): "raw" = the
+    ``encoding`` is how key bits become the model's key input (prop_cli.core.keyed.key_codes): "raw" = the
     paper's ±1 bits; "hashed" = prop's SHAKE-256 code, to separate the encoding's effect from PRoP's.
     """
     rng = np.random.default_rng(cfg.seed)

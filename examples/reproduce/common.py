@@ -67,7 +67,7 @@ def user_key(seed: int, salt: int = 0) -> np.ndarray:
 def t2_leakage(
     bundle: Bundle, x: np.ndarray, y: np.ndarray, key: np.ndarray, base_path: Path, budget: Budget
 ) -> dict:
-    """The audit's T2 (direct delta search) on (x, y), via prop_cli.audit.audit: the attacker's pick,
+    """The audit's T2 (direct delta search) on (x, y), via prop_cli.attack.audit.audit: the attacker's pick,
     with the original checkpoint (``base_path``) as the reference and as the search's control."""
     from prop_cli.attack.audit import audit
     from prop_cli.attack.target import load_original

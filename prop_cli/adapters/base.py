@@ -2,7 +2,7 @@
 
 An adapter turns one checkpoint format into a ``torch.nn.Module`` whose state-dict names are the
 checkpoint's own. It is one file holding a subclass of :class:`Adapter`, plus one line in the
-registry (``prop_adapters.ADAPTERS``); dispatch, option checks, help text and ``prop formats`` come
+registry (``prop_cli.adapters.ADAPTERS``); dispatch, option checks, help text and ``prop formats`` come
 from the registry.
 """
 
@@ -106,7 +106,7 @@ class Adapter(ABC):
     ``recognise``, ``load`` and ``rebuild``; ``describe`` has a default."""
 
     name: ClassVar[str]  # stored in the manifest as model.adapter: never rename
-    summary: ClassVar[str]  # one line for `prop formats`, help texts and the README
+    summary: ClassVar[str]  # one line for `prop formats`, help texts and docs/formats.md
     options: ClassVar[tuple[str, ...]] = ()  # the CheckpointOptions fields this format uses
 
     @abstractmethod

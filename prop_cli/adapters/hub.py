@@ -1,4 +1,4 @@
-"""The Hugging Face hub, pulling: ``hf://`` checkpoint paths (publishing is ``prop_cli.publish``).
+"""The Hugging Face hub, pulling: ``hf://`` checkpoint paths (publishing is ``prop_cli.deploy.publish``).
 
 ``hf://<org>/<name>[@revision]/<path/in/repo>`` (``hf://datasets/<org>/<name>/...`` for a dataset
 repo) is fetched with ``huggingface_hub.hf_hub_download`` into the usual hub cache; a path ending in

@@ -172,7 +172,7 @@ def audit(
     device: str = "cpu",
     progress: Progress | None = None,
 ) -> dict:
-    """Run the audit; returns the report (schema ``prop-audit/2``, documented in the README).
+    """Run the audit; returns the report (schema ``prop-audit/2``, documented in docs/audit.md).
 
     ``keys[0]`` is the audited user's key (their targets are ``data.y``), ``keys[1:]`` other users'
     keys; no keys = a no-key audit. ``original`` is the original checkpoint's module: the reference b

@@ -10,7 +10,7 @@ from prop_cli.config import AuditSettings, parse_hamming, parse_list
 from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
-from .options import BundleArg, Device, Force, Threads, config_options
+from .options import BundleArg, Device, Force, Threads, config_options, opt
 
 # The audit settings attack exposes as --flags: AuditSettings field -> help (--probes and --hamming
 # take comma lists and are parsed below).
@@ -29,28 +29,24 @@ SETTINGS = {
 }
 
 
-def _opt(flag: str, help: str):
-    return typer.Option(flag, help=help)
-
-
-Data = Annotated[Path, _opt("--data", "The audited user's data (x, y); x alone without a key.")]
+Data = Annotated[Path, opt("--data", "The audited user's data (x, y); x alone without a key.")]
 KeyFiles = Annotated[
-    list[Path] | None, _opt("--key-file", "The audited user's key; repeat for others' keys.")
+    list[Path] | None, opt("--key-file", "The audited user's key; repeat for others' keys.")
 ]
-UserPassphrase = Annotated[bool, _opt("--passphrase", "The audited user's key from a passphrase.")]
+UserPassphrase = Annotated[bool, opt("--passphrase", "The audited user's key from a passphrase.")]
 CommaList = str | None
-Probes = Annotated[CommaList, _opt("--probes", "Probes to run, comma-separated, or none (default: all).")]
-Search = Annotated[CommaList, _opt("--search", "Older form of --probes: key probes + these searches.")]
-Hamming = Annotated[CommaList, _opt("--hamming", "Hamming distances: 1..8, 1,2,4 or 3 (default 1..8).")]
+Probes = Annotated[CommaList, opt("--probes", "Probes to run, comma-separated, or none (default: all).")]
+Search = Annotated[CommaList, opt("--search", "Older form of --probes: key probes + these searches.")]
+Hamming = Annotated[CommaList, opt("--hamming", "Hamming distances: 1..8, 1,2,4 or 3 (default 1..8).")]
 Original = Annotated[
-    str | None, _opt("--original", "Original checkpoint: reference output, controls' model.")
+    str | None, opt("--original", "Original checkpoint: reference output, controls' model.")
 ]
-JsonReport = Annotated[Path | None, _opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
-Plot = Annotated[Path | None, _opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
+JsonReport = Annotated[Path | None, opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
+Plot = Annotated[Path | None, opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
 MaxLeak = Annotated[
-    float | None, _opt("--max-leak", "Exit 1 if a group leaks more (searches: beyond control).")
+    float | None, opt("--max-leak", "Exit 1 if a group leaks more (searches: beyond control).")
 ]
-Record = Annotated[bool, _opt("--record", "Store the audit summary in the bundle manifest.")]
+Record = Annotated[bool, opt("--record", "Store the audit summary in the bundle manifest.")]
 
 
 @config_options(AuditSettings, SETTINGS, into="settings")

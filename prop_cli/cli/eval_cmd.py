@@ -3,12 +3,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import typer
-
 from prop_cli.config import EvalSettings
 
 from .common import err, out, print_json, read_passphrase
-from .options import BundleArg, Json, KeyFile, Passphrase, config_options
+from .options import BundleArg, Json, KeyFile, Passphrase, config_options, opt
 
 SETTINGS = {
     "episodes": "Episodes for the user key, no key and --original.",
@@ -19,49 +17,26 @@ SETTINGS = {
     "ignore_terminated": "Keep acting after the environment says terminated (stop at its time limit).",
     "seed": "First evaluation seed (keep it away from the seeds your data was recorded with).",
 }
+Env = Annotated[str, opt("--env", "gymnasium id; package:Id imports the package first "
+                                  "(panda_gym:PandaReach-v3).")]  # fmt: skip
+ObsMap = Annotated[str | None, opt("--obs-map", "Policy feature=observation key, comma-separated "
+                                                "(dict observations).")]  # fmt: skip
+Metric = Annotated[str | None, opt("--metric", "Your preference metric: "
+                                               "package.module:function(trajectory).")]  # fmt: skip
+Original = Annotated[str | None, opt("--original", "Also roll out the original checkpoint (the control).")]
+VecNormalize = Annotated[Path | None, opt("--vecnormalize", "SB3 VecNormalize.save() file: normalise "
+                                          "observations as in training (read without running its "
+                                          "code).")]  # fmt: skip
+Video = Annotated[Path | None, opt("--video", "New folder: one mp4 per condition, its first episode "
+                                              "(prop-cli[video]).")]  # fmt: skip
 
 
 @config_options(EvalSettings, SETTINGS, into="settings")
 def eval_(
-    bundle: BundleArg,
-    settings: EvalSettings,
-    env: Annotated[
-        str,
-        typer.Option(
-            "--env", help="gymnasium id; package:Id imports the package first (panda_gym:PandaReach-v3)."
-        ),
-    ],
-    key_file: KeyFile = None,
-    passphrase: Passphrase = False,
-    obs_map: Annotated[
-        str | None,
-        typer.Option(
-            "--obs-map", help="Policy feature=observation key, comma-separated (dict observations)."
-        ),
-    ] = None,
-    metric: Annotated[
-        str | None,
-        typer.Option("--metric", help="Your preference metric: package.module:function(trajectory)."),
-    ] = None,
-    original: Annotated[
-        str | None, typer.Option("--original", help="Also roll out the original checkpoint (the control).")
-    ] = None,
-    vecnormalize: Annotated[
-        Path | None,
-        typer.Option(
-            "--vecnormalize",
-            help="SB3 VecNormalize.save() file: normalise observations as in training (read without "
-            "running its code).",
-        ),
-    ] = None,
-    video: Annotated[
-        Path | None,
-        typer.Option(
-            "--video", help="New folder: one mp4 per condition, its first episode (prop-cli[video])."
-        ),
-    ] = None,
-    as_json: Json = False,
-) -> None:
+    bundle: BundleArg, settings: EvalSettings, env: Env, key_file: KeyFile = None,
+    passphrase: Passphrase = False, obs_map: ObsMap = None, metric: Metric = None, original: Original = None,
+    vecnormalize: VecNormalize = None, video: Video = None, as_json: Json = False,
+) -> None:  # fmt: skip
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
     from prop_cli.api import eval_bundle
 

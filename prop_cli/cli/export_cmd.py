@@ -9,38 +9,26 @@ from prop_cli.config import ExportSettings
 from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, fail, out, print_json, read_passphrase
-from .options import BundleArg, Force, Json, Passphrase, Threads, config_options
+from .options import BundleArg, Force, Json, Passphrase, Threads, config_options, opt
 
 SETTINGS = {  # ExportSettings field -> help of its --flag
     "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
     "atol": "Largest accepted |onnxruntime - torch| difference in the check.",
 }
+Onnx = Annotated[bool, opt("--onnx", "Export ONNX graphs (needs: pip install 'prop-cli[onnx]').")]
+OutDir = Annotated[Path | None, opt("--out", "Folder to write the graphs to (default: BUNDLE/onnx).")]
+VerifyKey = Annotated[
+    Path | None, opt("--key-file", "Also verify with your key (the key is never written to the graphs).")
+]
+VerifyInputs = Annotated[Path | None, opt("--input", "Verify on these inputs (.npy or a data file's x).")]
 
 
 @config_options(ExportSettings, SETTINGS, into="settings")
 def export(
-    bundle: BundleArg,
-    settings: ExportSettings,
-    onnx: Annotated[
-        bool, typer.Option("--onnx", help="Export ONNX graphs (needs: pip install 'prop-cli[onnx]').")
-    ] = False,
-    out_dir: Annotated[
-        Path | None, typer.Option("--out", help="Folder to write the graphs to (default: BUNDLE/onnx).")
-    ] = None,
-    key_file: Annotated[
-        Path | None,
-        typer.Option(
-            "--key-file", help="Also verify with your key (the key is never written to the graphs)."
-        ),
-    ] = None,
-    passphrase: Passphrase = False,
-    input_path: Annotated[
-        Path | None, typer.Option("--input", help="Verify on these inputs (.npy or a data file's x).")
-    ] = None,
-    threads: Threads = DEFAULT_THREADS,
-    force: Force = False,
-    as_json: Json = False,
-) -> None:
+    bundle: BundleArg, settings: ExportSettings, onnx: Onnx = False, out_dir: OutDir = None,
+    key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
+    threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
+) -> None:  # fmt: skip
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime."""
     if not onnx:
         fail("choose an export format", "pass --onnx")

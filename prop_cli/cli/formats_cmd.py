@@ -7,7 +7,7 @@ import typer
 from .common import out, print_json
 from .options import Json
 
-Markdown = Annotated[bool, typer.Option("--markdown", help="Print the table the README holds.")]
+Markdown = Annotated[bool, typer.Option("--markdown", help="Print the table docs/formats.md holds.")]
 
 
 def formats(as_json: Json = False, markdown: Markdown = False) -> None:

@@ -18,6 +18,12 @@ import typer
 
 FORMATS = "`prop formats` lists the formats"
 
+
+def opt(flag: str, help: str, **kwargs):
+    """``typer.Option(flag, help=help)``: commands declare their own options as one-line aliases."""
+    return typer.Option(flag, help=help, **kwargs)
+
+
 Checkpoint = Annotated[
     str,
     typer.Argument(help=f"Checkpoint file or folder, or hf://org/name[@rev]/path ({FORMATS})."),

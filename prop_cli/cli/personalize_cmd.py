@@ -3,8 +3,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import typer
-
 from prop_cli.config import TASKS, PersonalizeConfig
 from prop_cli.constants import (
     DEFAULT_BUNDLE,
@@ -15,7 +13,18 @@ from prop_cli.constants import (
 )
 
 from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
-from .options import Activation, Arch, ArchKwargs, Checkpoint, Device, Force, Json, Threads, config_options
+from .options import (
+    Activation,
+    Arch,
+    ArchKwargs,
+    Checkpoint,
+    Device,
+    Force,
+    Json,
+    Threads,
+    config_options,
+    opt,
+)
 
 # The training settings personalize exposes, as --flags: PersonalizeConfig field -> help.
 SETTINGS = {
@@ -51,29 +60,29 @@ SETTINGS = {
 }
 
 
+Data = Annotated[list[Path], opt("--data", "Your data (x, y); repeat per user (`prop formats`).")]
+KeyFiles = Annotated[list[Path] | None, opt("--key-file", "A user's key file; repeat.")]
+Passphrases = Annotated[
+    int, opt("--passphrase", "Derive a key from a passphrase; repeat per user.", count=True)
+]
+Out = Annotated[Path, opt("--out", "Bundle directory to write.")]
+General = Annotated[Path | None, opt("--general-data", "Inputs (x) on which the original must be kept.")]
+Bits = Annotated[int, opt("--bits", "Key size for --passphrase.")]
+
+
 @config_options(PersonalizeConfig, SETTINGS)
 def personalize(
     checkpoint: Checkpoint,
-    data: Annotated[
-        list[Path], typer.Option("--data", help="Your data (x, y); repeat per user (`prop formats`).")
-    ],
+    data: Data,
     config: PersonalizeConfig,
-    key_file: Annotated[
-        list[Path] | None, typer.Option("--key-file", help="A user's key file; repeat.")
-    ] = None,
-    passphrase: Annotated[
-        int, typer.Option("--passphrase", count=True, help="Derive a key from a passphrase; repeat per user.")
-    ] = 0,
-    out_path: Annotated[Path, typer.Option("--out", help="Bundle directory to write.")] = Path(
-        DEFAULT_BUNDLE
-    ),
-    general: Annotated[
-        Path | None, typer.Option("--general-data", help="Inputs (x) on which the original must be kept.")
-    ] = None,
+    key_file: KeyFiles = None,
+    passphrase: Passphrases = 0,
+    out_path: Out = Path(DEFAULT_BUNDLE),
+    general: General = None,
     arch: Arch = None,
     arch_kwargs: ArchKwargs = None,
     activation: Activation = None,
-    bits: Annotated[int, typer.Option("--bits", help="Key size for --passphrase.")] = KEY_BITS_DEFAULT,
+    bits: Bits = KEY_BITS_DEFAULT,
     device: Device = DEFAULT_DEVICE,
     threads: Threads = DEFAULT_THREADS,
     force: Force = False,

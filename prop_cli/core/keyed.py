@@ -117,7 +117,7 @@ class KeyedModel(nn.Module):
         self.share_prefix: bool | None = None
         # Axis of the batch in each keyed layer's input (name -> axis; absent = 0). Sequence-first
         # layers (nn.Transformer* without batch_first, as in LeRobot's ACT) take (S, B, D): see
-        # prop_cli.batch_axes, which finds them by probing.
+        # prop_cli.core.batch_axes, which finds them by probing.
         self.batch_axis: dict[str, int] = {}
         # None = not probed yet: may K keys run as K copies of the batch in one forward (rows independent)?
         self.rows_independent: bool | None = None

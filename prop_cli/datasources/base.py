@@ -3,7 +3,7 @@
 A data source is one file holding a subclass of :class:`DataSource` plus one line in the registry
 (``prop_cli.datasources.SOURCES``). It reads and checks what its format can check (numbers, finite,
 shapes, one target per input); what depends on the model (features, task, bounds) is checked later
-against the checkpoint (``prop_cli.data``).
+against the checkpoint (``prop_cli.datasources.fit``).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class DataSource(ABC):
     """One data format. Subclasses set ``name`` and ``summary`` and implement ``recognise`` and ``load``."""
 
     name: ClassVar[str]
-    summary: ClassVar[str]  # one line for `prop formats`, help texts and the README
+    summary: ClassVar[str]  # one line for `prop formats`, help texts and docs/formats.md
     # True if a path may carry a selection after the file or folder name (so it need not exist as is).
     selects: ClassVar[bool] = False
 

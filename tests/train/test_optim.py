@@ -57,7 +57,7 @@ def test_cosine_lr_ends_at_the_floor():
 def test_training_does_not_import_torch_dynamo():
     code = (
         "import sys, torch\n"
-        "from prop_cli.optim import Adam\n"
+        "from prop_cli.train.optim import Adam\n"
         "w = torch.ones(3, requires_grad=True); opt = Adam([w], lr=0.1)\n"
         "(w * w).sum().backward(); opt.step()\n"
         "print('torch._dynamo' in sys.modules)\n"

@@ -231,7 +231,7 @@ class Probe:
     name: str
     threat: str  # one of THREATS
     kind: str  # one of KINDS
-    summary: str  # one line for help texts and the README
+    summary: str  # one line for help texts and docs/audit.md
     run: Callable[[ProbeContext], list[Group]]
     # (context, the groups run found) -> the control's groups, matched to run's by name
     control: Callable[[ProbeContext, list[Group]], list[Group]] | None = None

@@ -30,7 +30,7 @@ def blank_keyed(module: torch.nn.Module, layer_names: list[str], key_bits: int) 
 
 @dataclass
 class SealedContext(ProbeContext):
-    sealed: object = None  # prop_cli.bundle.records.SealedState
+    records: object = None  # prop_cli.bundle.records.SealedState: the keys are tried on these
 
     def on(self, km: KeyedModel) -> ProbeContext:
         """A control runs where the bundle gives nothing: no records to open."""
@@ -47,7 +47,7 @@ class SealedContext(ProbeContext):
         s_base = self.scores(o_base)
         parts, outs = [], []
         for k in bits:
-            opened = self.sealed.open(k)
+            opened = self.records.open(k)
             o = o_base if opened is None else opened.payload.fold(base)(x)[None]
             parts.append(s_base if opened is None else self.scores(o))
             if outputs:
@@ -74,7 +74,7 @@ class SealedContext(ProbeContext):
         done = 0
         for chunk in chunks:
             for k in chunk:
-                if self.sealed.open(k) is not None:
+                if self.records.open(k) is not None:
                     opened.append(k)
                 elif len(kept) < keep:
                     kept.append(k)

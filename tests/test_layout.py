@@ -1,0 +1,230 @@
+"""The layout holds (docs/design.md, "Layout"): no import circle, a small root, each variation decided in
+one module per stage, no private name used outside its module, a CLI that starts without torch.
+
+The direction of imports between stages is checked by `lint-imports` (pyproject.toml); these tests
+read the source with ``ast``, so they also see imports inside functions, which exist to keep
+`prop --help` fast and must not hide a circle.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = ROOT / "prop_cli"
+# The stages: the folders of prop_cli, and the modules at its root as one more.
+STAGES = sorted(p.name for p in PKG.iterdir() if p.is_dir() and (p / "__init__.py").is_file())
+
+
+def _name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+MODULES = {_name(p): p for p in sorted(PKG.rglob("*.py"))}
+
+
+def _stage(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in STAGES) else "(root)"
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING"
+    )
+
+
+def _walk_runtime(tree: ast.AST):
+    """Every node, but not the body of ``if TYPE_CHECKING:`` (never run)."""
+    stack = [tree]
+    while stack:
+        node = stack.pop()
+        yield node
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and _is_type_checking(child):
+                stack.extend(child.orelse)
+            else:
+                stack.append(child)
+
+
+def _imports(module: str) -> set[str]:
+    """The prop_cli modules ``module`` imports anywhere in its code (functions included)."""
+    path = MODULES[module]
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: set[str] = set()
+    for node in _walk_runtime(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            for a in node.names:
+                out.add(f"{base}.{a.name}" if f"{base}.{a.name}" in MODULES else base)
+    return {m for m in out if m in MODULES and m != module}
+
+
+GRAPH = {m: _imports(m) for m in MODULES}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_graph_is_read():
+    """The walk sees real edges, including imports inside functions (so a circle could not hide)."""
+    assert "prop_cli.api" in GRAPH["prop_cli.cli.run_cmd"]  # imported inside the command's body
+    assert "prop_cli.bundle.records" in GRAPH["prop_cli.bundle.modes"]
+    assert "prop_cli.attack.probes.base" not in GRAPH["prop_cli.attack.probes.screen"]  # type-only
+
+
+def test_no_import_circle():
+    assert _cycles(GRAPH) == []
+
+
+def test_a_circle_is_found():
+    graph = {m: set(e) for m, e in GRAPH.items()}
+    graph["prop_cli.bundle.read"].add("prop_cli.train.choose")  # the circle the old layout had
+    assert any("prop_cli.bundle.read" in c and "prop_cli.train.choose" in c for c in _cycles(graph))
+
+
+def test_the_root_holds_at_most_eight_modules():
+    root = sorted(p.name for p in PKG.glob("*.py"))
+    assert len(root) <= 8, root
+
+
+def _mentions(test: ast.AST, names: set[str]) -> bool:
+    for n in ast.walk(test):
+        if isinstance(n, ast.Attribute) and n.attr in names:
+            return True
+        if isinstance(n, ast.Name) and n.id in names:
+            return True
+    return False
+
+
+def _policy_test(test: ast.AST) -> bool:
+    """``x.policy is None`` / ``is not None`` / a bare truth test of ``x.policy``."""
+    for n in ast.walk(test):
+        if isinstance(n, ast.Compare) and isinstance(n.left, ast.Attribute) and n.left.attr == "policy":
+            return True
+    return isinstance(test, ast.Attribute) and test.attr == "policy"
+
+
+SEALED_MARKERS = {"is_sealed", "sealed", "seal", "MODE_SEALED", "MODE_UNSEALED", "Sealed", "Unsealed"}
+
+
+def _decisions(path: Path) -> dict[str, bool]:
+    """Does the module branch on sealed vs unsealed, and on array model vs policy?"""
+    found = {"sealed": False, "policy": False}
+    for node in _walk_runtime(ast.parse(path.read_text())):
+        if isinstance(node, (ast.If, ast.IfExp, ast.While, ast.Assert)):
+            found["sealed"] |= _mentions(node.test, SEALED_MARKERS)
+            found["policy"] |= _policy_test(node.test)
+    return found
+
+
+def test_each_variation_is_decided_in_one_module_per_stage():
+    deciders: dict[tuple[str, str], list[str]] = {}
+    for module, path in MODULES.items():
+        for variation, yes in _decisions(path).items():
+            if yes:
+                deciders.setdefault((_stage(module), variation), []).append(module)
+    many = {k: v for k, v in deciders.items() if len(v) > 1}
+    assert not many, many
+    # and the decisions are where docs/design.md says they are
+    assert deciders[("bundle", "sealed")] == ["prop_cli.bundle.modes"]
+    assert deciders[("train", "sealed")] == deciders[("train", "policy")] == ["prop_cli.train.choose"]
+    assert deciders[("attack", "sealed")] == deciders[("attack", "policy")] == ["prop_cli.attack.target"]
+
+
+def test_the_decision_finder_sees_a_decision(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("def f(b, m):\n    x = 1 if b.is_sealed else 2\n    if m.policy is None:\n        pass\n")
+    assert _decisions(f) == {"sealed": True, "policy": True}
+
+
+def _private_uses(path: Path) -> list[str]:
+    """``from prop_cli.x import _y``, and ``mod._y`` where ``mod`` is an imported prop_cli module."""
+    tree = ast.parse(path.read_text())
+    modules: set[str] = set()
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("prop_cli")):
+            for a in node.names:
+                if a.name.startswith("_") and a.name != "__version__":
+                    out.append(f"{node.module}.{a.name}")
+                base = f"{node.module}.{a.name}" if node.module else a.name
+                if base in MODULES or node.level:
+                    modules.add(a.asname or a.name)
+        elif isinstance(node, ast.Import):
+            modules.update(a.asname or a.name for a in node.names if a.name.startswith("prop_cli"))
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+            and isinstance(node.value, ast.Name)
+            and node.value.id in modules
+        ):
+            out.append(f"{node.value.id}.{node.attr}")
+    return out
+
+
+def test_no_private_name_is_used_outside_its_module():
+    used = {m: u for m, p in MODULES.items() if (u := _private_uses(p))}
+    assert used == {}
+
+
+@pytest.mark.parametrize("args", [["--help"], ["personalize", "--help"]])
+def test_the_cli_starts_without_torch(args):
+    """`prop --help` stays fast: no command imports torch (or the library) before it runs
+    (the 0.5 s target is measured by benchmarks/bench_cli.py)."""
+    code = (
+        "import sys\n"
+        f"sys.argv = ['prop', *{args!r}]\n"
+        "from prop_cli.cli.main import app\n"
+        "try:\n    app()\nexcept SystemExit:\n    pass\n"
+        "print('torch' in sys.modules, 'prop_cli.api' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False False"
