@@ -1,7 +1,8 @@
 """LeRobot policies and datasets under prop (pytest -m lerobot; scripts/test-lerobot.sh).
 
 A tiny ACT and two tiny LeRobotDatasets are made here from the scripted PandaReach expert: no
-downloads. Skipped where lerobot is not installed (the default environment and CI).
+downloads. Skipped where lerobot is not installed (the default environment); `.ci/run` runs them in
+.venv-lerobot.
 """
 
 from __future__ import annotations
