@@ -41,7 +41,7 @@ from prop_cli.core.keys import (
     read_key_file,
     user_keys,
 )
-from prop_cli.core.layers import linear_layers, select_layers
+from prop_cli.core.layers import describe_layer, keyable_layers, select_layers
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.datasources.npz import read_npy
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
@@ -120,20 +120,27 @@ def inspect_checkpoint(
     layers: list[str] | None = None,
     exclude: list[str] | None = None,
 ) -> dict:
-    """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
+    """The linear layers and convolutions of a checkpoint, which of them would be keyed, and what its
+    adapter knows. ``keyed_parameters``: the weights and biases of the keyed layers, the parameters a key
+    acts on (``keyed_share`` of all)."""
     loaded = _load(path, opts)
     default = loaded.policy.default_layers if loaded.policy is not None else None
     chosen = set(select_layers(loaded.module, layers or default, exclude))
+    total = _parameters(loaded.module)
+    rows = [
+        {**describe_layer(n, m), "kind": type(m).__name__, "parameters": _parameters(m), "keyed": n in chosen}
+        for n, m in keyable_layers(loaded.module)
+    ]
+    keyed = sum(r["parameters"] for r in rows if r["keyed"])
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
         "model": adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
-        "parameters": _parameters(loaded.module),
-        "layers": [
-            {"name": n, "in_features": m.in_features, "out_features": m.out_features, "keyed": n in chosen}
-            for n, m in linear_layers(loaded.module)
-        ],
+        "parameters": total,
+        "keyed_parameters": keyed,
+        "keyed_share": keyed / total if total else 0.0,
+        "layers": rows,
     }
 
 

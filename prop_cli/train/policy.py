@@ -24,7 +24,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.keyspace import KeySampler, one_bit_neighbours, random_keys
-from prop_cli.core.layers import select_layers
+from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
@@ -92,7 +92,7 @@ class PolicyTrainer:
         self.targets = chunks(self.original_policy, self.fb)
 
         mods = dict(module.named_modules())
-        features = [mods[n].in_features for n in names]
+        features = [in_width(mods[n]) for n in names]
         encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
         self.km = KeyedModel(module, encoder, names)
         self.km.batch_axis = probe_batch_axes(
