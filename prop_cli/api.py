@@ -221,6 +221,12 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
     return x
 
 
+def _seed_noise(loaded: adapters.LoadedModel, seed: int) -> None:
+    """A sampling policy draws its chunks' noise from ``seed`` (others have no noise)."""
+    if loaded.policy is not None:
+        loaded.policy.noise_seed = int(seed)
+
+
 def _array_model(bundle: Bundle, command: str) -> Bundle:
     """Refuse, in one line, policies with named observation features where a command has no policy
     path yet (ONNX)."""
@@ -252,11 +258,14 @@ def run_file(
     onnx_dir: Path | None = None,
     force: bool = False,
     threads: int | None = None,
+    noise_seed: int = 0,
 ) -> RunResult:
-    """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key."""
+    """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
+    ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
     bundle = load_bundle(bundle_path)
+    _seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     use_onnx = onnx or onnx_dir is not None
@@ -299,10 +308,11 @@ def audit_bundle(
     check_threads(threads)
     bundle = load_bundle(bundle_path)
     configure_threads(bundle.parameters, threads)
+    _seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
-    ref = target.load_original(bundle, original) if original else None
+    ref = target.load_original(bundle, original, settings.noise_seed) if original else None
     return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
 
 
@@ -355,6 +365,9 @@ def eval_bundle(
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
     ref = _load(original, None) if original else None
+    for loaded in (bundle.loaded, ref):
+        if loaded is not None:
+            _seed_noise(loaded, settings.noise_seed)
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,

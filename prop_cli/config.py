@@ -162,9 +162,12 @@ class AuditSettings(_Settings):
     blackbox: int | None = None
     blackbox_screen: int = 8  # samples each scanned key is screened on
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
+    # A sampling policy's chunks (LeRobot Diffusion) start from this seed's noise, for every key and
+    # the original alike: outputs compare as functions of the key alone.
+    noise_seed: int = 0
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
-        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2)
+        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, noise_seed=0)
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         if self.blackbox is None:
@@ -251,9 +254,12 @@ class EvalSettings(_Settings):
     # the goal): a preference judged at the episode's end needs the whole episode under every key.
     ignore_terminated: bool = False
     seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
+    # A sampling policy's noise (LeRobot Diffusion): each query of an episode is seeded from (noise_seed,
+    # the episode's seed, the query's number), the same under every key (prop_cli.adapters.lerobot).
+    noise_seed: int = 0
 
     def validate(self, has_key: bool) -> EvalSettings:
-        self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0)
+        self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0, noise_seed=0)
         self.need(self.max_steps >= 0, "max_steps", ">= 0 (0: the environment's limit)")
         if self.neighbours and not has_key:
             self.neighbours = 0  # neighbours are keys a few bits from the user's: none without it

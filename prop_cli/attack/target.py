@@ -51,9 +51,9 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
     return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, settings
 
 
-def load_original(bundle: Bundle, path: str) -> nn.Module:
+def load_original(bundle: Bundle, path: str, noise_seed: int = 0) -> nn.Module:
     """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
-    flat view, as the bundle is audited)."""
+    flat view, as the bundle is audited, its chunks sampled from ``noise_seed`` like the bundle's)."""
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
@@ -65,6 +65,7 @@ def load_original(bundle: Bundle, path: str) -> nn.Module:
             "pass the checkpoint the bundle was personalized from",
         ) from None
     if loaded.policy is not None:
+        loaded.policy.noise_seed = noise_seed
         return flat_module(loaded.policy)
     return loaded.module.eval()
 

@@ -182,7 +182,7 @@ ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
         "sb3_version": _opt(text(), nullable=True),
     },
     "module": {"arch": text(), "arch_kwargs": RECORD},
-    "lerobot": {"type": choice(("act",)), "lerobot_version": text()},
+    "lerobot": {"type": choice(C.LEROBOT_TYPES), "lerobot_version": text()},
     "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
 }
 

@@ -26,6 +26,7 @@ SETTINGS = {
     "blackbox_screen": "Samples each black-box key is screened on.",
     "blackbox_keep": "Black-box keys kept per criterion and re-scored.",
     "seed": "Seed for probe keys, samples and search restarts.",
+    "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion): every key's chunks start from it.",
 }
 
 

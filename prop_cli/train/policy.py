@@ -1,12 +1,14 @@
-"""Recipe: a policy that brings its own loss (LeRobot ACT), unsealed: Eq. 8 with the policy's own terms.
+"""Recipe: a policy that brings its own loss (LeRobot ACT, Diffusion), unsealed: Eq. 8 with the policy's
+own terms, which the policy protocol (``PolicyProtocol``) supplies.
 
 User term: the policy's own training loss (ACT: L1 on the action chunk, padding masked, plus its
-VAE's KL) on the user's frames, every row under the user's key. Fallback terms (the null key, weighted
-by ``null_weight``; K1 Hamming neighbours and K2 random keys): L1 between the keyed policy's deployed
-chunk and the frozen original's chunk on general observations, the targets computed once
-("distill"). Measured against the policy's loss on general data and against relabelled actions, the
-distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest to
-the original's (examples/RESULTS.md, "LeRobot ACT").
+VAE's KL; Diffusion: its noise-prediction MSE) on the user's frames, every row under the user's key.
+Fallback terms (the null key, weighted by ``null_weight``; K1 Hamming neighbours and K2 random keys)
+distil the frozen original on general observations ("distill"): ACT's deployed chunk, L1, the targets
+computed once; Diffusion's denoiser on the same (observation, x_t, t) rows, MSE, the original run on
+each step's rows. Measured against the policy's loss on general data and against relabelled actions,
+the distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest
+to the original's (examples/RESULTS.md, "LeRobot ACT").
 
 Two forwards per step: the user rows in training mode (the policy's loss needs its training path),
 the fallback rows in eval mode (the path the policy is deployed with). Rows carry their own keys.
@@ -88,8 +90,11 @@ class PolicyTrainer:
         fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
         self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
         self.original = copy.deepcopy(module).requires_grad_(False).eval()
-        self.original_policy = type(policy)(self.original, policy.pre, policy.post)
+        self.original_policy = policy.on(self.original)
+        # The original's deployed chunk per fallback frame: the fallback target (ACT), or what a
+        # denoiser's fallback rows are noised from (Diffusion).
         self.targets = chunks(self.original_policy, self.fb)
+        self.fb_generator = torch.Generator().manual_seed(cfg.seed)
 
         mods = dict(module.named_modules())
         features = [in_width(mods[n]) for n in names]
@@ -128,10 +133,14 @@ class PolicyTrainer:
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
         deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
-        pred = km.call_rows(
-            [d.index_select(0, key_of_row) for d in deltas], policy.chunk, rows(self.fb, idx)
-        )
-        per_row = (pred - self.targets[idx]).abs().flatten(1).mean(1)
+        fb_rows = policy.fallback_rows(rows(self.fb, idx), self.targets[idx], self.fb_generator)
+        pred = km.call_rows([d.index_select(0, key_of_row) for d in deltas], policy.fallback_output, fb_rows)
+        if policy.fallback_from_chunks:
+            target = self.targets[idx]
+        else:
+            with torch.no_grad():
+                target = self.original_policy.fallback_output(fb_rows)
+        per_row = policy.fallback_distance(pred, target)
         null = per_row[: len(gi)].mean()
         keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
         self.optim.update(personal + keyed + cfg.null_weight * null)
