@@ -32,7 +32,7 @@ from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import KEYED_GRAPH
-from prop_cli.core.keyed import key_codes
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
 from prop_cli.deploy.onnx.common import session
 

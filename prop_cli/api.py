@@ -32,8 +32,7 @@ from prop_cli.bundle.records import (
 )
 from prop_cli.bundle.runtime import run_policy
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keys import (
+from prop_cli.core.key_files import (
     KeySource,
     generate_key_file,
     kdf_record,
@@ -41,6 +40,7 @@ from prop_cli.core.keys import (
     read_key_file,
     user_keys,
 )
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.core.layers import linear_layers, select_layers
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.datasources.npz import read_npy
@@ -153,8 +153,8 @@ def personalize_checkpoint(
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
-    ``users`` pairs each user's data file with their key (``core.keys.user_keys`` builds them from key files
-    and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
+    ``users`` pairs each user's data file with their key (``core.key_files.user_keys`` builds them from key
+    files and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
     ``prop_cli.threads`` chooses from the model's size and the idle cores).
     """
     bits = {len(k.bits) for _, k in users}

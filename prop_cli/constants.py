@@ -40,7 +40,7 @@ MODES = (MODE_UNSEALED, MODE_SEALED)
 M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.bundle.manifest)
 M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
-# How key bits become the encoder's input (prop_cli.core.keyed.key_codes); the first is the default.
+# How key bits become the encoder's input (prop_cli.core.keyed_model.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")
 
 # A module attribute (a list of layer names) an adapter sets where the default choice of keyed layers

@@ -161,7 +161,7 @@ def test_the_readme_imports_the_api():
 
 @pytest.mark.parametrize("path", OWN, ids=lambda p: str(p.relative_to(ROOT)))
 def test_the_docs_name_modules_by_their_current_paths(path):
-    """Imports, dotted names (`prop_cli.core.keys.user_keys`) and file paths (`prop_cli/bundle/...py`)
+    """Imports, dotted names (`prop_cli.core.key_files.user_keys`) and file paths (`prop_cli/bundle/...py`)
     in the README and docs/ are those of the current layout, not the deprecated 0.1 paths."""
     text = path.read_text()
     for mod, _ in _imports(text):
@@ -299,7 +299,7 @@ def test_extending_with_a_probe(monkeypatch, workdir):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
     from prop_cli.attack.audit import audit
     from prop_cli.config import AuditSettings, PersonalizeConfig
-    from prop_cli.core.keys import read_key_file
+    from prop_cli.core.key_files import read_key_file
     from prop_cli.datasources import load_data
 
     mod = _module("prop_cli/attack/probes/complement.py", "prop_cli.attack.probes.complement", monkeypatch)

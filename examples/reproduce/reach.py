@@ -33,8 +33,8 @@ from torch import nn
 from examples.reproduce import baselines, common, ppo
 from prop_cli import constants as C
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import select_layers
 from prop_cli.errors import PropError
 

@@ -20,7 +20,7 @@ from prop_cli.bundle import Bundle
 from prop_cli.config import AuditSettings, parse_hamming
 from prop_cli.core import metrics
 from prop_cli.core.device import resolve_device
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import prepare
 from prop_cli.errors import PropError

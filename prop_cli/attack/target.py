@@ -26,7 +26,7 @@ from prop_cli.adapters.hub import resolve_checkpoint
 from prop_cli.adapters.lerobot.flat import flat_module
 from prop_cli.bundle import Bundle
 from prop_cli.config import BLACKBOX_KEYS_POLICY, AuditSettings
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import flat_dataset
 from prop_cli.errors import PropError

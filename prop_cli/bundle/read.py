@@ -11,7 +11,7 @@ import numpy as np
 from prop_cli import adapters
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file
 

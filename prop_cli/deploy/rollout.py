@@ -27,7 +27,7 @@ from prop_cli.adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle, KeyedPolicy
 from prop_cli.bundle.runtime import module_for_key
 from prop_cli.config import EvalSettings
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
 from prop_cli.files import staged_dir
 

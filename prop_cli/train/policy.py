@@ -22,8 +22,8 @@ import torch
 from prop_cli.adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError

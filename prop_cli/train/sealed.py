@@ -23,8 +23,8 @@ from prop_cli.bundle import write_sealed
 from prop_cli.bundle.records import SealedState, public_metrics
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core import metrics
-from prop_cli.core.keys import kdf_record, new_salt
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_files import kdf_record, new_salt
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.layers import select_layers
 from prop_cli.core.payload import PayloadSpec
 from prop_cli.datasources import Dataset

@@ -21,7 +21,7 @@ from prop_cli import api  # noqa: E402
 from prop_cli.adapters import load_checkpoint  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import EvalSettings, PersonalizeConfig  # noqa: E402
-from prop_cli.core.keys import KeySource  # noqa: E402
+from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.errors import PropError  # noqa: E402
 
@@ -102,7 +102,7 @@ def test_bundle_base_loads_in_lerobot_and_keys_change_only_keyed_runs(bundle, wo
     with torch.no_grad():
         lerobot_chunk = base.model(dict(x))[0]
         no_key = b.loaded.policy.chunk(x)
-        from prop_cli.core.keyed import key_codes
+        from prop_cli.core.keyed_model import key_codes
 
         user = b.keyed.fold(key_codes(key(), b.key_encoding)).model(dict(x))[0]
     assert torch.allclose(lerobot_chunk, no_key, atol=1e-6)
@@ -234,7 +234,7 @@ def test_attack_audits_chunks_with_controls_on_the_original(bundle, work):
     assert all(g["control"]["available"] for g in names.values())
     # The user key's leakage is the metric on whole normalised chunks: recompute it by hand from the
     # original's and the keyed policy's chunks and the recorded chunks (every frame of the data).
-    from prop_cli.core.keyed import key_codes
+    from prop_cli.core.keyed_model import key_codes
     from prop_cli.core.metrics import leakage
 
     b = load_bundle(bundle)

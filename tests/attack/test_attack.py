@@ -15,7 +15,7 @@ from prop_cli.attack.audit import audit
 from prop_cli.attack.probes import select
 from prop_cli.bundle import load_bundle
 from prop_cli.config import AuditSettings, PersonalizeConfig, parse_hamming
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
 from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file

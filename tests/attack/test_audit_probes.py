@@ -15,7 +15,7 @@ from prop_cli.attack.probes.screen import ChainForward
 from prop_cli.attack.target import load_original
 from prop_cli.bundle import load_bundle
 from prop_cli.config import AuditSettings, PersonalizeConfig
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
 from tests.conftest import write_keys, write_user_data
 
 # Every probe, the new ones small: what the verdicts below need, not the default budget.

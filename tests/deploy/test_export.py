@@ -15,8 +15,8 @@ from prop_cli import constants as C
 from prop_cli.api import CheckpointOptions, KeySource, personalize_checkpoint, run_bundle
 from prop_cli.bundle import load_bundle
 from prop_cli.config import ExportSettings, PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.deploy import onnx as ex
 from prop_cli.deploy import onnx as rt
 from prop_cli.errors import PropError

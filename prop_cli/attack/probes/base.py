@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from prop_cli.config import AuditSettings
 from prop_cli.core import metrics
-from prop_cli.core.keyed import KeyedModel, key_codes, keys_per_forward
+from prop_cli.core.keyed_model import KeyedModel, key_codes, keys_per_forward
 
 from .screen import KeyScan, scan_keys
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from prop_cli.core.keyspace import neighbours_at
+from prop_cli.core.key_sampling import neighbours_at
 
 from .base import Group, Probe, ProbeContext, on_original
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from prop_cli.core.keyspace import random_keys
+from prop_cli.core.key_sampling import random_keys
 
 from .base import Group, Probe, ProbeContext, on_original
 

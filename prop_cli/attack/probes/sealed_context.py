@@ -16,7 +16,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from prop_cli.core.keyed import KeyedModel, KeyEncoder
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 
 from .base import KeyScan, ProbeContext, cat_scores
 

@@ -28,7 +28,7 @@ import contextlib
 import torch
 from torch import nn
 
-from prop_cli.core.keyed import KeyEncoder
+from prop_cli.core.keyed_model import KeyEncoder
 
 from .base import Group, Probe, ProbeContext
 

@@ -3,14 +3,14 @@
 Four graphs are written (names in ``constants.GRAPHS``):
 
 - ``base.onnx``     x -> y: what the base weights compute with no key (a drop-in for the original).
-- ``keyed.onnx``    (x, code) -> y with the key encoder inside the graph.
+- ``keyed_model.onnx``    (x, code) -> y with the key encoder inside the graph.
 - ``encoder.onnx``  code -> delta_1..delta_L, one scale vector per keyed layer.
 - ``policy.onnx``   (x, delta_1..delta_L) -> y: a control loop computes delta once per session with
   ``encoder.onnx``, then each step costs a base step plus one multiply per keyed layer.
 
 The key input is the encoder's ±1 *code*, not the key bits: the default "hashed" encoding is
 SHAKE-256 of the bits, which ONNX cannot express. The runtime computes the code with
-:func:`prop_cli.core.keyed.key_codes` (or the three-line hashlib recipe in docs/deploy.md).
+:func:`prop_cli.core.keyed_model.key_codes` (or the three-line hashlib recipe in docs/deploy.md).
 
 No graph holds key material or weights folded with a key: the key enters only as a graph input at
 run time, and the graphs are traced with placeholder inputs (zeros, a code of ones, deltas of ones).
@@ -28,7 +28,7 @@ from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.manifest import stamp
 from prop_cli.config import ExportSettings
-from prop_cli.core.keyed import KeyedModel, key_codes
+from prop_cli.core.keyed_model import KeyedModel, key_codes
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file, staged_dir
 
