@@ -257,6 +257,11 @@ SCHEMA: dict[str, Rule] = {
         ),
         SEALED,
     ),  # fmt: skip
+    C.M_ENROLMENTS: _opt(
+        list_of(
+            obj({"salt": hex_string(16, 16), "nonce": hex_string(12, 12), "box": hex_string(16, 1 << 16)})
+        )
+    ),
     C.M_KDF: _opt(
         obj(
             {
@@ -386,6 +391,14 @@ def _cross_check(m: dict, doc: Doc) -> None:
     spec = m[C.M_MODEL]
     if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
         raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+    if m[C.M_FORMAT] >= C.ENROL_SINCE:
+        if doc.mode == C.MODE_UNSEALED and C.M_ENROLMENTS not in m:
+            raise doc.bad(C.M_ENROLMENTS, "is missing")
+        if doc.mode == C.MODE_SEALED and C.M_ENROLMENTS in m:
+            raise doc.bad(C.M_ENROLMENTS, "is not a field of sealed bundles (their records are enrolled)")
+        checkpoint = m[C.M_IO].get("checkpoint")
+        if checkpoint and not checkpoint.startswith("hf://") and ("/" in checkpoint or "\\" in checkpoint):
+            raise doc.bad(f"{C.M_IO}.checkpoint", "must be a file name, not a path")
 
 
 def _doc(source: str, mode: object = "unsealed") -> Doc:

@@ -25,6 +25,7 @@ from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
+from .enrol import enrol
 from .read import read_manifest
 from .records import SealedState, record_entry, seal_payload, write_record
 
@@ -84,11 +85,13 @@ def write_unsealed(
     loaded: LoadedModel,
     keyed: KeyedModel,
     manifest: dict,
+    keys: list[np.ndarray],
     force: bool = False,
     copy_base: bool = False,
 ) -> dict:
-    """Write an unsealed bundle: the trained base and the key encoder. ``copy_base`` copies the input
-    checkpoint's bytes (a frozen base from safetensors). Returns the manifest written."""
+    """Write an unsealed bundle: the trained base, the key encoder, and an enrolment per user (``keys``:
+    their key bits, never written). ``copy_base`` copies the input checkpoint's bytes (a frozen base
+    from safetensors). Returns the manifest written."""
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
@@ -97,7 +100,8 @@ def write_unsealed(
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
         extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
         names = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *extra)
-        full = schema.stamp(_stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names))
+        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names)
+        full = schema.stamp({**full, C.M_ENROLMENTS: enrol(full, keys)})
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return full
 
@@ -112,8 +116,9 @@ def write_sealed(
     force: bool = False,
 ) -> dict:
     """Write a sealed bundle: the original's weights as the base, and one encrypted record per user.
-    ``metrics(state)`` computes the manifest's metrics from the records as written (keys are tried on
-    them as anyone would), before the manifest is. Returns the manifest written."""
+    ``metrics(state)`` is called with the records as written (keys are tried on them as anyone would)
+    before the manifest is; what it returns (if not None) is the manifest's metrics. Returns the
+    manifest written."""
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
@@ -128,7 +133,9 @@ def write_sealed(
             full[C.M_RECORDS].append(record_entry(rec))
             records.append(rec)
         if metrics is not None:
-            full[C.M_METRICS] = metrics(SealedState(full, PayloadSpec.from_dict(full[C.M_PAYLOAD]), records))
+            public = metrics(SealedState(full, PayloadSpec.from_dict(full[C.M_PAYLOAD]), records))
+            if public is not None:
+                full[C.M_METRICS] = public
         full = schema.stamp(full)
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return full
