@@ -67,6 +67,7 @@ __all__ = [
     "audit_bundle",
     "audit_table",
     "check_passphrase",
+    "enrol",
     "eval_bundle",
     "export_bundle",
     "formats",
@@ -87,6 +88,7 @@ __all__ = [
     "run_file",
     "select_probes",
     "user_keys",
+    "verify_bundle",
 ]
 
 
@@ -435,6 +437,46 @@ def add_user(
     report = sealed_user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
     new = rewrite_records(Path(bundle_path), m, new, [rec])
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
+
+
+@dataclass
+class Enrolled:
+    bundle: Path
+    status: str  # "enrolled", "re-enrolled (...)" or "already enrolled"
+    format_version: int
+
+
+def enrol(bundle_path: Path, key: np.ndarray) -> Enrolled:
+    """`prop enrol`: enrol your key in an unsealed bundle as it is now. Your consent that its current
+    behaviour is yours: for a format 1-3 bundle you trust (from before enrolment, whose keys run its
+    base), or to accept a change. Reads the bundle as data: nothing it names is imported. Sealed
+    bundles enrol each user in their own record (prop add-user)."""
+    from prop_cli.bundle import check_files, enrol_key
+    from prop_cli.bundle.modes import mode_of
+
+    manifest = read_manifest(Path(bundle_path))
+    check_files(Path(bundle_path), manifest)
+    if mode_of(manifest).hides_behaviour:
+        raise PropError(
+            f"{bundle_path} is sealed: each user is enrolled in their own record",
+            "add a user with prop add-user (their record is their enrolment)",
+        )
+    bits = int(manifest[C.M_KEY]["bits"])
+    if len(key) != bits:
+        raise PropError(f"the key has {len(key)} bits but the bundle expects {bits}", "use the bundle's key")
+    new, status = enrol_key(Path(bundle_path), manifest, key)
+    return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
+
+
+def verify_bundle(folder: Path, *, public_key: Path | None = None, chain: list[Path] | tuple = ()) -> dict:
+    """`prop verify`: the publisher's signature over every file of a downloaded bundle (``deploy.sign``),
+    then the bundle's own checks, as data (nothing it names is imported)."""
+    from prop_cli.deploy.publish import verified_files
+    from prop_cli.deploy.sign import verify_folder
+
+    result = verify_folder(Path(folder), public_key, chain)
+    manifest, mode = verified_files(Path(folder))
+    return {**result, "mode": mode.name, "users": mode.users(manifest), "format": manifest[C.M_FORMAT]}
 
 
 def remove_user(

@@ -166,8 +166,7 @@ def require_trust(named: list[str], source: str, trusted: bool) -> None:
     if named and not trusted:
         raise PropError(
             f"{source} names code to import and run: {'; '.join(named)}",
-            f"prop runs no code a file names without consent: pass {TRUST_FLAG} (trust_remote_code=True "
-            "in the API) only if you trust whoever wrote these files",
+            f"pass {TRUST_FLAG} (trust_remote_code=True in the API) only if you trust whoever wrote them",
         )
 
 

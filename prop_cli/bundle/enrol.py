@@ -92,6 +92,18 @@ def open_enrolment(entries: list[dict], bits: np.ndarray) -> dict | None:
     return None
 
 
+def split(entries: list[dict], bits: np.ndarray) -> tuple[list[dict], dict | None]:
+    """(the entries ``bits`` does not open, what the one it opens holds or None)."""
+    kept, opened = [], None
+    for e in entries:
+        got = open_enrolment([e], bits) if opened is None else None
+        if got is None:
+            kept.append(e)
+        else:
+            opened = got
+    return kept, opened
+
+
 def enrol(manifest: dict, keys: list[np.ndarray]) -> list[dict]:
     """Enrolments of ``keys`` in the bundle ``manifest`` describes (its files already hashed)."""
     now = behaviour(manifest)

@@ -373,6 +373,11 @@ def check_fields(
             )  # fmt: skip
 
 
+# Where each mode keeps its users' enrolments (format 4 on): an unsealed bundle's enrolments, a sealed
+# bundle's records (each carries what its user was enrolled in).
+ENROLLED_IN = {C.MODE_UNSEALED: C.M_ENROLMENTS, C.MODE_SEALED: C.M_RECORDS}
+
+
 def _cross_check(m: dict, doc: Doc) -> None:
     """What one field's rule cannot say: how the fields fit together."""
     needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if doc.mode == "unsealed" else (C.BASE_WEIGHTS,)
@@ -392,10 +397,12 @@ def _cross_check(m: dict, doc: Doc) -> None:
     if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
         raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
     if m[C.M_FORMAT] >= C.ENROL_SINCE:
-        if doc.mode == C.MODE_UNSEALED and C.M_ENROLMENTS not in m:
-            raise doc.bad(C.M_ENROLMENTS, "is missing")
-        if doc.mode == C.MODE_SEALED and C.M_ENROLMENTS in m:
-            raise doc.bad(C.M_ENROLMENTS, "is not a field of sealed bundles (their records are enrolled)")
+        own = ENROLLED_IN[doc.mode]
+        if own not in m:
+            raise doc.bad(own, "is missing")
+        for other in sorted(set(ENROLLED_IN.values()) - {own}):
+            if other in m:
+                raise doc.bad(other, f"is not a field of {doc.mode} bundles (their users are in {own})")
         checkpoint = m[C.M_IO].get("checkpoint")
         if checkpoint and not checkpoint.startswith("hf://") and ("/" in checkpoint or "\\" in checkpoint):
             raise doc.bad(f"{C.M_IO}.checkpoint", "must be a file name, not a path")

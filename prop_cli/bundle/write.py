@@ -20,6 +20,7 @@ from safetensors.torch import save_file
 from prop_cli import __version__
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
+from prop_cli.adapters.hub import public_name
 from prop_cli.core.keyed import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
@@ -55,6 +56,10 @@ def _write_base(tmp: Path, loaded: LoadedModel, module, copy_base: bool) -> None
 
 def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
     full = dict(manifest)
+    io = dict(full.get(C.M_IO, {}))
+    io.pop("checkpoint", None)
+    name = public_name(manifest.get(C.M_IO, {}).get("checkpoint"))  # a file name: never a local path
+    full[C.M_IO] = {**io, **({"checkpoint": name} if name else {})}
     full[C.M_FORMAT] = C.FORMAT_VERSION
     full[C.M_PROP_VERSION] = __version__
     full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
@@ -147,6 +152,27 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     manifest = read_manifest(bundle)
     manifest[key] = value
     write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
+
+
+def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
+    """Enrol ``bits`` in the unsealed bundle at ``path`` as it is now (the key holder's consent to its
+    current behaviour), replacing that key's earlier enrolment; a format 1-3 bundle becomes format 4.
+    Returns the manifest written and what happened: "enrolled", "re-enrolled: <changes>" or
+    "already enrolled" (nothing written)."""
+    from .enrol import behaviour, changed, split
+
+    kept, opened = split(manifest.get(C.M_ENROLMENTS, []), bits)
+    diff = changed(opened.get("behaviour", {}), behaviour(manifest)) if opened is not None else None
+    if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:
+        return manifest, "already enrolled"
+    new = {**manifest, C.M_FORMAT: C.FORMAT_VERSION, C.M_MODE: C.MODE_UNSEALED}
+    name = public_name(manifest[C.M_IO].get("checkpoint"))
+    new[C.M_IO] = {k: v for k, v in manifest[C.M_IO].items() if k != "checkpoint"}
+    new[C.M_IO].update({"checkpoint": name} if name else {})
+    new[C.M_ENROLMENTS] = kept + enrol(new, [bits])
+    new = schema.validate(schema.stamp(new), str(path))
+    write_text(Path(path) / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:

@@ -23,6 +23,7 @@ from prop_cli.bundle.records import load_state
 from prop_cli.errors import PropError
 
 from .onnx import read_export
+from .sign import sign_folder, signed_note
 
 CARD_FILE = "README.md"
 
@@ -75,6 +76,7 @@ def model_card(
         + f", from a {key.get('source', 'file')}; users: "
         + (str(mode.users(manifest)) if mode is not None else "unknown"),
         f"- Audit verdict: {_verdict(manifest.get(C.M_AUDIT))}",
+        f"- Publisher signature: {signed or 'no (unsigned: `prop push --sign` signs every file)'}",
         f"- Bundle format {manifest.get(C.M_FORMAT)}, written by prop {manifest.get(C.M_PROP_VERSION)}",
         "",
         "| keyed layer | features |",
@@ -93,7 +95,11 @@ def model_card(
         "leakage: how much of it other keys show (0 = none); fidelity: agreement with the original "
         "(mse for regression).",
         "",
-        *_metrics_lines(manifest.get(C.M_METRICS, {})),
+        *(
+            ["Per-user figures of a sealed bundle are sealed with each user's record.", ""]
+            if mode is not None and mode.hides_behaviour
+            else _metrics_lines(manifest.get(C.M_METRICS, {}))
+        ),
         "## Audit",
         "",
         *(
@@ -175,11 +181,17 @@ def push_bundle(
     onnx_dir: Path | None = None,
     token: str | None = None,
     allow_unsealed: bool = False,
+    sign: Path | None = None,
+    certificate: Path | None = None,
+    chain: list[Path] | tuple = (),
 ) -> PushResult:
-    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo.
+    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo. Nothing the
+    bundle names is imported: it is checked and copied as data.
 
     An unsealed bundle goes to a public repo only with ``allow_unsealed``: its encoder gives whoever
-    downloads it the owner's behaviour (docs/threat-model.md)."""
+    downloads it the owner's behaviour (docs/threat-model.md). ``sign``: the publisher's private key
+    (PEM; ``certificate`` and ``chain`` for certificate signing): every uploaded file is signed
+    (``deploy.sign``), the card included, and ``model.sig`` is uploaded with them."""
     if repo_id.count("/") != 1 or not all(repo_id.split("/")):
         raise PropError(f"repo {repo_id!r} is not a hub repo id", "write <org or user>/<name>")
     hf = hub_module()
@@ -205,7 +217,10 @@ def push_bundle(
             (stage / C.EXPORT_DIR).mkdir()
             for name in onnx_files:
                 _link(Path(onnx_dir) / name, stage / C.EXPORT_DIR / name)
-        (stage / CARD_FILE).write_text(model_card(manifest, repo_id, onnx_files[:-1], mode))
+        note = signed_note(sign, certificate) if sign is not None else None
+        (stage / CARD_FILE).write_text(model_card(manifest, repo_id, onnx_files[:-1], mode, note))
+        if sign is not None:
+            sign_folder(stage, sign, certificate, chain)
         files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
         api = hf.HfApi(token=token)
         try:

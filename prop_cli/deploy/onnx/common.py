@@ -124,9 +124,10 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
     return meta
 
 
-def bind(meta: dict, bundle: Bundle, key: np.ndarray | None) -> list[dict]:
+def bind(meta: dict, bundle: Bundle, key: np.ndarray | None, record: str | None = None) -> list[dict]:
     """export.json's enrolments: ``key`` (if given) bound to these graphs and this bundle, so that the
-    key runs only them (``bound``). The key must be enrolled in the bundle as it is now."""
+    key runs only them (``bound``). The key must be enrolled in the bundle as it is now. ``record``: the
+    sealed record the key opens (public), so that remove-user --record drops the binding with it."""
     if key is None:
         return []
     if not bundle.mode.enrolled(key):
@@ -135,10 +136,7 @@ def bind(meta: dict, bundle: Bundle, key: np.ndarray | None) -> list[dict]:
             "pass the key of one of the bundle's users, or export without --key-file",
         )
     what = {"bundle": behaviour(bundle.manifest), "graphs": meta["graphs"]}
-    entry = enrolment(key, what)
-    if bundle.is_sealed:  # remove-user --record drops the binding with the record (the id is public)
-        entry["record"] = bundle.sealed.open(key).record_id
-    return [entry]
+    return [{**enrolment(key, what), **({"record": record} if record else {})}]
 
 
 def bound(meta: dict, bits: np.ndarray, folder: Path, manifest: dict | None = None) -> bool:

@@ -42,7 +42,9 @@ def export(
             onnx.checker.check_model(str(tmp / C.BASE_GRAPH))
             copy_records(Path(bundle.path), tmp, bundle.manifest)
             meta = _meta(bundle, tmp, s.opset, s.atol)
-            meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key)}, C.EXPORT_DIGEST)
+            opened = bundle.sealed.open(key) if key is not None else None
+            rid = opened.record_id if opened is not None else None
+            meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key, rid)}, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
             table = verify(tmp)
             if not all(r["ok"] for r in table):
