@@ -504,6 +504,11 @@ def remove_user(
         raise PropError(
             f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
         )
+    if len(ids) == 1:
+        raise PropError(
+            f"{record} is the last user of {bundle_path}: a sealed bundle keeps at least one",
+            "delete the bundle folder instead",
+        )
     new = with_records(bundle.manifest, [], [record])
     export = Path(bundle_path) / C.EXPORT_DIR
     if (export / C.EXPORT_META).is_file():

@@ -71,7 +71,8 @@ def signed_note(private_key: Path, certificate: Path | None = None) -> str:
 
 
 def _hashing(hashing, folder: Path):
-    return hashing.Config().set_ignored_paths(paths=[folder / p for p in IGNORED], ignore_git_paths=True)
+    paths = [folder / p for p in (*IGNORED, SIGNATURE)]
+    return hashing.Config().set_ignored_paths(paths=paths, ignore_git_paths=True)
 
 
 def sign_folder(

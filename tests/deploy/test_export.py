@@ -265,7 +265,8 @@ def test_one_onnx_policy_serves_changing_batch_sizes(exported):
     code = key_codes(bits, b.key_encoding).numpy()
     x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
     folder = exported / C.EXPORT_DIR
-    policies = (rt.OnnxPolicy(folder, code=code, fold=False), rt.OnnxPolicy(folder, bits), rt.OnnxPolicy(folder))
+    split, folded = rt.OnnxPolicy(folder, code=code, fold=False), rt.OnnxPolicy(folder, bits)
+    policies = (split, folded, rt.OnnxPolicy(folder))
     for policy, key in zip(policies, (bits, bits, None)):
         for n in (1, 256, 7, 1, 256):
             got = policy(x[:n])
