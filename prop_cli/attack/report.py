@@ -115,11 +115,7 @@ def summary(report: dict) -> dict:
     if report["bundle"].get("sealed"):
         return sealed_summary(report)
     return {
-        "schema": report["schema"],
-        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "prop_version": report["prop_version"],
-        "mode": report["mode"],
-        "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+        **_head(report),
         "reference": report["reference"],
         "samples": report["data"]["samples"],
         "settings": report["settings"],
@@ -144,16 +140,23 @@ def summary(report: dict) -> dict:
     }
 
 
-def sealed_summary(report: dict) -> dict:
-    """What of an audit a sealed bundle's clear manifest may say: which probes ran and the verdicts."""
-    gate = report.get("max_leak")
-    row = report.get("passphrase")
+def _head(report: dict) -> dict:
+    """What every recorded summary starts with: schema, when, by which prop, of which manifest."""
     return {
         "schema": report["schema"],
         "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "prop_version": report["prop_version"],
         "mode": report["mode"],
         "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+    }
+
+
+def sealed_summary(report: dict) -> dict:
+    """What of an audit a sealed bundle's clear manifest may say: which probes ran and the verdicts."""
+    gate = report.get("max_leak")
+    row = report.get("passphrase")
+    return {
+        **_head(report),
         "figures": "sealed bundle: per-user figures are not recorded in the clear",
         "settings": {k: v for k, v in report["settings"].items() if k != "samples"},
         "groups": [{f: g[f] for f in ("name", "probe", "threat", "kind", "keys")} for g in report["groups"]],
