@@ -72,8 +72,8 @@ def main() -> None:
         keyed_sess = session(res.out / KEYED_GRAPH, threads=1)
         code_np = code.numpy()
         ort_base = OnnxPolicy(res.out, None, threads=1)  # base.onnx
-        split = OnnxPolicy(res.out, code_np, threads=1, fold=False)  # delta computed once; policy.onnx
-        folded_ort = OnnxPolicy(res.out, code_np, threads=1, fold=True)  # W diag(delta) in memory
+        split = OnnxPolicy(res.out, code=code_np, threads=1, fold=False)  # delta computed once; policy.onnx
+        folded_ort = OnnxPolicy(res.out, code=code_np, threads=1, fold=True)  # W diag(delta) in memory
         module = bundle.keyed.module
         folded = bundle.keyed.fold(code)
 

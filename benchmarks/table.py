@@ -190,8 +190,8 @@ def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tupl
     module, folded = bundle.keyed.module, bundle.keyed.fold(code)
     ort = {
         "base": OnnxPolicy(res.out, None, threads=1),
-        "split": OnnxPolicy(res.out, code.numpy(), threads=1, fold=False),
-        "folded": OnnxPolicy(res.out, code.numpy(), threads=1, fold=True),
+        "split": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=False),
+        "folded": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=True),
     }
     rows = []
     for batch in (1, 256):

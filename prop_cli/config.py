@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from .constants import KEY_ENCODINGS
+from .constants import KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
@@ -162,9 +162,12 @@ class AuditSettings(_Settings):
     blackbox: int | None = None
     blackbox_screen: int = 8  # samples each scanned key is screened on
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
+    # The passphrase row (--passphrase): fails when guessing it would take fewer core-years than this.
+    min_passphrase_years: float = PASSPHRASE_MIN_YEARS
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
         self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2)
+        self.need(self.min_passphrase_years >= 0, "min_passphrase_years", ">= 0")
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         if self.blackbox is None:

@@ -216,6 +216,7 @@ def audit(
     try:
         if has_key:
             user = _user(ctx, keys[0])
+            warnings += _enrolment(bundle, keys[0])
             if user["leakage"] < WRONG_KEY_LEAKAGE:
                 warnings.append(
                     f"the key shows little of the personalization (leakage of your own key "
@@ -267,6 +268,16 @@ def audit(
             "wall_seconds": time.perf_counter() - started,
         },
     }
+
+
+def _enrolment(bundle: Bundle, key: np.ndarray) -> list[str]:
+    """The audit measures the method for any key; say whether prop run would run this key at all."""
+    try:
+        if bundle.mode.enrolled(key):
+            return []
+        return [f"{bundle.mode.not_enrolled(str(bundle.path))}: prop run gives the base for it"]
+    except PropError as e:
+        return [e.what]
 
 
 def _saturated_controls(groups: list[dict], user: dict | None) -> list[str]:

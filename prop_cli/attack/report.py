@@ -90,6 +90,13 @@ def table(report: dict):
         notes.append(f"control model: {report['control_model']}")
     if any(g["name"] == "relaxed-rounded" and not g["is_key"] for g in report["groups"]):
         notes.append("T1 relaxed-rounded probes encoder codes; with hashed keys no known key maps to them")
+    row = report.get("passphrase")
+    if row:
+        notes.append(
+            f"passphrase: {row['guesses']:.3g} guesses (zxcvbn) x {row['seconds_per_guess'] * 1e3:.0f} ms "
+            f"per scrypt guess = {row['core_years']:.3g} core-years to open: "
+            + ("passed" if row["passed"] else f"FAILED (needs >= {row['min_core_years']:g})")
+        )
     verdict = report.get("max_leak")
     if verdict:
         notes.append(
@@ -102,13 +109,13 @@ def table(report: dict):
 
 
 def summary(report: dict) -> dict:
-    """The compact audit record stored in the bundle manifest (never the key)."""
+    """The compact audit record stored in the bundle manifest (never the key). A sealed bundle's manifest
+    is public while its users' figures are sealed: its record keeps verdicts and settings only, no
+    leakage, fidelity, personalization or sample count (``sealed_summary``)."""
+    if report["bundle"].get("sealed"):
+        return sealed_summary(report)
     return {
-        "schema": report["schema"],
-        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "prop_version": report["prop_version"],
-        "mode": report["mode"],
-        "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+        **_head(report),
         "reference": report["reference"],
         "samples": report["data"]["samples"],
         "settings": report["settings"],
@@ -130,6 +137,31 @@ def summary(report: dict) -> dict:
             for g in report["groups"]
         ],
         "max_leak": report.get("max_leak"),
+    }
+
+
+def _head(report: dict) -> dict:
+    """What every recorded summary starts with: schema, when, by which prop, of which manifest."""
+    return {
+        "schema": report["schema"],
+        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "prop_version": report["prop_version"],
+        "mode": report["mode"],
+        "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+    }
+
+
+def sealed_summary(report: dict) -> dict:
+    """What of an audit a sealed bundle's clear manifest may say: which probes ran and the verdicts."""
+    gate = report.get("max_leak")
+    row = report.get("passphrase")
+    return {
+        **_head(report),
+        "figures": "sealed bundle: per-user figures are not recorded in the clear",
+        "settings": {k: v for k, v in report["settings"].items() if k != "samples"},
+        "groups": [{f: g[f] for f in ("name", "probe", "threat", "kind", "keys")} for g in report["groups"]],
+        "max_leak": gate,
+        "passphrase": None if row is None else {k: row[k] for k in ("passed", "min_core_years")},
     }
 
 

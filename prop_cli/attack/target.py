@@ -51,14 +51,14 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
     return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, settings
 
 
-def load_original(bundle: Bundle, path: str) -> nn.Module:
+def load_original(bundle: Bundle, path: str, trust_remote_code: bool = False) -> nn.Module:
     """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
     flat view, as the bundle is audited)."""
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
     try:
-        loaded = adapters.rebuild(spec, weights, str(path))
+        loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code)
     except (RuntimeError, KeyError, ValueError) as e:
         raise PropError(
             f"--original {path} does not fit the bundle's model ({type(e).__name__})",
@@ -88,10 +88,11 @@ def attacked_model(bundle: Bundle, dev: torch.device) -> KeyedModel:
 
 def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, str]:
     """Where no --original is given: the module that is the original anyway, and how to name it."""
+    # "the bundle's base": prop writes the original there, but without --original nothing checks it.
     if bundle.is_sealed:
-        return bundle.loaded.module, "the bundle's base (a sealed bundle's base is the original)"
+        return bundle.loaded.module, "the bundle's base (a sealed bundle is written with the original's)"
     if bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
-        return km.module, "the bundle's base (trained with --freeze-base: the original)"
+        return km.module, "the bundle's base (trained with --freeze-base: written with the original's)"
     return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
 
 

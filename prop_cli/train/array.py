@@ -212,7 +212,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     ]
     return Personalized(
         km, original, task, reports, losses, loaded=loaded, cfg=cfg,
-        input_shape=list(datasets[0].x.shape[1:]), users=len(users),
+        input_shape=list(datasets[0].x.shape[1:]), users=len(users), keys=[u.key_bits for u in users],
     )  # fmt: skip
 
 

@@ -177,7 +177,7 @@ class PolicyRecipe(Recipe):
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
         return Personalized(
             t.km, t.original, "regression", reports, losses, loaded=loaded, cfg=cfg, input_shape=shape,
-            users=len(users),
+            users=len(users), keys=[u.key_bits for u in users],
         )  # fmt: skip
 
 

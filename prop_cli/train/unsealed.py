@@ -28,6 +28,7 @@ class Personalized(Trained):
     cfg: PersonalizeConfig | None = field(default=None, repr=False)
     input_shape: list | dict | None = None  # per sample; per feature name for policies
     users: int = 1
+    keys: list = field(default_factory=list, repr=False)  # the users' key bits: enrolled, never written
 
     def write(self, out: Path, manifest: dict, *, force: bool = False) -> Written:
         cfg = self.cfg
@@ -48,6 +49,7 @@ class Personalized(Trained):
         copy_base = cfg.freeze_base and str(self.loaded.source).endswith(".safetensors")
         self.keyed.to("cpu")
         written = write_unsealed(
-            out, loaded=self.loaded, keyed=self.keyed, manifest=full, force=force, copy_base=copy_base
-        )
+            out, loaded=self.loaded, keyed=self.keyed, manifest=full, keys=self.keys, force=force,
+            copy_base=copy_base,
+        )  # fmt: skip
         return Written(written, self.metrics, self.final_losses)

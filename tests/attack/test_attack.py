@@ -287,7 +287,8 @@ def test_wrong_key_warns(bundles, cli):
     r = cli(*args, "--key-file", d / "k2.bin")
     assert r.code == 0, r.err
     warning = [ln for ln in r.err.splitlines() if ln.startswith("prop: warning:")]
-    assert len(warning) == 1 and "may not be this bundle's key" in warning[0]
+    assert len(warning) == 2 and "may not be this bundle's key" in warning[1]
+    assert "enrolled in no user" in warning[0] and "prop run gives the base" in warning[0]
     r = cli(*args, "--key-file", d / "k.bin")
     assert "prop: warning:" not in r.err
 
