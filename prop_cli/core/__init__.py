@@ -1,4 +1,5 @@
 """The method itself, independent of any file format: where keys come from (``key_files``: key files and
-passphrases), drawing other keys (``key_sampling``: random keys, Hamming neighbours), passphrase strength (``passphrase``), the keyed model of
-Eq. 5 (``keyed_model``), which layers to key (``layers``, ``batch_axes``), sealed payloads (``payload``),
-the shared metrics (``metrics``) and the compute device (``device``)."""
+passphrases; ``passphrase``: their strength), drawing other keys (``key_sampling``: random keys, Hamming
+neighbours), the keyed model of Eq. 5 (``keyed_model``), which layers to key (``layers``,
+``batch_axes``), sealed payloads (``payload``), the shared metrics (``metrics``) and the compute device
+(``device``)."""

@@ -20,7 +20,7 @@ from prop_cli.adapters.hub import hub_module, is_hub_path, parse_hub_path, publi
 from prop_cli.bundle import check_files, read_manifest
 from prop_cli.bundle.modes import Mode, mode_of
 from prop_cli.bundle.records import load_state
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 
 from .onnx import read_export
 from .sign import sign_folder, signed_note
@@ -241,9 +241,10 @@ def push_bundle(
                 f"upload to {repo_id} failed ({str(e).splitlines()[0]})",
                 "check that you are logged in (`hf auth login`) and may write to that repo",
             ) from e
-        except OSError as e:
+        except Exception as e:  # noqa: BLE001 - OSError, and the hub client's transport errors (httpx's
+            # ConnectError, timeouts), which are not OSErrors: one line, not a traceback
             raise PropError(
-                f"upload to {repo_id} failed: cannot reach the hub ({type(e).__name__})", "check the network"
+                f"upload to {repo_id} failed: cannot reach the hub ({brief(e)})", "check the network"
             ) from e
     return PushResult(repo_id, str(url), files, revision)
 
