@@ -155,6 +155,10 @@ class AuditSettings(_Settings):
     search_steps: int = 100
     search_lr: float = 0.1
     search_batch: int = 32  # samples per search step (0: all); each step draws its own
+    # T3's code fit: the attacker's pick (lowest fit loss) finds a hardened digits code in 0.97-1.00 of
+    # draws at 128 x 200 (docs/audit.md, "Few-shot budget"); 400 steps find no more than 200.
+    fewshot_restarts: int = 128
+    fewshot_steps: int = 200
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
     # Random keys of the streamed black-box scan; None: BLACKBOX_KEYS, or BLACKBOX_KEYS_POLICY for
@@ -164,7 +168,8 @@ class AuditSettings(_Settings):
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
-        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2)
+        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, fewshot_restarts=1,
+                      fewshot_steps=1)  # fmt: skip
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         if self.blackbox is None:
