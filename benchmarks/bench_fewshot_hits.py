@@ -62,7 +62,7 @@ def context(bundle_path: Path, data: Path, key_file: Path, original: str | None,
     ds, _ = prepare(bundle.loaded, load_data(data, require_y=True), "--data", bundle.task)
     km = target.attacked_model(bundle, torch.device("cpu")).requires_grad_(False)
     ref_model = target.load_original(bundle, original) if original else km.module
-    s = AuditSettings(seed=seed)
+    s = AuditSettings(seed=seed).validate(bundle.key_bits, True, [])  # the audit's defaults, filled in
     idx = sample_index(ds, s.samples, s.seed)
     x = torch.from_numpy(ds.x[idx])
     p = torch.from_numpy(ds.y[idx])

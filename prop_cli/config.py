@@ -141,6 +141,8 @@ class PersonalizeConfig(_Settings):
 
 BLACKBOX_KEYS = 1_000_000
 BLACKBOX_KEYS_POLICY = 65_536
+FEWSHOT_RESTARTS = 128
+FEWSHOT_RESTARTS_POLICY = 16  # not calibrated on policies: 8x the old budget at a tractable cost
 
 
 @dataclass
@@ -156,8 +158,9 @@ class AuditSettings(_Settings):
     search_lr: float = 0.1
     search_batch: int = 32  # samples per search step (0: all); each step draws its own
     # T3's code fit: the attacker's pick (lowest fit loss) finds a hardened digits code in 0.97-1.00 of
-    # draws at 128 x 200 (docs/audit.md, "Few-shot budget"); 400 steps find no more than 200.
-    fewshot_restarts: int = 128
+    # draws at 128 x 200 (docs/audit.md, "Few-shot budget"); 400 steps find no more than 200. None:
+    # FEWSHOT_RESTARTS, or FEWSHOT_RESTARTS_POLICY for policies (an ACT forward per restart and shot).
+    fewshot_restarts: int | None = None
     fewshot_steps: int = 200
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
@@ -168,6 +171,8 @@ class AuditSettings(_Settings):
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
+        if self.fewshot_restarts is None:
+            self.fewshot_restarts = FEWSHOT_RESTARTS
         self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, fewshot_restarts=1,
                       fewshot_steps=1)  # fmt: skip
         self.positive("search_lr")

@@ -29,7 +29,7 @@ from prop_cli import constants as C
 from prop_cli.adapters.hub import resolve_checkpoint
 from prop_cli.adapters.lerobot.flat import flat_module
 from prop_cli.bundle import Bundle
-from prop_cli.config import BLACKBOX_KEYS_POLICY, AuditSettings
+from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
 from prop_cli.core.keyed import KeyedModel, KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import flat_dataset
@@ -50,9 +50,17 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
     data = flat_dataset(loaded.policy, data, "--data")
     flat = flat_module(loaded.policy)
     view = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
-    if settings.blackbox is None:  # an ACT key is a transformer forward: fewer keys in the scan
+    return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, policy_settings(settings)
+
+
+def policy_settings(settings: AuditSettings) -> AuditSettings:
+    """The audit's defaults for a policy, where not given: an ACT key is a transformer forward, so fewer
+    keys in the scan and fewer restarts of the few-shot code fit."""
+    if settings.blackbox is None:
         settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
-    return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, settings
+    if settings.fewshot_restarts is None:
+        settings = replace(settings, fewshot_restarts=FEWSHOT_RESTARTS_POLICY)
+    return settings
 
 
 def load_original(bundle: Bundle, path: str) -> nn.Module:

@@ -21,7 +21,7 @@ SETTINGS = {
     "search_steps": "Adam steps of each search.",
     "search_lr": "Adam learning rate of the searches.",
     "search_batch": "Samples per search step (0: all of them).",
-    "fewshot_restarts": "Restarts of the few-shot code fit (T3).",
+    "fewshot_restarts": "Restarts of the few-shot code fit (T3) [default: 128; 16 for LeRobot policies].",
     "fewshot_steps": "Adam steps of the few-shot code fit (T3).",
     "samples": "Samples of --data to audit on.",
     "blackbox": "Random keys of the black-box scan [default: 1,000,000; 65,536 for LeRobot policies].",

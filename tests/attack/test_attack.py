@@ -330,3 +330,41 @@ def test_a_search_whose_control_reaches_the_ceiling_is_gated_on_its_own_figure_a
     # Key rows are never gated on a ceiling: their control is the reference, or a user's own record.
     assert gate(row("user 2", "key", 0.99, 0.99), saturable=True) == {"on": "beyond-control", "value": 0.0,
                                                                      "why": None}  # fmt: skip
+
+
+def test_the_verdict_ranks_failing_rows_by_value_then_by_what_the_attack_needs():
+    from prop_cli.attack.verdict import apply_max_leak, headline
+
+    def row(name, probe, threat, kind, value):
+        return {"name": name, "probe": probe, "threat": threat, "kind": kind,
+                "gate": {"on": "beyond-control", "value": value, "why": None}}  # fmt: skip
+
+    report = {
+        "user": {"leakage": 1.0}, "remedy": "seal it with --seal",
+        "groups": [
+            row("random", "random", "T0", "key", 0.09),
+            row("fewshot k=1 rounded", "fewshot", "T3", "key", 0.997),
+            row("relaxed-rounded", "relaxed", "T1", "key", 0.9971),
+            row("structure", "structure", "structure", "key", 0.9968),
+            row("null", "null", "T0", "key", 0.0),
+        ],
+    }  # fmt: skip
+    assert headline(report).startswith("most leaked: structure: your code can be read off")
+    failing = apply_max_leak(report, 0.05)
+    # 0.997 ties (within 0.01): reading the files beats a search, a search beats the user's samples.
+    assert [n for n, _ in failing] == ["structure", "relaxed-rounded", "fewshot k=1 rounded", "random"]
+    v = report["max_leak"]
+    assert v["verdict"].startswith("FAILED --max-leak 0.05: structure:") and v["verdict"].endswith("--seal")
+    assert v["rows"][-1]["finding"] == "random keys show part of your behaviour"
+    assert apply_max_leak(report, 0.999) == [] and report["max_leak"]["verdict"].startswith("PASSED")
+
+
+def test_policies_get_a_smaller_scan_and_few_shot_budget_unless_given():
+    from prop_cli.attack import target
+    from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS, FEWSHOT_RESTARTS_POLICY
+
+    assert AuditSettings().validate(128, True, []).fewshot_restarts == FEWSHOT_RESTARTS  # array models
+    s = target.policy_settings(AuditSettings())
+    assert (s.blackbox, s.fewshot_restarts) == (BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY)
+    s = target.policy_settings(AuditSettings(blackbox=10, fewshot_restarts=64))
+    assert (s.blackbox, s.fewshot_restarts) == (10, 64)  # given explicitly: kept
