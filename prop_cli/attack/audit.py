@@ -176,12 +176,14 @@ def audit(
     device: str = "cpu",
     progress: Progress | None = None,
 ) -> dict:
-    """Run the audit; returns the report (schema ``prop-audit/2``, documented in docs/audit.md).
+    """Run the audit; returns the report (schema ``prop-audit/3``, documented in docs/audit.md).
 
-    ``keys[0]`` is the audited user's key (their targets are ``data.y``), ``keys[1:]`` other users'
-    keys; no keys = a no-key audit. ``original`` is the original checkpoint's module: the reference b
-    (default: the bundle without a key) and the model the controls run on. A policy bundle is audited
-    as an array model: pass it and its data through ``target.as_array`` first.
+    ``keys[0]`` is the audited user's key (their targets are ``data.y``), ``keys[1:]`` other keys (a
+    cross-user row each if they are users of the bundle, else a plain key row); no keys = a no-key
+    audit. ``original`` is the original checkpoint's module: the reference b (default: the bundle
+    without a key) and the model the searches' controls run on; the key rows' control is the reference
+    keyed with a fresh encoder. A policy bundle is audited as an array model: pass it and its data
+    through ``target.as_array`` first. ``verdict.apply_max_leak`` adds the --max-leak decision.
     """
     started = time.perf_counter()
     task = bundle.task

@@ -78,6 +78,19 @@ def test_key_rows_are_gated_beyond_the_same_keys_with_no_user_enrolled(default_b
     assert "structure" in failing
 
 
+def test_the_relaxed_search_alone_fails_a_default_bundle(default_bundle, cli):
+    """Its rounded codes are the user's code: concrete codes, gated like keys (the unrounded search's
+    control on the original may reach the ceiling, which hid this leak before)."""
+    d = default_bundle
+    search = ["--probes", "relaxed", "--restarts", "64", "--search-steps", "100"]
+    r, rep = _attack(cli, d, *search, "--original", d / "model.safetensors", "--max-leak", "0.05")
+    assert r.code == 1
+    rows = {g["name"]: g for g in rep["groups"]}
+    rounded = rows["relaxed-rounded"]
+    assert rounded["kind"] == "key" and 0 in rounded["search"]["code_distance"]
+    assert rounded["gate"]["value"] > 0.5 and "relaxed-rounded" in rep["max_leak"]["failing"]
+
+
 def test_every_probe_reports_control_and_the_gate_follows_the_kind(default_bundle, cli):
     d = default_bundle
     r, rep = _attack(cli, d, "--original", d / "model.safetensors")
