@@ -11,7 +11,7 @@ Every row is gated on what lies beyond its control (docs/threat-model.md, "The g
 A row is gated on its own figure instead when its control is unavailable (no original checkpoint), or
 when a search's control reaches the ceiling (``CEILING``): that control cannot show a leak beyond it,
 so the row fails unless its own figure is within the threshold. The verdict names the failing rows by
-severity: the largest gated value first, and among equal ones (to ``TIE``) the attack that needs the
+severity: the largest gated value first, and among rows within ``TIE`` of it the attack that needs the
 least (``ACCESS``): reading the files before running keys, before searching, before the user's samples.
 """
 
@@ -88,8 +88,16 @@ def ceiling_warnings(groups: list[dict]) -> list[str]:
 
 
 def severity(rows: list[dict]) -> list[dict]:
-    """Rows by severity: the largest gated value first; among near-equal ones, the cheapest attack."""
-    return sorted(rows, key=lambda g: (-round(g["gate"]["value"] / TIE), ACCESS.get(g["threat"], 9)))
+    """Rows by severity: the largest gated value first; rows within ``TIE`` of the largest left form one
+    tier, ordered by the attack that needs least (then by value)."""
+    left = sorted(rows, key=lambda g: -g["gate"]["value"])
+    out: list[dict] = []
+    while left:
+        top = left[0]["gate"]["value"]
+        tier = [g for g in left if g["gate"]["value"] >= top - TIE]
+        out += sorted(tier, key=lambda g: (ACCESS.get(g["threat"], len(ACCESS)), -g["gate"]["value"]))
+        left = left[len(tier) :]
+    return out
 
 
 def leak_failures(report: dict, threshold: float) -> list[tuple[str, float]]:

@@ -345,7 +345,7 @@ def test_the_verdict_ranks_failing_rows_by_value_then_by_what_the_attack_needs()
             row("random", "random", "T0", "key", 0.09),
             row("fewshot k=1 rounded", "fewshot", "T3", "key", 0.997),
             row("relaxed-rounded", "relaxed", "T1", "key", 0.9971),
-            row("structure", "structure", "structure", "key", 0.9968),
+            row("structure", "structure", "structure", "key", 0.9921),  # 0.992 vs 0.997: one tier
             row("null", "null", "T0", "key", 0.0),
         ],
     }  # fmt: skip
