@@ -76,16 +76,22 @@ def context(bundle_path: Path, data: Path, key_file: Path, original: str | None,
     return target.probe_context(bundle, ctx)
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_fewshot_hits", description=__doc__)
+def audit_parser(prog: str, doc: str | None, original_required: bool = False) -> argparse.ArgumentParser:
+    """What the benchmarks that build the audit's context take: a bundle, its data, the user's key."""
+    ap = argparse.ArgumentParser(prog=f"python -m benchmarks.{prog}", description=doc)
     ap.add_argument("bundle", type=Path)
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--key-file", type=Path, required=True)
-    ap.add_argument("--original", default=None)
+    ap.add_argument("--original", default=None, required=original_required)
+    ap.add_argument("--seed", type=int, default=0)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = audit_parser("bench_fewshot_hits", __doc__)
     ap.add_argument("--pool", type=int, default=64)
     ap.add_argument("--steps", default="100,200,400")
     ap.add_argument("--shots", default="1,4,16,64")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compare", type=int, default=None, metavar="K")
     ap.add_argument("--draws", type=int, default=3)
     args = ap.parse_args(argv)

@@ -17,18 +17,12 @@ behaviour lean towards p only. docs/threat-model.md ("Controls") cites these fig
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
+from .bench_fewshot_hits import audit_parser, context
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_key_control", description=__doc__)
-    ap.add_argument("bundle", type=Path)
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--key-file", type=Path, required=True)
-    ap.add_argument("--original", required=True)
+    ap = audit_parser("bench_key_control", __doc__, original_required=True)
     ap.add_argument("--keys", type=int, default=4096)
-    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     import torch
 
@@ -38,8 +32,6 @@ def main(argv: list[str] | None = None) -> None:
     from prop_cli.config import AuditSettings
     from prop_cli.core import metrics
     from prop_cli.core.keyspace import random_keys
-
-    from .bench_fewshot_hits import context
 
     ctx = context(args.bundle, args.data, args.key_file, args.original, args.seed)
     ctx.settings = AuditSettings(random=args.keys, seed=args.seed)
