@@ -314,7 +314,8 @@ def test_extending_with_a_probe(monkeypatch, workdir):
                 AuditSettings(probes=["null", "complement"], samples=32))  # fmt: skip
     assert [g["name"] for g in rep["groups"]] == ["null", "complement"]
     g = rep["groups"][1]
-    assert g["threat"] == "T0" and g["keys"] == 1 and g["gate"]["on"] == "raw"
+    assert g["threat"] == "T0" and g["keys"] == 1 and g["gate"]["on"] == "beyond-control"
+    assert g["control"]["available"] and g["control"]["leakage"]["worst"] == 0  # no user enrolled
     with pytest.raises(Exception, match="need the user's key"):
         audit(
             load_bundle(workdir / "b.prop"),
