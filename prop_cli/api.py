@@ -19,6 +19,7 @@ from prop_cli.adapters import CheckpointOptions
 from prop_cli.adapters.hub import public_name, resolve_checkpoint
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
+from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
 from prop_cli.bundle import Bundle, KeyedPolicy, load_bundle, read_manifest, run_bundle
@@ -65,6 +66,7 @@ __all__ = [
     "apply_max_leak",
     "audit",
     "audit_bundle",
+    "audit_decision",
     "audit_table",
     "check_passphrase",
     "enrol",

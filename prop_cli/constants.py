@@ -67,7 +67,7 @@ POLICY_GRAPH = "policy.onnx"
 GRAPHS = (BASE_GRAPH, KEYED_GRAPH, ENCODER_GRAPH, POLICY_GRAPH)
 
 # Audit reports (`prop attack --json`).
-AUDIT_SCHEMA = "prop-audit/2"
+AUDIT_SCHEMA = "prop-audit/3"
 
 # The CLI's defaults that are not training, audit or export settings (those are in prop_cli.config).
 DEFAULT_BUNDLE = "personalized.prop"  # personalize --out

@@ -21,6 +21,8 @@ SETTINGS = {
     "search_steps": "Adam steps of each search.",
     "search_lr": "Adam learning rate of the searches.",
     "search_batch": "Samples per search step (0: all of them).",
+    "fewshot_restarts": "Restarts of the few-shot code fit (T3) [default: 128; 16 for LeRobot policies].",
+    "fewshot_steps": "Adam steps of the few-shot code fit (T3).",
     "samples": "Samples of --data to audit on.",
     "blackbox": "Random keys of the black-box scan [default: 1,000,000; 65,536 for LeRobot policies].",
     "blackbox_screen": "Samples each black-box key is screened on.",
@@ -45,7 +47,7 @@ Original = Annotated[
 JsonReport = Annotated[Path | None, opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
 Plot = Annotated[Path | None, opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
 MaxLeak = Annotated[
-    float | None, opt("--max-leak", "Exit 1 if a group leaks more (searches: beyond control).")
+    float | None, opt("--max-leak", "Exit 1 if a row leaks more than this beyond its control.")
 ]
 Record = Annotated[bool, opt("--record", "Store the audit summary in the bundle manifest.")]
 
@@ -60,7 +62,14 @@ def attack(
     force: Force = False, trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
-    from prop_cli.api import apply_max_leak, audit_bundle, audit_table, plot_audit, record_audit
+    from prop_cli.api import (
+        apply_max_leak,
+        audit_bundle,
+        audit_decision,
+        audit_table,
+        plot_audit,
+        record_audit,
+    )
     from prop_cli.api import select_probes as select
     from prop_cli.files import check_not_input, check_output, dump_json, write_text
 
@@ -99,7 +108,9 @@ def attack(
         err.print(f"recorded the audit summary in {bundle}/manifest.json")
     if json_path is not None and json_file is None:
         print_json(report)
-    else:
+    else:  # the decision first, then the failing rows by severity, then the full table
+        for line in audit_decision(report):
+            out.print(line, highlight=False, markup=False, soft_wrap=True)
         out.print(audit_table(report))
     row = report.get("passphrase")
     if row is not None and not row["passed"]:
@@ -110,10 +121,7 @@ def attack(
         )
         raise typer.Exit(1)
     if failing:
-        name, worst = max(failing, key=lambda f: f[1])
-        more = f" (and {len(failing) - 1} more groups)" if len(failing) > 1 else ""
-        print(
-            f"prop: leak check failed: leakage {worst:.4f} in '{name}'{more} exceeds --max-leak {max_leak}",
-            file=sys.stderr,
-        )
+        more = f" (and {len(failing) - 1} more rows)" if len(failing) > 1 else ""
+        print(f"prop: leak check failed at --max-leak {max_leak}: {report['max_leak']['reason']}{more}",
+              file=sys.stderr)  # fmt: skip
         raise typer.Exit(1)

@@ -133,6 +133,8 @@ def _verdict(audit: dict | None) -> str:
     gate = audit.get("max_leak")
     if not gate:
         return f"audited ({audit.get('recorded_utc')}), no --max-leak gate applied; see below"
+    if gate.get("verdict"):  # prop-audit/3: the decision and its main reason, in one line
+        return f"{gate['verdict']} ({audit.get('recorded_utc')})"
     failing = ", ".join(gate.get("failing", []))
     state = "**passed**" if gate.get("passed") else f"**failed** ({failing})"
     return f"{state} `--max-leak {gate.get('threshold')}` ({audit.get('recorded_utc')})"
