@@ -41,7 +41,7 @@ def prepare(workdir: Path) -> tuple[Path, Path, Path]:
 
 def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -> dict[str, float]:
     from prop_cli.bundle import load_bundle
-    from prop_cli.core.keyed import key_codes, keys_per_forward
+    from prop_cli.core.keyed_model import key_codes, keys_per_forward
 
     km = load_bundle(bundle).keyed
     x = torch.from_numpy(np.load(data)["x"][:samples])
@@ -71,7 +71,7 @@ def default_audit(bundle: Path, data: Path, key: Path) -> dict:
     from prop_cli.attack.audit import audit
     from prop_cli.bundle import load_bundle
     from prop_cli.config import AuditSettings
-    from prop_cli.core.keys import read_key_file
+    from prop_cli.core.key_files import read_key_file
     from prop_cli.datasources import load_data
 
     b = load_bundle(bundle)

@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> None:
     from prop_cli.attack.probes.screen import ChainForward
     from prop_cli.bundle import load_bundle
     from prop_cli.config import AuditSettings
-    from prop_cli.core.keys import read_key_file
+    from prop_cli.core.key_files import read_key_file
 
     if args.bundle:
         bundle_path, data, key_path = args.bundle, args.data, args.key_file

@@ -24,8 +24,8 @@ import torch
 from examples.il_task import write_example
 from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import select_layers
 from prop_cli.train.array import FallbackPool, UserPool, make_batch
 from prop_cli.train.objective import prop_loss

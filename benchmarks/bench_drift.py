@@ -32,8 +32,8 @@ from examples import fit, mlp, save_npz
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import key_codes, outputs_for_codes
-from prop_cli.core.keyspace import neighbours_at, random_keys
+from prop_cli.core.key_sampling import neighbours_at, random_keys
+from prop_cli.core.keyed_model import key_codes, outputs_for_codes
 
 RANDOM_KEYS = 256
 PER_DISTANCE = 32

@@ -81,7 +81,7 @@ def null_data(data, original: torch.nn.Module, task: str):
 def run_case(task: str, seed: int, mode: str, args) -> dict:
     from prop_cli.config import PersonalizeConfig
     from prop_cli.core import metrics
-    from prop_cli.core.keyed import key_codes
+    from prop_cli.core.keyed_model import key_codes
     from prop_cli.datasources import load_data
 
     d = args.workdir / f"{task}_s{seed}"

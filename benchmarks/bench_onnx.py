@@ -32,7 +32,7 @@ from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import KEYED_GRAPH
-from prop_cli.core.keyed import key_codes
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
 from prop_cli.deploy.onnx.common import session
 
@@ -72,8 +72,8 @@ def main() -> None:
         keyed_sess = session(res.out / KEYED_GRAPH, threads=1)
         code_np = code.numpy()
         ort_base = OnnxPolicy(res.out, None, threads=1)  # base.onnx
-        split = OnnxPolicy(res.out, code_np, threads=1, fold=False)  # delta computed once; policy.onnx
-        folded_ort = OnnxPolicy(res.out, code_np, threads=1, fold=True)  # W diag(delta) in memory
+        split = OnnxPolicy(res.out, code=code_np, threads=1, fold=False)  # delta computed once; policy.onnx
+        folded_ort = OnnxPolicy(res.out, code=code_np, threads=1, fold=True)  # W diag(delta) in memory
         module = bundle.keyed.module
         folded = bundle.keyed.fold(code)
 

@@ -25,7 +25,7 @@ from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.metrics import personalization
 
 VARIANTS = {

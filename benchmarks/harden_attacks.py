@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 
 from prop_cli.core import metrics
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import neighbours_at
+from prop_cli.core.key_sampling import neighbours_at
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 
 
 @dataclass

@@ -6,9 +6,11 @@ Per task and seed: the example is written (examples/il_task.py, digits_task.py, 
 checkpoint trained from scratch, the user's data, a fresh key), personalized through the library with
 default settings in each mode (`--harden`, `--seal`), then audited with the default `prop attack`
 (every probe in the registry, `--original` the checkpoint so every row has its control). Each cell
-is the worst leakage over the row's keys or restarts, as bundle / control / beyond; the gate column
-is what `--max-leak` compares (raw for key probes, beyond for searches). `--quick` shrinks training
-and the audit for a smoke run; its figures mean nothing.
+is the worst over the row's keys or restarts, as bundle / control / beyond: leakage for key rows
+(keys, and the codes the structure probe and the searches round to), bounded leakage for search rows
+(docs/metrics.md); `--max-leak` compares beyond (or a row's own figure where a search's control is at
+the ceiling). The last row is the verdict of `--max-leak 0.05` and its main reason. `--quick` shrinks
+training and the audit for a smoke run; its figures mean nothing.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from examples import task_runs
-from prop_cli.api import KeySource, audit_bundle, personalize_checkpoint
+from prop_cli.api import KeySource, apply_max_leak, audit_bundle, personalize_checkpoint
 from prop_cli.config import AuditSettings, PersonalizeConfig
 
 MODES = {"unsealed": {}, "hardened": {"harden": True}, "sealed": {"seal": True}}
@@ -31,11 +33,17 @@ ROWS = [
     ("T0 4096 random keys", lambda g: g["probe"] == "random"),
     ("T0 1M random keys (scan)", lambda g: g["probe"] == "blackbox"),
     ("structure (weights, Jacobian)", lambda g: g["probe"] == "structure"),
-    ("T1 relaxed code search", lambda g: g["probe"] == "relaxed"),
-    ("T2 latent delta search", lambda g: g["probe"] == "latent"),
-    ("T3 few-shot, k = 1", lambda g: g["name"] == "fewshot k=1"),
-    ("T3 few-shot, k = 4..64", lambda g: g["probe"] == "fewshot" and g["name"] != "fewshot k=1"),
+    ("T1 relaxed search, rounded code", lambda g: g["name"] == "relaxed-rounded"),
+    ("T1 relaxed search (bounded)", lambda g: g["name"] == "relaxed"),
+    ("T2 latent delta search (bounded)", lambda g: g["probe"] == "latent"),
+    ("T3 k = 1: fitted code, rounded", lambda g: g["name"] == "fewshot k=1 rounded"),
+    ("T3 k = 1: code and delta fit (bounded)", lambda g: g["name"] == "fewshot k=1"),
+    ("T3 k = 4..64: fitted code, rounded", lambda g: g["probe"] == "fewshot" and g["kind"] == "key"
+     and g["name"] != "fewshot k=1 rounded"),
+    ("T3 k = 4..64: code and delta fit (bounded)", lambda g: g["probe"] == "fewshot" and g["kind"] == "search"
+     and g["name"] != "fewshot k=1"),
 ]
+MAX_LEAK = 0.05  # the verdict row
 
 
 def _cells(report: dict) -> dict[str, dict]:
@@ -53,6 +61,9 @@ def _cells(report: dict) -> dict[str, dict]:
             "gate": worst["gate"],
             "group": worst["name"],
         }
+    failing = apply_max_leak(report, MAX_LEAK)
+    out["verdict"] = {"passed": not failing, "main": failing[0][0] if failing else None,
+                      "failing": len(failing)}  # fmt: skip
     return out
 
 
@@ -96,9 +107,17 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
                 flush=True,
             )
             for label, c in r["cells"].items():
+                if label == "verdict":
+                    print(f"    --max-leak {MAX_LEAK}: {_verdict([c])}", flush=True)
+                    continue
                 ctl = "n/a" if c["control"] is None else f"{c['control']:.3f}"
-                print(f"    {label:32s} {c['bundle']:.3f} / {ctl} / {c['beyond']}", flush=True)
+                print(f"    {label:44s} {c['bundle']:.3f} / {ctl} / {c['beyond']}", flush=True)
     return rows
+
+
+def _verdict(cells: list[dict]) -> str:
+    """Per seed: passed, or failed with the main reason's row."""
+    return "; ".join("passed" if c["passed"] else f"failed ({c['main']}, {c['failing']} rows)" for c in cells)
 
 
 def _fmt(cells: list[dict]) -> str:
@@ -130,6 +149,8 @@ def table(rows: list[dict]) -> str:
                 [r["cells"][label] for r in sel if r["mode"] == m and label in r["cells"]] for m in MODES
             ]
             lines.append(f"| {label} | " + " | ".join(_fmt(c) for c in cells) + " |")
+        verdicts = [_verdict([r["cells"]["verdict"] for r in sel if r["mode"] == m]) for m in MODES]
+        lines.append(f"| `--max-leak {MAX_LEAK}` (per seed) | " + " | ".join(verdicts) + " |")
         lines.append("")
     return "\n".join(lines)
 

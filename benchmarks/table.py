@@ -147,8 +147,8 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
     from prop_cli.attack.audit import audit
     from prop_cli.bundle import load_bundle
     from prop_cli.config import AuditSettings
-    from prop_cli.core.keyed import KEY_ROWS, key_codes
-    from prop_cli.core.keyspace import random_keys
+    from prop_cli.core.key_sampling import random_keys
+    from prop_cli.core.keyed_model import KEY_ROWS, key_codes
     from prop_cli.datasources import load_data
 
     bundle = load_bundle(bundle_path)
@@ -181,7 +181,7 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
 
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
     from prop_cli.bundle import load_bundle
-    from prop_cli.core.keyed import key_codes
+    from prop_cli.core.keyed_model import key_codes
     from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
 
     bundle = load_bundle(bundle_path)
@@ -190,8 +190,8 @@ def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tupl
     module, folded = bundle.keyed.module, bundle.keyed.fold(code)
     ort = {
         "base": OnnxPolicy(res.out, None, threads=1),
-        "split": OnnxPolicy(res.out, code.numpy(), threads=1, fold=False),
-        "folded": OnnxPolicy(res.out, code.numpy(), threads=1, fold=True),
+        "split": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=False),
+        "folded": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=True),
     }
     rows = []
     for batch in (1, 256):

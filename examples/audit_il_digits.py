@@ -5,10 +5,10 @@
 Per task: write the example (base checkpoint + user data), `prop keygen`, `prop personalize` with
 defaults, `prop attack` with defaults (every probe in the registry: null, 4096 random keys, Hamming
 1..8 x 256, 1M streamed black-box keys, encoder structure, T1 relaxed search with 128 restarts, T2,
-T3 few-shot) plus a second user's key for the cross-user row and `--original` for the controls;
-prints the table, each row's bundle / control / beyond, the audit's wall and CPU time (the issue's
-goal: <= 60 s on 2 cores for IL) and the black-box scan's throughput, and writes
-OUT_DIR/<task>/audit.json and audit.png.
+T3 few-shot) plus a key that is no user of the bundle (audited as a plain key, with a warning),
+`--original` for the searches' controls and `--max-leak 0.05`; prints the decision, the table, each
+row's bundle / control / beyond, the audit's wall and CPU time (the issue's goal: <= 60 s on 2 cores
+for IL) and the black-box scan's throughput, and writes OUT_DIR/<task>/audit.json and audit.png.
 """
 
 from __future__ import annotations
@@ -45,10 +45,10 @@ def run_task(task: str, out_dir: Path, seed: int) -> dict:
     t_pers = time.perf_counter() - t0
     t0 = time.perf_counter()
     cpu0 = _child_cpu()
-    # The user audits on their own data; the cross-user row uses a key that was never trained.
+    # The user audits on their own data; other.bin was never trained (a plain key row, with a warning).
     rc = _prop("attack", bundle, "--data", paths["mine"], "--key-file", d / "k.bin", "--key-file",
                d / "other.bin", "--original", paths["base"], "--json", d / "audit.json",
-               "--plot", d / "audit.png", "--force")  # fmt: skip
+               "--plot", d / "audit.png", "--max-leak", "0.05", "--force")  # fmt: skip
     t_audit, cpu_audit = time.perf_counter() - t0, _child_cpu() - cpu0
     if rc not in (0, 1):
         raise SystemExit(f"prop attack failed for {task} (exit {rc})")
@@ -64,6 +64,7 @@ def _child_cpu() -> float:
 
 
 def _rows(task: str, rep: dict) -> None:
+    print(f"{task}: {rep['max_leak']['verdict']}")
     print(f"{task}: per row, worst leakage on the bundle / the control / beyond, and what --max-leak gates")
     for g in rep["groups"]:
         c = g["control"]

@@ -22,8 +22,8 @@ import torch
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import key_codes, outputs_for_codes
-from prop_cli.core.keyspace import neighbours_at, random_keys
+from prop_cli.core.key_sampling import neighbours_at, random_keys
+from prop_cli.core.keyed_model import key_codes, outputs_for_codes
 
 DISTANCES = range(1, 9)
 KEYS_PER_DISTANCE = 64

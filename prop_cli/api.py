@@ -16,24 +16,23 @@ import numpy as np
 from prop_cli import adapters
 from prop_cli import constants as C
 from prop_cli.adapters import CheckpointOptions
-from prop_cli.adapters.hub import resolve_checkpoint
+from prop_cli.adapters.hub import public_name, resolve_checkpoint
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
+from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
 from prop_cli.bundle import Bundle, KeyedPolicy, load_bundle, read_manifest, run_bundle
 from prop_cli.bundle.records import (
     SealedState,
     check_new_key,
-    public_metrics,
     rewrite_records,
     seal_payload,
     with_records,
 )
 from prop_cli.bundle.runtime import run_policy
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keys import (
+from prop_cli.core.key_files import (
     KeySource,
     generate_key_file,
     kdf_record,
@@ -41,12 +40,15 @@ from prop_cli.core.keys import (
     read_key_file,
     user_keys,
 )
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.core.layers import describe_layer, keyable_layers, select_layers
+from prop_cli.core.passphrase import check_strength as check_passphrase
+from prop_cli.core.passphrase import strength
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.datasources.npz import read_npy
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
-from prop_cli.files import check_output, write_file
+from prop_cli.files import check_not_input, check_output, write_file
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import Job, User, personalize, sealed_recipe
@@ -64,7 +66,10 @@ __all__ = [
     "apply_max_leak",
     "audit",
     "audit_bundle",
+    "audit_decision",
     "audit_table",
+    "check_passphrase",
+    "enrol",
     "eval_bundle",
     "export_bundle",
     "formats",
@@ -85,6 +90,7 @@ __all__ = [
     "run_file",
     "select_probes",
     "user_keys",
+    "verify_bundle",
 ]
 
 
@@ -160,8 +166,8 @@ def personalize_checkpoint(
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
-    ``users`` pairs each user's data file with their key (``core.keys.user_keys`` builds them from key files
-    and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
+    ``users`` pairs each user's data file with their key (``core.key_files.user_keys`` builds them from key
+    files and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
     ``prop_cli.threads`` chooses from the model's size and the idle cores).
     """
     bits = {len(k.bits) for _, k in users}
@@ -170,6 +176,7 @@ def personalize_checkpoint(
     cfg.validate(key_bits=min(bits) if bits else None)
     check_threads(threads)
     check_output(out, force)  # before hours of training, not after
+    check_not_input(out, "--out", [checkpoint, *(p for p, _ in users), general])
     loaded = _load(checkpoint, opts)
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
@@ -187,7 +194,7 @@ def personalize_checkpoint(
             "kdf": kdf_record(salt),
         },
         C.M_CONFIG: cfg.to_dict(),
-        C.M_IO: {"checkpoint": str(checkpoint)},
+        C.M_IO: {"checkpoint": public_name(checkpoint)} if public_name(checkpoint) else {},
     }
     written = trained.write(out, common, force=force)
     m = written.manifest
@@ -258,13 +265,17 @@ def run_file(
     onnx_dir: Path | None = None,
     force: bool = False,
     threads: int | None = None,
+    trust_remote_code: bool = False,
     noise_seed: int = 0,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
+    With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing runs the
+    bundle's base with a warning; a bundle changed since the key was enrolled is refused.
     ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
-    bundle = load_bundle(bundle_path)
+    check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     _seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -286,8 +297,8 @@ def run_file(
             np.save(f, y)
 
     write_file(output, save, what="output", flag="--output")
-    # A key that unlocks nothing (a sealed bundle's key that opens no record) ran the base: not keyed.
-    keyed = key is not None and bundle.mode.opens(key)
+    # A key enrolled in nothing ran the base: not keyed (a changed bundle raised before anything ran).
+    keyed = key is not None and bundle.mode.enrolled(key)
     return RunResult(Path(output), tuple(y.shape), keyed, use_onnx)
 
 
@@ -302,22 +313,28 @@ def audit_bundle(
     device: str = "cpu",
     progress: Callable[[str, int, int], None] | None = None,
     threads: int | None = None,
+    trust_remote_code: bool = False,
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``attack.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
     check_threads(threads)
-    bundle = load_bundle(bundle_path)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     configure_threads(bundle.parameters, threads)
     _seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
-    ref = target.load_original(bundle, original, settings.noise_seed) if original else None
-    return audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
+    ref = target.load_original(bundle, original, trust_remote_code, settings.noise_seed) if original else None
+    report = audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
+    if passphrase is not None:
+        # What guessing the passphrase offline costs: any record, enrolment or encoder tests a guess.
+        report["passphrase"] = strength(passphrase, min_core_years=settings.min_passphrase_years).to_dict()
+    return report
 
 
 def record_audit(bundle_path: Path, report: dict) -> dict:
-    """Store the audit's summary in the bundle's manifest (``audit``); weights and hashes untouched."""
+    """Store the audit's summary in the bundle's manifest (``audit``); weights and hashes untouched. A
+    sealed bundle's summary holds verdicts only: no figure of its user (``attack.report.summary``)."""
     from prop_cli.attack.report import record
 
     return record(Path(bundle_path), report)
@@ -333,12 +350,16 @@ def export_bundle(
     passphrase: str | None = None,
     force: bool = False,
     threads: int | None = None,
+    trust_remote_code: bool = False,
 ):
-    """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``)."""
+    """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
+    The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these."""
     from prop_cli.deploy.onnx import export_onnx, require_onnx
 
     check_threads(threads)
-    bundle = _array_model(load_bundle(bundle_path), "prop export")
+    target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
+    check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
+    bundle = _array_model(load_bundle(bundle_path, trust_remote_code=trust_remote_code), "prop export")
     require_onnx()
     configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -350,7 +371,7 @@ def eval_bundle(
     bundle_path: Path, env_id: str, settings: EvalSettings | None = None, *,
     key_file: Path | None = None, passphrase: str | None = None, obs_map: str | None = None,
     metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
-    vecnormalize: Path | None = None, video: Path | None = None,
+    vecnormalize: Path | None = None, video: Path | None = None, trust_remote_code: bool = False,
 ) -> dict:  # fmt: skip
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
@@ -360,11 +381,13 @@ def eval_bundle(
 
     settings = settings or EvalSettings()
     check_video(video)
-    bundle = load_bundle(bundle_path)
+    if video is not None:
+        check_not_input(video, "--video", [bundle_path, key_file, vecnormalize])
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
-    ref = _load(original, None) if original else None
+    ref = _load(original, CheckpointOptions(trust_remote_code=trust_remote_code)) if original else None
     for loaded in (bundle.loaded, ref):
         if loaded is not None:
             _seed_noise(loaded, settings.noise_seed)
@@ -375,8 +398,8 @@ def eval_bundle(
     )  # fmt: skip
 
 
-def _sealed_bundle(bundle_path: Path, command: str) -> Bundle:
-    bundle = load_bundle(bundle_path)
+def _sealed_bundle(bundle_path: Path, command: str, trust_remote_code: bool = False) -> Bundle:
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     if not bundle.is_sealed:
         raise PropError(
             f"{command} works on sealed bundles; {bundle_path} is unsealed (its users share one encoder and "
@@ -402,13 +425,14 @@ def add_user(
     cfg: PersonalizeConfig | None = None,
     device: str = "cpu",
     progress: Callable[[int, dict[str, float]], None] | None = None,
+    trust_remote_code: bool = False,
 ) -> UserChange:
     """`prop add-user`: train one more user's payload on their data alone and seal it into the bundle.
 
     Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
-    payload kind, rank and layers must stay the bundle's (they are bound into every record). The
-    manifest is written once, with the new record and the new user's public figures."""
-    bundle = _sealed_bundle(bundle_path, "add-user")
+    payload kind, rank and layers must stay the bundle's (every record is enrolled in them). The
+    manifest is written once, with the new record (no figure of the user goes in the clear)."""
+    bundle = _sealed_bundle(bundle_path, "add-user", trust_remote_code)
     m = bundle.manifest
     bundle.check_key(key.bits, "the new user's key")
     cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
@@ -433,18 +457,60 @@ def add_user(
     new = with_records(m, [rec], [])
     state = SealedState(new, bundle.sealed.spec, [*bundle.sealed.records, rec])
     report = sealed_user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
-    users = list((new.get(C.M_METRICS) or {}).get("users", []))
-    new[C.M_METRICS] = {"users": [*users, public_metrics(report, rec.id)]}
     new = rewrite_records(Path(bundle_path), m, new, [rec])
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
 
 
-def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str | None = None) -> UserChange:
-    """`prop remove-user`: delete one user's record. Ownership is proven by the key: it must open the
-    record it removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's
-    maintainer when a user lost theirs: whoever can write the files can delete a record anyway, and
-    no one can add or change one without its key."""
-    bundle = _sealed_bundle(bundle_path, "remove-user")
+@dataclass
+class Enrolled:
+    bundle: Path
+    status: str  # "enrolled", "re-enrolled (...)" or "already enrolled"
+    format_version: int
+
+
+def enrol(bundle_path: Path, key: np.ndarray) -> Enrolled:
+    """`prop enrol`: enrol your key in an unsealed bundle as it is now. Your consent that its current
+    behaviour is yours: for a format 1-3 bundle you trust (from before enrolment, whose keys run its
+    base), or to accept a change. Reads the bundle as data: nothing it names is imported. Sealed
+    bundles enrol each user in their own record (prop add-user)."""
+    from prop_cli.bundle import check_files, enrol_key
+    from prop_cli.bundle.modes import mode_of
+
+    manifest = read_manifest(Path(bundle_path))
+    check_files(Path(bundle_path), manifest)
+    if mode_of(manifest).hides_behaviour:
+        raise PropError(
+            f"{bundle_path} is sealed: each user is enrolled in their own record",
+            "add a user with prop add-user (their record is their enrolment)",
+        )
+    bits = int(manifest[C.M_KEY]["bits"])
+    if len(key) != bits:
+        raise PropError(f"the key has {len(key)} bits but the bundle expects {bits}", "use the bundle's key")
+    new, status = enrol_key(Path(bundle_path), manifest, key)
+    return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
+
+
+def verify_bundle(folder: Path, *, public_key: Path | None = None, chain: list[Path] | tuple = ()) -> dict:
+    """`prop verify`: the publisher's signature over every file of a downloaded bundle (``deploy.sign``),
+    then the bundle's own checks, as data (nothing it names is imported)."""
+    from prop_cli.deploy.publish import verified_files
+    from prop_cli.deploy.sign import verify_folder
+
+    result = verify_folder(Path(folder), public_key, chain)
+    manifest, mode = verified_files(Path(folder))
+    return {**result, "mode": mode.name, "users": mode.users(manifest), "format": manifest[C.M_FORMAT]}
+
+
+def remove_user(
+    bundle_path: Path, *, key: np.ndarray | None = None, record: str | None = None,
+    trust_remote_code: bool = False,
+) -> UserChange:  # fmt: skip
+    """`prop remove-user`: delete one user's record, from the bundle and from its ONNX export
+    (``<bundle>/onnx``) if it has one. Ownership is proven by the key: it must open the record it
+    removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's maintainer
+    when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
+    add or change one without its key."""
+    bundle = _sealed_bundle(bundle_path, "remove-user", trust_remote_code)
     if (key is None) == (record is None):
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
     ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]
@@ -460,6 +526,16 @@ def remove_user(bundle_path: Path, *, key: np.ndarray | None = None, record: str
         raise PropError(
             f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
         )
+    if len(ids) == 1:
+        raise PropError(
+            f"{record} is the last user of {bundle_path}: a sealed bundle keeps at least one",
+            "delete the bundle folder instead",
+        )
     new = with_records(bundle.manifest, [], [record])
+    export = Path(bundle_path) / C.EXPORT_DIR
+    if (export / C.EXPORT_META).is_file():
+        from prop_cli.deploy.onnx import drop_record
+
+        drop_record(export, record)  # first: the export never holds more than the bundle
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
     return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))

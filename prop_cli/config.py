@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-from .constants import KEY_ENCODINGS
+from .constants import KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
@@ -76,8 +76,9 @@ class PersonalizeConfig(_Settings):
     # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's
     # fallback samples is a given input plus Gaussian noise of `fallback_sigma` per-feature standard
     # deviations, labelled by the original on the fly. Keeps the no-key model the original around and
-    # between the data points too, not only on them (docs/design.md, "No-key drift").
-    fallback_noise: float = 0.5
+    # between the data points too, not only on them (docs/design.md, "No-key drift"). All of them (1.0,
+    # not 0.5): the reach3 no-key mse 1.4e-4 -> 0.8e-4, digits-perm groups >= 0.991 on 5/5 seeds.
+    fallback_noise: float = 1.0
     fallback_sigma: float = 0.5
     encoder_hidden: list[int] = field(default_factory=lambda: [256])
     delta_scale: float = 2.0  # delta in (1 - scale, 1 + scale)
@@ -141,6 +142,8 @@ class PersonalizeConfig(_Settings):
 
 BLACKBOX_KEYS = 1_000_000
 BLACKBOX_KEYS_POLICY = 65_536
+FEWSHOT_RESTARTS = 128
+FEWSHOT_RESTARTS_POLICY = 16  # not calibrated on policies: 8x the old budget at a tractable cost
 
 
 @dataclass
@@ -155,6 +158,11 @@ class AuditSettings(_Settings):
     search_steps: int = 100
     search_lr: float = 0.1
     search_batch: int = 32  # samples per search step (0: all); each step draws its own
+    # T3's code fit: the attacker's pick (lowest fit loss) finds a hardened digits code in 0.97-1.00 of
+    # draws at 128 x 200 (docs/audit.md, "Few-shot budget"); 400 steps find no more than 200. None:
+    # FEWSHOT_RESTARTS, or FEWSHOT_RESTARTS_POLICY for policies (an ACT forward per restart and shot).
+    fewshot_restarts: int | None = None
+    fewshot_steps: int = 200
     samples: int = 256  # samples of --data the audit runs on
     seed: int = 0
     # Random keys of the streamed black-box scan; None: BLACKBOX_KEYS, or BLACKBOX_KEYS_POLICY for
@@ -162,12 +170,18 @@ class AuditSettings(_Settings):
     blackbox: int | None = None
     blackbox_screen: int = 8  # samples each scanned key is screened on
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
+    # The passphrase row (--passphrase): fails when guessing it would take fewer core-years than this.
+    min_passphrase_years: float = PASSPHRASE_MIN_YEARS
     # A sampling policy's chunks (LeRobot Diffusion) start from this seed's noise, for every key and
     # the original alike: outputs compare as functions of the key alone.
     noise_seed: int = 0
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
-        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, noise_seed=0)
+        if self.fewshot_restarts is None:
+            self.fewshot_restarts = FEWSHOT_RESTARTS
+        self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, fewshot_restarts=1,
+                      fewshot_steps=1, noise_seed=0)  # fmt: skip
+        self.need(self.min_passphrase_years >= 0, "min_passphrase_years", ">= 0")
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
         if self.blackbox is None:

@@ -12,11 +12,14 @@ RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<rec
 RECORD_SUFFIX = ".sealed"
 
 # Bump on any change a reader of an older version would misread. 2: sealed bundles (mode, payload,
-# records); 3: the manifest carries its own digest (M_DIGEST). Versions 1 and 2 (no digest) still load,
-# with only their listed files checked.
-FORMAT_VERSION = 3
-FORMAT_VERSIONS = (1, 2, 3)  # what this prop reads
+# records); 3: the manifest carries its own digest (M_DIGEST); 4: keys are enrolled (M_ENROLMENTS for
+# unsealed bundles; sealed records carry what they were enrolled in, inside their plaintext) and
+# io.checkpoint is a file name. Versions 1 and 2 (no digest) still load, with only their listed files
+# checked; a key enrolled in nothing of a version 1-3 bundle runs its base (docs/bundle-format.md).
+FORMAT_VERSION = 4
+FORMAT_VERSIONS = (1, 2, 3, 4)  # what this prop reads
 DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
+ENROL_SINCE = 4  # the first version whose keys are enrolled
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -38,10 +41,11 @@ M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256"}], on
 MODE_UNSEALED = "unsealed"
 MODE_SEALED = "sealed"
 MODES = (MODE_UNSEALED, MODE_SEALED)
+M_ENROLMENTS = "enrolments"  # unsealed: [{"salt", "nonce", "box"}], one sealed enrolment per user
 M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.bundle.manifest)
 M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
-# How key bits become the encoder's input (prop_cli.core.keyed.key_codes); the first is the default.
+# How key bits become the encoder's input (prop_cli.core.keyed_model.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")
 
 # A module attribute (a list of layer names) an adapter sets where the default choice of keyed layers
@@ -52,8 +56,10 @@ DEFAULT_LAYERS_ATTR = "prop_default_layers"
 EXPORT_DIR = "onnx"  # default place: <bundle>/onnx
 EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
 # 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.
-EXPORT_FORMAT = 2
-EXPORT_FORMATS = (1, 2)
+# 3: export.json binds the keys given at export to its graphs (M_ENROLMENTS); a key an export does not
+# bind runs its base.onnx.
+EXPORT_FORMAT = 3
+EXPORT_FORMATS = (1, 2, 3)
 EXPORT_DIGEST = "export_sha256"
 BASE_GRAPH = "base.onnx"
 KEYED_GRAPH = "keyed.onnx"
@@ -62,7 +68,7 @@ POLICY_GRAPH = "policy.onnx"
 GRAPHS = (BASE_GRAPH, KEYED_GRAPH, ENCODER_GRAPH, POLICY_GRAPH)
 
 # Audit reports (`prop attack --json`).
-AUDIT_SCHEMA = "prop-audit/2"
+AUDIT_SCHEMA = "prop-audit/3"
 
 # The CLI's defaults that are not training, audit or export settings (those are in prop_cli.config).
 DEFAULT_BUNDLE = "personalized.prop"  # personalize --out
@@ -84,3 +90,7 @@ SCRYPT_N = 2**14
 SCRYPT_R = 8
 SCRYPT_P = 1
 SALT_BYTES = 16
+# A passphrase must take at least this many core-years to guess (zxcvbn's estimate of the guesses it
+# takes x the scrypt time per guess measured on this machine); weaker ones are refused unless the user
+# insists (--weak-passphrase), and the audit's passphrase row fails below it.
+PASSPHRASE_MIN_YEARS = 100.0

@@ -17,6 +17,7 @@ import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from . import constants as C
 from .errors import PropError
 
 # What this process has put in place so far (final paths, in order): the CLI names them if interrupted.
@@ -75,6 +76,36 @@ def check_output(out: Path, force: bool, what: str = "bundle", flag: str = "--ou
         raise PropError(
             f"cannot write {what} {out}: folder {parent} is not writable", f"choose another {flag}"
         )
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)  # hard links and symlinks too
+    except OSError:
+        return False
+
+
+def check_not_input(
+    out: Path, flag: str, inputs: list, inside_ok: list | None = None
+) -> None:
+    """Refuse an output that is one of the same command's inputs, holds one (replacing a folder deletes
+    what is in it) or lies inside an input bundle or export (whose files prop checks), ``--force`` or
+    not: a command never destroys what it reads. ``inside_ok``: input folders an output may sit inside
+    (an export's default place in its bundle). ``inputs`` may hold None and hub paths (skipped)."""
+    out = Path(out).resolve()
+    for given in inputs:
+        if given is None or str(given).startswith("hf://"):
+            continue
+        src = Path(given).resolve()
+        holds = src == out or out in src.parents or _same(src, out)
+        inside = src in out.parents and not any(Path(p).resolve() == src for p in inside_ok or [])
+        checked = src.is_dir() and any((src / f).is_file() for f in (C.MANIFEST, C.EXPORT_META))
+        if holds or (inside and checked):
+            why = "is" if src == out or _same(src, out) else ("holds" if holds else "is inside")
+            raise PropError(
+                f"{flag} {out} {why} this command's input {given}",
+                f"write to another {flag}: prop never replaces what the same command reads, --force or not",
+            )
 
 
 def _cannot_write(what: str, out: Path, e: OSError, flag: str) -> PropError:

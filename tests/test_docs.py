@@ -161,7 +161,7 @@ def test_the_readme_imports_the_api():
 
 @pytest.mark.parametrize("path", OWN, ids=lambda p: str(p.relative_to(ROOT)))
 def test_the_docs_name_modules_by_their_current_paths(path):
-    """Imports, dotted names (`prop_cli.core.keys.user_keys`) and file paths (`prop_cli/bundle/...py`)
+    """Imports, dotted names (`prop_cli.core.key_files.user_keys`) and file paths (`prop_cli/bundle/...py`)
     in the README and docs/ are those of the current layout, not the deprecated 0.1 paths."""
     text = path.read_text()
     for mod, _ in _imports(text):
@@ -222,13 +222,14 @@ def test_the_python_api_example_runs(workdir, monkeypatch):
     (block,) = [b for b in _blocks(README) if "personalize_checkpoint(" in b and "KeyedPolicy(bundle" in b]
     quick = block.replace("steps=2000", "steps=20").replace(
         "AuditSettings(blackbox=100_000)",
-        "AuditSettings(random=16, restarts=2, search_steps=5, blackbox=256, per_distance=8)",
+        "AuditSettings(random=16, restarts=2, search_steps=5, blackbox=256, per_distance=8, "
+        "fewshot_restarts=2, fewshot_steps=5)",
     )
     monkeypatch.chdir(workdir)
     env: dict = {}
     exec(compile(quick, "README.md", "exec"), env)
     assert env["action"].shape == (2,) and env["y"].shape == (8, 2)
-    assert env["report"]["schema"] == "prop-audit/2"
+    assert env["report"]["schema"] == "prop-audit/3"
 
 
 def test_the_format_table_is_the_registrys():
@@ -299,7 +300,7 @@ def test_extending_with_a_probe(monkeypatch, workdir):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
     from prop_cli.attack.audit import audit
     from prop_cli.config import AuditSettings, PersonalizeConfig
-    from prop_cli.core.keys import read_key_file
+    from prop_cli.core.key_files import read_key_file
     from prop_cli.datasources import load_data
 
     mod = _module("prop_cli/attack/probes/complement.py", "prop_cli.attack.probes.complement", monkeypatch)
@@ -313,7 +314,8 @@ def test_extending_with_a_probe(monkeypatch, workdir):
                 AuditSettings(probes=["null", "complement"], samples=32))  # fmt: skip
     assert [g["name"] for g in rep["groups"]] == ["null", "complement"]
     g = rep["groups"][1]
-    assert g["threat"] == "T0" and g["keys"] == 1 and g["gate"]["on"] == "raw"
+    assert g["threat"] == "T0" and g["keys"] == 1 and g["gate"]["on"] == "beyond-control"
+    assert g["control"]["available"] and g["control"]["leakage"]["worst"] == 0  # no user enrolled
     with pytest.raises(Exception, match="need the user's key"):
         audit(
             load_bundle(workdir / "b.prop"),

@@ -22,8 +22,8 @@ from torch import nn
 
 from examples import mlp
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.train.objective import row_loss
 
 CVAE_LATENT = 16
@@ -106,8 +106,9 @@ def train(
 ) -> nn.Module:
     """Eq. 8 with the trainer's row counts: ``users`` = [(x, y, key bits)], fallback inputs ``pool``.
 
-    ``encoding`` is how key bits become the model's key input (prop_cli.core.keyed.key_codes): "raw" = the
-    paper's ±1 bits; "hashed" = prop's SHAKE-256 code, to separate the encoding's effect from PRoP's.
+    ``encoding`` is how key bits become the model's key input (prop_cli.core.keyed_model.key_codes):
+    "raw" = the paper's ±1 bits; "hashed" = prop's SHAKE-256 code, to separate the encoding's effect from
+    PRoP's.
     """
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)

@@ -21,8 +21,8 @@ from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import Bundle, load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core import metrics
-from prop_cli.core.keyed import key_codes, outputs_for_codes
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
+from prop_cli.core.keyed_model import key_codes, outputs_for_codes
 from prop_cli.datasources import Dataset
 
 KEY_BITS = 128

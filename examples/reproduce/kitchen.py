@@ -19,7 +19,7 @@ the final "done" (4-7 rows).
   participants; nothing in the library was missing. ``PRoP`` feeds the paper's raw key bits,
   ``PRoP-hashed`` prop's default hashed key code;
 - keys: every user's username and generated password go through prop's passphrase KDF
-  (``prop_cli.core.keys.passphrase_bits``, scrypt) with the deployment's salt, 32 bits, as the paper's
+  (``prop_cli.core.key_files.passphrase_bits``, scrypt) with the deployment's salt, 32 bits, as the paper's
   "bit-represented keys" of 32 bits. One salt per repetition (a deployment; the bundles record it
   in their manifests); seeded, so reruns match (a real deployment draws it with ``keys.new_salt``);
 - the MLP and CVAE baselines (``baselines``) are trained from scratch on the same unified dataset with
@@ -70,7 +70,7 @@ from torch import nn
 from examples import save_npz
 from examples.reproduce import baselines, common, table
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keys import passphrase_bits
+from prop_cli.core.key_files import passphrase_bits
 
 INGREDIENTS = (
     "white bread", "rye bread", "ham", "turkey", "cheddar", "swiss",

@@ -33,8 +33,8 @@ from torch import nn
 from examples.reproduce import baselines, common, ppo
 from prop_cli import constants as C
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import select_layers
 from prop_cli.errors import PropError
 
@@ -333,7 +333,7 @@ def t2_leakage(ka: _KeyedActor, actor_path: Path, key: np.ndarray, states: np.nd
         C.M_IO: {"input_shape": [OBS], "checkpoint": str(actor_path)},
         C.M_METRICS: {},
     }
-    write_unsealed(work / "reach.prop", loaded=loaded, keyed=km, manifest=manifest, force=True)
+    write_unsealed(work / "reach.prop", loaded=loaded, keyed=km, manifest=manifest, keys=[key], force=True)
     bundle = load_bundle(work / "reach.prop")
     with torch.no_grad():
         y = ka.km.fold(key_codes(key, ka.encoding))(torch.from_numpy(states)).numpy()

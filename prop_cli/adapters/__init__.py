@@ -16,7 +16,7 @@ from torch import nn
 
 from prop_cli.errors import PropError, brief
 
-from .base import Adapter, CheckpointOptions, LoadedModel, check_exists
+from .base import TRUST_FLAG, Adapter, CheckpointOptions, LoadedModel, check_exists, require_trust
 from .folder import CONFIG, WEIGHTS, FolderAdapter
 from .lerobot import LeRobotAdapter
 from .mlp import MLPAdapter
@@ -37,11 +37,14 @@ __all__ = [
     "Adapter",
     "CheckpointOptions",
     "LoadedModel",
+    "TRUST_FLAG",
     "adapter_named",
     "describe",
     "load_checkpoint",
     "read_weights",
     "rebuild",
+    "remote_code",
+    "require_trust",
 ]
 
 
@@ -82,9 +85,11 @@ def load_checkpoint(
     arch: str | None = None,
     arch_kwargs: dict | None = None,
     activation: str | None = None,
+    trust_remote_code: bool = False,
 ) -> LoadedModel:
-    """Load a checkpoint with the first registered adapter that recognises it."""
-    options = options or CheckpointOptions(arch, arch_kwargs, activation)
+    """Load a checkpoint with the first registered adapter that recognises it. Code the checkpoint's
+    files name (a folder's entry point, LeRobot processor steps) runs only with ``trust_remote_code``."""
+    options = options or CheckpointOptions(arch, arch_kwargs, activation, trust_remote_code)
     path = Path(path)
     check_exists(path)
     if path.is_dir() and not (path / CONFIG).exists() and (path / WEIGHTS).is_file():
@@ -92,15 +97,27 @@ def load_checkpoint(
     for adapter in ADAPTERS:
         if adapter.recognise(path, options):
             _check_options(adapter, options, path)
+            named = adapter.remote_code_at(path, options)
+            require_trust(named, f"checkpoint {path}", options.trust_remote_code)
             loaded = adapter.load(path, options)
             return _require_linear(loaded)
     read_weights(path)  # names what is wrong with the file (extension, content)
     raise PropError(f"checkpoint {path} is in no format prop reads", "`prop formats` lists them")
 
 
-def rebuild(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    """Rebuild the module a bundle describes (``spec`` from its manifest) with ``weights``."""
+def remote_code(spec: dict, source: str) -> list[str]:
+    """What rebuilding ``spec`` would import or call that a file names (``Adapter.remote_code``)."""
     adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
+    return adapter.remote_code(spec, str(source))
+
+
+def rebuild(
+    spec: dict, weights: dict[str, torch.Tensor], source: str, *, trust_remote_code: bool = False
+) -> LoadedModel:
+    """Rebuild the module a bundle describes (``spec`` from its manifest) with ``weights``. Code the spec
+    names (``remote_code``) is imported only with ``trust_remote_code``; otherwise nothing is."""
+    adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
+    require_trust(adapter.remote_code(spec, str(source)), f"bundle {source}", trust_remote_code)
     try:
         return _require_linear(adapter.rebuild(spec, weights, str(source)))
     except KeyError as e:

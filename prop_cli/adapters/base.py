@@ -20,11 +20,13 @@ from prop_cli.errors import PropError
 
 @dataclass
 class CheckpointOptions:
-    """What the user may say about a checkpoint (``--arch``, ``--arch-kwargs``, ``--activation``)."""
+    """What the user may say about a checkpoint (``--arch``, ``--arch-kwargs``, ``--activation``), and
+    whether they trust code the checkpoint's own files name (``--trust-remote-code``)."""
 
     arch: str | None = None
     arch_kwargs: dict | None = None
     activation: str | None = None
+    trust_remote_code: bool = False  # not a format option: every adapter takes it
 
     FLAGS: ClassVar[dict[str, str]] = {
         "arch": "--arch",
@@ -162,6 +164,17 @@ class Adapter(ABC):
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         """The module a bundle describes (``spec`` from its manifest) with ``weights`` (its base file)."""
 
+    def remote_code(self, spec: dict, source: str) -> list[str]:
+        """What rebuilding ``spec`` (a bundle's manifest, and files at ``source``) would import or call
+        that a *file* names, one entry each ("model.arch 'pkg.mod:fn'"); [] if nothing. Called before
+        ``rebuild``: anything listed is refused unless the user passes --trust-remote-code."""
+        return []
+
+    def remote_code_at(self, path: Path, options: CheckpointOptions) -> list[str]:
+        """The same for ``load``: code the checkpoint's files name (not what the user gave, such as
+        --arch, which is their consent for that command)."""
+        return []
+
     def weights(self, path: Path) -> dict[str, torch.Tensor]:
         """The checkpoint's tensors by name, as ``rebuild`` takes them (``--original`` is read so)."""
         from .weights import read_weights
@@ -183,6 +196,19 @@ class Adapter(ABC):
 def finish(module: torch.nn.Module) -> torch.nn.Module:
     """Common last step of every adapter: float32, eval mode, no autograd surprises."""
     return module.float().eval()
+
+
+TRUST_FLAG = "--trust-remote-code"
+
+
+def require_trust(named: list[str], source: str, trusted: bool) -> None:
+    """Refuse, in one line naming it and the flag, code a file names that the user has not trusted.
+    Nothing is imported before this check."""
+    if named and not trusted:
+        raise PropError(
+            f"{source} names code to import and run: {'; '.join(named)}",
+            f"pass {TRUST_FLAG} (trust_remote_code=True in the API) only if you trust whoever wrote them",
+        )
 
 
 def check_exists(path: Path) -> None:

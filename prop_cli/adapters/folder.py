@@ -159,6 +159,16 @@ class FolderAdapter(Adapter):
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         return build(spec, weights, source)
 
+    def remote_code(self, spec: dict, source: str) -> list[str]:
+        return [f"model.arch {spec.get('arch')!r} (called with model.config and model.arch_kwargs)"]
+
+    def remote_code_at(self, path: Path, options: CheckpointOptions) -> list[str]:
+        if options.arch or not (path / CONFIG).is_file():
+            return []  # --arch is the user's own choice; a folder without config.json fails in load
+        value, via = _builder(path, read_config(path), None)
+        # The package is installed, but which of its entry points runs is chosen by config.json.
+        return [f"{value!r}, the {via} that {CONFIG} selects"]
+
     def weights(self, path: Path) -> dict[str, torch.Tensor]:
         return read_folder_weights(path)[0] if path.is_dir() else read_weights(path)[0]
 

@@ -35,6 +35,16 @@ def is_hub_path(path: str | Path) -> bool:
     return str(path).startswith(HF_SCHEME)
 
 
+def public_name(path: str | Path | None) -> str | None:
+    """How a bundle names the checkpoint it came from: a hub path as given, a local one by its file name
+    only (a local path may carry a user name, and a bundle is shared)."""
+    if not path:
+        return None
+    if is_hub_path(path):
+        return str(path)
+    return str(path).rstrip("/\\").replace("\\", "/").split("/")[-1] or None
+
+
 def parse_hub_path(path: str) -> HubPath:
     """Split ``hf://[datasets/]org/name[@rev][/path]`` into its parts; a PropError if malformed.
 

@@ -139,3 +139,8 @@ class ModuleAdapter(Adapter):
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         return build(spec, weights, source)
+
+    def remote_code(self, spec: dict, source: str) -> list[str]:
+        # A bundle's model.arch was written by whoever wrote the bundle: --arch on personalize was the
+        # user's consent for that command only.
+        return [f"model.arch {spec.get('arch')!r} (called with model.arch_kwargs)"]

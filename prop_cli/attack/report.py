@@ -1,4 +1,5 @@
-"""Presenting an audit report (schema ``prop-audit/2``): the table, the plot, the manifest summary."""
+"""Presenting an audit report (schema ``prop-audit/3``): the decision, the table, the plot, the manifest
+summary. The table and the plot draw the same numbers (``cells``)."""
 
 from __future__ import annotations
 
@@ -10,13 +11,7 @@ from prop_cli.bundle import update_manifest
 from prop_cli.errors import PropError
 from prop_cli.files import write_file
 
-# Line styles of the reference lines, so overlapping searches stay distinguishable.
-_STYLES = {"relaxed": "--", "relaxed-rounded": (0, (2, 3)), "latent": "-."}
-
-
-def _ci(s: dict, fmt: str = ".4f") -> str:
-    # summarize's interval is symmetric (normal approximation): mean ± half width is exact.
-    return f"{s['mean']:{fmt}} ± {(s['ci95'][1] - s['ci95'][0]) / 2:{fmt}}"
+from . import verdict
 
 
 def fidelity_label(task: str) -> str:
@@ -37,64 +32,116 @@ def title(report: dict) -> str:
 
 
 def _probe_name(g: dict) -> str:
-    return g["name"] if g["threat"] == "cross-user" else f"{g['threat']} {g['name']}"
+    return g["name"] if g["threat"] in ("cross-user", g["name"]) else f"{g['threat']} {g['name']}"
 
 
-def _control_cell(g: dict, key: str, fmt: str) -> str:
+def _control_worst(g: dict, key: str = "leakage") -> float | None:
     c = g.get("control")
-    if c is None:
-        return ""
-    if not c.get("available"):
-        return "n/a"
-    return f"{c[key]['worst']:{fmt}}"
+    if not c or not c.get("available") or c.get(key) is None:
+        return None
+    return c[key]["worst"]
+
+
+def cells(report: dict) -> list[dict]:
+    """Per row, the numbers the table prints and the plot draws, and their text: ``label``, ``keys``,
+    ``mean``/``half`` (95% interval), ``worst``, ``pick``, ``control``, ``beyond``, ``fidelity``,
+    ``gated`` (what --max-leak compares) and ``on`` (beyond-control, or the row's own figure: "no
+    control" / "ceiling"). With a key the figures are leakage, without one fidelity."""
+    owner = report["user"] is not None
+    task = report["bundle"]["task"]
+    m = "leakage" if owner else "fidelity"
+    fmt = ".4f" if owner or task == "classification" else ".3g"
+    out = []
+    for g in report["groups"]:
+        s, gate = g[m], g.get("gate")
+        srch = g.get("search") or {}
+        pick = srch.get(f"best_{m}") if "best_restart" in srch else None
+        c = g.get("control")
+        ctl = _control_worst(g, m)
+        on = "" if gate is None else ("beyond" if gate["on"] == "beyond-control" else gate["why"])
+        row = {
+            "label": _probe_name(g), "keys": g["keys"], "mean": s["mean"],
+            "half": (s["ci95"][1] - s["ci95"][0]) / 2,
+            "worst": s["worst"], "pick": pick, "control": ctl, "beyond": g.get("beyond") if owner else None,
+            "fidelity": g["fidelity"]["mean"], "gated": gate["value"] if gate else None, "on": on,
+        }  # fmt: skip
+        row["text"] = {
+            "keys": str(g["keys"]),
+            "ci": f"{row['mean']:{fmt}} ± {row['half']:{fmt}}",
+            "worst": f"{row['worst']:{fmt}}",
+            "pick": "" if pick is None else f"{pick:{fmt}}",
+            "control": "" if c is None else ("n/a" if ctl is None else f"{ctl:{fmt}}"),
+            "beyond": "" if row["beyond"] is None else f"{row['beyond']:{fmt}}",
+            "fidelity": f"{row['fidelity']:{'.3g' if task == 'regression' else '.4f'}}",
+            "gated": "" if gate is None else f"{gate['value']:.4f}" + ("" if on == "beyond" else f" ({on})"),
+        }
+        out.append(row)
+    return out
+
+
+def decision(report: dict) -> list[str]:
+    """The lines printed before the table: the decision (or, without --max-leak, the row that leaks most),
+    then the failing rows by severity with what each means."""
+    verdict_ = report.get("max_leak")
+    head = verdict_["verdict"] if verdict_ else verdict.headline(report)
+    if head is None:
+        return []
+    lines = [head]
+    if verdict_ and verdict_["rows"]:
+        lines.append("failing rows, by severity (gated value: beyond the control, or the row's own figure):")
+        width = max(len(r["name"]) for r in verdict_["rows"])
+        for r in verdict_["rows"]:
+            why = "" if r["on"] == "beyond-control" else f" ({r['why']})"
+            lines.append(f"  {r['name']:{width}s}  {r['value']:.4f}{why}  {r['finding']}")
+    return lines
 
 
 def table(report: dict):
-    """A rich Table: one row per probe group."""
+    """A rich Table: one row per probe group (the numbers of ``cells``)."""
     from rich import box
     from rich.table import Table
 
     task = report["bundle"]["task"]
     owner = report["user"] is not None
-    ffmt = ".3g" if task == "regression" else ".4f"
     t = Table(title=title(report), title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False)
     t.add_column("probe", no_wrap=True)
     t.add_column("keys", justify="right", no_wrap=True)
     if owner:
-        cols = ["leakage ± 95% CI", "worst", "pick", "control", "beyond", "fidelity"]
+        cols = ["leakage ± 95% CI", "worst", "pick", "control", "beyond", "gated", "fidelity"]
+        keys = ["ci", "worst", "pick", "control", "beyond", "gated", "fidelity"]
     else:
         cols = ["fidelity ± 95% CI", "worst", "pick", "control"]
+        keys = ["ci", "worst", "pick", "control"]
     for c in cols:
         t.add_column(c, justify="right", no_wrap=True)
-    for g in report["groups"]:
-        srch = g.get("search")
-        if owner:
-            lk = g["leakage"]
-            pick = f"{srch['best_leakage']:.4f}" if srch else ""
-            beyond = "" if g["beyond"] is None else f"{g['beyond']:.4f}"
-            row = [_ci(lk), f"{lk['worst']:.4f}", pick, _control_cell(g, "leakage", ".4f"), beyond,
-                   f"{g['fidelity']['mean']:{ffmt}}"]  # fmt: skip
-        else:
-            fd = g["fidelity"]
-            pick = f"{srch['best_fidelity']:{ffmt}}" if srch else ""
-            row = [_ci(fd, ffmt), f"{fd['worst']:{ffmt}}", pick, _control_cell(g, "fidelity", ffmt)]
-        t.add_row(_probe_name(g), str(g["keys"]), *row)
+    failing = set((report.get("max_leak") or {}).get("failing", []))
+    for g, row in zip(report["groups"], cells(report)):
+        texts = [row["text"][k] for k in keys]
+        if g["name"] in failing:
+            texts[keys.index("gated")] += " FAIL"
+        t.add_row(row["label"], row["text"]["keys"], *texts)
     notes = [
         f"fidelity: {'agreement' if task == 'classification' else 'mse'} with the reference output, "
         "mean over keys; worst: the group's worst key",
+        "leakage: key rows (concrete keys and codes) score leakage; search rows (T1 relaxed, T2, T3 fits) "
+        "bounded leakage: a move larger than yours is scaled back to yours (docs/metrics.md)",
         "pick: the search restart with the largest divergence (the attacker's choice)",
-        "control: the same probe's worst key where the bundle gives nothing (n/a: no original checkpoint, "
-        "pass --original); beyond: worst - control, what --max-leak gates searches on when a control exists",
+        "control: the same probe's worst where the bundle gives nothing: key rows, the same keys with no "
+        "user enrolled; searches, the same attack on the original (n/a: pass --original)",
+        "beyond: worst - control; gated: what --max-leak compares (beyond, or the row's own figure when "
+        "there is no control or a search's control is at the ceiling)",
     ]
     if report.get("control_model"):
-        notes.append(f"control model: {report['control_model']}")
-    if any(g["name"] == "relaxed-rounded" and not g["is_key"] for g in report["groups"]):
-        notes.append("T1 relaxed-rounded probes encoder codes; with hashed keys no known key maps to them")
-    verdict = report.get("max_leak")
-    if verdict:
+        notes.append(f"search control model: {report['control_model']}")
+    if any(not g["is_key"] and g["kind"] == "key" for g in report["groups"]):
+        notes.append("rows of codes (structure, rounded searches) probe encoder codes; with hashed keys no "
+                     "known key maps to them, but anyone with the files can run them")  # fmt: skip
+    row = report.get("passphrase")
+    if row:
         notes.append(
-            f"--max-leak {verdict['threshold']}: "
-            + ("passed" if verdict["passed"] else "FAILED (" + ", ".join(verdict["failing"]) + ")")
+            f"passphrase: {row['guesses']:.3g} guesses (zxcvbn) x {row['seconds_per_guess'] * 1e3:.0f} ms "
+            f"per scrypt guess = {row['core_years']:.3g} core-years to open: "
+            + ("passed" if row["passed"] else f"FAILED (needs >= {row['min_core_years']:g})")
         )
     t.caption = "\n".join(notes)
     t.caption_justify = "left"
@@ -102,13 +149,13 @@ def table(report: dict):
 
 
 def summary(report: dict) -> dict:
-    """The compact audit record stored in the bundle manifest (never the key)."""
+    """The compact audit record stored in the bundle manifest (never the key). A sealed bundle's manifest
+    is public while its users' figures are sealed: its record keeps verdicts and settings only, no
+    leakage, fidelity, personalization or sample count (``sealed_summary``)."""
+    if report["bundle"].get("sealed"):
+        return sealed_summary(report)
     return {
-        "schema": report["schema"],
-        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "prop_version": report["prop_version"],
-        "mode": report["mode"],
-        "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+        **_head(report),
         "reference": report["reference"],
         "samples": report["data"]["samples"],
         "settings": report["settings"],
@@ -133,11 +180,31 @@ def summary(report: dict) -> dict:
     }
 
 
-def _control_worst(g: dict) -> float | None:
-    c = g.get("control")
-    if not c or not c.get("available") or c.get("leakage") is None:
-        return None
-    return c["leakage"]["worst"]
+def _head(report: dict) -> dict:
+    """What every recorded summary starts with: schema, when, by which prop, of which manifest."""
+    return {
+        "schema": report["schema"],
+        "recorded_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "prop_version": report["prop_version"],
+        "mode": report["mode"],
+        "audited_manifest_sha256": report["bundle"]["manifest_sha256"],
+    }
+
+
+def sealed_summary(report: dict) -> dict:
+    """What of an audit a sealed bundle's clear manifest may say: which probes ran and the verdicts."""
+    gate = report.get("max_leak")
+    if gate:  # the verdict, not the figures behind it (its headline and reason quote them)
+        gate = {k: gate[k] for k in ("threshold", "passed", "failing")}
+    row = report.get("passphrase")
+    return {
+        **_head(report),
+        "figures": "sealed bundle: per-user figures are not recorded in the clear",
+        "settings": {k: v for k, v in report["settings"].items() if k != "samples"},
+        "groups": [{f: g[f] for f in ("name", "probe", "threat", "kind", "keys")} for g in report["groups"]],
+        "max_leak": gate,
+        "passphrase": None if row is None else {k: row[k] for k in ("passed", "min_core_years")},
+    }
 
 
 def record(bundle_path: Path, report: dict) -> dict:
@@ -148,7 +215,9 @@ def record(bundle_path: Path, report: dict) -> dict:
 
 
 def plot(report: dict, path: Path) -> Path:
-    """PNG: leakage and fidelity against Hamming distance, other probe groups as reference lines."""
+    """PNG of the table's numbers (``cells``): per row, the worst (bar), its control (black tick) and
+    beyond, written beside it as in the table; the --max-leak threshold as a line; Hamming rows' mean
+    and 95% interval as points. Without a key, fidelity instead of leakage."""
     try:
         import matplotlib
 
@@ -159,67 +228,51 @@ def plot(report: dict, path: Path) -> Path:
             "--plot needs matplotlib, which is not installed", "pip install prop-cli[plot]"
         ) from None
 
-    task = report["bundle"]["task"]
-    owner = report["user"] is not None
-    groups = report["groups"]
-    ham = [g for g in groups if g["distance"] is not None]
-    refs = [g for g in groups if g["distance"] is None]
-    metrics_ = [("leakage", "leakage (0 = nothing leaks)")] if owner else []
-    metrics_.append(("fidelity", fidelity_label(task)))
-    fig, axes = plt.subplots(1, len(metrics_), figsize=(6.4 * len(metrics_), 6.0), squeeze=False)
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for ax, (m, label) in zip(axes[0], metrics_):
-        if ham:
-            d = [g["distance"] for g in ham]
-            mean = [g[m]["mean"] for g in ham]
-            err = [
-                [g[m]["mean"] - g[m]["ci95"][0] for g in ham],
-                [g[m]["ci95"][1] - g[m]["mean"] for g in ham],
-            ]
-            ax.errorbar(
-                d, mean, yerr=err, fmt="o-", color="black", capsize=3, label="Hamming d: mean, 95% CI"
-            )
-            ax.plot(d, [g[m]["worst"] for g in ham], "x--", color="grey", label="Hamming d: worst key")
-            ax.set_xticks(d)
-            ax.set_xlabel("Hamming distance from the user's key (bits)")
-        else:
-            ax.set_xticks([])
-        for i, g in enumerate(refs):
-            value = g["search"][f"best_{m}"] if g.get("search") else g[m]["mean"]
-            what = "search pick" if g.get("search") else ("mean" if g["keys"] > 1 else "")
-            colour = colours[i % len(colours)]
-            style = _STYLES.get(g["name"], "-" if g["threat"] == "T0" else (0, (1, 1)))
-            name = f"{g['threat']} {g['name']}" if g["threat"] != "cross-user" else g["name"]
-            label_ = f"{name} {what}".strip() + f": {value:.3g}"
-            if m == "leakage" and g.get("beyond") is not None:  # worst - control, what the gate may use
-                label_ += f" (beyond control {g['beyond']:.3g})"
-            ax.axhline(value, color=colour, linestyle=style, linewidth=1.6, label=label_)
-            c = g.get("control")
-            if c and c.get("available"):
-                cv = c["search"][f"best_{m}"] if c.get("search") else c[m]["mean"]
-                ax.axhline(cv, color=colour, linestyle=":", linewidth=1.0, alpha=0.7,
-                           label=f"{name} control (original): {cv:.3g}")  # fmt: skip
-            if g["name"] == "random":
-                w = g[m]["worst"]
-                ax.axhline(
-                    w, color=colour, linestyle=":", linewidth=1.2, label=f"T0 random worst key: {w:.3g}"
-                )
-        if owner and m == "leakage":
-            ax.set_ylim(-0.03, 1.03)
-        elif task == "regression":
-            ax.set_yscale("symlog", linthresh=1e-4)
-            ax.set_ylim(0, max([*ax.get_ylim(), 1e-3]) * 3)  # headroom: top lines stay visible
-        else:
-            ax.set_ylim(-0.03, 1.03)
-        ax.set_ylabel(label)
-        ax.set_title(label)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
-    fig.suptitle(title(report), fontsize=9)
-    fig.tight_layout()
+    fig = figure(report, plt)
     try:
         return write_file(
             Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"), "--plot file", "--plot"
         )
     finally:
         plt.close(fig)
+
+
+def figure(report: dict, plt):
+    """The plot's figure (``plot``), for tests to read back."""
+    owner = report["user"] is not None
+    rows = cells(report)
+    metric = "leakage (0 = nothing leaks)" if owner else fidelity_label(report["bundle"]["task"])
+    fig, ax = plt.subplots(figsize=(9.0, 1.2 + 0.32 * max(1, len(rows))))
+    y = list(range(len(rows)))[::-1]
+    failing = set((report.get("max_leak") or {}).get("failing", []))
+    colours = ["tab:red" if g["name"] in failing else "tab:blue" for g in report["groups"]]
+    ax.barh(y, [r["worst"] for r in rows], color=colours, alpha=0.6, label="worst")
+    ax.errorbar([r["mean"] for r in rows], y, xerr=[r["half"] for r in rows], fmt="o", color="grey",
+                markersize=3, capsize=2, label="mean, 95% CI")  # fmt: skip
+    ctl = [(yy, r["control"]) for yy, r in zip(y, rows) if r["control"] is not None]
+    if ctl:
+        ax.scatter([c for _, c in ctl], [yy for yy, _ in ctl], marker="|", s=160, color="black",
+                   label="control (worst)")  # fmt: skip
+    for yy, r in zip(y, rows):
+        parts = [r["text"]["worst"]]
+        if r["text"]["control"]:
+            parts.append(f"control {r['text']['control']}")
+        if r["text"]["beyond"]:
+            parts.append(f"beyond {r['text']['beyond']}")
+        ax.text(1.02, yy, "  ".join(parts), va="center", fontsize=7, transform=ax.get_yaxis_transform())
+    threshold = (report.get("max_leak") or {}).get("threshold")
+    if threshold is not None:
+        ax.axvline(threshold, color="tab:red", linestyle="--", linewidth=1, label=f"--max-leak {threshold:g}")
+    ax.set_yticks(y)
+    ax.set_yticklabels([r["label"] for r in rows], fontsize=7)
+    if owner or report["bundle"]["task"] == "classification":
+        ax.set_xlim(-0.02, 1.02)
+    else:
+        ax.set_xscale("symlog", linthresh=1e-4)
+    ax.set_xlabel(metric)
+    ax.grid(axis="x", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.08 - 2.0 / fig.get_figheight() / 10),
+              ncol=4, frameon=False)  # fmt: skip
+    fig.suptitle(title(report), fontsize=8)
+    fig.tight_layout()
+    return fig

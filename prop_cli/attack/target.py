@@ -7,8 +7,12 @@
   gives delta = 1 for every code).
 - Key probes turn keys into behaviour as ``prop run`` does: through the encoder, or (sealed) by trial
   decryption of the records (``probes.sealed_context``).
-- The controls' model where no ``--original`` is given: a sealed bundle's base is the original, and
-  so is a base trained with ``--freeze-base``.
+- The searches' controls run on the original: ``--original``, or where none is given a sealed
+  bundle's base (it is the original) and a base trained with ``--freeze-base``.
+- The key rows' control is the reference model keyed with a fresh encoder (``unenrolled_model``):
+  what the same keys give where no user was enrolled. Always available.
+- A search's control can reach the leakage ceiling while the bundle leaks (``controls_can_saturate``),
+  except on a sealed bundle, whose searches run on the control's own model.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from prop_cli import constants as C
 from prop_cli.adapters.hub import resolve_checkpoint
 from prop_cli.adapters.lerobot.flat import flat_module
 from prop_cli.bundle import Bundle
-from prop_cli.config import BLACKBOX_KEYS_POLICY, AuditSettings
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import flat_dataset
 from prop_cli.errors import PropError
@@ -46,19 +50,29 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
     data = flat_dataset(loaded.policy, data, "--data")
     flat = flat_module(loaded.policy)
     view = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
-    if settings.blackbox is None:  # an ACT key is a transformer forward: fewer keys in the scan
+    return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, policy_settings(settings)
+
+
+def policy_settings(settings: AuditSettings) -> AuditSettings:
+    """The audit's defaults for a policy, where not given: an ACT key is a transformer forward, so fewer
+    keys in the scan and fewer restarts of the few-shot code fit."""
+    if settings.blackbox is None:
         settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
-    return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, settings
+    if settings.fewshot_restarts is None:
+        settings = replace(settings, fewshot_restarts=FEWSHOT_RESTARTS_POLICY)
+    return settings
 
 
-def load_original(bundle: Bundle, path: str, noise_seed: int = 0) -> nn.Module:
+def load_original(
+    bundle: Bundle, path: str, trust_remote_code: bool = False, noise_seed: int = 0
+) -> nn.Module:
     """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
     flat view, as the bundle is audited, its chunks sampled from ``noise_seed`` like the bundle's)."""
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
     try:
-        loaded = adapters.rebuild(spec, weights, str(path))
+        loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code)
     except (RuntimeError, KeyError, ValueError) as e:
         raise PropError(
             f"--original {path} does not fit the bundle's model ({type(e).__name__})",
@@ -87,12 +101,37 @@ def attacked_model(bundle: Bundle, dev: torch.device) -> KeyedModel:
     return km
 
 
+def unenrolled_model(km: KeyedModel, reference: nn.Module, seed: int) -> KeyedModel:
+    """``reference`` keyed at the bundle's layers with a fresh, untrained encoder of the bundle's
+    encoder's shape, built from ``seed`` (the same on every run). Its head starts at zero, so every key
+    gives delta = 1 and runs the reference: what the keys give where no user was enrolled. Training
+    Eq. 8 without a user leaves it there (the fallback's loss is 0 at delta = 1), so this is also what
+    a bundle trained without you would give."""
+    enc = km.encoder
+    dev = enc.net[0].weight.device
+    hidden = [m.out_features for m in enc.net if isinstance(m, nn.Linear)][:-1]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        fresh = KeyEncoder(enc.code_bits, enc.features, hidden, enc.scale)
+    keyed = KeyedModel(unhooked_copy(reference).to(dev).eval(), fresh.to(dev), km.layer_names).eval()
+    keyed.batch_axis = dict(km.batch_axis)
+    return keyed.requires_grad_(False)
+
+
+def remedy(bundle: Bundle) -> str:
+    """What a user can do about a leak, by mode (the verdict's first line ends with it)."""
+    if bundle.is_sealed:
+        return "keep your key secret; a key that opens your record is yours"
+    return "seal it with --seal (wrong keys then run the original; docs/sealed.md)"
+
+
 def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, str]:
     """Where no --original is given: the module that is the original anyway, and how to name it."""
+    # "the bundle's base": prop writes the original there, but without --original nothing checks it.
     if bundle.is_sealed:
-        return bundle.loaded.module, "the bundle's base (a sealed bundle's base is the original)"
+        return bundle.loaded.module, "the bundle's base (a sealed bundle is written with the original's)"
     if bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
-        return km.module, "the bundle's base (trained with --freeze-base: the original)"
+        return km.module, "the bundle's base (trained with --freeze-base: written with the original's)"
     return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
 
 

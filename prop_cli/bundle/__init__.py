@@ -4,7 +4,7 @@
 
 from .read import Bundle, check_files, load_bundle, read_manifest
 from .runtime import KeyedPolicy, WrongKeyWarning, run_bundle
-from .write import describe_layers, update_manifest, write_sealed, write_unsealed
+from .write import describe_layers, enrol_key, update_manifest, write_sealed, write_unsealed
 
 __all__ = [
     "Bundle",
@@ -12,6 +12,7 @@ __all__ = [
     "WrongKeyWarning",
     "check_files",
     "describe_layers",
+    "enrol_key",
     "load_bundle",
     "read_manifest",
     "run_bundle",
@@ -40,7 +41,7 @@ def __getattr__(name: str):
         return write.write_sealed
 
     def write_bundle(out, **kwargs):
-        write.write_unsealed(out, **kwargs)
+        write.write_unsealed(out, **{"keys": [], **kwargs})  # no users enrolled: keys run the base
         return out
 
     return write_bundle

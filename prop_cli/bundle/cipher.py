@@ -24,8 +24,11 @@ import torch
 
 from prop_cli.errors import PropError
 
-# Domain separation: changing it changes the meaning of every sealed bundle.
+# Domain separation: changing it changes the meaning of every sealed bundle. Enrolments (``enrol``)
+# derive their AES keys under ENROL_INFO, so the same key bits give unrelated AES keys for each use.
 SEAL_INFO = b"prop/seal/v1"
+ENROL_INFO = b"prop/enrol/v1"
+BUCKET = 4096  # sealed plaintexts are padded to a multiple of this: sizes say nothing of their metadata
 SALT_BYTES = 16
 NONCE_BYTES = 12  # GCM's standard nonce size
 ID_BYTES = 8
@@ -63,28 +66,53 @@ def key_bytes(bits: np.ndarray) -> bytes:
     return np.packbits(bits).tobytes()
 
 
-def _cipher(bits: np.ndarray, salt: bytes):
+def _cipher(bits: np.ndarray, salt: bytes, info: bytes = SEAL_INFO):
     aesgcm, hkdf, hashes, _ = _aead()
-    key = hkdf(algorithm=hashes.SHA256(), length=32, salt=salt, info=SEAL_INFO).derive(key_bytes(bits))
+    key = hkdf(algorithm=hashes.SHA256(), length=32, salt=salt, info=info).derive(key_bytes(bits))
     return aesgcm(key)
+
+
+def encrypt(plaintext: bytes, bits: np.ndarray, associated: bytes, info: bytes) -> tuple[bytes, bytes, bytes]:
+    """(salt, nonce, ciphertext) of ``plaintext`` under HKDF(key bytes, a fresh salt, ``info``)."""
+    salt, nonce = os.urandom(SALT_BYTES), os.urandom(NONCE_BYTES)
+    # A fresh salt gives a fresh AES key, so a (key, nonce) pair is never used twice.
+    return salt, nonce, _cipher(bits, salt, info).encrypt(nonce, plaintext, associated)
+
+
+def decrypt(
+    salt: bytes, nonce: bytes, ciphertext: bytes, bits: np.ndarray, associated: bytes, info: bytes
+) -> bytes | None:
+    """The plaintext if ``bits`` is the key it was encrypted for (and nothing was tampered with)."""
+    *_, invalid_tag = _aead()
+    try:
+        return _cipher(bits, salt, info).decrypt(nonce, ciphertext, associated)
+    except invalid_tag:
+        return None
 
 
 def seal(payload: bytes, bits: np.ndarray, associated: Callable[[str], bytes]) -> SealedRecord:
     """Encrypt ``payload`` for the key ``bits``; ``associated(record_id)`` gives the bound data."""
     record_id = os.urandom(ID_BYTES).hex()
-    salt, nonce = os.urandom(SALT_BYTES), os.urandom(NONCE_BYTES)
-    # A fresh salt gives a fresh AES key, so a (key, nonce) pair is never used twice.
-    ct = _cipher(bits, salt).encrypt(nonce, payload, associated(record_id))
+    salt, nonce, ct = encrypt(payload, bits, associated(record_id), SEAL_INFO)
     return SealedRecord(record_id, salt, nonce, ct)
 
 
 def open_record(record: SealedRecord, bits: np.ndarray, associated: bytes) -> bytes | None:
     """The payload if ``bits`` is the record's key (and nothing was tampered with), else None."""
-    *_, invalid_tag = _aead()
-    try:
-        return _cipher(bits, record.salt).decrypt(record.nonce, record.ciphertext, associated)
-    except invalid_tag:
-        return None
+    return decrypt(record.salt, record.nonce, record.ciphertext, bits, associated, SEAL_INFO)
+
+
+def pad(body: bytes, bucket: int = BUCKET) -> bytes:
+    """``body`` framed by its length and padded with zeros to a multiple of ``bucket`` bytes, so that
+    ciphertext sizes fall in fixed buckets whatever the metadata inside."""
+    framed = len(body).to_bytes(8, "little") + body
+    return framed + bytes(-len(framed) % bucket)
+
+
+def unpad(data: bytes) -> bytes:
+    """Inverse of ``pad``; only called on authenticated plaintext."""
+    n = int.from_bytes(data[:8], "little")
+    return data[8 : 8 + n]
 
 
 # --- the plaintext: tensors + a little metadata, as safetensors bytes --------------------------

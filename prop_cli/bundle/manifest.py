@@ -267,6 +267,11 @@ SCHEMA: dict[str, Rule] = {
         ),
         SEALED,
     ),  # fmt: skip
+    C.M_ENROLMENTS: _opt(
+        list_of(
+            obj({"salt": hex_string(16, 16), "nonce": hex_string(12, 12), "box": hex_string(16, 1 << 16)})
+        )
+    ),
     C.M_KDF: _opt(
         obj(
             {
@@ -378,6 +383,11 @@ def check_fields(
             )  # fmt: skip
 
 
+# Where each mode keeps its users' enrolments (format 4 on): an unsealed bundle's enrolments, a sealed
+# bundle's records (each carries what its user was enrolled in).
+ENROLLED_IN = {C.MODE_UNSEALED: C.M_ENROLMENTS, C.MODE_SEALED: C.M_RECORDS}
+
+
 def _cross_check(m: dict, doc: Doc) -> None:
     """What one field's rule cannot say: how the fields fit together."""
     needed = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS) if doc.mode == "unsealed" else (C.BASE_WEIGHTS,)
@@ -396,6 +406,16 @@ def _cross_check(m: dict, doc: Doc) -> None:
     spec = m[C.M_MODEL]
     if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
         raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+    if m[C.M_FORMAT] >= C.ENROL_SINCE:
+        own = ENROLLED_IN[doc.mode]
+        if own not in m:
+            raise doc.bad(own, "is missing")
+        for other in sorted(set(ENROLLED_IN.values()) - {own}):
+            if other in m:
+                raise doc.bad(other, f"is not a field of {doc.mode} bundles (their users are in {own})")
+        checkpoint = m[C.M_IO].get("checkpoint")
+        if checkpoint and not checkpoint.startswith("hf://") and ("/" in checkpoint or "\\" in checkpoint):
+            raise doc.bad(f"{C.M_IO}.checkpoint", "must be a file name, not a path")
 
 
 def _doc(source: str, mode: object = "unsealed") -> Doc:

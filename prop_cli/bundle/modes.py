@@ -5,6 +5,11 @@
 - ``Sealed``: the base is the original; a key opens its user's encrypted record, whose payload is
   folded into a copy of the base, or opens nothing and the base runs.
 
+In both, a key runs only what its holder enrolled (``enrol``): ``unlock`` is the checked path every
+runtime takes (a key enrolled in nothing: None, the base runs; a bundle changed since the key was
+enrolled: a PropError, nothing runs). ``respond`` is the method itself, any key through the encoder or
+the records with no check: what the audit and the paper's reproductions measure.
+
 Everything downstream (running, the audit, exports, publishing) asks the mode, not the manifest.
 """
 
@@ -20,9 +25,10 @@ from torch import nn
 
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel, read_weights
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.errors import PropError
 
+from . import enrol
 from . import manifest as schema
 from .records import SealedState, load_state
 
@@ -34,6 +40,7 @@ class Mode(ABC):
     name: ClassVar[str]
     keyed: KeyedModel | None = None
     state: SealedState | None = None
+    where: str = "the bundle"  # how messages name the bundle ("bundle PATH")
 
     @property
     def sealed(self) -> bool:
@@ -44,71 +51,107 @@ class Mode(ABC):
     def layer_names(self) -> list[str]: ...
 
     @abstractmethod
-    def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
-        """A copy of ``module`` (the base, or a view with its keyed layers) showing what ``bits`` unlock,
-        in memory only; None where the key unlocks nothing (the base then runs)."""
+    def enrolled(self, bits: np.ndarray) -> bool:
+        """Whether ``bits`` is enrolled in the bundle as it is now; a PropError ("changed since this key
+        was enrolled") if it was enrolled in something else."""
 
     @abstractmethod
+    def respond(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
+        """The method's response to any key, unchecked: a copy of ``module`` (the base, or a view with
+        its keyed layers) under ``bits``, in memory only; None where the key opens nothing."""
+
+    def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
+        """What ``bits`` unlocks, checked: its holder's enrolled behaviour, or None where the key is
+        enrolled in nothing (the base then runs); a PropError if the bundle changed since enrolment."""
+        return self.respond(module, bits) if self.enrolled(bits) else None
+
     def opens(self, bits: np.ndarray) -> bool:
-        """Whether ``bits`` unlock a behaviour of their own."""
+        """Whether ``bits`` unlock a behaviour of their own (checked, as ``unlock``)."""
+        return self.enrolled(bits)
+
+    @abstractmethod
+    def not_enrolled(self, where: str) -> str:
+        """Why a key runs the base (for the warning): enrolled in nothing, or a bundle that cannot say."""
 
     @abstractmethod
     def on(self, module: nn.Module) -> Mode:
         """The same mode over ``module``, a view sharing the keyed layers (e.g. a policy's flat view)."""
 
+    @classmethod
     @abstractmethod
-    def users(self, manifest: dict) -> int: ...
+    def users(cls, manifest: dict) -> int: ...
 
     @abstractmethod
     def parameters(self, loaded: LoadedModel) -> int:
         """Parameters a keyed forward computes with (for choosing threads)."""
 
+    @classmethod
     @abstractmethod
-    def record_files(self, manifest: dict) -> list[str]:
+    def record_files(cls, manifest: dict) -> list[str]:
         """The bundle's files besides those ``files`` lists and the manifest (they carry their own hashes)."""
 
-    @property
-    @abstractmethod
-    def hides_behaviour(self) -> bool:
-        """Whether whoever holds the files, without a key, learns nothing of a user's behaviour."""
+    hides_behaviour: ClassVar[bool]  # whoever holds the files, without a key, learns nothing of a user's
 
+    @classmethod
     @abstractmethod
-    def describe(self, manifest: dict) -> str:
+    def describe(cls, manifest: dict) -> str:
         """One line for people (the model card): what this mode keeps where."""
+
+
+NOT_ENROLLED = "the key is enrolled in no user of {where}"
 
 
 class Unsealed(Mode):
     name = C.MODE_UNSEALED
 
-    def __init__(self, keyed: KeyedModel, encoding: str) -> None:
-        self.keyed, self.encoding = keyed, encoding
+    def __init__(self, keyed: KeyedModel, encoding: str, manifest: dict) -> None:
+        self.keyed, self.encoding, self.manifest = keyed, encoding, manifest
+        self.version = manifest[C.M_FORMAT]
+        self.entries = manifest.get(C.M_ENROLMENTS, [])
+        self.current = enrol.behaviour(manifest)
 
     @property
     def layer_names(self) -> list[str]:
         return list(self.keyed.layer_names)
 
-    def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module:
+    def enrolled(self, bits: np.ndarray) -> bool:
+        # Before format 4 nothing was enrolled: whoever wrote the files chose the encoder, so no key runs
+        # through it unchecked (an attacker can write an old format too). `prop enrol` opts in.
+        return self.version >= C.ENROL_SINCE and enrol.check(self.entries, bits, self.current, self.where)
+
+    def respond(self, module: nn.Module, bits: np.ndarray) -> nn.Module:
         return self.keyed.fold(key_codes(bits, self.encoding), module)
 
-    def opens(self, bits: np.ndarray) -> bool:
-        return True  # every key runs through the encoder
+    def not_enrolled(self, where: str) -> str:
+        if self.version < C.ENROL_SINCE:
+            return (
+                f"{where} is a format {self.version} bundle, from before keys were enrolled: prop cannot "
+                f"tell whether it changed since your key was used (if you trust it: prop enrol {where} "
+                "--key-file ...)"
+            )
+        return NOT_ENROLLED.format(where=where)
 
     def on(self, module: nn.Module) -> Unsealed:
         self.keyed.remove_hooks()  # each layer is scaled once: by the view's hooks from now on
-        return Unsealed(self.keyed.on(module).eval(), self.encoding)
+        view = Unsealed(self.keyed.on(module).eval(), self.encoding, self.manifest)
+        view.where = self.where
+        return view
 
-    def users(self, manifest: dict) -> int:
+    @classmethod
+    def users(cls, manifest: dict) -> int:
         return manifest.get(C.M_KEY, {}).get("users", 1)
 
     def parameters(self, loaded: LoadedModel) -> int:
         return sum(p.numel() for p in self.keyed.parameters())
 
-    def record_files(self, manifest: dict) -> list[str]:
+    @classmethod
+    def record_files(cls, manifest: dict) -> list[str]:
         return []
 
     hides_behaviour = False
 
-    def describe(self, manifest: dict) -> str:
+    @classmethod
+    def describe(cls, manifest: dict) -> str:
         return (
             "**unsealed** (the paper's PRoP): the user's behaviour is trained into the base and a key "
             "encoder, both in these files. Whoever holds them can recover it from the encoder without the "
@@ -126,28 +169,58 @@ class Sealed(Mode):
     def layer_names(self) -> list[str]:
         return [layer["name"] for layer in self.state.spec.layers]
 
-    def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
+    @property
+    def _unbound_files(self) -> list[str]:
+        # Format 2-3 records bound the base weights but not an adapter's own files (LeRobot processors).
+        return [] if self.state.enrolled else sorted(set(self.state.manifest[C.M_FILES]) - {C.BASE_WEIGHTS})
+
+    def enrolled(self, bits: np.ndarray) -> bool:
+        opened = self.state.open(bits)
+        if opened is None or self._unbound_files:
+            return False
+        if opened.changed:
+            raise enrol.changed_error(self.where, opened.changed)
+        return True
+
+    def respond(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
         opened = self.state.open(bits)
         return None if opened is None else opened.payload.fold(module)
 
-    def opens(self, bits: np.ndarray) -> bool:
-        return self.state.open(bits) is not None
+    def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
+        # One trial decryption for both the check and the payload.
+        opened = self.state.open(bits)
+        if opened is None or self._unbound_files:
+            return None
+        if opened.changed:
+            raise enrol.changed_error(self.where, opened.changed)
+        return opened.payload.fold(module)
+
+    def not_enrolled(self, where: str) -> str:
+        if self._unbound_files:
+            return (
+                f"{where} is a format {self.state.manifest[C.M_FORMAT]} sealed bundle whose records do not "
+                f"bind {', '.join(self._unbound_files[:3])}: your key runs nothing (personalize it again)"
+            )
+        return NOT_ENROLLED.format(where=where)
 
     def on(self, module: nn.Module) -> Sealed:
         return self  # payloads fold into any module with the keyed layers' names
 
-    def users(self, manifest: dict) -> int:
+    @classmethod
+    def users(cls, manifest: dict) -> int:
         return len(manifest.get(C.M_RECORDS, []))
 
     def parameters(self, loaded: LoadedModel) -> int:
         return sum(p.numel() for p in loaded.module.parameters())
 
-    def record_files(self, manifest: dict) -> list[str]:
+    @classmethod
+    def record_files(cls, manifest: dict) -> list[str]:
         return [r["file"] for r in manifest.get(C.M_RECORDS, [])]
 
     hides_behaviour = True
 
-    def describe(self, manifest: dict) -> str:
+    @classmethod
+    def describe(cls, manifest: dict) -> str:
         kind = manifest.get(C.M_PAYLOAD, {}).get("kind")
         return (
             "**sealed**: the base weights are the original checkpoint's; each user's "
@@ -156,11 +229,20 @@ class Sealed(Mode):
         )
 
 
+def mode_of(manifest: dict) -> type[Mode]:
+    """The mode a manifest declares, without loading anything (push, verify, inspect, enrol)."""
+    return Sealed if manifest.get(C.M_MODE) == C.MODE_SEALED else Unsealed
+
+
 def load_mode(path: Path, manifest: dict, loaded: LoadedModel) -> Mode:
     """The bundle's mode, from its manifest (the one place a bundle's mode is decided)."""
-    if manifest.get(C.M_MODE) == C.MODE_SEALED:
-        return Sealed(load_state(path, manifest))
-    return Unsealed(_encoder(path, manifest, loaded), manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0]))
+    if mode_of(manifest) is Sealed:
+        mode: Mode = Sealed(load_state(path, manifest))
+    else:
+        encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
+        mode = Unsealed(_encoder(path, manifest, loaded), encoding, manifest)
+    mode.where = f"bundle {path}"
+    return mode
 
 
 def _encoder(path: Path, manifest: dict, loaded: LoadedModel) -> KeyedModel:

@@ -11,7 +11,7 @@ import numpy as np
 from prop_cli import adapters
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file
 
@@ -95,13 +95,20 @@ class Bundle:
         return key
 
 
-def load_bundle(path: Path) -> Bundle:
-    """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle."""
+def load_bundle(path: Path, *, trust_remote_code: bool = False) -> Bundle:
+    """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle.
+
+    A bundle is data: code its manifest or files name (a module adapter's ``model.arch``, a folder's
+    factory, LeRobot processor steps LeRobot does not register) is imported only with
+    ``trust_remote_code``; without it such a bundle is refused before anything is imported."""
     path = Path(path)
     manifest = read_manifest(path)
     check_files(path, manifest)
+    adapters.require_trust(
+        adapters.remote_code(manifest[C.M_MODEL], str(path)), f"bundle {path}", trust_remote_code
+    )
     weights = adapters.read_weights(path / C.BASE_WEIGHTS)[0]
-    loaded = adapters.rebuild(manifest[C.M_MODEL], weights, str(path))
+    loaded = adapters.rebuild(manifest[C.M_MODEL], weights, str(path), trust_remote_code=trust_remote_code)
     return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded))
 
 

@@ -1,9 +1,12 @@
 """The records of a sealed bundle: one user's payload each, encrypted under a key derived from their key.
 
 A sealed bundle's base is the original checkpoint; each user's payload (``prop_cli.core.payload``)
-is an AES-GCM record (``cipher``) that only their key opens. A record's associated data binds it to
-the public fields that decide how a payload is applied (``binding``): edit the model, the payload
-layout, the task or the base weights and every record fails to open. A wrong key opens nothing.
+is an AES-GCM record (``cipher``) that only their key opens, and a wrong key opens nothing. Since
+format 4 a record is its user's enrolment (``enrol``): its plaintext carries the bundle's behaviour
+as it was when the user was enrolled (base weights, model, payload layout, LeRobot processors...), so
+with the user's key a changed bundle is reported ("changed since this key was enrolled") and nothing
+runs; the associated data binds the record's id. Format 2-3 records bound the public fields in their
+associated data instead (``binding``): an edit made every record fail to open, and the base ran.
 
 This module reads, opens, writes and rewrites records; training a payload is ``prop_cli.train``.
 """
@@ -23,29 +26,39 @@ from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file, write_text
 
-from .cipher import SealedRecord, decode_payload, encode_payload, open_record, seal
+from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
+from .enrol import behaviour, changed
 from .manifest import restamp
 
-# The manifest fields that decide how a payload is applied; the cipher authenticates them with every
-# record (associated data), so an edit to any of them makes every record fail to open. Metrics,
-# config, the audit summary and the records list are informational and may change (add-user, attack
-# --record) without re-encrypting anyone's record.
+# Format 2-3 records: the manifest fields that decide how a payload is applied, authenticated with
+# every record as associated data (``binding``). Format 4 records carry ``enrol.behaviour`` inside.
 _BOUND = (C.M_FORMAT, C.M_MODE, C.M_MODEL, C.M_PAYLOAD, C.M_TASK)
-# What of a sealed user's report the clear manifest keeps: the wrong keys' figures only (their own
-# personalization is sealed in their record).
-PUBLIC_METRICS = ("samples", "null", "random", "hamming1")
+BEHAVIOUR = "behaviour"  # the key of the enrolled behaviour in a format 4 record's metadata
+
+
+def enrolled_records(manifest: dict) -> bool:
+    """Whether the bundle's records carry their enrolment (format 4 on), else bind by associated data."""
+    return manifest[C.M_FORMAT] >= C.ENROL_SINCE
 
 
 def public_part(manifest: dict) -> dict:
-    """The manifest fields that opening a record needs (an ONNX export carries them)."""
+    """The manifest fields that opening a record and checking its enrolment need (an ONNX export
+    carries them)."""
     part = {f: manifest.get(f) for f in _BOUND}
-    part.update({C.M_IO: manifest[C.M_IO], C.M_KEY: manifest[C.M_KEY], C.M_FILES: manifest[C.M_FILES]})
-    part[C.M_RECORDS] = manifest[C.M_RECORDS]
+    for f in (C.M_IO, C.M_KEY, C.M_FILES, C.M_RECORDS, C.M_KEYED_LAYERS):
+        part[f] = manifest.get(f)
     return part
 
 
+def record_ad(manifest: dict, record_id: str) -> bytes:
+    """A record's associated data: its id (format 4), or the bound public fields and its id (2-3)."""
+    if enrolled_records(manifest):
+        return hashlib.sha256(b"prop/seal/v2\0" + record_id.encode()).digest()
+    return binding(manifest, record_id)
+
+
 def binding(manifest: dict, record_id: str) -> bytes:
-    """The associated data of one record: a digest of the bundle's bound public fields and its id."""
+    """Format 2-3: the associated data of one record, a digest of the bound public fields and its id."""
     key = manifest[C.M_KEY]
     bound = {f: manifest.get(f) for f in _BOUND}
     bound["input_shape"] = manifest[C.M_IO]["input_shape"]
@@ -61,6 +74,7 @@ class Opened:
     record_id: str
     payload: Payload
     meta: dict  # what was sealed beside the tensors: the user's metrics and training settings
+    changed: list[str]  # what differs from what the record was enrolled in ([]: nothing, or format 2-3)
 
 
 @dataclass
@@ -73,15 +87,20 @@ class SealedState:
 
     def __post_init__(self) -> None:
         # The associated data of each record, computed once: the audit tries a million keys.
-        self._bound = [binding(self.manifest, rec.id) for rec in self.records]
+        self._bound = [record_ad(self.manifest, rec.id) for rec in self.records]
+        self.enrolled = enrolled_records(self.manifest)
+        self.behaviour = behaviour(self.manifest) if self.enrolled else None
 
     def open(self, bits: np.ndarray) -> Opened | None:
-        """The user's payload if ``bits`` opens one of the records, else None (a wrong key)."""
+        """The user's payload if ``bits`` opens one of the records, else None (a wrong key). ``changed``
+        says what differs from what the record was enrolled in: the caller decides (``modes``)."""
         for rec, bound in zip(self.records, self._bound):
             data = open_record(rec, bits, bound)
             if data is not None:
-                tensors, meta = decode_payload(data)
-                return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta)
+                tensors, meta = decode_payload(unpad(data) if self.enrolled else data)
+                enrolled = meta.pop(BEHAVIOUR, None)
+                diff = changed(enrolled or {}, self.behaviour) if self.enrolled else []
+                return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff)
         return None
 
 
@@ -125,9 +144,12 @@ def load_state(path: Path, manifest: dict) -> SealedState:
 
 
 def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarray) -> SealedRecord:
-    """Encrypt one user's payload (and ``private``: their metrics and settings, sealed too) for their key."""
-    plaintext = encode_payload(payload.tensors(), private)
-    return seal(plaintext, bits, lambda rid: binding(manifest, rid))
+    """Encrypt one user's payload (and ``private``: their metrics and settings, sealed too) for their key.
+    Format 4: with the bundle's behaviour (the user's enrolment), padded to a fixed bucket of sizes."""
+    if not enrolled_records(manifest):
+        return seal(encode_payload(payload.tensors(), private), bits, lambda rid: binding(manifest, rid))
+    plaintext = pad(encode_payload(payload.tensors(), {**private, BEHAVIOUR: behaviour(manifest)}))
+    return seal(plaintext, bits, lambda rid: record_ad(manifest, rid))
 
 
 def write_record(folder: Path, rec: SealedRecord) -> None:
@@ -138,7 +160,8 @@ def write_record(folder: Path, rec: SealedRecord) -> None:
 
 
 def with_records(manifest: dict, add: list[SealedRecord], drop: list[str]) -> dict:
-    """The manifest with records added and removed (and the removed users' public metrics), not written."""
+    """The manifest with records added and removed (and the removed users' public metrics, which format
+    2-3 bundles kept), not written."""
     new = dict(manifest)
     new[C.M_RECORDS] = [e for e in manifest[C.M_RECORDS] if e["id"] not in drop] + [
         record_entry(rec) for rec in add
@@ -178,7 +201,3 @@ def check_new_key(state: SealedState, bits: np.ndarray) -> None:
             "use prop remove-user first to replace that user, or give the new user their own key",
         )
 
-
-def public_metrics(report: dict, record_id: str) -> dict:
-    """What of a sealed user's report goes into the manifest (``PUBLIC_METRICS``), by record."""
-    return {"record": record_id, **{k: report[k] for k in PUBLIC_METRICS}}

@@ -26,33 +26,39 @@ ROWS = 256  # frames per forward when running a whole dataset through a policy
 
 
 class WrongKeyWarning(UserWarning):
-    """A key that unlocks nothing in the bundle (a sealed bundle's key that opens no record): the base
-    (the original) runs."""
+    """A key enrolled in nothing of the bundle: the bundle's base runs (which is the original only if the
+    bundle is what its publisher made: ``prop verify``)."""
 
 
-def module_for_key(bundle: Bundle, key: np.ndarray | None) -> nn.Module:
+BASE_RUNS = "running the bundle's base, not a keyed behaviour"
+
+
+def module_for_key(bundle: Bundle, key: np.ndarray | None, *, method: bool = False) -> nn.Module:
     """The bundle's module under ``key``: the base without a key; with one, a copy showing what the key
-    unlocks (never written anywhere: it is the personalized policy in the clear), or the base, with a
-    warning, where it unlocks nothing."""
+    unlocks (never written anywhere: it is the personalized policy in the clear). Checked (``modes``):
+    a key enrolled in nothing gives the base, with a warning; a bundle changed since the key was
+    enrolled is a PropError. ``method``: the method's response to any key, unchecked (an unsealed key
+    always goes through the encoder): for audits and the paper's wrong-key measurements only."""
     base = bundle.loaded.module.eval()
     if key is None:
         return base
-    unlocked = bundle.mode.unlock(base, bundle.check_key(key))
+    bits = bundle.check_key(key)
+    if method:
+        return bundle.mode.respond(base, bits) or base
+    unlocked = bundle.mode.unlock(base, bits)
     if unlocked is None:
-        warnings.warn(
-            f"the key opens no user of {bundle.path}: running the base (the original's behaviour)",
-            WrongKeyWarning,
-            stacklevel=3,
-        )
+        why = bundle.mode.not_enrolled(str(bundle.path))
+        warnings.warn(f"{why}: {BASE_RUNS}", WrongKeyWarning, stacklevel=3)
         return base
     return unlocked
 
 
 class KeyedPolicy:
-    """The bundle's module with one key's behaviour folded into a copy of its weights (in memory only)."""
+    """The bundle's module with one key's behaviour folded into a copy of its weights (in memory only):
+    what that key's holder enrolled, checked (``module_for_key``; ``method=True``: unchecked)."""
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None = None) -> None:
-        self.module = module_for_key(bundle, key)
+    def __init__(self, bundle: Bundle, key: np.ndarray | None = None, *, method: bool = False) -> None:
+        self.module = module_for_key(bundle, key, method=method)
         self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
         loaded = bundle.loaded
         self.discrete = loaded.continuous is False

@@ -20,11 +20,13 @@ from safetensors.torch import save_file
 from prop_cli import __version__
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.adapters.hub import public_name
+from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
+from .enrol import enrol
 from .read import read_manifest
 from .records import SealedState, record_entry, seal_payload, write_record
 
@@ -54,6 +56,10 @@ def _write_base(tmp: Path, loaded: LoadedModel, module, copy_base: bool) -> None
 
 def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
     full = dict(manifest)
+    io = dict(full.get(C.M_IO, {}))
+    io.pop("checkpoint", None)
+    name = public_name(manifest.get(C.M_IO, {}).get("checkpoint"))  # a file name: never a local path
+    full[C.M_IO] = {**io, **({"checkpoint": name} if name else {})}
     full[C.M_FORMAT] = C.FORMAT_VERSION
     full[C.M_PROP_VERSION] = __version__
     full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
@@ -84,11 +90,13 @@ def write_unsealed(
     loaded: LoadedModel,
     keyed: KeyedModel,
     manifest: dict,
+    keys: list[np.ndarray],
     force: bool = False,
     copy_base: bool = False,
 ) -> dict:
-    """Write an unsealed bundle: the trained base and the key encoder. ``copy_base`` copies the input
-    checkpoint's bytes (a frozen base from safetensors). Returns the manifest written."""
+    """Write an unsealed bundle: the trained base, the key encoder, and an enrolment per user (``keys``:
+    their key bits, never written). ``copy_base`` copies the input checkpoint's bytes (a frozen base
+    from safetensors). Returns the manifest written."""
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
@@ -97,7 +105,8 @@ def write_unsealed(
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
         extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
         names = (C.BASE_WEIGHTS, C.ENCODER_WEIGHTS, *extra)
-        full = schema.stamp(_stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names))
+        full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names)
+        full = schema.stamp({**full, C.M_ENROLMENTS: enrol(full, keys)})
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return full
 
@@ -112,8 +121,9 @@ def write_sealed(
     force: bool = False,
 ) -> dict:
     """Write a sealed bundle: the original's weights as the base, and one encrypted record per user.
-    ``metrics(state)`` computes the manifest's metrics from the records as written (keys are tried on
-    them as anyone would), before the manifest is. Returns the manifest written."""
+    ``metrics(state)`` is called with the records as written (keys are tried on them as anyone would)
+    before the manifest is; what it returns (if not None) is the manifest's metrics. Returns the
+    manifest written."""
     out = Path(out)
     check_output(out, force)
     with staged_dir(out) as tmp:
@@ -128,7 +138,9 @@ def write_sealed(
             full[C.M_RECORDS].append(record_entry(rec))
             records.append(rec)
         if metrics is not None:
-            full[C.M_METRICS] = metrics(SealedState(full, PayloadSpec.from_dict(full[C.M_PAYLOAD]), records))
+            public = metrics(SealedState(full, PayloadSpec.from_dict(full[C.M_PAYLOAD]), records))
+            if public is not None:
+                full[C.M_METRICS] = public
         full = schema.stamp(full)
         (tmp / C.MANIFEST).write_text(dump_json(full))
     return full
@@ -140,6 +152,27 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     manifest = read_manifest(bundle)
     manifest[key] = value
     write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
+
+
+def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
+    """Enrol ``bits`` in the unsealed bundle at ``path`` as it is now (the key holder's consent to its
+    current behaviour), replacing that key's earlier enrolment; a format 1-3 bundle becomes format 4.
+    Returns the manifest written and what happened: "enrolled", "re-enrolled: <changes>" or
+    "already enrolled" (nothing written)."""
+    from .enrol import behaviour, changed, split
+
+    kept, opened = split(manifest.get(C.M_ENROLMENTS, []), bits)
+    diff = changed(opened.get("behaviour", {}), behaviour(manifest)) if opened is not None else None
+    if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:
+        return manifest, "already enrolled"
+    new = {**manifest, C.M_FORMAT: C.FORMAT_VERSION, C.M_MODE: C.MODE_UNSEALED}
+    name = public_name(manifest[C.M_IO].get("checkpoint"))
+    new[C.M_IO] = {k: v for k, v in manifest[C.M_IO].items() if k != "checkpoint"}
+    new[C.M_IO].update({"checkpoint": name} if name else {})
+    new[C.M_ENROLMENTS] = kept + enrol(new, [bits])
+    new = schema.validate(schema.stamp(new), str(path))
+    write_text(Path(path) / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 
 
 def describe_layers(keyed: KeyedModel) -> list[dict]:

@@ -10,7 +10,7 @@ from prop_cli.config import AuditSettings, parse_hamming, parse_list
 from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
-from .options import BundleArg, Device, Force, Threads, config_options, opt
+from .options import BundleArg, Device, Force, Threads, TrustRemoteCode, config_options, opt
 
 # The audit settings attack exposes as --flags: AuditSettings field -> help (--probes and --hamming
 # take comma lists and are parsed below).
@@ -21,11 +21,14 @@ SETTINGS = {
     "search_steps": "Adam steps of each search.",
     "search_lr": "Adam learning rate of the searches.",
     "search_batch": "Samples per search step (0: all of them).",
+    "fewshot_restarts": "Restarts of the few-shot code fit (T3) [default: 128; 16 for LeRobot policies].",
+    "fewshot_steps": "Adam steps of the few-shot code fit (T3).",
     "samples": "Samples of --data to audit on.",
     "blackbox": "Random keys of the black-box scan [default: 1,000,000; 65,536 for LeRobot policies].",
     "blackbox_screen": "Samples each black-box key is screened on.",
     "blackbox_keep": "Black-box keys kept per criterion and re-scored.",
     "seed": "Seed for probe keys, samples and search restarts.",
+    "min_passphrase_years": "With --passphrase: fail if guessing it takes fewer core-years than this.",
     "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion): every key's chunks start from it.",
 }
 
@@ -45,7 +48,7 @@ Original = Annotated[
 JsonReport = Annotated[Path | None, opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
 Plot = Annotated[Path | None, opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
 MaxLeak = Annotated[
-    float | None, opt("--max-leak", "Exit 1 if a group leaks more (searches: beyond control).")
+    float | None, opt("--max-leak", "Exit 1 if a row leaks more than this beyond its control.")
 ]
 Record = Annotated[bool, opt("--record", "Store the audit summary in the bundle manifest.")]
 
@@ -57,12 +60,19 @@ def attack(
     probes: Probes = None, search: Search = None, hamming: Hamming = None, original: Original = None,
     device: Device = DEFAULT_DEVICE, threads: Threads = DEFAULT_THREADS,
     json_path: JsonReport = None, plot_path: Plot = None, max_leak: MaxLeak = None, record: Record = False,
-    force: Force = False,
+    force: Force = False, trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
-    from prop_cli.api import apply_max_leak, audit_bundle, audit_table, plot_audit, record_audit
+    from prop_cli.api import (
+        apply_max_leak,
+        audit_bundle,
+        audit_decision,
+        audit_table,
+        plot_audit,
+        record_audit,
+    )
     from prop_cli.api import select_probes as select
-    from prop_cli.files import check_output, dump_json, write_text
+    from prop_cli.files import check_not_input, check_output, dump_json, write_text
 
     key_file = key_file or []
     if probes is not None or search is not None:
@@ -77,11 +87,12 @@ def attack(
     for path, what, flag in ((json_file, "--json file", "--json"), (plot_path, "--plot file", "--plot")):
         if path is not None:
             check_output(path, force, what=what, flag=flag)
+            check_not_input(path, flag, [bundle, data, *key_file, original])
     phrase = read_passphrase() if passphrase else None
     report = stage_progress(
         lambda cb: audit_bundle(
             bundle, data, settings, key_files=key_file, passphrase=phrase, original=original, device=device,
-            progress=cb, threads=threads,
+            progress=cb, threads=threads, trust_remote_code=trust_remote_code,
         )
     )  # fmt: skip
     for w in report["warnings"]:
@@ -98,13 +109,20 @@ def attack(
         err.print(f"recorded the audit summary in {bundle}/manifest.json")
     if json_path is not None and json_file is None:
         print_json(report)
-    else:
+    else:  # the decision first, then the failing rows by severity, then the full table
+        for line in audit_decision(report):
+            out.print(line, highlight=False, markup=False, soft_wrap=True)
         out.print(audit_table(report))
-    if failing:
-        name, worst = max(failing, key=lambda f: f[1])
-        more = f" (and {len(failing) - 1} more groups)" if len(failing) > 1 else ""
+    row = report.get("passphrase")
+    if row is not None and not row["passed"]:
         print(
-            f"prop: leak check failed: leakage {worst:.4f} in '{name}'{more} exceeds --max-leak {max_leak}",
+            f"prop: passphrase check failed: {row['core_years']:.3g} core-years to guess it, below "
+            f"{row['min_core_years']:g}",
             file=sys.stderr,
         )
+        raise typer.Exit(1)
+    if failing:
+        more = f" (and {len(failing) - 1} more rows)" if len(failing) > 1 else ""
+        print(f"prop: leak check failed at --max-leak {max_leak}: {report['max_leak']['reason']}{more}",
+              file=sys.stderr)  # fmt: skip
         raise typer.Exit(1)

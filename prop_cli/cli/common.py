@@ -50,10 +50,13 @@ def parse_json_option(value: str | None, flag: str) -> dict | None:
     return parsed
 
 
-def checkpoint_options(arch: str | None, arch_kwargs: str | None, activation: str | None):
+def checkpoint_options(
+    arch: str | None, arch_kwargs: str | None, activation: str | None, trust_remote_code: bool = False
+):
     from prop_cli.api import CheckpointOptions
 
-    return CheckpointOptions(arch, parse_json_option(arch_kwargs, "--arch-kwargs"), activation)
+    kwargs = parse_json_option(arch_kwargs, "--arch-kwargs")
+    return CheckpointOptions(arch, kwargs, activation, trust_remote_code)
 
 
 def read_passphrase(prompt: str = "Passphrase") -> str:

@@ -9,7 +9,7 @@ from prop_cli.config import ExportSettings
 from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, fail, out, print_json, read_passphrase
-from .options import BundleArg, Force, Json, Passphrase, Threads, config_options, opt
+from .options import BundleArg, Force, Json, Passphrase, Threads, TrustRemoteCode, config_options, opt
 
 SETTINGS = {  # ExportSettings field -> help of its --flag
     "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
@@ -18,7 +18,8 @@ SETTINGS = {  # ExportSettings field -> help of its --flag
 Onnx = Annotated[bool, opt("--onnx", "Export ONNX graphs (needs: pip install 'prop-cli[onnx]').")]
 OutDir = Annotated[Path | None, opt("--out", "Folder to write the graphs to (default: BUNDLE/onnx).")]
 VerifyKey = Annotated[
-    Path | None, opt("--key-file", "Also verify with your key (the key is never written to the graphs).")
+    Path | None,
+    opt("--key-file", "Verify with your key and bind it to the graphs (prop run --onnx runs bound keys)."),
 ]
 VerifyInputs = Annotated[Path | None, opt("--input", "Verify on these inputs (.npy or a data file's x).")]
 
@@ -28,6 +29,7 @@ def export(
     bundle: BundleArg, settings: ExportSettings, onnx: Onnx = False, out_dir: OutDir = None,
     key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime."""
     if not onnx:
@@ -37,7 +39,7 @@ def export(
     result = export_bundle(
         bundle, out_dir, settings, key_file=key_file,
         passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
-        threads=threads,
+        threads=threads, trust_remote_code=trust_remote_code,
     )  # fmt: skip
     if as_json:
         print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,

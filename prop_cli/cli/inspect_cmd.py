@@ -3,12 +3,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from .common import checkpoint_options, out, print_json
-from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers
+from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers, TrustRemoteCode
 
 
 def inspect(
     checkpoint: Checkpoint, arch: Arch = None, arch_kwargs: ArchKwargs = None, activation: Activation = None,
     layers: Layers = None, exclude: Exclude = None, as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
     """List the linear layers and convolutions of a checkpoint, which ones would be keyed (and their share of
     the parameters), and what prop knows of it."""
@@ -16,7 +17,8 @@ def inspect(
 
     from prop_cli.api import inspect_checkpoint
 
-    info = inspect_checkpoint(checkpoint, checkpoint_options(arch, arch_kwargs, activation), layers, exclude)
+    opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
+    info = inspect_checkpoint(checkpoint, opts, layers, exclude)
     if as_json:
         print_json(info)
         return

@@ -22,6 +22,7 @@ from . import (
     push_cmd,
     run_cmd,
     users_cmd,
+    verify_cmd,
 )
 
 app = typer.Typer(
@@ -42,6 +43,8 @@ app.command("attack")(attack_cmd.attack)
 app.command("eval")(eval_cmd.eval_)
 app.command("export")(export_cmd.export)
 app.command("push")(push_cmd.push)
+app.command("verify")(verify_cmd.verify)
+app.command("enrol")(verify_cmd.enrol)
 app.command("formats")(formats_cmd.formats)
 
 # Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage, 130 interrupted.

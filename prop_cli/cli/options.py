@@ -54,6 +54,17 @@ Passphrase = Annotated[
     typer.Option("--passphrase", help="Derive the key from your passphrase (prompted, or PROP_PASSPHRASE)."),
 ]
 Force = Annotated[bool, typer.Option("--force", help="Replace existing output files or folders.")]
+TrustRemoteCode = Annotated[
+    bool,
+    typer.Option(
+        "--trust-remote-code",
+        help="Import and run code the bundle's or checkpoint's files name (model.arch, an entry point, "
+        "processor steps): only for files from someone you trust.",
+    ),
+]
+WeakPassphrase = Annotated[
+    bool, typer.Option("--weak-passphrase", help="Accept a passphrase that is quick to guess (not advised).")
+]
 Json = Annotated[bool, typer.Option("--json", help="Print the result as JSON (sorted, indented).")]
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda[:N].")]
 Threads = Annotated[

@@ -22,6 +22,8 @@ from .options import (
     Force,
     Json,
     Threads,
+    TrustRemoteCode,
+    WeakPassphrase,
     config_options,
     opt,
 )
@@ -87,9 +89,12 @@ def personalize(
     threads: Threads = DEFAULT_THREADS,
     force: Force = False,
     as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
+    weak_passphrase: WeakPassphrase = False,
 ) -> None:
     """Fine-tune CHECKPOINT so it behaves the users' way with their key, and like the original without."""
     from prop_cli.api import personalize_checkpoint, user_keys
+    from prop_cli.files import check_not_input
 
     key_file = key_file or []
     if not key_file and not passphrase:
@@ -103,8 +108,9 @@ def personalize(
     cfg.layers, cfg.exclude = cfg.layers or None, cfg.exclude or None
     cfg.validate(key_bits=bits if not key_file else None)
     phrases = [read_passphrase(f"Passphrase for user {len(key_file) + i + 1}") for i in range(passphrase)]
-    keys, salt = user_keys(key_file, phrases, bits)
-    opts = checkpoint_options(arch, arch_kwargs, activation)
+    check_not_input(out_path, "--out", key_file)  # the other inputs: personalize_checkpoint
+    keys, salt = user_keys(key_file, phrases, bits, allow_weak=weak_passphrase)
+    opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
     result = step_progress(
         lambda cb: personalize_checkpoint(
             checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,

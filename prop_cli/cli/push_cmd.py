@@ -1,10 +1,11 @@
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from .common import err, out, print_json
+from .common import err, fail, out, print_json
 from .options import BundleArg, Json, OnnxDir
 
 
@@ -19,14 +20,23 @@ def push(
     allow_unsealed: Annotated[
         bool, typer.Option("--allow-unsealed", help="Publish an unsealed bundle to a public repo anyway.")
     ] = False,
+    sign: Annotated[Path | None, typer.Option("--sign", help="Sign every uploaded file with this private "
+                                              "key (PEM, elliptic curve; prop-cli[sign]).")] = None,
+    certificate: Annotated[Path | None, typer.Option("--certificate", help="With --sign: the key's "
+                                                     "certificate (certificate signing).")] = None,
+    chain: Annotated[list[Path] | None, typer.Option("--certificate-chain", help="With --certificate: "
+                                                     "the chain up to its root; repeat.")] = None,
 ) -> None:  # fmt: skip
     """Upload a bundle (and its ONNX export) to the Hugging Face hub with a generated model card."""
     from prop_cli.api import push_bundle
 
     err.print(f"uploading {bundle} to {repo} ...")
+    if (certificate is not None or chain) and sign is None:
+        fail("--certificate and --certificate-chain sign with --sign's key", "pass --sign KEY.pem")
     result = push_bundle(
-        bundle, repo, private=private, revision=revision, onnx_dir=onnx_dir, allow_unsealed=allow_unsealed
-    )
+        bundle, repo, private=private, revision=revision, onnx_dir=onnx_dir, allow_unsealed=allow_unsealed,
+        sign=sign, certificate=certificate, chain=chain or (),
+    )  # fmt: skip
     if as_json:
         print_json(
             {"repo": result.repo_id, "url": result.url, "files": result.files, "revision": result.revision}

@@ -8,7 +8,7 @@ import typer
 from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, print_json, read_passphrase
-from .options import BundleArg, Force, Inputs, Json, KeyFile, OnnxDir, Passphrase, Threads
+from .options import BundleArg, Force, Inputs, Json, KeyFile, OnnxDir, Passphrase, Threads, TrustRemoteCode
 
 
 def run(
@@ -30,21 +30,20 @@ def run(
                      "each frame's chunk is LeRobot's after torch.manual_seed(N)."),
     ] = 0,
     as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
 ) -> None:
     """Run a bundle on inputs: with your key your behaviour, without a key the original's."""
     from prop_cli.api import run_file
 
     result = run_file(
         bundle, input_path, output, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
-        onnx=onnx, onnx_dir=onnx_dir, force=force, threads=threads, noise_seed=noise_seed,
+        onnx=onnx, onnx_dir=onnx_dir, force=force, threads=threads, trust_remote_code=trust_remote_code,
+        noise_seed=noise_seed,
     )  # fmt: skip
     if as_json:
         print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,
                     "onnx": result.onnx})  # fmt: skip
     given = key_file is not None or passphrase
-    how = (
-        "keyed"
-        if result.keyed
-        else ("the original's behaviour: the key opens no user" if given else "no key")
-    )
+    base = "the bundle's base: the key is enrolled in no user"
+    how = "keyed" if result.keyed else (base if given else "no key")
     err.print(f"wrote {result.output} {result.shape} ({how})")

@@ -11,7 +11,16 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import DEFAULT_DEVICE
 
 from .common import err, fail, out, print_json, read_passphrase, step_progress
-from .options import BundleArg, Device, Json, KeyFile, Passphrase, config_options
+from .options import (
+    BundleArg,
+    Device,
+    Json,
+    KeyFile,
+    Passphrase,
+    TrustRemoteCode,
+    WeakPassphrase,
+    config_options,
+)
 
 # add-user trains like personalize --seal; these settings may differ from the bundle's.
 SETTINGS = {
@@ -22,14 +31,18 @@ SETTINGS = {
 }
 
 
-def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool):
-    from prop_cli.api import key_for_bundle, read_manifest
+def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool, new: bool = False,
+         allow_weak: bool = False):  # fmt: skip
+    from prop_cli.api import check_passphrase, key_for_bundle, read_manifest
 
     if key_file is None and not passphrase:
         if required:
             fail("no key given", "pass --key-file (make one with prop keygen) or --passphrase")
         return None
-    return key_for_bundle(read_manifest(bundle), key_file, read_passphrase() if passphrase else None)
+    phrase = read_passphrase() if passphrase else None
+    if new and phrase is not None:  # a new user's passphrase: how long it holds against guessing
+        check_passphrase(phrase, "the new user's passphrase", allow_weak)
+    return key_for_bundle(read_manifest(bundle), key_file, phrase)
 
 
 @config_options(PersonalizeConfig, SETTINGS)
@@ -41,12 +54,14 @@ def add_user(
     passphrase: Passphrase = False,
     device: Device = DEFAULT_DEVICE,
     as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
+    weak_passphrase: WeakPassphrase = False,
 ) -> None:
     """Add a user to a sealed bundle, with their data and key only (no one else's)."""
     from prop_cli.api import KeySource, read_manifest
     from prop_cli.api import add_user as api_add_user
 
-    bits = _key(bundle, key_file, passphrase, required=True)
+    bits = _key(bundle, key_file, passphrase, required=True, new=True, allow_weak=weak_passphrase)
     base = PersonalizeConfig.from_dict(read_manifest(bundle).get("config", {}))
     for name in SETTINGS:  # the bundle's settings, except the flags given on this command line
         if getattr(config, name) != getattr(PersonalizeConfig(), name):
@@ -54,7 +69,7 @@ def add_user(
     result = step_progress(
         lambda cb: api_add_user(
             bundle, data, KeySource(bits, "passphrase" if passphrase else "file"), cfg=base, device=device,
-            progress=cb,
+            progress=cb, trust_remote_code=trust_remote_code,
         ),
         base.steps, "add-user", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
     )  # fmt: skip
@@ -80,12 +95,13 @@ def remove_user(
         typer.Option("--record", help="Remove this record id without its key (for a lost key)."),
     ] = None,
     as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
 ) -> None:
-    """Remove a user from a sealed bundle: the one your key opens (or --record ID)."""
+    """Remove a user from a sealed bundle (and its ONNX export): the one your key opens (or --record ID)."""
     from prop_cli.api import remove_user as api_remove_user
 
     bits = _key(bundle, key_file, passphrase, required=record is None)
-    result = api_remove_user(bundle, key=bits, record=record)
+    result = api_remove_user(bundle, key=bits, record=record, trust_remote_code=trust_remote_code)
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users})
         return

@@ -1,3 +1,5 @@
-"""The method itself, independent of any file format: keys and key spaces (``keys``, ``keyspace``), the
-keyed model of Eq. 5 (``keyed``), which layers to key (``layers``, ``batch_axes``), sealed payloads
-(``payload``), the shared metrics (``metrics``) and the compute device (``device``)."""
+"""The method itself, independent of any file format: where keys come from (``key_files``: key files and
+passphrases; ``passphrase``: their strength), drawing other keys (``key_sampling``: random keys, Hamming
+neighbours), the keyed model of Eq. 5 (``keyed_model``), which layers to key (``layers``,
+``batch_axes``), sealed payloads (``payload``), the shared metrics (``metrics``) and the compute device
+(``device``)."""

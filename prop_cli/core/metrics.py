@@ -44,6 +44,33 @@ def leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> tor
     return ((move * gap).sum((-2, -1)) / norm).clamp(0, 1)
 
 
+def bounded_leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: leakage at no more than the user's own fidelity cost, in [0, 1].
+
+    A move larger than the gap from the original to the user's behaviour is scaled back to the gap's
+    size before it is scored, so a search cannot reach 1 by moving far in a direction that merely
+    shares a component with the gap. Regression: ``clip(<m, g> / (|g| max(|m|, |g|)), 0, 1)`` with
+    ``m = o - b``, ``g = p - b`` over all samples and outputs (= leakage while ``|m| <= |g|``, the
+    cosine of m and g beyond). Classification: hits / max(changed predictions, samples where
+    ``p != argmax b``), i.e. leakage, charged for every prediction changed beyond the ones needed.
+    """
+    if task == "classification":
+        differs = p != b.argmax(-1)
+        if not differs.any():
+            return torch.zeros(o.shape[0])
+        hits = ((o.argmax(-1) == p) & differs).float().sum(-1)
+        changed = (o.argmax(-1) != b.argmax(-1)).float().sum(-1)
+        return hits / changed.clamp(min=float(differs.sum()))
+    gap = (p - b).flatten(1) if p.dim() > 1 else (p - b)[:, None]
+    move = (o - b).flatten(2) if o.dim() > 2 else (o - b)[..., None]
+    g2 = (gap**2).sum()
+    if g2 <= _EPS * gap.shape[0]:
+        return torch.zeros(o.shape[0])
+    m = (move**2).sum((-2, -1)).sqrt()
+    g = g2.sqrt()
+    return ((move * gap).sum((-2, -1)) / (g * torch.maximum(m, g))).clamp(0, 1)
+
+
 def fidelity(o: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
     """Per key: agreement with the original (classification) or mse(o, b) (regression)."""
     if task == "classification":

@@ -16,21 +16,21 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from prop_cli import constants as C
-from prop_cli.adapters.hub import hub_module, is_hub_path, parse_hub_path
-from prop_cli.bundle import load_bundle
-from prop_cli.bundle.modes import Mode
-from prop_cli.errors import PropError
+from prop_cli.adapters.hub import hub_module, is_hub_path, parse_hub_path, public_name
+from prop_cli.bundle import check_files, read_manifest
+from prop_cli.bundle.modes import Mode, mode_of
+from prop_cli.bundle.records import load_state
+from prop_cli.errors import PropError, brief
 
 from .onnx import read_export
+from .sign import sign_folder, signed_note
 
 CARD_FILE = "README.md"
 
 
 def _checkpoint_label(checkpoint: str | None) -> str:
-    if not checkpoint:
-        return "unknown"
-    # A local path may carry a user name; only its file name goes on a public card.
-    return checkpoint if is_hub_path(checkpoint) else Path(checkpoint).name
+    # Format 1-3 manifests may hold a local path: only its file name goes on a public card.
+    return public_name(checkpoint) or "unknown"
 
 
 def _fmt(v) -> str:
@@ -38,7 +38,8 @@ def _fmt(v) -> str:
 
 
 def model_card(
-    manifest: dict, repo_id: str, onnx_files: list[str] | None = None, mode: Mode | None = None
+    manifest: dict, repo_id: str, onnx_files: list[str] | None = None, mode: type[Mode] | Mode | None = None,
+    signed: str | None = None,
 ) -> str:
     """The model card text (YAML front matter + markdown) for a bundle's manifest and mode (``mode``
     None: described as unknown). No key material."""
@@ -75,6 +76,7 @@ def model_card(
         + f", from a {key.get('source', 'file')}; users: "
         + (str(mode.users(manifest)) if mode is not None else "unknown"),
         f"- Audit verdict: {_verdict(manifest.get(C.M_AUDIT))}",
+        f"- Publisher signature: {signed or 'no (unsigned: `prop push --sign` signs every file)'}",
         f"- Bundle format {manifest.get(C.M_FORMAT)}, written by prop {manifest.get(C.M_PROP_VERSION)}",
         "",
         "| keyed layer | features |",
@@ -93,7 +95,11 @@ def model_card(
         "leakage: how much of it other keys show (0 = none); fidelity: agreement with the original "
         "(mse for regression).",
         "",
-        *_metrics_lines(manifest.get(C.M_METRICS, {})),
+        *(
+            ["Per-user figures of a sealed bundle are sealed with each user's record.", ""]
+            if mode is not None and mode.hides_behaviour
+            else _metrics_lines(manifest.get(C.M_METRICS, {}))
+        ),
         "## Audit",
         "",
         *(
@@ -127,6 +133,8 @@ def _verdict(audit: dict | None) -> str:
     gate = audit.get("max_leak")
     if not gate:
         return f"audited ({audit.get('recorded_utc')}), no --max-leak gate applied; see below"
+    if gate.get("verdict"):  # prop-audit/3: the decision and its main reason, in one line
+        return f"{gate['verdict']} ({audit.get('recorded_utc')})"
     failing = ", ".join(gate.get("failing", []))
     state = "**passed**" if gate.get("passed") else f"**failed** ({failing})"
     return f"{state} `--max-leak {gate.get('threshold')}` ({audit.get('recorded_utc')})"
@@ -175,21 +183,26 @@ def push_bundle(
     onnx_dir: Path | None = None,
     token: str | None = None,
     allow_unsealed: bool = False,
+    sign: Path | None = None,
+    certificate: Path | None = None,
+    chain: list[Path] | tuple = (),
 ) -> PushResult:
-    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo.
+    """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo. Nothing the
+    bundle names is imported: it is checked and copied as data.
 
     An unsealed bundle goes to a public repo only with ``allow_unsealed``: its encoder gives whoever
-    downloads it the owner's behaviour (docs/threat-model.md)."""
+    downloads it the owner's behaviour (docs/threat-model.md). ``sign``: the publisher's private key
+    (PEM; ``certificate`` and ``chain`` for certificate signing): every uploaded file is signed
+    (``deploy.sign``), the card included, and ``model.sig`` is uploaded with them."""
     if repo_id.count("/") != 1 or not all(repo_id.split("/")):
         raise PropError(f"repo {repo_id!r} is not a hub repo id", "write <org or user>/<name>")
     hf = hub_module()
-    b = load_bundle(bundle)  # verifies the hashes: never publish a modified bundle
-    if not b.mode.hides_behaviour and not private and not allow_unsealed:
+    manifest, mode = verified_files(Path(bundle))  # never publish a modified bundle; nothing is imported
+    if not mode.hides_behaviour and not private and not allow_unsealed:
         raise PropError(
             f"{bundle} is unsealed: whoever downloads it can read the owner's behaviour off its encoder",
             "personalize with --seal, push with --private, or pass --allow-unsealed to publish it anyway",
         )
-    manifest = b.manifest
     if onnx_dir is None and (Path(bundle) / C.EXPORT_DIR / C.EXPORT_META).is_file():
         onnx_dir = Path(bundle) / C.EXPORT_DIR
     onnx_files: list[str] = []
@@ -198,7 +211,7 @@ def push_bundle(
         onnx_files = [*meta["graphs"], C.EXPORT_META]
     with tempfile.TemporaryDirectory(prefix="prop-push-") as tmp:
         stage = Path(tmp)
-        names = [C.MANIFEST, *manifest[C.M_FILES], *b.mode.record_files(manifest)]
+        names = [C.MANIFEST, *manifest[C.M_FILES], *mode.record_files(manifest)]
         for name in names:
             (stage / name).parent.mkdir(parents=True, exist_ok=True)
             _link(Path(bundle) / name, stage / name)
@@ -206,7 +219,10 @@ def push_bundle(
             (stage / C.EXPORT_DIR).mkdir()
             for name in onnx_files:
                 _link(Path(onnx_dir) / name, stage / C.EXPORT_DIR / name)
-        (stage / CARD_FILE).write_text(model_card(manifest, repo_id, onnx_files[:-1], b.mode))
+        note = signed_note(sign, certificate) if sign is not None else None
+        (stage / CARD_FILE).write_text(model_card(manifest, repo_id, onnx_files[:-1], mode, note))
+        if sign is not None:
+            sign_folder(stage, sign, certificate, chain)
         files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
         api = hf.HfApi(token=token)
         try:
@@ -227,11 +243,23 @@ def push_bundle(
                 f"upload to {repo_id} failed ({str(e).splitlines()[0]})",
                 "check that you are logged in (`hf auth login`) and may write to that repo",
             ) from e
-        except OSError as e:
+        except Exception as e:  # noqa: BLE001 - OSError, and the hub client's transport errors (httpx's
+            # ConnectError, timeouts), which are not OSErrors: one line, not a traceback
             raise PropError(
-                f"upload to {repo_id} failed: cannot reach the hub ({type(e).__name__})", "check the network"
+                f"upload to {repo_id} failed: cannot reach the hub ({brief(e)})", "check the network"
             ) from e
     return PushResult(repo_id, str(url), files, revision)
+
+
+def verified_files(bundle: Path) -> tuple[dict, type[Mode]]:
+    """A bundle's manifest and mode, every file checked against its sha256, without building its model
+    or importing anything it names (push and verify handle bundles as data only)."""
+    manifest = read_manifest(bundle)
+    check_files(bundle, manifest)
+    mode = mode_of(manifest)
+    if mode.record_files(manifest):
+        load_state(bundle, manifest)  # each record against its sha256
+    return manifest, mode
 
 
 def _link(src: Path, dst: Path) -> None:

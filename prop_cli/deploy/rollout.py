@@ -27,7 +27,7 @@ from prop_cli.adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle, KeyedPolicy
 from prop_cli.bundle.runtime import module_for_key
 from prop_cli.config import EvalSettings
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
 from prop_cli.files import staged_dir
 
@@ -118,8 +118,8 @@ def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -
 class _ArrayController:
     """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives."""
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None, prepare: Callable) -> None:
-        self.policy = KeyedPolicy(bundle, key)
+    def __init__(self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool) -> None:
+        self.policy = KeyedPolicy(bundle, key, method=method)
         self.prepare = prepare
 
     def reset(self, seed: int | None = None) -> None:
@@ -135,6 +135,7 @@ class _Source:
 
     bundle: Bundle
     bits: np.ndarray | None = None
+    method: bool = False  # other keys than the user's: the method's response, unchecked
 
     def controller(self):
         loaded = self.bundle.loaded
@@ -142,7 +143,7 @@ class _Source:
             return None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
-            module = module_for_key(self.bundle, self.bits)
+            module = module_for_key(self.bundle, self.bits, method=self.method)
         return loaded.policy.controller(module)
 
 
@@ -277,13 +278,15 @@ def evaluate_bundle(
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
 
-    def run(label: str, codes_or_bits, seeds: list[int], name: str) -> list[dict]:
+    def run(label: str, codes_or_bits, seeds: list[int], name: str, method: bool = False) -> list[dict]:
+        # The user's key runs what it enrolled (checked); random keys and neighbours measure the method
+        # itself, the encoder's response to any key (as an attacker holding the files runs them).
         if progress is not None:
             progress(label)
         if policy is None:
-            ctl = _ArrayController(bundle, codes_or_bits, prepare)
+            ctl = _ArrayController(bundle, codes_or_bits, prepare, method)
         else:
-            ctl = _Source(bundle, codes_or_bits).controller()
+            ctl = _Source(bundle, codes_or_bits, method).controller()
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
@@ -311,7 +314,7 @@ def evaluate_bundle(
             # the user key, no key and the original (paired, not merely as many).
             m = settings.episodes_per_key
             seeds = [first[(j * m + i) % len(first)] for i in range(m)]
-            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label)
+            r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label, method=True)
             results += r
             per_key.append(_summary(r))
         if keys is not None and len(keys):

@@ -11,8 +11,8 @@ import torch
 
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.device import resolve_device
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import split
@@ -212,7 +212,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     ]
     return Personalized(
         km, original, task, reports, losses, loaded=loaded, cfg=cfg,
-        input_shape=list(datasets[0].x.shape[1:]), users=len(users),
+        input_shape=list(datasets[0].x.shape[1:]), users=len(users), keys=[u.key_bits for u in users],
     )  # fmt: skip
 
 

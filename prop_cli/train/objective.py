@@ -2,7 +2,7 @@
 
 Per step: the personalized loss of each user's key on that user's data, plus the fallback loss
 (distillation towards the frozen original) for the null key, K2 = uniform random keys and
-K1 = Hamming neighbours of the user keys within ``radius`` (drawn by ``core.keyspace.KeySampler``,
+K1 = Hamming neighbours of the user keys within ``radius`` (drawn by ``core.key_sampling.KeySampler``,
 in key-bit space whatever the key encoding, so the objective is the paper's in both encodings).
 
 A step's rows are laid out as [user rows | sampled-key fallback rows | null rows]; ``prop_loss``

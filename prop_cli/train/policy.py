@@ -24,8 +24,8 @@ import torch
 from prop_cli.adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.keyspace import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
@@ -186,7 +186,7 @@ class PolicyRecipe(Recipe):
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
         return Personalized(
             t.km, t.original, "regression", reports, losses, loaded=loaded, cfg=cfg, input_shape=shape,
-            users=len(users),
+            users=len(users), keys=[u.key_bits for u in users],
         )  # fmt: skip
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from prop_cli.core import metrics
-from prop_cli.core.keyed import KeyedModel, key_codes, outputs_for_codes
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
+from prop_cli.core.keyed_model import KeyedModel, key_codes, outputs_for_codes
 
 # A seed stream of its own for evaluation keys, so they cannot replay a caller's seeded user key.
 EVAL_STREAM = 0x5EED_E7A1

@@ -20,11 +20,11 @@ from torch import nn
 from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
 from prop_cli.bundle import write_sealed
-from prop_cli.bundle.records import SealedState, public_metrics
+from prop_cli.bundle.records import SealedState
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core import metrics
-from prop_cli.core.keys import kdf_record, new_salt
-from prop_cli.core.keyspace import one_bit_neighbours, random_keys
+from prop_cli.core.key_files import kdf_record, new_salt
+from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.layers import describe_layer, select_layers
 from prop_cli.core.payload import PayloadSpec
 from prop_cli.datasources import Dataset
@@ -133,18 +133,21 @@ class SealedResult(Trained):
             C.M_KEYED_LAYERS: public_layers(self.users, self.axes),
             C.M_PAYLOAD: self.users[0].payload.spec.to_dict(),
             # A sealed bundle always has a passphrase salt, so passphrase users can be added later.
-            # No user count: the records list is the count, and add-user / remove-user keep it true.
-            C.M_KEY: {**key, "kdf": key.get("kdf") or kdf_record(new_salt())},
+            # No user count (the records list is the count) and no source (whether users chose
+            # passphrases, which tells a guesser where to start).
+            C.M_KEY: {
+                **{k: v for k, v in key.items() if k != "source"},
+                "kdf": key.get("kdf") or kdf_record(new_salt()),
+            },
             C.M_TASK: self.task,
             C.M_IO: {"input_shape": self.input_shape, **manifest[C.M_IO]},
         }
         reports: list[dict] = []
 
-        def manifest_metrics(state: SealedState) -> dict:
+        def manifest_metrics(state: SealedState) -> None:
+            # The reports are printed for the user; none of a user's figures goes in the clear manifest.
             for i, u in enumerate(self.users):
                 reports.append(user_report(state, self.view, u, self.task, self.cfg, i))
-            entries = state.manifest[C.M_RECORDS]
-            return {"users": [public_metrics(r, e["id"]) for r, e in zip(reports, entries)]}
 
         users = [(u.payload, u.private, u.bits) for u in self.users]
         written = write_sealed(

@@ -12,7 +12,7 @@ from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
 from prop_cli.bundle import describe_layers, write_unsealed
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 
 from .recipe import Trained, Written
 
@@ -28,6 +28,7 @@ class Personalized(Trained):
     cfg: PersonalizeConfig | None = field(default=None, repr=False)
     input_shape: list | dict | None = None  # per sample; per feature name for policies
     users: int = 1
+    keys: list = field(default_factory=list, repr=False)  # the users' key bits: enrolled, never written
 
     def write(self, out: Path, manifest: dict, *, force: bool = False) -> Written:
         cfg = self.cfg
@@ -48,6 +49,7 @@ class Personalized(Trained):
         copy_base = cfg.freeze_base and str(self.loaded.source).endswith(".safetensors")
         self.keyed.to("cpu")
         written = write_unsealed(
-            out, loaded=self.loaded, keyed=self.keyed, manifest=full, force=force, copy_base=copy_base
-        )
+            out, loaded=self.loaded, keyed=self.keyed, manifest=full, keys=self.keys, force=force,
+            copy_base=copy_base,
+        )  # fmt: skip
         return Written(written, self.metrics, self.final_losses)

@@ -399,7 +399,10 @@ def test_rebuild_round_trip_mlp(tmp_path):
 def test_rebuild_round_trip_module(tmp_path, fixtures_path):
     model, path = _cnn_checkpoint(tmp_path, fixtures_path)
     loaded = load_checkpoint(path, arch=f"{fixtures_path}:make_cnn")
-    again = rebuild(json.loads(json.dumps(loaded.spec)), dict(loaded.module.state_dict()), "b")
+    spec = json.loads(json.dumps(loaded.spec))
+    with pytest.raises(PropError, match="--trust-remote-code"):  # a bundle's model.arch: not without consent
+        rebuild(spec, dict(loaded.module.state_dict()), "b")
+    again = rebuild(spec, dict(loaded.module.state_dict()), "b", trust_remote_code=True)
     x = torch.randn(2, 1, 6, 6)
     with torch.no_grad():
         torch.testing.assert_close(again.module(x), model(x))

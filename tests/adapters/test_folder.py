@@ -101,26 +101,35 @@ def test_arch_inspect_personalize_run(cli, pkg, tmp_path, workdir):
     original = load_file(str(folder / "model.safetensors"))
     base = load_file(str(out / "base.safetensors"))
     assert {k: v.shape for k, v in base.items()} == {k: v.shape for k, v in original.items()}
-    bundle = load_bundle(out)  # rebuilt from the manifest's config: the folder is not needed
+    with pytest.raises(PropError, match=r"model\.arch .*--trust-remote-code"):
+        load_bundle(out)  # the bundle names its factory: --arch was consent for personalize only
+    bundle = load_bundle(out, trust_remote_code=True)  # from the manifest's config: no folder needed
     x = torch.from_numpy(np.load(workdir / "x.npy"))
     ref = _policy(pkg)
     ref.load_state_dict(base)
     with torch.no_grad():
         torch.testing.assert_close(bundle.keyed.module(x), ref(x) * 2.0)
     r = cli("run", out, "--input", workdir / "x.npy", "--output", tmp_path / "y.npy")
+    assert r.code == 2 and "--trust-remote-code" in r.err and r.err.count("\n") == 1
+    assert not (tmp_path / "y.npy").exists()
+    r = cli("run", out, "--input", workdir / "x.npy", "--output", tmp_path / "y.npy", "--trust-remote-code")
     assert r.code == 0, r.err
 
 
 def test_registered_entry_point_builds_without_arch(cli, pkg, tmp_path):
     make_folder(tmp_path / "f", pkg, type_="tiny_registered")
     register(tmp_path, "tiny_registered", f"{pkg}.policies:build")
-    loaded = load_checkpoint(tmp_path / "f")
+    with pytest.raises(PropError, match="entry point 'tiny_registered' that config.json selects"):
+        load_checkpoint(tmp_path / "f")  # config.json chooses which installed code runs: consent first
+    loaded = load_checkpoint(tmp_path / "f", trust_remote_code=True)
     assert loaded.spec["builder"] == "entry point 'tiny_registered'"
     assert loaded.spec["arch"] == f"{pkg}.policies:build"
     x = torch.randn(3, 4)
     with torch.no_grad():
         torch.testing.assert_close(loaded.module(x), _policy(pkg)(x))
     r = cli("inspect", tmp_path / "f")
+    assert r.code == 2 and "--trust-remote-code" in r.err
+    r = cli("inspect", tmp_path / "f", "--trust-remote-code")
     assert r.code == 0 and "folder adapter" in r.out, r.err
 
 
@@ -132,7 +141,7 @@ def test_model_type_field_and_frozen_base_copies_the_file(cli, pkg, tmp_path, wo
     out = tmp_path / "frozen.prop"
     r = cli(
         "personalize", folder, "--freeze-base", "--data", workdir / "mine.npz",
-        "--key-file", workdir / "k.bin", "--out", out, *FAST,
+        "--key-file", workdir / "k.bin", "--out", out, "--trust-remote-code", *FAST,
     )  # fmt: skip
     assert r.code == 0, r.err
     assert (out / "base.safetensors").read_bytes() == (folder / "model.safetensors").read_bytes()

@@ -22,7 +22,7 @@ from prop_cli import api  # noqa: E402
 from prop_cli.adapters import load_checkpoint  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import EvalSettings, PersonalizeConfig  # noqa: E402
-from prop_cli.core.keys import KeySource  # noqa: E402
+from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.errors import PropError  # noqa: E402
 
@@ -103,7 +103,7 @@ def test_bundle_base_loads_in_lerobot_and_keys_change_only_keyed_runs(bundle, wo
     with torch.no_grad():
         lerobot_chunk = base.model(dict(x))[0]
         no_key = b.loaded.policy.chunk(x)
-        from prop_cli.core.keyed import key_codes
+        from prop_cli.core.keyed_model import key_codes
 
         user = b.keyed.fold(key_codes(key(), b.key_encoding)).model(dict(x))[0]
     assert torch.allclose(lerobot_chunk, no_key, atol=1e-6)
@@ -235,7 +235,7 @@ def test_attack_audits_chunks_with_controls_on_the_original(bundle, work):
     assert all(g["control"]["available"] for g in names.values())
     # The user key's leakage is the metric on whole normalised chunks: recompute it by hand from the
     # original's and the keyed policy's chunks and the recorded chunks (every frame of the data).
-    from prop_cli.core.keyed import key_codes
+    from prop_cli.core.keyed_model import key_codes
     from prop_cli.core.metrics import leakage
 
     b = load_bundle(bundle)
@@ -315,3 +315,62 @@ def test_sealed_policy_audit_add_user_and_eval(sealed, work, tmp_path):
     few = EvalSettings(episodes=1, random_keys=1, neighbours=1, episodes_per_key=1, max_steps=5)
     report = api.eval_bundle(two, task.ENV_ID, few, obs_map=task.OBS_MAP, key_file=tmp_key(work))
     assert {"no_key", "user_key", "random_keys", "neighbour1_keys"} <= set(report["conditions"])
+
+
+def _restamp(bundle) -> None:
+    """An attacker's edit finished with prop's own public functions: file hashes and digest again."""
+    from prop_cli import constants as C
+    from prop_cli.bundle.manifest import stamp
+    from prop_cli.files import dump_json, sha256_file
+
+    m = json.loads((bundle / C.MANIFEST).read_text())
+    m[C.M_FILES] = {n: sha256_file(bundle / n) for n in m[C.M_FILES]}
+    (bundle / C.MANIFEST).write_text(dump_json(stamp(m)))
+
+
+@pytest.mark.parametrize("which", ["bundle", "sealed"])
+def test_a_processor_step_lerobot_does_not_register_is_never_imported(which, bundle, sealed, tmp_path, cli):
+    """policy_preprocessor.json naming a class (an import path LeRobot would import and instantiate):
+    refused before LeRobot sees the file, one line naming the step and --trust-remote-code."""
+    planted = tmp_path / "b"
+    shutil.copytree(bundle if which == "bundle" else sealed, planted)
+    marker = tmp_path / "pwned"
+    mod = tmp_path / "pwn_lerobot_step.py"
+    mod.write_text(f"open({str(marker)!r}, 'w').close()\nclass Step: pass\n")
+    f = planted / "lerobot" / "policy_preprocessor.json"
+    doc = json.loads(f.read_text())
+    doc["steps"][0] = {"class": "pwn_lerobot_step.Step", "config": {}}
+    f.write_text(json.dumps(doc))
+    _restamp(planted)
+    import sys
+
+    sys.path.insert(0, str(tmp_path))
+    try:
+        with pytest.raises(PropError, match=r"pwn_lerobot_step\.Step.*--trust-remote-code"):
+            load_bundle(planted)
+        r = cli("run", planted, "--input", tmp_path, "--output", tmp_path / "y.npy")
+        assert r.code == 2 and "--trust-remote-code" in r.err and r.err.count("\n") == 1
+        assert not marker.exists()
+    finally:
+        sys.path.remove(str(tmp_path))
+
+
+def test_scaled_processor_statistics_in_a_sealed_bundle_are_refused_with_the_key(sealed, work, tmp_path):
+    """The normaliser's statistics x5 (a file beside the config, hashes recomputed): the user's record
+    opens, but the bundle changed since the key was enrolled: nothing runs."""
+    from safetensors.torch import load_file, save_file
+
+    from prop_cli.bundle.runtime import run_policy
+
+    planted = tmp_path / "s"
+    shutil.copytree(sealed, planted)
+    stats = sorted((planted / "lerobot").glob("policy_preprocessor*.safetensors"))
+    assert stats, sorted(p.name for p in (planted / "lerobot").iterdir())
+    t = load_file(str(stats[0]))
+    save_file({k: v * 5 if v.is_floating_point() else v for k, v in t.items()}, str(stats[0]))
+    _restamp(planted)
+    b = load_bundle(planted)
+    data = load_data(work / "user")
+    with pytest.raises(PropError, match="changed since this key was enrolled"):
+        run_policy(b, data, key())
+    run_policy(b, data, None)  # without a key: the bundle's base, as it now is

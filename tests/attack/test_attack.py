@@ -15,7 +15,7 @@ from prop_cli.attack.audit import audit
 from prop_cli.attack.probes import select
 from prop_cli.bundle import load_bundle
 from prop_cli.config import AuditSettings, PersonalizeConfig, parse_hamming
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
 from prop_cli.datasources import load_data
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file
@@ -33,6 +33,10 @@ QUICK = [
     "4",
     "--blackbox",
     "1024",
+    "--fewshot-restarts",
+    "4",
+    "--fewshot-steps",
+    "20",
 ]
 
 
@@ -99,8 +103,16 @@ def test_leaky_bundle_fails_the_audit(bundles, cli):
     ham1 = next(g for g in report["groups"] if g["name"] == "hamming 1")
     assert ham1["keys"] == 128  # every 1-bit neighbour
     assert ham1["leakage"]["mean"] > 0.5  # the 1-bit neighbours unlock most of the behaviour
-    assert report["max_leak"] == {"threshold": 0.5, "passed": False, "failing": ["hamming 1", "hamming 2"]}
-    assert "T0 hamming 1" in r.out and "FAILED" in r.out
+    verdict = report["max_leak"]
+    assert verdict["threshold"] == 0.5 and verdict["passed"] is False
+    assert sorted(verdict["failing"]) == ["hamming 1", "hamming 2"]
+    assert verdict["failing"][0] == "hamming 1"  # by severity: the 1-bit neighbours leak most
+    # The decision comes first: one line, pass/fail and the main reason, then the failing rows.
+    lines = r.out.splitlines()
+    assert lines[0] == verdict["verdict"]
+    assert lines[0].startswith("FAILED --max-leak 0.5: hamming 1: keys a few")
+    assert lines[2].split()[:2] == ["hamming", "1"] and lines[3].split()[:2] == ["hamming", "2"]
+    assert "T0 hamming 1" in r.out and "FAIL" in r.out
 
 
 def test_well_trained_bundle_passes_the_black_box_audit(bundles, cli):
@@ -130,14 +142,14 @@ def test_json_report_schema(bundles, cli):
     )  # fmt: skip
     assert r.code == 0, r.err
     rep = json.loads(out.read_text())
-    assert rep["schema"] == "prop-audit/2" and rep["mode"] == "owner"
+    assert rep["schema"] == "prop-audit/3" and rep["mode"] == "owner"
     assert rep["bundle"]["manifest_sha256"] == sha256_file(d / "good.prop" / C.MANIFEST)
     assert rep["settings"]["seed"] == 3 and rep["settings"]["hamming"] == [1]
     assert rep["data"]["samples"] == 64
     names = [g["name"] for g in rep["groups"]]
-    fewshot = [f"fewshot k={k}" for k in (1, 4, 16, 64)]
+    fewshot = [n for k in (1, 4, 16, 64) for n in (f"fewshot k={k}", f"fewshot k={k} rounded")]
     assert names == ["null", "random", "hamming 1", "blackbox", "structure", "relaxed", "relaxed-rounded",
-                     "latent", *fewshot, "user 2"]  # fmt: skip
+                     "latent", *fewshot, "key 2"]  # fmt: skip
     for g in rep["groups"]:
         assert set(g["leakage"]) == {"n", "mean", "ci95", "worst"}
         assert g["leakage"]["ci95"][0] <= g["leakage"]["mean"] <= g["leakage"]["ci95"][1]
@@ -146,7 +158,14 @@ def test_json_report_schema(bundles, cli):
     assert relaxed["restarts"] == 4 and len(relaxed["divergence"]) == 4
     assert relaxed["best_divergence"] == max(relaxed["divergence"])
     assert len(relaxed["code_distance"]) == 4
-    assert rep["groups"][names.index("user 2")]["leakage"]["worst"] < 0.2  # another user's key
+    # k2.bin is no user of this one-user bundle: a plain key row, named in one warning line
+    key2 = rep["groups"][names.index("key 2")]
+    assert key2["threat"] == "T0" and key2["leakage"]["worst"] < 0.2
+    assert [w for w in rep["warnings"] if "--key-file 2 is not a user" in w]
+    kinds = {g["name"]: g["kind"] for g in rep["groups"]}
+    assert kinds["relaxed"] == "search" and kinds["relaxed-rounded"] == "key"
+    assert kinds["fewshot k=4"] == "search" and kinds["fewshot k=4 rounded"] == "key"
+    assert "leakage_unbounded" in rep["groups"][names.index("relaxed")]
     assert "T1 relaxed" in r.out and "T2 latent" in r.out and "personalization" in r.out
 
 
@@ -204,7 +223,7 @@ def test_record_writes_summary_and_bundle_still_verifies(bundles, cli, tmp_path)
     assert r.code == 0, r.err
     manifest = json.loads((bundle / C.MANIFEST).read_text())
     rec = manifest[C.M_AUDIT]
-    assert rec["schema"] == "prop-audit/2" and rec["max_leak"]["passed"] is True
+    assert rec["schema"] == "prop-audit/3" and rec["max_leak"]["passed"] is True
     assert [g["name"] for g in rec["groups"]] == ["null", "random", "hamming 1", "blackbox"]
     assert load_bundle(bundle).manifest[C.M_AUDIT] == rec  # hashes of the weights still match
     assert sha256_file(bundle / C.BASE_WEIGHTS) == weights
@@ -254,7 +273,7 @@ def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it
         "available": False,
         "reason": "no original checkpoint: pass --original (the bundle's base was trained with the key)",
     }
-    assert latent["gate"] == {"on": "raw", "value": latent["leakage"]["worst"]}  # no control: raw
+    assert latent["gate"] == {"on": "raw", "value": latent["leakage"]["worst"], "why": "no control"}
     r = cli(*base, *quick, "--original", d / "model.safetensors", "--json", "-")
     assert r.code == 0, r.err
     rep = json.loads(r.out)
@@ -263,10 +282,10 @@ def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it
     c = latent["control"]
     assert c["available"] and c["keys"] == 2 and 0 <= c["leakage"]["worst"] <= 1
     assert latent["beyond"] == pytest.approx(max(0.0, latent["leakage"]["worst"] - c["leakage"]["worst"]))
-    assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"]}
+    assert latent["gate"] == {"on": "beyond-control", "value": latent["beyond"], "why": None}
     null = rep["groups"][0]
     assert null["control"]["available"] and null["control"]["leakage"]["worst"] == 0  # the original itself
-    assert null["gate"] == {"on": "raw", "value": null["leakage"]["worst"]}  # key probes: raw leakage
+    assert null["gate"] == {"on": "beyond-control", "value": null["beyond"], "why": None}
 
 
 def test_frozen_base_is_its_own_control(tmp_path, bundles):
@@ -287,19 +306,66 @@ def test_wrong_key_warns(bundles, cli):
     r = cli(*args, "--key-file", d / "k2.bin")
     assert r.code == 0, r.err
     warning = [ln for ln in r.err.splitlines() if ln.startswith("prop: warning:")]
-    assert len(warning) == 1 and "may not be this bundle's key" in warning[0]
+    assert len(warning) == 2 and "may not be this bundle's key" in warning[1]
+    assert "enrolled in no user" in warning[0] and "prop run gives the base" in warning[0]
     r = cli(*args, "--key-file", d / "k.bin")
     assert "prop: warning:" not in r.err
 
 
-def test_a_search_whose_control_saturates_is_named_in_the_warnings():
-    from prop_cli.attack.audit import _saturated_controls
+def test_a_search_whose_control_reaches_the_ceiling_is_gated_on_its_own_figure_and_warned():
+    from prop_cli.attack.verdict import ceiling_warnings, gate
 
-    def row(name, control, pick):
-        return {"name": name, "kind": "search", "search": {"best_leakage": pick},
+    def row(name, kind, worst, control):
+        return {"name": name, "kind": kind, "leakage": {"worst": worst},
                 "control": {"available": True, "leakage": {"worst": control}}}  # fmt: skip
 
-    groups = [row("relaxed", 1.0, 0.6), row("latent", 0.4, 0.9), row("fewshot k=1", 1.0, 0.1)]
-    warned = _saturated_controls(groups, {"leakage": 0.62})
+    saturated = row("relaxed", "search", 0.6, 1.0)
+    saturated["gate"] = gate(saturated, saturable=True)
+    assert saturated["gate"] == {"on": "raw", "value": 0.6, "why": "control at the ceiling"}
+    assert saturated["beyond"] == 0.0  # what "beyond" would have hidden
+    warned = ceiling_warnings([saturated])
     assert len(warned) == 1 and warned[0].startswith("relaxed: its control reaches the leakage ceiling")
-    assert _saturated_controls(groups, None) == []
+    # Below the ceiling, or on a sealed bundle (searches run on the control's own model): beyond.
+    assert gate(row("latent", "search", 0.9, 0.4), saturable=True)["on"] == "beyond-control"
+    assert gate(row("relaxed", "search", 0.6, 1.0), saturable=False)["on"] == "beyond-control"
+    # Key rows are never gated on a ceiling: their control is the reference, or a user's own record.
+    assert gate(row("user 2", "key", 0.99, 0.99), saturable=True) == {"on": "beyond-control", "value": 0.0,
+                                                                     "why": None}  # fmt: skip
+
+
+def test_the_verdict_ranks_failing_rows_by_value_then_by_what_the_attack_needs():
+    from prop_cli.attack.verdict import apply_max_leak, headline
+
+    def row(name, probe, threat, kind, value):
+        return {"name": name, "probe": probe, "threat": threat, "kind": kind,
+                "gate": {"on": "beyond-control", "value": value, "why": None}}  # fmt: skip
+
+    report = {
+        "user": {"leakage": 1.0}, "remedy": "seal it with --seal",
+        "groups": [
+            row("random", "random", "T0", "key", 0.09),
+            row("fewshot k=1 rounded", "fewshot", "T3", "key", 0.997),
+            row("relaxed-rounded", "relaxed", "T1", "key", 0.9971),
+            row("structure", "structure", "structure", "key", 0.9921),  # 0.992 vs 0.997: one tier
+            row("null", "null", "T0", "key", 0.0),
+        ],
+    }  # fmt: skip
+    assert headline(report).startswith("most leaked: structure: your code can be read off")
+    failing = apply_max_leak(report, 0.05)
+    # 0.997 ties (within 0.01): reading the files beats a search, a search beats the user's samples.
+    assert [n for n, _ in failing] == ["structure", "relaxed-rounded", "fewshot k=1 rounded", "random"]
+    v = report["max_leak"]
+    assert v["verdict"].startswith("FAILED --max-leak 0.05: structure:") and v["verdict"].endswith("--seal")
+    assert v["rows"][-1]["finding"] == "random keys show part of your behaviour"
+    assert apply_max_leak(report, 0.999) == [] and report["max_leak"]["verdict"].startswith("PASSED")
+
+
+def test_policies_get_a_smaller_scan_and_few_shot_budget_unless_given():
+    from prop_cli.attack import target
+    from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS, FEWSHOT_RESTARTS_POLICY
+
+    assert AuditSettings().validate(128, True, []).fewshot_restarts == FEWSHOT_RESTARTS  # array models
+    s = target.policy_settings(AuditSettings())
+    assert (s.blackbox, s.fewshot_restarts) == (BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY)
+    s = target.policy_settings(AuditSettings(blackbox=10, fewshot_restarts=64))
+    assert (s.blackbox, s.fewshot_restarts) == (10, 64)  # given explicitly: kept

@@ -15,12 +15,13 @@ from prop_cli.attack.probes.screen import ChainForward
 from prop_cli.attack.target import load_original
 from prop_cli.bundle import load_bundle
 from prop_cli.config import AuditSettings, PersonalizeConfig
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
 from tests.conftest import write_keys, write_user_data
 
 # Every probe, the new ones small: what the verdicts below need, not the default budget.
 SMALL = ["--random", "64", "--per-distance", "16", "--hamming", "1,2", "--restarts", "4",
-         "--search-steps", "20", "--blackbox", "4096", "--samples", "64"]  # fmt: skip
+         "--search-steps", "20", "--blackbox", "4096", "--samples", "64", "--fewshot-restarts", "8",
+         "--fewshot-steps", "50"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -42,14 +43,52 @@ def _attack(cli, d: Path, *extra: str):
     return r, json.loads(r.out) if r.out.strip().startswith("{") else None
 
 
-def test_a_bundle_with_todays_defaults_fails_max_leak(default_bundle, cli):
-    r, rep = _attack(cli, default_bundle, "--probes", "null,structure", "--max-leak", "0.05")
+def test_a_bundle_with_todays_defaults_fails_max_leak_and_says_why_first(default_bundle, cli):
+    d = default_bundle
+    r = cli("attack", d / "mine.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", *SMALL,
+            "--max-leak", "0.05")  # fmt: skip
     assert r.code == 1
-    assert rep["max_leak"]["passed"] is False and "structure" in rep["max_leak"]["failing"]
+    first = r.out.splitlines()[0]
+    assert first.startswith("FAILED --max-leak 0.05: structure: your code can be read off the encoder")
+    assert "--seal" in first  # what to do about it
+    assert r.err.strip().splitlines()[-1].startswith("prop: leak check failed at --max-leak 0.05: structure:")
+    r, rep = _attack(cli, d, "--probes", "null,structure", "--max-leak", "0.05")
+    assert r.code == 1
+    assert rep["max_leak"]["passed"] is False and rep["max_leak"]["failing"][0] == "structure"
     st = next(g for g in rep["groups"] if g["name"] == "structure")
-    assert st["gate"]["on"] == "raw" and st["gate"]["value"] > 0.5  # the user's code, read off the encoder
+    assert st["gate"]["on"] == "beyond-control" and st["gate"]["value"] > 0.5  # the code, off the encoder
     assert min(m.get("min_code_distance", 128) for m in st["search"]["methods"].values()) <= 3
-    assert "leak check failed" in r.err
+    assert rep["max_leak"]["verdict"].startswith("FAILED --max-leak 0.05: structure:")
+
+
+def test_key_rows_are_gated_beyond_the_same_keys_with_no_user_enrolled(default_bundle, cli):
+    """A key row's control is the reference keyed with a fresh encoder: every key runs the reference, so
+    the control is 0 and a row passes exactly when its own leakage is within the threshold."""
+    r, rep = _attack(cli, default_bundle, "--max-leak", "0.05")
+    failing = set(rep["max_leak"]["failing"])
+    keys = [g for g in rep["groups"] if g["kind"] == "key"]
+    assert {g["name"] for g in keys} >= {"null", "random", "hamming 1", "blackbox", "structure",
+                                         "relaxed-rounded", "fewshot k=1 rounded"}  # fmt: skip
+    for g in keys:
+        c = g["control"]
+        assert c["available"] and c["leakage"]["worst"] == 0 and "no user enrolled" in c["model"], g["name"]
+        assert g["gate"] == {"on": "beyond-control", "value": g["beyond"], "why": None}
+        if g["leakage"]["worst"] - c["leakage"]["worst"] <= 0.01:
+            assert g["name"] not in failing, g["name"]
+    assert "structure" in failing
+
+
+def test_the_relaxed_search_alone_fails_a_default_bundle(default_bundle, cli):
+    """Its rounded codes are the user's code: concrete codes, gated like keys (the unrounded search's
+    control on the original may reach the ceiling, which hid this leak before)."""
+    d = default_bundle
+    search = ["--probes", "relaxed", "--restarts", "64", "--search-steps", "100"]
+    r, rep = _attack(cli, d, *search, "--original", d / "model.safetensors", "--max-leak", "0.05")
+    assert r.code == 1
+    rows = {g["name"]: g for g in rep["groups"]}
+    rounded = rows["relaxed-rounded"]
+    assert rounded["kind"] == "key" and 0 in rounded["search"]["code_distance"]
+    assert rounded["gate"]["value"] > 0.5 and "relaxed-rounded" in rep["max_leak"]["failing"]
 
 
 def test_every_probe_reports_control_and_the_gate_follows_the_kind(default_bundle, cli):
@@ -57,23 +96,37 @@ def test_every_probe_reports_control_and_the_gate_follows_the_kind(default_bundl
     r, rep = _attack(cli, d, "--original", d / "model.safetensors")
     assert r.code == 0, r.err
     rows = {g["name"]: g for g in rep["groups"]}
-    for name in ("null", "random", "blackbox", "hamming 1", "structure", "relaxed", "latent", "fewshot k=1",
-                 "fewshot k=64"):  # fmt: skip
+    for name in ("null", "random", "blackbox", "hamming 1", "structure", "relaxed", "relaxed-rounded",
+                 "latent", "fewshot k=1", "fewshot k=1 rounded", "fewshot k=64"):  # fmt: skip
         g = rows[name]
         assert g["control"]["available"], name
         assert g["beyond"] == pytest.approx(
             max(0.0, g["leakage"]["worst"] - g["control"]["leakage"]["worst"])
         )
-        want = ("beyond-control", g["beyond"]) if g["kind"] == "search" else ("raw", g["leakage"]["worst"])
-        assert (g["gate"]["on"], g["gate"]["value"]) == pytest.approx(want), name
+        if g["gate"]["why"] == "control at the ceiling":  # a search whose control cannot show a leak
+            assert g["kind"] == "search" and g["control"]["leakage"]["worst"] >= 0.99
+            assert g["gate"]["value"] == g["leakage"]["worst"]
+        else:
+            assert g["gate"]["on"] == "beyond-control", name
+            assert g["gate"]["value"] == pytest.approx(g["beyond"]), name
     assert rows["structure"]["kind"] == "key" and rows["fewshot k=1"]["kind"] == "search"
     # A fresh encoder holds nothing: its candidates give delta = 1, the original itself.
     assert rows["structure"]["control"]["leakage"]["worst"] == pytest.approx(0.0, abs=1e-6)
     assert rows["fewshot k=4"]["control"]["search"]["candidates"] == ["delta", "fine-tune keyed layers"]
+    assert rows["fewshot k=4 rounded"]["search"]["candidates"] == ["code (rounded)"]
+    # Search rows are scored on bounded leakage, never above the unbounded figure.
+    for name in ("relaxed", "latent", "fewshot k=1"):
+        assert rows[name]["leakage"]["worst"] <= rows[name]["leakage_unbounded"]["worst"] + 1e-6
     bb = rows["blackbox"]["search"]
     assert bb["scanned"] == 4096 and bb["rescored"] == rows["blackbox"]["keys"] <= 2 * 256
     assert len(bb["top_by_divergence"]) == 10 and "code_distance" in bb["top_by_divergence"][0]
     assert rep["speed"]["blackbox"]["scanned"] == 4096
+
+
+def test_the_structure_control_is_the_same_on_every_run(default_bundle, cli):
+    reps = [_attack(cli, default_bundle, "--probes", "structure")[1] for _ in range(2)]
+    controls = [r["groups"][0]["control"] for r in reps]
+    assert controls[0]["search"]["methods"] == controls[1]["search"]["methods"]
 
 
 def test_the_table_and_plot_carry_control_and_beyond(default_bundle, cli, tmp_path):
@@ -87,6 +140,41 @@ def test_the_table_and_plot_carry_control_and_beyond(default_bundle, cli, tmp_pa
     row = next(ln for ln in r.out.splitlines() if ln.strip().startswith("T3 fewshot k=1"))
     assert len(row.split()) >= 9  # keys, mean ± ci, worst, pick, control, beyond, fidelity
     assert (tmp_path / "a.png").stat().st_size > 0
+
+
+def test_the_plot_draws_the_tables_numbers(default_bundle, cli):
+    """Each row's worst, control and beyond: the same figures in the table and on the plot."""
+    plt = pytest.importorskip("matplotlib.pyplot")
+    from rich.console import Console
+
+    from prop_cli.attack.report import cells, figure, table
+    from prop_cli.attack.verdict import apply_max_leak
+
+    d = default_bundle
+    probes = ["--probes", "null,random,structure,relaxed"]
+    r, rep = _attack(cli, d, *probes, "--original", d / "model.safetensors")
+    apply_max_leak(rep, 0.05)
+    console = Console(width=250, record=True)
+    console.print(table(rep))
+    lines = console.export_text().splitlines()
+    fig = figure(rep, plt)
+    try:
+        ax = fig.axes[0]
+        labels = [t.get_text() for t in ax.get_yticklabels()]
+        notes = [t.get_text() for t in ax.texts][: len(labels)]
+        bars = [p.get_width() for p in ax.patches]
+    finally:
+        plt.close(fig)
+    rows = cells(rep)
+    assert labels == [c["label"] for c in rows]
+    assert bars == pytest.approx([c["worst"] for c in rows])
+    for c, note in zip(rows, notes):
+        line = next(ln for ln in lines if ln.strip().startswith(c["label"] + " "))
+        for part in (c["text"]["worst"], c["text"]["control"], c["text"]["beyond"]):
+            assert part in note and part in line, (c["label"], part, note, line)
+    relaxed = next(c for c in rows if c["label"] == "T1 relaxed")
+    assert relaxed["control"] == rep["groups"][[g["name"] for g in rep["groups"]].index("relaxed")][
+        "control"]["leakage"]["worst"]  # the control's worst, as the table prints it
 
 
 def _context(d: Path, settings: AuditSettings) -> ProbeContext:

@@ -125,7 +125,7 @@ def test_schema_names_the_field_and_the_fix(seeds):
 
 def test_sealed_fields_are_in_the_schema(seeds):
     m = _manifest(seeds)
-    del m[C.M_ENCODER], m[C.M_KEYED_LAYERS], m[C.M_FILES][C.ENCODER_WEIGHTS]
+    del m[C.M_ENCODER], m[C.M_KEYED_LAYERS], m[C.M_FILES][C.ENCODER_WEIGHTS], m[C.M_ENROLMENTS]
     m[C.M_MODE] = "sealed"
     layer = {"name": "2", "in_features": 16, "out_features": 16}
     m[C.M_PAYLOAD] = {"kind": "lora", "rank": 4, "layers": [layer]}

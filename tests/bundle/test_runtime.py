@@ -8,7 +8,7 @@ import torch
 
 from prop_cli.api import KeyedPolicy, KeySource, load_bundle, personalize_checkpoint, run_bundle
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
 from tests.adapters.test_sb3 import make_zip, sb3_state
 
 

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from prop_cli.core.batch_axes import probe_batch_axes
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.datasources import load_data
 from prop_cli.datasources.lerobot import parse_episodes, parse_list, split_path
 from prop_cli.errors import PropError

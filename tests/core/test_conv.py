@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import describe_layer, in_width, select_layers
 from prop_cli.core.payload import Payload, PayloadSpec
 
@@ -180,10 +180,10 @@ def test_cnn_keyed_at_its_convolution_personalizes_runs_and_exports(tmp_path, cl
                           ("onnx", ["--key-file", tmp_path / "k.bin", "--onnx"])):  # fmt: skip
             if run == "onnx":
                 pytest.importorskip("onnxruntime")
-                r = cli("export", out, "--onnx", "--key-file", tmp_path / "k.bin", "--json")
+                r = cli("export", out, "--onnx", "--key-file", tmp_path / "k.bin", "--json", "--trust-remote-code")
                 assert r.code == 0, r.err
             r = cli("run", out, "--input", tmp_path / "x.npy", "--output", tmp_path / f"{name}-{run}.npy",
-                    *args)  # fmt: skip
+                    "--trust-remote-code", *args)  # fmt: skip
             assert r.code == 0, r.err
             y[run] = np.load(tmp_path / f"{name}-{run}.npy")
         assert not np.allclose(y["none"], y["key"], atol=1e-4)

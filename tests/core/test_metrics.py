@@ -66,3 +66,29 @@ def test_fidelity_and_summary():
     assert s["n"] == 3 and s["mean"] == 1.0 and s["worst"] == 2.0
     assert s["ci95"][0] < 1.0 < s["ci95"][1]
     assert metrics.summarize(torch.tensor([0.5]), "min")["ci95"] == [0.5, 0.5]
+
+
+def test_bounded_leakage_charges_a_move_larger_than_the_users():
+    g = torch.Generator().manual_seed(0)
+    b = torch.randn(64, 2, generator=g)
+    p = -b  # the user's behaviour: negate
+    far = b + 40 * torch.randn(64, 2, generator=g) + 5 * (p - b)  # far away, a little along the gap
+    o = torch.stack([p, b + 0.5 * (p - b), b + 3 * (p - b), far])
+    raw, bounded = metrics.leakage(o, p, b, "regression"), metrics.bounded_leakage(o, p, b, "regression")
+    assert raw.tolist() == pytest.approx([1.0, 0.5, 1.0, 1.0])  # unbounded: a far move saturates
+    # The user's behaviour and any move no larger than it score the same; overshooting along the gap
+    # is still all of it; the far move scores its cosine with the gap, far below 1.
+    assert bounded[:3].tolist() == pytest.approx([1.0, 0.5, 1.0])
+    cos = float(((far - b) * (p - b)).sum() / ((far - b).norm() * (p - b).norm()))
+    assert bounded[3].item() == pytest.approx(cos) and cos < 0.3
+    assert (bounded <= raw + 1e-6).all()
+
+
+def test_bounded_leakage_for_classification_charges_every_changed_prediction():
+    b = torch.nn.functional.one_hot(torch.tensor([0, 0, 1, 1]), 3).float()
+    p = torch.tensor([2, 0, 2, 1])  # the user changed samples 0 and 2 only
+    exact = torch.nn.functional.one_hot(p, 3).float()
+    everything = torch.nn.functional.one_hot(torch.tensor([2, 2, 2, 2]), 3).float()  # changes all four
+    o = torch.stack([exact, everything])
+    assert metrics.leakage(o, p, b, "classification").tolist() == [1.0, 1.0]
+    assert metrics.bounded_leakage(o, p, b, "classification").tolist() == [1.0, 0.5]

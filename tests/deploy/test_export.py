@@ -15,8 +15,8 @@ from prop_cli import constants as C
 from prop_cli.api import CheckpointOptions, KeySource, personalize_checkpoint, run_bundle
 from prop_cli.bundle import load_bundle
 from prop_cli.config import ExportSettings, PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keys import read_key_file
+from prop_cli.core.key_files import read_key_file
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.deploy import onnx as ex
 from prop_cli.deploy import onnx as rt
 from prop_cli.errors import PropError
@@ -150,9 +150,9 @@ def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
     x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
     want = run_bundle(b, x, bits)
     folder = exported / C.EXPORT_DIR
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=False)(x), want, atol=1e-5)
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code, fold=True)(x), want, atol=1e-5)
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code)(x), want, atol=1e-5)  # the default: folded
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code, fold=False)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code)(x), want, atol=1e-5)  # the default: folded
     np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
 
 
@@ -252,9 +252,9 @@ def test_cnn_bundle_with_image_inputs_exports(tmp_path):
         PersonalizeConfig(steps=20),
         opts=CheckpointOptions(arch="tests.fixtures_arch:make_cnn"),
     )
-    res = ex.export_onnx(load_bundle(tmp_path / "cnn.prop"), key=bits)
+    res = ex.export_onnx(load_bundle(tmp_path / "cnn.prop", trust_remote_code=True), key=bits)
     assert res.ok and max(r["max_abs"] for r in res.table) <= 1e-5
-    b = load_bundle(tmp_path / "cnn.prop")
+    b = load_bundle(tmp_path / "cnn.prop", trust_remote_code=True)
     np.testing.assert_allclose(rt.run_onnx(b, x[:3], bits), run_bundle(b, x[:3], bits), atol=1e-5)
 
 
@@ -265,8 +265,9 @@ def test_one_onnx_policy_serves_changing_batch_sizes(exported):
     code = key_codes(bits, b.key_encoding).numpy()
     x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
     folder = exported / C.EXPORT_DIR
-    for policy, key in ((rt.OnnxPolicy(folder, code, fold=False), bits), (rt.OnnxPolicy(folder, code), bits),
-                        (rt.OnnxPolicy(folder), None)):  # fmt: skip
+    split, folded = rt.OnnxPolicy(folder, code=code, fold=False), rt.OnnxPolicy(folder, bits)
+    policies = (split, folded, rt.OnnxPolicy(folder))
+    for policy, key in zip(policies, (bits, bits, None)):
         for n in (1, 256, 7, 1, 256):
             got = policy(x[:n])
             assert got.shape[0] == n

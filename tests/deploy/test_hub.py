@@ -234,6 +234,21 @@ def test_push_offline_fails_cleanly(cli, bundle):
     assert r.err.splitlines()[-1].startswith("prop: error: cannot push") and "HF_HUB_OFFLINE" in r.err
 
 
+def test_push_without_network_is_one_line(cli, bundle, monkeypatch):
+    """The hub client's transport errors are not OSErrors (httpx's ConnectError): still one line."""
+
+    class ConnectError(Exception):
+        pass
+
+    def unreachable(self, repo_id, **kw):
+        raise ConnectError("[Errno -2] Name or service not known")
+
+    monkeypatch.setattr(hf.HfApi, "create_repo", unreachable)
+    r = cli("push", bundle, "me/x", "--private")
+    assert r.code == 2 and "Traceback" not in r.err
+    assert r.err.splitlines()[-1].startswith("prop: error: upload to me/x failed: cannot reach the hub")
+
+
 def test_missing_extra_names_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
     with pytest.raises(PropError, match=r"prop-cli\[hub\]"):

@@ -8,7 +8,7 @@ import torch
 
 from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import KeyEncoder
+from prop_cli.core.keyed_model import KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 from prop_cli.train import User, personalize

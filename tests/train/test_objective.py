@@ -8,8 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from prop_cli.config import PersonalizeConfig
-from prop_cli.core.keyed import key_codes
-from prop_cli.core.keyspace import KeySampler
+from prop_cli.core.key_sampling import KeySampler
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.errors import PropError
 from prop_cli.train.array import FallbackPool, UserPool, make_batch
 from prop_cli.train.objective import Batch, check_user_keys, prop_loss, row_loss

@@ -14,6 +14,7 @@ a seeded noise). Other types (pi0, SmolVLA, ...) are refused in one line.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import sys
 from pathlib import Path
@@ -30,6 +31,10 @@ from .diffusion import DiffusionPolicy
 from .policy import LeRobotPolicy
 
 PREPROCESSOR = "policy_preprocessor.json"
+PROCESSORS = "policy_*processor*.json"  # the pipelines LeRobot reads: pre- and postprocessor
+# Registered steps that load further models or tokenizers by a name their config gives: code and
+# downloads a file would choose, so they need --trust-remote-code like an import path does.
+LOADS_BY_NAME = ("tokenizer", "classifier", "groot", "xvla", "pi0", "smolvla")
 FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
 PROTOCOLS = {"act": LeRobotPolicy, "diffusion": DiffusionPolicy}  # policy type -> how prop trains it
 SUPPORTED = LEROBOT_TYPES
@@ -46,6 +51,34 @@ def _lerobot():
     # Everything prop reads is local; a missing file must fail, never download.
     os.environ["HF_HUB_OFFLINE"] = "1"
     return lerobot.__version__, get_policy_class, make_pre_post_processors
+
+
+def processor_code(folder: Path) -> list[str]:
+    """The processor steps of ``folder``'s pipelines that LeRobot would import or that load models by
+    name: a step is accepted only by a ``registry_name`` LeRobot itself registers (read before LeRobot
+    sees the files; a ``class`` import path is what LeRobot would import)."""
+    _lerobot()
+    from lerobot.processor import ProcessorStepRegistry
+
+    known = {n for n in ProcessorStepRegistry.list() if not any(w in n for w in LOADS_BY_NAME)}
+    named = []
+    for f in sorted(folder.glob(PROCESSORS)):
+        try:
+            doc = json.loads(f.read_text())
+        except (OSError, ValueError, RecursionError):
+            named.append(f"{f.name} (not readable JSON: LeRobot would have to interpret it)")
+            continue
+        steps = doc.get("steps") if isinstance(doc, dict) else None
+        if not isinstance(steps, list):
+            named.append(f"{f.name} (no list of steps)")
+            continue
+        for i, step in enumerate(steps):
+            name = step.get("registry_name") if isinstance(step, dict) else None
+            if isinstance(name, str) and name in known and "class" not in step:
+                continue
+            what = step.get("class", name) if isinstance(step, dict) else step
+            named.append(f"{f.name} step {i}: {str(what)[:80]!r}")
+    return named
 
 
 def _folder_files(folder: Path) -> dict[str, bytes]:
@@ -132,6 +165,13 @@ class LeRobotAdapter(Adapter):
             files=files,
             base_alias=f"{FOLDER_IN_BUNDLE}/{WEIGHTS}",
         )
+
+    def remote_code(self, spec: dict, source: str) -> list[str]:
+        folder = Path(source) / FOLDER_IN_BUNDLE
+        return processor_code(folder if folder.is_dir() else Path(source))
+
+    def remote_code_at(self, path: Path, options: CheckpointOptions) -> list[str]:
+        return processor_code(path)
 
     def weights(self, path: Path) -> dict[str, torch.Tensor]:
         return read_weights(path / WEIGHTS if path.is_dir() else path)[0]

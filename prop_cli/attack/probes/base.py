@@ -19,12 +19,15 @@ import torch.nn.functional as F
 
 from prop_cli.config import AuditSettings
 from prop_cli.core import metrics
-from prop_cli.core.keyed import KeyedModel, key_codes, keys_per_forward
+from prop_cli.core.key_sampling import random_keys
+from prop_cli.core.keyed_model import KeyedModel, key_codes, keys_per_forward
 
 from .screen import KeyScan, scan_keys
 
 THREATS = ("T0", "T1", "T2", "T3", "structure", "cross-user")
-KINDS = ("key", "search")  # key: concrete keys/codes, gated on raw leakage; search: beyond its control
+# key: concrete keys or codes anyone can run, scored on leakage; search: what an optimiser reaches,
+# scored on bounded leakage (metrics.bounded_leakage). Both are gated on what lies beyond their control.
+KINDS = ("key", "search")
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
 
@@ -49,6 +52,28 @@ class Group:
     distance: int | None = None  # Hamming rows
     search: dict | None = None  # searches: {"restarts", "steps", and any extra per-restart lists}
     bits: np.ndarray | None = None  # the probed keys, where a control re-runs exactly these
+    codes: torch.Tensor | None = None  # the probed codes (a search's rounding), for the same reason
+    kind: str | None = None  # None: the probe's kind; "key" for the concrete codes a search rounds to
+    threat: str | None = None  # None: the probe's threat
+    note: str | None = None  # one line for the report's warnings (e.g. a key that is not a user's)
+    extra: dict | None = None  # more fields for the report's row (e.g. a key's enrolment)
+    model: str | None = None  # a control's group: what it ran on, where not the usual control model
+
+
+@dataclass(frozen=True)
+class Enrolment:
+    """Whether another key is a user of the bundle (only users get a cross-user row), and how that
+    user's behaviour relates to the audited user's."""
+
+    user: bool  # the key runs an enrolled user's behaviour
+    yours: bool  # ... the audited user's own (the same record, or the same key)
+    independent: bool  # that user's behaviour was trained without the audited user's data (sealed)
+    how: str  # one line: how this was told
+
+
+# Random keys an unsealed bundle's other key is compared with: a user's key moves the outputs further
+# from the reference than any of them (the fallback trains random keys towards the reference).
+ENROLMENT_KEYS = 256
 
 
 @dataclass
@@ -70,11 +95,15 @@ class ProbeContext:
     keys: list[np.ndarray]  # [the audited user's key, other users' keys...]; [] without a key
     encoding: str
     original: KeyedModel | None = None
+    # The reference model keyed with a fresh, untrained encoder (zero head: delta = 1 for every key):
+    # what the same keys give where no user was enrolled. The key rows' control.
+    unenrolled: KeyedModel | None = None
     progress: Progress | None = None
     counter: Counter = field(default_factory=Counter)
     probe: str = ""  # the running probe's name: seeds its random streams
     shots: Reference | None = None  # labelled owner's rows outside the audit sample (few-shot attacks)
     seed_hint: int | None = None  # the training seed the manifest records, if any (what an attacker reads)
+    users: int = 1  # users the manifest lists
 
     @property
     def has_key(self) -> bool:
@@ -105,7 +134,26 @@ class ProbeContext:
         }
         if ref.p is not None:
             out["leakage"] = metrics.leakage(o, ref.p, ref.b, ref.task)
+            out["bounded"] = metrics.bounded_leakage(o, ref.p, ref.b, ref.task)
         return out
+
+    def enrolment(self, bits: np.ndarray) -> Enrolment:
+        """Is ``bits`` a user of this (unsealed) bundle? Users share one encoder, so a user's key is told
+        by its behaviour: with more than one user in the manifest, a key whose outputs move further from
+        the reference than every one of ``ENROLMENT_KEYS`` random keys (seeded) is a user's."""
+        if self.has_key and np.array_equal(bits, self.keys[0]):
+            return Enrolment(True, True, False, "it is your own key")
+        if self.users < 2:
+            return Enrolment(False, False, False, "the manifest lists one user")
+        rng = np.random.default_rng([self.settings.seed, zlib.crc32(b"enrolment")])
+        others = random_keys(ENROLMENT_KEYS, self.km.encoder.code_bits, rng, exclude=self.keys[:1] or None)
+        floor = float(self.probe_keys(others, "enrolment")["divergence"].max())
+        div = float(self.probe_keys(bits, "enrolment")["divergence"][0])
+        user = div > floor
+        where = "beyond" if user else "within"
+        floor_ = f"the {floor:.3g} of {ENROLMENT_KEYS} random keys"
+        how = f"its outputs move {div:.3g} from the reference, {where} {floor_}"
+        return Enrolment(user, False, False, how)
 
     def key_deltas(self, bits: np.ndarray, null: int = 0, low_precision: bool = False) -> list[torch.Tensor]:
         """Each key's delta per keyed layer, then ``null`` rows of no key (delta = 1).
@@ -215,12 +263,31 @@ def maximise_divergence(
 def on_original(
     run: Callable[[ProbeContext], list[Group]],
 ) -> Callable[[ProbeContext, list[Group]], list[Group]]:
-    """A control: the same probe, same keys or restarts, on the original checkpoint keyed the same way."""
+    """A search's control: the same probe, same restarts, on the original checkpoint keyed at the same
+    layers (nothing when there is no original: the report says the control is unavailable)."""
 
     def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
-        return run(ctx.on(ctx.original))
+        return [] if ctx.original is None else run(ctx.on(ctx.original))
 
     return control
+
+
+def on_unenrolled(
+    run: Callable[[ProbeContext], list[Group]],
+) -> Callable[[ProbeContext, list[Group]], list[Group]]:
+    """A key probe's control: the same keys where no user was enrolled (``ProbeContext.unenrolled``)."""
+
+    def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+        return run(ctx.on(ctx.unenrolled))
+
+    return control
+
+
+def codes_unenrolled(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+    """The control of concrete codes (a search's rounding): the same codes where no user was enrolled."""
+    out = ctx.on(ctx.unenrolled)
+    return [Group(g.name, out.probe_codes(g.codes, f"{g.name} control"), is_key=g.is_key, kind="key")
+            for g in found if g.codes is not None]  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ divergence (what an attacker without targets ranks by) and, with the owner's tar
 screening leakage are kept and re-scored exactly on every audit sample. The row's worst leakage is
 over the re-scored keys; its pick is the attacker's (largest divergence). A few thousand random keys
 (``random``) miss the rare keys that leak: they sit far from the user's code, where training never
-looked. Control: the kept keys on the original checkpoint keyed the same way.
+looked. Control: the kept keys where no user was enrolled (``ProbeContext.unenrolled``).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def run(ctx: ProbeContext) -> list[Group]:
 
 
 def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
-    return [Group("blackbox", ctx.on(ctx.original).probe_keys(g.bits, "blackbox control"), is_key=True)
+    return [Group("blackbox", ctx.on(ctx.unenrolled).probe_keys(g.bits, "blackbox control"), is_key=True)
             for g in found if g.bits is not None]  # fmt: skip
 
 

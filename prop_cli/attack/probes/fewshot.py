@@ -1,11 +1,18 @@
 """T3 few-shot: an attacker with k labelled samples of the user's behaviour (k = 1, 4, 16, 64).
 
 On the bundle, two fits to the k samples: the encoder's input code (relaxed through the encoder,
-then rounded to ±1; both scored) and each keyed layer's delta directly (within the encoder's
-range). Everything is scored on the audit samples, which the fits never see. The control does what
-the same k samples give without the bundle: the delta fit on the original checkpoint, and plain
-fine-tuning of the original's keyed layers. Kind "search": the gate is leakage beyond that control.
-The k samples are rows of ``--data`` outside the audit sample.
+then rounded to ±1) and each keyed layer's delta directly (within the encoder's range). Everything is
+scored on the audit samples, which the fits never see. Two rows per k:
+
+- ``fewshot k=K``: the relaxed code and the delta (a search row, bounded leakage); its control is what
+  the same k samples give without the bundle: the delta fit on the original checkpoint, and plain
+  fine-tuning of the original's keyed layers;
+- ``fewshot k=K rounded``: the rounded code, a concrete code anyone holding the files can run (a key
+  row); its control is the same code where no user was enrolled.
+
+The k samples are rows of ``--data`` outside the audit sample. The code fit's budget
+(``--fewshot-restarts`` x ``--fewshot-steps``) comes from the hit-rate study in docs/audit.md
+(``benchmarks/bench_fewshot_hits.py``).
 """
 
 from __future__ import annotations
@@ -15,10 +22,10 @@ import copy
 import torch
 import torch.nn.functional as F
 
-from .base import Group, Probe, ProbeContext, Reference
+from .base import Group, Probe, ProbeContext, Reference, codes_unenrolled
 
 SHOTS = (1, 4, 16, 64)
-RESTARTS, STEPS, LR = 8, 100, 0.1
+RESTARTS, STEPS, LR = 8, 100, 0.1  # the delta fit's budget (its control runs the same)
 FINETUNE_LR = 1e-3
 
 
@@ -39,17 +46,27 @@ def _fit(params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR
         opt.step()
 
 
-def _fit_code(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> torch.Tensor:
+def fit_codes(
+    ctx: ProbeContext, shots: Reference, gen: torch.Generator, restarts: int, steps: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every restart's relaxed code fitted to the shots, and its final fit loss (the attacker's criterion:
+    it knows only its k samples)."""
     km = ctx.km
-    u = torch.rand(RESTARTS, km.encoder.code_bits, generator=gen).clamp(0.02, 0.98)
+    u = torch.rand(restarts, km.encoder.code_bits, generator=gen).clamp(0.02, 0.98)
     theta = torch.logit(u).to(shots.x.device).requires_grad_(True)
 
     def loss() -> torch.Tensor:
         return _loss(km.run_keys(shots.x, km.layer_deltas(torch.tanh(theta / 2))), shots.p, shots.task)
 
-    _fit([theta], loss)
+    _fit([theta], loss, steps)
     with torch.no_grad():
-        return torch.tanh(theta / 2)[int(torch.argmin(loss()))][None]
+        return torch.tanh(theta / 2), loss()
+
+
+def _fit_code(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> torch.Tensor:
+    s = ctx.settings
+    codes, losses = fit_codes(ctx, shots, gen, s.fewshot_restarts, s.fewshot_steps)
+    return codes[int(torch.argmin(losses))][None]
 
 
 def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> list[torch.Tensor]:
@@ -85,7 +102,7 @@ def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
         return ctx.scores(module(ctx.ref.x)[None])
 
 
-def _shots(ctx: ProbeContext, k: int) -> Reference:
+def shots_of(ctx: ProbeContext, k: int) -> Reference:
     s = ctx.shots
     return Reference(s.x[:k], s.b[:k], s.p[:k], s.task)
 
@@ -103,23 +120,27 @@ def _group(k: int, parts: list[dict[str, torch.Tensor]], what: list[str]) -> Gro
 def run(ctx: ProbeContext) -> list[Group]:
     groups = []
     for k in _ks(ctx):
-        shots = _shots(ctx, k)
+        shots = shots_of(ctx, k)
         code = _fit_code(ctx, shots, ctx.generator())
         rounded = torch.where(code >= 0, 1.0, -1.0)
-        parts = [ctx.probe_codes(torch.cat([code, rounded]), f"fewshot k={k}"),
+        parts = [ctx.probe_codes(code, f"fewshot k={k}"),
                  ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()))]  # fmt: skip
-        g = _group(k, parts, ["code (relaxed)", "code (rounded)", "delta"])
-        if ctx.has_key:
-            g.search["code_distance"] = int((rounded != ctx.codes(ctx.keys[0])).sum())
-        groups.append(g)
+        groups.append(_group(k, parts, ["code (relaxed)", "delta"]))
+        key = _group(k, [ctx.probe_codes(rounded, f"fewshot k={k}")], ["code (rounded)"])
+        key.name, key.codes, key.kind = f"fewshot k={k} rounded", rounded, "key"
+        if ctx.has_key:  # 0 = the fit found the user's own code
+            key.search["code_distance"] = int((rounded != ctx.codes(ctx.keys[0])).sum())
+        groups.append(key)
     return groups
 
 
 def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
+    groups = codes_unenrolled(ctx, [g for g in found if g.kind == "key"])
+    if ctx.original is None:
+        return groups
     orig = ctx.on(ctx.original)
-    groups = []
     for k in _ks(ctx):
-        shots = _shots(ctx, k)
+        shots = shots_of(ctx, k)
         parts = [orig.probe_deltas(_fit_delta(orig, shots, ctx.generator())), _finetune(orig, shots)]
         groups.append(_group(k, parts, ["delta", "fine-tune keyed layers"]))
     return groups

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from prop_cli.core.keyspace import neighbours_at
+from prop_cli.core.key_sampling import neighbours_at
 
-from .base import Group, Probe, ProbeContext, on_original
+from .base import Group, Probe, ProbeContext, on_unenrolled
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -19,5 +19,5 @@ def run(ctx: ProbeContext) -> list[Group]:
 
 PROBE = Probe(
     "hamming", "T0", "key", "keys d bits from yours, for each d of --hamming (--per-distance each)", run,
-    control=on_original(run), needs="key",
+    control=on_unenrolled(run), needs="key",
 )  # fmt: skip

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Group, Probe, ProbeContext, on_original
+from .base import Group, Probe, ProbeContext, on_unenrolled
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -12,4 +12,6 @@ def run(ctx: ProbeContext) -> list[Group]:
     return [Group("null", ctx.probe_keys(none, "null", null=1), is_key=True)]
 
 
-PROBE = Probe("null", "T0", "key", "no key: the base behaviour everyone gets", run, control=on_original(run))
+PROBE = Probe(
+    "null", "T0", "key", "no key: the base behaviour everyone gets", run, control=on_unenrolled(run)
+)

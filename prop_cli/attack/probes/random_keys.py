@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from prop_cli.core.keyspace import random_keys
+from prop_cli.core.key_sampling import random_keys
 
-from .base import Group, Probe, ProbeContext, on_original
+from .base import Group, Probe, ProbeContext, on_unenrolled
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -15,4 +15,4 @@ def run(ctx: ProbeContext) -> list[Group]:
     return [Group("random", ctx.probe_keys(keys, "random"), is_key=True)]
 
 
-PROBE = Probe("random", "T0", "key", "--random uniform random keys", run, control=on_original(run))
+PROBE = Probe("random", "T0", "key", "--random uniform random keys", run, control=on_unenrolled(run))

@@ -5,9 +5,13 @@ space: at least as strong as searching keys (a rounded code need not be reachabl
 raw encoding the code is the key. The search maximises divergence from the reference on the inputs
 only; it never sees the owner's targets.
 
-Control: what the same attacker reaches without the bundle, i.e. the same search budget spent on the
-original checkpoint's deltas directly (T2's search, within the encoder's range). Not this search
-through the bundle's encoder on the original: the encoder is part of the bundle and carries the
+Two rows. ``relaxed-rounded``: the codes the restarts round to are concrete codes anyone holding the
+files can feed to the encoder, so they are a key row, scored like keys; their control is the same codes
+where no user was enrolled (the reference itself). ``relaxed``: the unrounded codes, a search row,
+scored on bounded leakage (a move larger than the user's is scaled back to it, so neither side reaches
+1 by moving far) against what the same attacker reaches without the bundle: the same search budget
+spent on the original checkpoint's deltas directly (T2's search, within the encoder's range). Not this
+search through the bundle's encoder on the original: the encoder is part of the bundle and carries the
 user's behaviour into such a "control" (it reached 0.53-0.60 on the IL example), which hid leakage.
 """
 
@@ -16,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from . import latent
-from .base import Group, Probe, ProbeContext, maximise_divergence
+from .base import Group, Probe, ProbeContext, codes_unenrolled, maximise_divergence
 
 
 def run(ctx: ProbeContext) -> list[Group]:
@@ -42,13 +46,19 @@ def run(ctx: ProbeContext) -> list[Group]:
             ctx.probe_codes(rounded, "relaxed"),
             is_key=ctx.encoding == "raw",
             search=rounded_search,
+            codes=rounded,
+            kind="key",
         ),
     ]
 
 
 def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
-    [direct] = latent.run(ctx.on(ctx.original))
-    return [Group(g.name, direct.values, is_key=False, search=direct.search) for g in found]
+    out = codes_unenrolled(ctx, [g for g in found if g.kind == "key"])
+    if ctx.original is not None:
+        [direct] = latent.run(ctx.on(ctx.original))
+        out += [Group(g.name, direct.values, is_key=False, search=direct.search)
+                for g in found if g.kind is None]  # fmt: skip
+    return out
 
 
 PROBE = Probe(

@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from prop_cli.adapters import activations
-from prop_cli.core.keyed import KeyedModel
+from prop_cli.core.keyed_model import KeyedModel
 
 
 class Scannable(Protocol):

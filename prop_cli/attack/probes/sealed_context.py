@@ -16,10 +16,10 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from prop_cli.core.keyed import KeyedModel, KeyEncoder
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 from prop_cli.core.layers import in_width
 
-from .base import KeyScan, ProbeContext, cat_scores
+from .base import Enrolment, KeyScan, ProbeContext, cat_scores
 
 
 def blank_keyed(module: torch.nn.Module, layer_names: list[str], key_bits: int) -> KeyedModel:
@@ -36,6 +36,17 @@ class SealedContext(ProbeContext):
     def on(self, km: KeyedModel) -> ProbeContext:
         """A control runs where the bundle gives nothing: no records to open."""
         return ProbeContext(**{f.name: getattr(self, f.name) for f in fields(ProbeContext)} | {"km": km})
+
+    def enrolment(self, bits: np.ndarray) -> Enrolment:
+        """A key is a user of a sealed bundle when it opens one of its records. Each record was trained on
+        its own user's data alone, so what it shows of yours is what its user asked for."""
+        opened = self.records.open(bits)
+        if opened is None:
+            return Enrolment(False, False, True, "it opens none of the bundle's records")
+        mine = self.records.open(self.keys[0]) if self.has_key else None
+        yours = mine is not None and mine.record_id == opened.record_id
+        whose = "your record" if yours else "another user's record"
+        return Enrolment(True, yours, True, f"it opens {whose}")
 
     @torch.inference_mode()
     def probe_keys(

@@ -16,21 +16,20 @@ training step, and training imprints it on the encoder:
 
 Every candidate is rounded to ±1 (both signs: a singular vector's sign is arbitrary) and probed as a
 code. Kind "key": the candidates are concrete codes, each a fixed behaviour anyone holding the files
-can run, so the gate is their raw worst leakage like any key's, not a margin over a search on the
+can run, so they are scored like keys (leakage, not bounded leakage), not against a search on the
 original. Control: the same analysis of a freshly initialised encoder of the same shape on the
-original checkpoint (what the structure gives when training wrote nothing into it).
+reference model: ``ProbeContext.unenrolled``, whose encoder is built from the audit's ``--seed``
+(what the structure gives when training wrote nothing into it; the same figures on every run).
 """
 
 from __future__ import annotations
 
-import contextlib
-
 import torch
 from torch import nn
 
-from prop_cli.core.keyed import KeyEncoder
+from prop_cli.core.keyed_model import KeyEncoder
 
-from .base import Group, Probe, ProbeContext
+from .base import Group, Probe, ProbeContext, on_unenrolled
 
 TOP = 3  # singular vectors per matrix
 JACOBIAN_POINTS = 4  # random codes besides the zero code
@@ -156,31 +155,12 @@ def run(ctx: ProbeContext) -> list[Group]:
         if user is not None:
             m["min_code_distance"] = int((c != user).sum(1).min())
         info["methods"][name] = m
-    return [Group("structure", values, is_key=ctx.encoding == "raw", search=info)]
-
-
-@contextlib.contextmanager
-def _fresh_encoder(ctx: ProbeContext):
-    km = ctx.original
-    enc = km.encoder
-    hidden = [m.out_features for m in _linears(enc)[:-1]]
-    fresh = KeyEncoder(enc.code_bits, enc.features, hidden, enc.scale).to(enc.net[0].weight.device)
-    fresh.requires_grad_(False)
-    km.encoder = fresh  # the hooks read km.encoder at call time: the original module, a blank encoder
-    try:
-        yield km
-    finally:
-        km.encoder = enc
-
-
-def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
-    with torch.random.fork_rng(devices=[]), _fresh_encoder(ctx) as km:
-        torch.manual_seed(ctx.settings.seed)
-        return run(ctx.on(km))
+    return [Group("structure", values, is_key=ctx.encoding == "raw", search=info, codes=codes)]
 
 
 PROBE = Probe(
     "structure", "structure", "key",
-    "codes read off the encoder's weights and Jacobian (no data), probed as codes", run, control=control,
+    "codes read off the encoder's weights and Jacobian (no data), probed as codes", run,
+    control=on_unenrolled(run),
     white_box=True,
 )  # fmt: skip

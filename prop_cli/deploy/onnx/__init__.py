@@ -19,8 +19,8 @@ from prop_cli.errors import PropError
 from prop_cli.files import check_output
 
 from . import sealed, unsealed
-from .common import ExportResult, read_export, require_onnx, session, verify_inputs
-from .sealed import SealedOnnxPolicy
+from .common import ExportResult, bound, read_export, require_onnx, session, verify_inputs
+from .sealed import SealedOnnxPolicy, drop_record
 from .unsealed import DeltaPolicy, OnnxPolicy, delta_names
 
 __all__ = [
@@ -29,6 +29,7 @@ __all__ = [
     "OnnxPolicy",
     "SealedOnnxPolicy",
     "delta_names",
+    "drop_record",
     "export_onnx",
     "read_export",
     "require_onnx",
@@ -98,8 +99,15 @@ def run_onnx(
         raise PropError(
             f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"
         )
-    read_export(folder, bundle.manifest)
+    meta = read_export(folder, bundle.manifest)
     threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
     if key is not None:
         bundle.check_key(key)
+        # A key enrolled in the bundle runs its export only where the export binds it to its graphs.
+        if bundle.mode.enrolled(key) and not bound(meta, key, folder, bundle.manifest):
+            raise PropError(
+                f"the ONNX export in {folder} is not bound to this key (exported without it, or replaced "
+                "since): its graphs are not checked against your key",
+                f"export it again with your key: prop export {bundle.path} --onnx --key-file KEY --force",
+            )
     return _mode(bundle).run(bundle, folder, x, key, threads)

@@ -14,6 +14,7 @@ import torch
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
+from prop_cli.bundle.enrol import FILE, behaviour, changed, changed_error, enrolment, open_enrolment
 from prop_cli.bundle.manifest import (
     DIM,
     SHA256,
@@ -43,6 +44,8 @@ EXPORT_FIELDS = {
     "deltas": replace(list_of(obj({"input": text(), "layer": text(), "features": DIM,
                                    "base_weight": replace(text(), nullable=True)}, open=True)),
                       required=False),
+    C.M_ENROLMENTS: replace(list_of(obj({"salt": text(), "nonce": text(), "box": text(1 << 21)}, open=True)),
+                            required=False),
 }  # fmt: skip
 # torch >= 2.5 takes `dynamo`; older versions only have the TorchScript exporter.
 _LEGACY_EXPORTER = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
@@ -131,6 +134,62 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
             "run prop export BUNDLE --onnx --force",
         )
     return meta
+
+
+def bind(meta: dict, bundle: Bundle, key: np.ndarray | None, record: str | None = None) -> list[dict]:
+    """export.json's enrolments: ``key`` (if given) bound to these graphs and this bundle, so that the
+    key runs only them (``bound``). The key must be enrolled in the bundle as it is now. ``record``: the
+    sealed record the key opens (public), so that remove-user --record drops the binding with it."""
+    if key is None:
+        return []
+    if not bundle.mode.enrolled(key):
+        raise PropError(
+            f"the key is enrolled in no user of {bundle.path}: there is no behaviour of it to export",
+            "pass the key of one of the bundle's users, or export without --key-file",
+        )
+    what = {"bundle": behaviour(bundle.manifest), "graphs": meta["graphs"]}
+    return [{**enrolment(key, what), **({"record": record} if record else {})}]
+
+
+def bound(meta: dict, bits: np.ndarray, folder: Path, manifest: dict | None = None) -> bool:
+    """Whether ``bits`` is bound to this export's graphs as they are (True), bound to nothing (False),
+    or bound to graphs or a bundle that changed since (a PropError: nothing runs). ``manifest``: the
+    bundle's, to check against it too (else against the bundle files export.json names)."""
+    opened = open_enrolment(meta.get(C.M_ENROLMENTS, []), bits)
+    if opened is None:
+        return False
+    graphs = {FILE + g: d for g, d in meta["graphs"].items()}
+    diff = changed({FILE + g: d for g, d in opened.get("graphs", {}).items()}, graphs)
+    if manifest is not None:
+        diff += changed(opened.get("bundle", {}), behaviour(manifest))
+    else:
+        files = {FILE + f: d for f, d in (meta.get("bundle_files") or {}).items()}
+        diff += changed({k: v for k, v in opened.get("bundle", {}).items() if k.startswith(FILE)}, files)
+    if diff:
+        raise changed_error(f"the ONNX export in {folder}", diff, REEXPORT)
+    return True
+
+
+def key_bits(key, bits: int) -> np.ndarray:
+    """Key bits (0/1) of the size the export takes; a ±1 code or another size is refused."""
+    k = np.asarray(key)
+    if k.ndim != 1 or len(k) != bits or not np.isin(k, (0, 1)).all():
+        raise PropError(
+            f"the key must be {bits} bits of 0/1 (read_key_file), got shape {k.shape}",
+            "pass the key bits; an encoder code goes to code= (unchecked)",
+        )
+    return k.astype(np.uint8)
+
+
+def not_bound_warning(folder: Path) -> None:
+    from prop_cli.bundle.runtime import WrongKeyWarning
+
+    warnings.warn(
+        f"the key is not bound to the ONNX export in {folder} (prop export --onnx --key-file binds it): "
+        "running its base.onnx, not a keyed behaviour",
+        WrongKeyWarning,
+        stacklevel=3,
+    )
 
 
 def export_graph(module, args, path: Path, inputs, outputs, axes, opset: int) -> None:

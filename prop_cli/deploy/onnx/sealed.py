@@ -15,11 +15,12 @@ import torch
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle.enrol import changed_error
 from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.records import copy_records, load_state, public_part
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError
-from prop_cli.files import dump_json, sha256_file, staged_dir
+from prop_cli.files import dump_json, sha256_file, staged_dir, write_text
 
 from . import common
 from .common import ExportResult, VerificationFailed
@@ -40,7 +41,10 @@ def export(
             common.export_graph(module, (x0,), tmp / C.BASE_GRAPH, ["x"], ["y"], axes, s.opset)
             onnx.checker.check_model(str(tmp / C.BASE_GRAPH))
             copy_records(Path(bundle.path), tmp, bundle.manifest)
-            meta = stamp(_meta(bundle, tmp, s.opset, s.atol), C.EXPORT_DIGEST)
+            meta = _meta(bundle, tmp, s.opset, s.atol)
+            opened = bundle.sealed.open(key) if key is not None else None
+            rid = opened.record_id if opened is not None else None
+            meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key, rid)}, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
             table = verify(tmp)
             if not all(r["ok"] for r in table):
@@ -91,8 +95,10 @@ def verify(
 
 class SealedOnnxPolicy:
     """A sealed bundle's export run with onnxruntime: ``base.onnx``, with the user's payload folded
-    into the keyed layers' initializers in this process's memory when ``key_bits`` opens a record.
-    A key that opens nothing runs the base (the original), as the bundle does; nothing is written."""
+    into the keyed layers' initializers in this process's memory when ``key_bits`` is bound to the
+    export (``prop export --onnx --key-file``) and opens its record. A key the export does not bind
+    runs base.onnx, with a warning; an export or record changed since it was bound is refused.
+    Nothing is written."""
 
     def __init__(self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0) -> None:
         onnx, ort = common.require_onnx()
@@ -102,7 +108,8 @@ class SealedOnnxPolicy:
         so = common.session_options(ort, threads)
         self._keep: list = []
         if key_bits is not None:
-            self.opened = load_state(folder, self.meta["sealed"]).open(np.asarray(key_bits, np.uint8))
+            bits = common.key_bits(key_bits, self.meta["sealed"]["key"]["bits"])
+            self.opened = _open(folder, self.meta, bits)
         if self.opened is not None:
             from onnx import numpy_helper
 
@@ -133,6 +140,30 @@ class SealedOnnxPolicy:
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]
+
+
+def _open(folder: Path, meta: dict, bits: np.ndarray):
+    """The record ``bits`` opens in a sealed export, checked: None (with a warning) if the export does
+    not bind the key; a PropError if the export, its bundle or the record changed since."""
+    public = meta["sealed"]
+    if not common.bound(meta, bits, folder, public):
+        common.not_bound_warning(folder)
+        return None
+    opened = load_state(folder, public).open(bits)
+    if opened is None or opened.changed:
+        parts = opened.changed if opened is not None else ["the record"]
+        raise changed_error(f"the ONNX export in {folder}", parts, common.REEXPORT)
+    return opened
+
+
+def drop_record(folder: Path, record_id: str) -> None:
+    """Remove a user's record, and the key binding that goes with it, from a sealed export in place."""
+    meta = common.read_export(folder)
+    public = meta["sealed"]
+    public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id]
+    meta[C.M_ENROLMENTS] = [e for e in meta.get(C.M_ENROLMENTS, []) if e.get("record") != record_id]
+    write_text(folder / C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)), C.EXPORT_META, "--out")
+    (folder / C.RECORDS_DIR / f"{record_id}{C.RECORD_SUFFIX}").unlink(missing_ok=True)
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:

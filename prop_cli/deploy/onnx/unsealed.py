@@ -3,14 +3,14 @@
 Four graphs are written (names in ``constants.GRAPHS``):
 
 - ``base.onnx``     x -> y: what the base weights compute with no key (a drop-in for the original).
-- ``keyed.onnx``    (x, code) -> y with the key encoder inside the graph.
+- ``keyed_model.onnx``    (x, code) -> y with the key encoder inside the graph.
 - ``encoder.onnx``  code -> delta_1..delta_L, one scale vector per keyed layer.
 - ``policy.onnx``   (x, delta_1..delta_L) -> y: a control loop computes delta once per session with
   ``encoder.onnx``, then each step costs a base step plus one multiply per keyed layer.
 
 The key input is the encoder's ±1 *code*, not the key bits: the default "hashed" encoding is
 SHAKE-256 of the bits, which ONNX cannot express. The runtime computes the code with
-:func:`prop_cli.core.keyed.key_codes` (or the three-line hashlib recipe in docs/deploy.md).
+:func:`prop_cli.core.keyed_model.key_codes` (or the three-line hashlib recipe in docs/deploy.md).
 
 No graph holds key material or weights folded with a key: the key enters only as a graph input at
 run time, and the graphs are traced with placeholder inputs (zeros, a code of ones, deltas of ones).
@@ -28,7 +28,7 @@ from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.manifest import stamp
 from prop_cli.config import ExportSettings
-from prop_cli.core.keyed import KeyedModel, key_codes
+from prop_cli.core.keyed_model import KeyedModel, key_codes
 from prop_cli.core.layers import is_conv, scale_inputs
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file, staged_dir
@@ -38,9 +38,13 @@ from .common import (
     ExportResult,
     VerificationFailed,
     add_weight,
+    bind,
+    bound,
     diff_row,
     export_graph,
     gemm_params,
+    key_bits,
+    not_bound_warning,
     open_session,
     read_export,
     require_onnx,
@@ -152,7 +156,7 @@ def export(
             meta = _export_meta(bundle, tmp, names, s.opset, s.atol)
             if not all(r["ok"] for r in table):
                 raise VerificationFailed  # staged_dir removes the folder: nothing is left behind
-            meta = stamp(meta, C.EXPORT_DIGEST)
+            meta = stamp({**meta, C.M_ENROLMENTS: bind(meta, bundle, key)}, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
     except VerificationFailed:
         return ExportResult(out, s.opset, s.atol, [], table, False, meta)
@@ -228,24 +232,35 @@ def _export_meta(bundle: Bundle, folder: Path, names: list[str], opset: int, ato
 class OnnxPolicy:
     """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
 
-    With a key, delta is computed once here (encoder.onnx). Folded (the default where the export
-    names the keyed layers' weights): base.onnx runs with those weights replaced, in this process's
-    memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base step
-    (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
-    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx.
-    Without a key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call
-    path at batch 1. ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    ``key``: the key bits. It runs only if export.json binds it to these graphs (``prop export --onnx
+    --key-file``): a key the export does not bind runs base.onnx, with a warning; graphs changed since it
+    was bound are refused. ``code``: the encoder's input given directly, unchecked (the method itself, for
+    benchmarks and audits). With a key, delta is computed once here (encoder.onnx). Folded (the default
+    where the export names the keyed layers' weights): base.onnx runs with those weights replaced, in this
+    process's memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base
+    step (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
+    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx. Without a
+    key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call path at batch 1.
+    ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
     """
 
     def __init__(
-        self, folder: Path, key_code: np.ndarray | None = None, threads: int = 0, fold: bool | None = None
-    ) -> None:
+        self, folder: Path, key: np.ndarray | None = None, threads: int = 0, fold: bool | None = None,
+        *, code: np.ndarray | None = None,
+    ) -> None:  # fmt: skip
         _, ort = require_onnx()
         folder = Path(folder)
         self.meta = read_export(folder)
         self.names = [d["input"] for d in self.meta["deltas"]]
+        key_code = code
+        if key is not None:
+            bits = key_bits(key, self.meta["key"]["bits"])
+            if bound(self.meta, bits, folder):
+                key_code = key_codes(bits, self.meta["key"]["encoding"]).numpy()
+            else:
+                not_bound_warning(folder)
         self._keep: list = []  # OrtValues the session reads from must outlive it
-        bound: dict = {}
+        feeds: dict = {}
         if key_code is None:
             self.session = session(folder / C.BASE_GRAPH, threads)
         else:
@@ -257,10 +272,10 @@ class OnnxPolicy:
                 self.session = self._folded(folder, deltas, threads, ort)
             else:
                 self.session = session(folder / C.POLICY_GRAPH, threads)
-                bound = {n: ort.OrtValue.ortvalue_from_numpy(d) for n, d in zip(self.names, deltas)}
-                self._keep += bound.values()
+                feeds = {n: ort.OrtValue.ortvalue_from_numpy(d) for n, d in zip(self.names, deltas)}
+                self._keep += feeds.values()
         self._binding = self.session.io_binding()
-        for n, v in bound.items():
+        for n, v in feeds.items():
             self._binding.bind_ortvalue_input(n, v)
         self._binding.bind_output("y")
         self._rows: int | None = None  # the batch size the output binding was last run with
@@ -300,5 +315,4 @@ class OnnxPolicy:
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
-    code = None if key is None else key_codes(key, bundle.key_encoding).numpy()
-    return OnnxPolicy(folder, code, threads=threads)(x)
+    return OnnxPolicy(folder, key, threads=threads)(x)

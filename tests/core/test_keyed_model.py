@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from prop_cli.core.keyed import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from tests.fixtures_arch import make_cnn as build_cnn
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from prop_cli.core.keys import (
+from prop_cli.core.key_files import (
     PropKeyWarning,
     generate_key_file,
     hamming_distance,

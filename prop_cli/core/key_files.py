@@ -192,11 +192,16 @@ def hamming_distance(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor)
 
 
 def user_keys(
-    key_files: list[Path], passphrases: list[str], bits: int = C.KEY_BITS_DEFAULT
+    key_files: list[Path], passphrases: list[str], bits: int = C.KEY_BITS_DEFAULT, *, allow_weak: bool = False
 ) -> tuple[list[KeySource], bytes | None]:
     """Keys for `personalize`: key files first, then passphrases (one fresh salt per bundle, shared
-    by its passphrase users, stored in the manifest); returns the keys and that salt (None if none)."""
+    by its passphrase users, stored in the manifest); returns the keys and that salt (None if none).
+    A passphrase that takes less than PASSPHRASE_MIN_YEARS to guess is refused unless ``allow_weak``."""
+    from .passphrase import check_strength
+
     keys = [KeySource(read_key_file(p), "file") for p in key_files]
+    for i, phrase in enumerate(passphrases):
+        check_strength(phrase, f"the passphrase of user {len(key_files) + i + 1}", allow_weak)
     salt = None
     if passphrases:
         check_bits(bits)

@@ -2,7 +2,7 @@
 
 Training (K1 neighbours, K2 random keys), the per-user report, the audit's probes and the examples
 all draw their keys here, so "a key d bits away" means the same thing everywhere. Keys are uint8
-arrays of shape (K, n); nothing here knows about encodings (see ``keyed.key_codes``).
+arrays of shape (K, n); nothing here knows about encodings (see ``keyed_model.key_codes``).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from prop_cli.core.keyspace import (
+from prop_cli.core.key_sampling import (
     KeySampler,
     flip_random_bits,
     neighbours_at,

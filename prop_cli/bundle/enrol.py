@@ -1,0 +1,122 @@
+"""Key enrolment: a key authenticates what it unlocks.
+
+When a user is enrolled (``prop personalize``, ``prop add-user``, ``prop enrol``), the bundle gets an
+enrolment for their key: AES-256-GCM under HKDF-SHA256(key bytes, a fresh salt, ``cipher.ENROL_INFO``)
+whose plaintext is the bundle's **behaviour**: the digests of everything that shapes what a key runs
+(``behaviour``: the model spec, mode, task, input shape, key layout, keyed layers, encoder or payload
+layout, and the sha256 of every file the manifest lists: base weights, encoder, LeRobot
+processors...). With a key, prop runs only what that key's holder enrolled:
+
+- an enrolment opens and its behaviour is the bundle's current one: the key's behaviour runs;
+- one opens but the behaviour differs: the bundle changed since this key was enrolled, and nothing
+  runs (``check``);
+- none opens: the key is enrolled in nothing, and the bundle's base runs.
+
+Unsealed bundles keep one enrolment per user in the manifest (``enrolments``); a sealed record carries
+the behaviour inside its own plaintext (``records``), so it is its user's enrolment. Trying a key costs
+one HKDF and one GCM open per enrolment, the cost of the sealed records' trial decryption; an unsealed
+bundle's encoder already answers any key, so an enrolment reveals no more than it does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+
+from prop_cli import constants as C
+from prop_cli.errors import PropError
+
+from .cipher import ENROL_INFO, decrypt, encrypt, pad, unpad
+from .manifest import canonical_json
+
+ENROL_AD = b"prop/enrol/v1"
+ENROL_BUCKET = 1024  # enrolment plaintexts are padded to a multiple of this
+FILE = "file "  # behaviour entries of listed files: "file base.safetensors"
+
+
+def _sha(value) -> str:
+    return hashlib.sha256(canonical_json(value)).hexdigest()
+
+
+def behaviour(manifest: dict) -> dict[str, str]:
+    """What shapes the behaviour a key runs, as named digests (the enrolled plaintext). Not in it: what
+    running does not read (config, metrics, the audit summary, io.checkpoint, the records list, the
+    format version), so add-user, remove-user and attack --record leave enrolments valid."""
+    key = manifest[C.M_KEY]
+    parts = {
+        "mode": manifest.get(C.M_MODE, C.MODE_UNSEALED),
+        "model": manifest[C.M_MODEL],
+        "task": manifest[C.M_TASK],
+        "input shape": manifest[C.M_IO]["input_shape"],
+        "key": {"bits": key["bits"], "encoding": key.get("encoding"), "kdf": key.get("kdf")},
+        "keyed layers": manifest.get(C.M_KEYED_LAYERS),
+        "encoder": manifest.get(C.M_ENCODER),
+        "payload": manifest.get(C.M_PAYLOAD),
+    }
+    out = {name: _sha(value) for name, value in parts.items()}
+    out.update({FILE + name: digest for name, digest in manifest[C.M_FILES].items()})
+    return out
+
+
+def changed(enrolled: dict, current: dict) -> list[str]:
+    """The parts that differ between an enrolled behaviour and the current one (file names plain)."""
+    names = sorted(n for n in set(enrolled) | set(current) if enrolled.get(n) != current.get(n))
+    return [n[len(FILE) :] if n.startswith(FILE) else n for n in names]
+
+
+def changed_error(where: str, parts: list[str], fix: str | None = None) -> PropError:
+    shown = ", ".join(parts[:6]) + (f" and {len(parts) - 6} more" if len(parts) > 6 else "")
+    return PropError(
+        f"{where} changed since this key was enrolled ({shown} differ); nothing ran",
+        fix or "get the bundle again from whoever you trust, or run it without your key",
+    )
+
+
+def enrolment(bits: np.ndarray, what: dict) -> dict:
+    """One user's enrolment entry: ``what`` (JSON) sealed under their key, padded to a fixed size."""
+    body = pad(json.dumps(what, sort_keys=True).encode(), ENROL_BUCKET)
+    salt, nonce, box = encrypt(body, np.asarray(bits, np.uint8), ENROL_AD, ENROL_INFO)
+    return {"salt": salt.hex(), "nonce": nonce.hex(), "box": box.hex()}
+
+
+def open_enrolment(entries: list[dict], bits: np.ndarray) -> dict | None:
+    """What the first entry ``bits`` opens was enrolled with, or None (enrolled in nothing)."""
+    bits = np.asarray(bits, np.uint8)
+    for e in entries:
+        data = decrypt(bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), bytes.fromhex(e["box"]), bits,
+                       ENROL_AD, ENROL_INFO)  # fmt: skip
+        if data is not None:
+            return json.loads(unpad(data))
+    return None
+
+
+def split(entries: list[dict], bits: np.ndarray) -> tuple[list[dict], dict | None]:
+    """(the entries ``bits`` does not open, what the one it opens holds or None)."""
+    kept, opened = [], None
+    for e in entries:
+        got = open_enrolment([e], bits) if opened is None else None
+        if got is None:
+            kept.append(e)
+        else:
+            opened = got
+    return kept, opened
+
+
+def enrol(manifest: dict, keys: list[np.ndarray]) -> list[dict]:
+    """Enrolments of ``keys`` in the bundle ``manifest`` describes (its files already hashed)."""
+    now = behaviour(manifest)
+    return [enrolment(k, {"behaviour": now}) for k in keys]
+
+
+def check(entries: list[dict], bits: np.ndarray, current: dict, where: str) -> bool:
+    """True if ``bits`` is enrolled in the bundle as it is now; False if enrolled in nothing; a PropError
+    ("changed since this key was enrolled") if it was enrolled in something else."""
+    opened = open_enrolment(entries, bits)
+    if opened is None:
+        return False
+    diff = changed(opened.get("behaviour", {}), current)
+    if diff:
+        raise changed_error(where, diff)
+    return True

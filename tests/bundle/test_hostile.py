@@ -1,0 +1,410 @@
+"""Bundles written by an attacker, the way an attacker would (every digest recomputed with prop's own
+public functions): code a file names never runs without --trust-remote-code, and a user's key runs
+only what its holder enrolled. Each plant ends in a marker file that never appears, a refusal (exit 2,
+one line), or the bundle's base exactly with a warning."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import uuid
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from prop_cli import constants as C
+from prop_cli.api import KeySource, PersonalizeConfig, load_bundle, personalize_checkpoint, read_key_file
+from prop_cli.bundle.manifest import stamp
+from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
+from prop_cli.errors import PropError
+from prop_cli.files import dump_json, sha256_file
+from tests.conftest import make_mlp_checkpoint
+
+ort = pytest.importorskip("onnxruntime")
+
+
+def _bundle(root: Path, name: str, seal: bool, key: str = "k.bin", seed: int = 0, ckpt_seed: int = 0) -> Path:
+    ckpt = root / f"model{ckpt_seed}.safetensors"
+    if not ckpt.exists():
+        make_mlp_checkpoint(ckpt, seed=ckpt_seed)
+    cfg = PersonalizeConfig(steps=150 if seal else 40, seed=seed, seal=seal)
+    bits = read_key_file(root / key)
+    personalize_checkpoint(str(ckpt), [(root / "mine.npz", KeySource(bits, "file"))], root / name, cfg)
+    return root / name
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory) -> Path:
+    """The user's unsealed and sealed bundles (key k.bin), and an attacker's own bundle (key a.bin) of
+    another checkpoint: the raw material of every plant."""
+    root = tmp_path_factory.mktemp("hostile")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
+    np.savez(root / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    np.save(root / "x.npy", x[:16])
+    for name in ("k.bin", "a.bin"):
+        (root / name).write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+        (root / name).chmod(0o600)
+    _bundle(root, "user.prop", seal=False)
+    _bundle(root, "sealed.prop", seal=True)
+    _bundle(root, "attacker.prop", seal=False, key="a.bin", seed=1, ckpt_seed=1)
+    return root
+
+
+@pytest.fixture
+def d(made, tmp_path) -> Path:
+    """A fresh copy of the material for one test to plant in."""
+    shutil.copytree(made, tmp_path / "w")
+    return tmp_path / "w"
+
+
+def _manifest(bundle: Path) -> dict:
+    return json.loads((bundle / C.MANIFEST).read_text())
+
+
+def _write(bundle: Path, m: dict) -> None:
+    """What an attacker does after an edit: every listed file's sha256 and the manifest digest again."""
+    m[C.M_FILES] = {name: sha256_file(bundle / name) for name in m[C.M_FILES]}
+    (bundle / C.MANIFEST).write_text(dump_json(stamp(m)))
+
+
+def _base(bundle: Path, x: np.ndarray) -> np.ndarray:
+    b = load_bundle(bundle)
+    with torch.no_grad():
+        return b.loaded.module(torch.from_numpy(x)).numpy()
+
+
+def _run(cli, bundle: Path, d: Path, *extra) -> tuple[int, np.ndarray | None, str]:
+    out = d / f"y-{uuid.uuid4().hex[:6]}.npy"
+    r = cli("run", bundle, "--input", d / "x.npy", "--output", out, *extra)
+    return r.code, (np.load(out) if out.exists() else None), r.err
+
+
+def _one_line_refusal(code: int, y, err: str, *words: str) -> None:
+    assert code == 2 and y is None, err
+    assert err.count("\n") == 1 and err.startswith("prop: error:"), err
+    for w in words:
+        assert w in err, err
+
+
+# ---- 1. code a file names ---------------------------------------------------------------------
+
+
+def _hostile_code(bundle: Path, d: Path, adapter: str, marker: Path, monkeypatch) -> None:
+    """model.arch names code: os:system with the command in arch_kwargs (module adapter), or a module
+    planted where prop used to look (the working directory) that acts on import (folder adapter)."""
+    m = _manifest(bundle)
+    if adapter == "module":
+        kwargs = {"command": f"touch {marker}"}
+        m[C.M_MODEL] = {"adapter": "module", "arch": "os:system", "arch_kwargs": kwargs}
+    else:
+        name = f"pwn_{uuid.uuid4().hex[:8]}"
+        (d / f"{name}.py").write_text(f"open({str(marker)!r}, 'w').close()\ndef build(config): return 1\n")
+        monkeypatch.chdir(d)
+        m[C.M_MODEL] = {"adapter": "folder", "arch": f"{name}:build", "arch_kwargs": {}, "builder": "--arch",
+                        "config": {"type": "x"}}  # fmt: skip
+    _write(bundle, m)
+
+
+@pytest.mark.parametrize("adapter", ["module", "folder"])
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_no_command_imports_what_a_bundle_names(cli, d, mode, adapter, monkeypatch):
+    marker = d / "pwned"
+    bundle = d / mode
+    _hostile_code(bundle, d, adapter, marker, monkeypatch)
+    calls = [
+        ("run", bundle, "--input", d / "x.npy", "--output", d / "y.npy"),
+        ("run", bundle, "--input", d / "x.npy", "--output", d / "y.npy", "--key-file", d / "k.bin"),
+        ("run", bundle, "--input", d / "x.npy", "--output", d / "y.npy", "--onnx"),
+        ("attack", bundle, "--data", d / "mine.npz", "--probes", "null"),
+        ("export", bundle, "--onnx"),
+        ("eval", bundle, "--env", "CartPole-v1"),
+        ("remove-user", bundle, "--record", "x"),
+        ("add-user", bundle, "--data", d / "mine.npz", "--key-file", d / "a.bin"),
+    ]
+    for args in calls:
+        r = cli(*args)
+        _one_line_refusal(r.code, None, r.err, "names code to import and run", "--trust-remote-code")
+        assert not marker.exists(), args
+    with pytest.raises(PropError, match="--trust-remote-code"):
+        load_bundle(bundle)
+    assert not marker.exists()
+    # The test is live: with the user's consent the named code does run.
+    r = cli("run", bundle, "--input", d / "x.npy", "--output", d / "y.npy", "--trust-remote-code")
+    assert r.code == 2 and marker.exists(), r.err
+
+
+def test_push_and_enrol_handle_a_hostile_bundle_as_data(cli, d, monkeypatch):
+    hf = pytest.importorskip("huggingface_hub")
+    marker = d / "pwned"
+    _hostile_code(d / "user.prop", d, "module", marker, monkeypatch)
+    url = lambda self, repo_id, **kw: hf.RepoUrl(f"https://huggingface.co/{repo_id}")  # noqa: E731
+    monkeypatch.setattr(hf.HfApi, "create_repo", url)
+    monkeypatch.setattr(hf.HfApi, "upload_folder", lambda self, **kw: None)
+    r = cli("push", d / "user.prop", "me/x", "--private")
+    assert r.code == 0 and not marker.exists(), r.err
+    r = cli("enrol", d / "user.prop", "--key-file", d / "a.bin")
+    assert r.code == 0 and not marker.exists(), r.err
+
+
+# ---- 2. a key runs only what its holder enrolled ----------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_a_key_enrolled_in_nothing_runs_the_base_exactly(cli, d, mode):
+    bundle = d / mode
+    x = np.load(d / "x.npy")
+    code, y_none, _ = _run(cli, bundle, d)
+    code2, y_wrong, err = _run(cli, bundle, d, "--key-file", d / "a.bin")
+    assert code == code2 == 0
+    np.testing.assert_array_equal(y_wrong, y_none)
+    np.testing.assert_array_equal(y_none, _base(bundle, x))
+    assert "enrolled in no user" in err and "the bundle's base" in err and "original" not in err
+    code, y_user, _ = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and np.abs(y_user - y_none).max() > 1e-3  # the enrolled key: its behaviour
+    b = load_bundle(bundle)
+    with pytest.warns(WrongKeyWarning, match="enrolled in no user"):
+        np.testing.assert_array_equal(KeyedPolicy(b, read_key_file(d / "a.bin"))(x), y_none)
+    # ONNX: the export binds the user's key; another key runs base.onnx exactly.
+    assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
+    code, o_none, _ = _run(cli, bundle, d, "--onnx")
+    code2, o_wrong, err = _run(cli, bundle, d, "--onnx", "--key-file", d / "a.bin")
+    assert code == code2 == 0 and "enrolled in no user" in err or "not bound" in err, err
+    np.testing.assert_array_equal(o_wrong, o_none)
+    code, o_user, _ = _run(cli, bundle, d, "--onnx", "--key-file", d / "k.bin")
+    np.testing.assert_allclose(o_user, y_user, atol=1e-5)
+
+
+def test_sealed_to_unsealed_downgrade_runs_the_base(cli, d):
+    """Records deleted, the attacker's encoder added, the mode set to unsealed: the user's key runs the
+    base exactly (format 4: enrolled in nothing; written as format 3: nothing is enrolled there)."""
+    bundle, attacker = d / "sealed.prop", d / "attacker.prop"
+    m, a = _manifest(bundle), _manifest(attacker)
+    shutil.copyfile(attacker / C.ENCODER_WEIGHTS, bundle / C.ENCODER_WEIGHTS)
+    shutil.rmtree(bundle / C.RECORDS_DIR)
+    for f in (C.M_RECORDS, C.M_PAYLOAD):
+        del m[f]
+    key = {**m[C.M_KEY], "encoding": "hashed", "users": 1}
+    m.update({C.M_MODE: "unsealed", C.M_ENCODER: a[C.M_ENCODER], C.M_KEYED_LAYERS: a[C.M_KEYED_LAYERS],
+              C.M_ENROLMENTS: a[C.M_ENROLMENTS], C.M_KEY: key})  # fmt: skip
+    m[C.M_FILES][C.ENCODER_WEIGHTS] = ""
+    _write(bundle, m)
+    x = np.load(d / "x.npy")
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and "enrolled in no user" in err
+    np.testing.assert_array_equal(y, _base(bundle, x))
+    m[C.M_FORMAT] = 3
+    del m[C.M_ENROLMENTS]
+    _write(bundle, m)
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and "format 3 bundle, from before keys were enrolled" in err and "prop enrol" in err
+    np.testing.assert_array_equal(y, _base(bundle, x))
+
+
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_base_swap_is_refused_with_the_key(cli, d, mode):
+    bundle = d / mode
+    shutil.copyfile(d / "attacker.prop" / C.BASE_WEIGHTS, bundle / C.BASE_WEIGHTS)
+    _write(bundle, _manifest(bundle))
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    _one_line_refusal(code, y, err, "changed since this key was enrolled", "base.safetensors")
+    code, y, err = _run(cli, bundle, d)  # without a key: the bundle's base, named so
+    assert code == 0 and y is not None
+
+
+def test_a_bundle_replaced_by_another_users_runs_its_base(cli, d):
+    bundle = d / "user.prop"
+    shutil.rmtree(bundle)
+    shutil.copytree(d / "attacker.prop", bundle)
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and "enrolled in no user" in err
+    np.testing.assert_array_equal(y, _base(bundle, np.load(d / "x.npy")))
+
+
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_onnx_graph_swap_is_refused_with_the_key(cli, d, mode):
+    """base.onnx replaced by the attacker's, export.json's hashes recomputed: refused; export.json's
+    key bindings deleted too: refused where the bundle is at hand, base.onnx with a warning alone."""
+    from prop_cli.deploy.onnx import OnnxPolicy, SealedOnnxPolicy
+
+    bundle, folder = d / mode, d / mode / C.EXPORT_DIR
+    assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
+    assert cli("export", d / "attacker.prop", "--onnx").code == 0
+    shutil.copyfile(d / "attacker.prop" / C.EXPORT_DIR / C.BASE_GRAPH, folder / C.BASE_GRAPH)
+    meta = json.loads((folder / C.EXPORT_META).read_text())
+    meta["graphs"] = {g: sha256_file(folder / g) for g in meta["graphs"]}
+    (folder / C.EXPORT_META).write_text(dump_json(stamp(meta, C.EXPORT_DIGEST)))
+    code, y, err = _run(cli, bundle, d, "--onnx", "--key-file", d / "k.bin")
+    _one_line_refusal(code, y, err, "ONNX export", "changed since this key was enrolled", "base.onnx")
+    policy = SealedOnnxPolicy if mode == "sealed.prop" else OnnxPolicy
+    with pytest.raises(PropError, match="changed since this key was enrolled"):
+        policy(folder, read_key_file(d / "k.bin"))
+    meta[C.M_ENROLMENTS] = []
+    (folder / C.EXPORT_META).write_text(dump_json(stamp(meta, C.EXPORT_DIGEST)))
+    code, y, err = _run(cli, bundle, d, "--onnx", "--key-file", d / "k.bin")
+    _one_line_refusal(code, y, err, "not bound to this key")
+    x = np.load(d / "x.npy")
+    with pytest.warns(WrongKeyWarning, match="not bound"):
+        got = policy(folder, read_key_file(d / "k.bin"))(x)
+    np.testing.assert_array_equal(got, policy(folder)(x))
+
+
+def test_old_format_bundle_runs_the_base_until_enrolled(cli, d):
+    """A format 3 unsealed bundle (no enrolments): the key runs the base with a warning; prop enrol is the
+    user's opt-in, after which the key runs its behaviour, the encoder's exactly."""
+    bundle = d / "user.prop"
+    m = _manifest(bundle)
+    keyed_before = _run(cli, bundle, d, "--key-file", d / "k.bin")[1]
+    m[C.M_FORMAT] = 3
+    del m[C.M_ENROLMENTS]
+    _write(bundle, m)
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and "format 3" in err
+    np.testing.assert_array_equal(y, _base(bundle, np.load(d / "x.npy")))
+    r = cli("enrol", bundle, "--key-file", d / "k.bin")
+    assert r.code == 0 and "enrolled" in r.out and "format 4" in r.out, r.err
+    code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
+    assert code == 0 and "warning" not in err
+    np.testing.assert_array_equal(y, keyed_before)
+    assert "already enrolled" in cli("enrol", bundle, "--key-file", d / "k.bin").out
+
+
+def test_audit_measures_the_method_whatever_the_enrolment(d):
+    """The audit's key probes run any key through the encoder (the paper's T0 rows must not turn to 0
+    because prop run stops those keys); the owner's own key is reported as prop run would treat it."""
+    from prop_cli.api import AuditSettings, audit_bundle
+
+    s = AuditSettings(probes=["random"], random=32, samples=32, hamming=[])
+    rep = audit_bundle(d / "user.prop", d / "mine.npz", s, key_files=[d / "k.bin"])
+    assert rep["user"]["leakage"] > 0.5 and not rep["warnings"]
+    random = rep["groups"][0]
+    assert random["fidelity"]["worst"] > 0  # the encoder's response to random keys, not the base's 0
+    b = load_bundle(d / "user.prop")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", WrongKeyWarning)
+        some = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
+        x = np.load(d / "x.npy")
+        assert np.abs(KeyedPolicy(b, some, method=True)(x) - KeyedPolicy(b, some)(x)).max() > 0
+
+
+# ---- 3. what the clear manifest says; remove-user; outputs are never inputs ------------------
+
+
+def test_sealed_audit_record_holds_no_user_figures(cli, d):
+    bundle = d / "sealed.prop"
+    r = cli("attack", bundle, "--data", d / "mine.npz", "--key-file", d / "k.bin", "--probes",
+            "null,random", "--random", "8", "--samples", "32", "--record", "--max-leak", "0.5")  # fmt: skip
+    assert r.code == 0, r.err
+    audit = _manifest(bundle)[C.M_AUDIT]
+    text = json.dumps(audit)
+    for word in ("leakage", "fidelity", "personalization", '"samples"', '"user"', "beyond"):
+        assert word not in text, word
+    assert audit["max_leak"]["passed"] is True
+
+
+def test_remove_user_also_leaves_the_export(cli, d):
+    bundle = d / "sealed.prop"
+    r = cli("add-user", bundle, "--data", d / "mine.npz", "--key-file", d / "a.bin", "--steps", "10")
+    assert r.code == 0, r.err
+    assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
+    rid = _manifest(bundle)[C.M_RECORDS][0]["id"]
+    assert (bundle / C.EXPORT_DIR / C.RECORDS_DIR / f"{rid}{C.RECORD_SUFFIX}").exists()
+    assert cli("remove-user", bundle, "--record", rid).code == 0
+    assert not (bundle / C.EXPORT_DIR / C.RECORDS_DIR / f"{rid}{C.RECORD_SUFFIX}").exists()
+    meta = json.loads((bundle / C.EXPORT_DIR / C.EXPORT_META).read_text())
+    assert [r["id"] for r in meta["sealed"][C.M_RECORDS]] == [_manifest(bundle)[C.M_RECORDS][0]["id"]]
+    assert meta[C.M_ENROLMENTS] == []  # the removed user's binding went with their record
+    code, y, err = _run(cli, bundle, d, "--onnx", "--key-file", d / "k.bin")
+    assert code == 0 and "enrolled in no user" in err or "not bound" in err, err
+
+
+def test_no_output_is_one_of_the_commands_inputs(cli, d):
+    copy = d / "copy.safetensors"
+    shutil.copyfile(d / "model0.safetensors", copy)
+    before = copy.read_bytes()
+    given = ["--data", d / "mine.npz", "--key-file", d / "k.bin", "--force"]
+    r = cli("personalize", copy, *given, "--out", copy)
+    _one_line_refusal(r.code, None, r.err, "this command's input", "--force or not")
+    assert copy.read_bytes() == before
+    r = cli("personalize", copy, *given, "--out", d)
+    _one_line_refusal(r.code, None, r.err, "holds this command's input")
+    r = cli("run", d / "user.prop", "--input", d / "x.npy", "--output", d / "x.npy", "--force")
+    _one_line_refusal(r.code, None, r.err, "this command's input")
+    r = cli("run", d / "user.prop", "--input", d / "x.npy", "--output", d / "user.prop" / C.MANIFEST,
+            "--force")  # fmt: skip
+    _one_line_refusal(r.code, None, r.err, "inside this command's input")
+    r = cli("export", d / "user.prop", "--onnx", "--out", d / "user.prop", "--force")
+    _one_line_refusal(r.code, None, r.err, "this command's input")
+    r = cli("attack", d / "user.prop", "--data", d / "mine.npz", "--json", d / "mine.npz", "--force")
+    _one_line_refusal(r.code, None, r.err, "this command's input")
+    assert load_bundle(d / "user.prop") is not None
+
+
+# ---- 4. passphrases ---------------------------------------------------------------------------
+
+
+def test_weak_passphrases_are_refused_and_fail_the_audit(cli, d, monkeypatch):
+    out = d / "pp.prop"
+    args = ["personalize", d / "model0.safetensors", "--data", d / "mine.npz", "--passphrase", "--out", out,
+            "--seal", "--steps", "20"]  # fmt: skip
+    monkeypatch.setenv(C.ENV_PASSPHRASE, "sunshine")
+    r = cli(*args)
+    _one_line_refusal(r.code, None, r.err, "is weak", "core-years", "--weak-passphrase")
+    assert not out.exists()
+    assert cli(*args, "--weak-passphrase").code == 0
+    audit = ["attack", out, "--data", d / "mine.npz", "--passphrase", "--probes", "null", "--samples", "16"]
+    r = cli(*audit)
+    assert r.code == 1 and "passphrase check failed" in r.err, r.err
+    monkeypatch.setenv(C.ENV_PASSPHRASE, "correct horse battery staple")
+    r = cli(*args, "--force")
+    assert r.code == 0, r.err
+    r = cli(*audit, "--json", "-")
+    assert r.code == 0 and json.loads(r.out)["passphrase"]["passed"], r.err
+
+
+# ---- 5. publisher signatures ------------------------------------------------------------------
+
+
+def test_push_sign_and_verify_round_trip_and_any_flipped_byte_fails(cli, d, monkeypatch):
+    hf = pytest.importorskip("huggingface_hub")
+    pytest.importorskip("model_signing")
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    (d / "pub.pem").write_bytes(key.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))  # fmt: skip
+    pem = serialization.Encoding.PEM
+    (d / "priv.pem").write_bytes(
+        key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    )
+    bundle = d / "sealed.prop"
+    assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
+    got = d / "downloaded"
+    url = lambda self, repo_id, **kw: hf.RepoUrl(f"https://huggingface.co/{repo_id}")  # noqa: E731
+    monkeypatch.setattr(hf.HfApi, "create_repo", url)
+    monkeypatch.setattr(hf.HfApi, "upload_folder", lambda self, **kw: shutil.copytree(kw["folder_path"], got))
+    r = cli("push", bundle, "me/x", "--sign", d / "priv.pem")
+    assert r.code == 0, r.err
+    assert "Publisher signature: yes" in (got / "README.md").read_text()
+    r = cli("verify", got, "--public-key", d / "pub.pem")
+    assert r.code == 0 and "verified" in r.out, r.err
+    files = sorted(p for p in got.rglob("*") if p.is_file() and p.name != "model.sig")
+    assert len(files) >= 6
+    for f in files:
+        data = f.read_bytes()
+        f.write_bytes(bytes([data[0] ^ 1]) + data[1:])
+        r = cli("verify", got, "--public-key", d / "pub.pem")
+        _one_line_refusal(r.code, None, r.err, "does not verify")
+        f.write_bytes(data)
+    (got / "extra.txt").write_text("added")
+    assert cli("verify", got, "--public-key", d / "pub.pem").code == 2
+    (got / "extra.txt").unlink()
+    other = ec.generate_private_key(ec.SECP256R1()).public_key()
+    (d / "other.pem").write_bytes(other.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))  # fmt: skip
+    assert cli("verify", got, "--public-key", d / "other.pem").code == 2
+    assert cli("verify", got, "--public-key", d / "pub.pem").code == 0
