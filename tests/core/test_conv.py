@@ -180,7 +180,8 @@ def test_cnn_keyed_at_its_convolution_personalizes_runs_and_exports(tmp_path, cl
                           ("onnx", ["--key-file", tmp_path / "k.bin", "--onnx"])):  # fmt: skip
             if run == "onnx":
                 pytest.importorskip("onnxruntime")
-                r = cli("export", out, "--onnx", "--key-file", tmp_path / "k.bin", "--json", "--trust-remote-code")
+                r = cli("export", out, "--onnx", "--key-file", tmp_path / "k.bin", "--json",
+                        "--trust-remote-code")  # fmt: skip
                 assert r.code == 0, r.err
             r = cli("run", out, "--input", tmp_path / "x.npy", "--output", tmp_path / f"{name}-{run}.npy",
                     "--trust-remote-code", *args)  # fmt: skip
