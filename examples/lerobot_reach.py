@@ -53,7 +53,7 @@ SETTINGS = {
     "act": {"personalize": PERSONALIZE, "sealed": SEALED, "base_steps": 2500, "base_lr": 3e-4},
     "diffusion": {
         "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
-        "sealed": SEALED, "base_steps": 4000, "base_lr": 1e-3,
+        "sealed": SEALED, "base_steps": 6000, "base_lr": 1e-3,
     },
 }  # fmt: skip
 
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=None, help="default out/lerobot-reach[-diffusion]")
     ap.add_argument("--policy", choices=sorted(SETTINGS), default="act")
-    ap.add_argument("--base-steps", type=int, default=None, help="default 2500 (act), 4000 (diffusion)")
+    ap.add_argument("--base-steps", type=int, default=None, help="default 2500 (act), 6000 (diffusion)")
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")

@@ -74,18 +74,14 @@ class PolicyProtocol(ABC):
     chunk (``action``) and its padding mask where the policy has them.
 
     Where policies differ in training, this is the one place: the user term (``loss``), the fallback
-    term's output and target (``fallback_rows``, ``fallback_output``, ``fallback_from_chunks``,
-    ``fallback_distance``) and the deployed chunk (``chunk``). The defaults are a policy whose deployed
-    chunk is deterministic (ACT): the fallback distils the original's chunk, L1. A denoising policy
-    (Diffusion) distils the original's denoiser on the same (observation, x_t, t) instead, and draws its
-    chunks' noise from ``noise_seed``.
+    term's rows, output and target (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and
+    the deployed chunk (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
+    the fallback distils the original's chunk, L1. A denoising policy (Diffusion) distils the original's
+    denoiser on the same (observation, x_t, t) instead, and draws its chunks' noise from ``noise_seed``.
     """
 
     default_layers: ClassVar[list[str]]  # regexes over layer names keyed when --layers is not given
     fallbacks: ClassVar[tuple[str, ...]]  # fallback terms this policy supports, the default first
-    # True: the fallback target is the original's deployed chunk on the row (cached once per frame);
-    # False: the original's ``fallback_output`` on the same row, computed each step.
-    fallback_from_chunks: ClassVar[bool] = True
     # Seed of the noise a sampling policy's chunks start from (`--noise-seed`); unused by the others.
     noise_seed: int = 0
 
@@ -93,12 +89,14 @@ class PolicyProtocol(ABC):
     def on(self, module: torch.nn.Module) -> PolicyProtocol:
         """The same policy (processors, noise seed) over ``module``, a copy with the same layers."""
 
-    def fallback_rows(
-        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, generator: torch.Generator
-    ) -> dict[str, torch.Tensor]:
-        """Fallback rows: observations plus what else the fallback output needs, drawn from ``generator``
-        (a denoiser: x_t and t, from ``chunks``, the original's deployed chunks for these rows)."""
-        return batch
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        """The rows the fallback term samples from and the original's output on each, drawn once before
+        training (``chunks``: the original's deployed chunk per frame of ``batch``). Default: the frames
+        themselves, their targets the chunks (a deterministic policy's, cached as targets)."""
+        return batch, chunks
 
     def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """What the fallback term compares between the keyed policy and the original (eval mode)."""

@@ -91,10 +91,12 @@ class PolicyTrainer:
         self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
         self.original = copy.deepcopy(module).requires_grad_(False).eval()
         self.original_policy = policy.on(self.original)
-        # The original's deployed chunk per fallback frame: the fallback target (ACT), or what a
-        # denoiser's fallback rows are noised from (Diffusion).
-        self.targets = chunks(self.original_policy, self.fb)
-        self.fb_generator = torch.Generator().manual_seed(cfg.seed)
+        # The fallback term's rows and the original's output on each, drawn once (the policy decides:
+        # ACT: the frames and the original's chunks; Diffusion: noised chunks and its denoiser's output).
+        self.fb_rows, self.targets = policy.fallback_pool(
+            self.fb, chunks(self.original_policy, self.fb), self.original_policy,
+            torch.Generator().manual_seed(cfg.seed),
+        )  # fmt: skip
 
         mods = dict(module.named_modules())
         features = [in_width(mods[n]) for n in names]
@@ -133,14 +135,10 @@ class PolicyTrainer:
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
         deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
-        fb_rows = policy.fallback_rows(rows(self.fb, idx), self.targets[idx], self.fb_generator)
-        pred = km.call_rows([d.index_select(0, key_of_row) for d in deltas], policy.fallback_output, fb_rows)
-        if policy.fallback_from_chunks:
-            target = self.targets[idx]
-        else:
-            with torch.no_grad():
-                target = self.original_policy.fallback_output(fb_rows)
-        per_row = policy.fallback_distance(pred, target)
+        pred = km.call_rows(
+            [d.index_select(0, key_of_row) for d in deltas], policy.fallback_output, rows(self.fb_rows, idx)
+        )
+        per_row = policy.fallback_distance(pred, self.targets[idx])
         null = per_row[: len(gi)].mean()
         keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
         self.optim.update(personal + keyed + cfg.null_weight * null)

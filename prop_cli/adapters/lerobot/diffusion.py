@@ -8,10 +8,12 @@
   LeRobot's own ``select_action`` after ``torch.manual_seed(noise_seed)``.
 - **User term**: the policy's own loss (noise-prediction MSE at a random timestep), unchanged.
 - **Fallback term**: in eval mode the denoiser is deterministic given (observation, x_t, t). Each
-  fallback row draws t uniformly over the training timesteps and noise eps, x_t = the scheduler's
-  ``add_noise`` of the original's deployed chunk for that frame; the keyed policy's prediction is
-  distilled towards the frozen original's on the same (observation, x_t, t), MSE (its own loss's
-  distance). No key, random keys and Hamming neighbours alike.
+  fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps and
+  noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame; the
+  keyed policy's prediction is distilled towards the frozen original's on the same (observation, x_t,
+  t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The rows and the
+  original's predictions are drawn once before training, as ACT's chunks are cached: computing the
+  original each step cost a third of the step (bench_lerobot_step).
 - **Keyed layers** by default: every Conv1d of the U-Net and its FiLM projections (``cond_encoder``),
   the down/mid/up blocks and the final convolution: 97% of the U-Net's parameters at LeRobot's
   default size (down_dims 512/1024/2048), 98% of the small ones in examples/ (``prop inspect``).
@@ -23,17 +25,20 @@ from __future__ import annotations
 
 import torch
 
+from prop_cli.adapters.base import PolicyProtocol
+
 from .policy import LeRobotPolicy
 
 DIFFUSION_LAYERS = [r"diffusion\.unet\.(down_modules|mid_modules|up_modules|final_conv)\..+"]
 OBS_IMAGES = "observation.images"
+FALLBACK_DRAWS = 8  # (t, eps) draws per fallback frame
+POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
 class DiffusionPolicy(LeRobotPolicy):
     """Diffusion through the policy protocol (see the module docstring)."""
 
     default_layers = DIFFUSION_LAYERS
-    fallback_from_chunks = False
 
     @property
     def model(self):
@@ -56,14 +61,22 @@ class DiffusionPolicy(LeRobotPolicy):
         noise = torch.cat([torch.randn(shape, generator=g, device=g.device, dtype=cond.dtype) for g in gens])
         return model.conditional_sample(rows, global_cond=cond, generator=gens, noise=noise)
 
-    def fallback_rows(
-        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, generator: torch.Generator
-    ) -> dict[str, torch.Tensor]:
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
         sched = self.model.noise_scheduler
-        t = torch.randint(0, sched.config.num_train_timesteps, (len(chunks),), generator=generator)
-        eps = torch.randn(chunks.shape, generator=generator).to(chunks)
-        t = t.to(chunks.device)
-        return {**batch, "x_t": sched.add_noise(chunks, eps, t), "t": t}
+        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
+        x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
+        t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=generator)
+        eps = torch.randn(x0.shape, generator=generator).to(x0)
+        rows |= {"x_t": sched.add_noise(x0, eps, t), "t": t}
+        with torch.no_grad():
+            targets = torch.cat([
+                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
+                for i in range(0, len(x0), POOL_BATCH)
+            ])  # fmt: skip
+        return rows, targets
 
     def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.eval()
