@@ -50,10 +50,13 @@ PERSONALIZE = [
 # Diffusion: the same Eq. 8 batch; lr 3e-4 (LeRobot trains Diffusion at 1e-4, ACT at 1e-5 to 1e-4, and
 # the keyed encoder needs more than the base: base-lr-scale 0.1 as for ACT).
 SETTINGS = {
-    "act": {"personalize": PERSONALIZE, "sealed": SEALED, "base_steps": 2500, "base_lr": 3e-4},
+    "act": {"personalize": PERSONALIZE, "sealed": SEALED, "base_steps": 2500, "base_lr": 3e-4, "attack": []},
+    # The audit's budgets cut for Diffusion: each chunk is 10 denoising steps of the U-Net.
     "diffusion": {
         "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
         "sealed": SEALED, "base_steps": 6000, "base_lr": 1e-3,
+        "attack": ["--samples", "128", "--random", "512", "--blackbox", "4096", "--restarts", "16",
+                   "--fewshot-restarts", "8"],
     },
 }  # fmt: skip
 
@@ -159,7 +162,7 @@ def attack(out: Path, name: str, kind: str) -> None:
     t = time.perf_counter()
     audit = out / ("audit.json" if name == "bundle" else f"audit-{name}.json")
     prop("attack", out / name, "--data", out / "reach-user", "--key-file", out / "user.key",
-         "--original", out / kind, "--json", audit)  # fmt: skip
+         "--original", out / kind, "--json", audit, *SETTINGS[kind]["attack"])  # fmt: skip
     report = json.loads(audit.read_text())
     u = report["user"]
     print(f"\n{name}: audit ({time.perf_counter() - t:.0f} s): user key personalization "
