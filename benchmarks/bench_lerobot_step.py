@@ -1,13 +1,14 @@
-"""A PRoP training step vs LeRobot's own training step on the same small ACT and the same row count.
+"""A PRoP training step vs LeRobot's own training step on the same small policy and the same row count.
 
     bash scripts/setup-lerobot.sh
-    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step [--reps 30]
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step --policy diffusion --reps 30
 
 LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_train.update_policy).
 PRoP step: prop_cli.train.policy.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
 through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
-against the original's cached chunks, key encoder in the graph, same clip. The two alternate (the
-machine is shared); medians and their ratio are printed. Issue 11's target: <= 1.3x.
+against the original (ACT: its cached chunks; Diffusion: its denoiser on the same noised rows, one more
+forward without gradients), key encoder in the graph, same clip. The two alternate (the machine is
+shared); medians and their ratio are printed. Target (issues 11 and 22): <= 1.3x.
 """
 
 from __future__ import annotations
@@ -32,21 +33,27 @@ from prop_cli.train.policy import PolicyTrainer
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--policy", choices=sorted(task.BUILDERS), default="act")
+    ap.add_argument("--full-size", action="store_true",
+                    help="Diffusion at LeRobot's default U-Net (down_dims 512/1024/2048, 250M parameters)")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     work = Path(tempfile.mkdtemp(prefix="prop-bench-lerobot-"))
     task.record(work / "general", 8, 0, np.zeros(3, np.float32))
     task.record(work / "user", 4, 50_000, task.USER_OFFSET)
-    task.train_base(work / "general", work / "act", steps=1)
+    base = work / args.policy
+    full = {"down_dims": (512, 1024, 2048), "diffusion_step_embed_dim": 128} if args.full_size else {}
+    built = task.BUILDERS[args.policy](task.dataset_stats(work / "general"), **full)
+    task.train_base(work / "general", base, steps=1, kind=args.policy, built=built)
     cfg = PersonalizeConfig(steps=10**6, user_rows=16, null_rows=8, neighbour_keys=4, random_keys=4,
                             samples_per_key=1, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
     trainer = PolicyTrainer(
-        load_checkpoint(work / "act"), [User(load_data(work / "user"), key)], cfg, load_data(work / "general")
+        load_checkpoint(base), [User(load_data(work / "user"), key)], cfg, load_data(work / "general")
     )
     rows = cfg.user_rows + cfg.null_rows + (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
 
-    lerobot = load_checkpoint(work / "act")  # a second copy of the same policy, without keys
+    lerobot = load_checkpoint(base)  # a second copy of the same policy, without keys
     data = lerobot.policy.batches(load_data(work / "general"), "--data")
     data.pop("episode_index")
     opt = torch.optim.AdamW(lerobot.module.parameters(), lr=1e-5, weight_decay=1e-4)
@@ -72,7 +79,9 @@ def main(argv: list[str] | None = None) -> None:
             fn()
             times[name].append(time.perf_counter() - t)
     med = {k: statistics.median(v) * 1000 for k, v in times.items()}
-    print(f"ACT (dim 64, chunk 10), {rows} rows per step, {args.reps} alternating reps, medians:")
+    unet = "512/1024/2048" if args.full_size else "32/64/128"
+    what = {"act": "ACT (dim 64, chunk 10)", "diffusion": f"Diffusion (U-Net {unet}, horizon 16)"}
+    print(f"{what[args.policy]}, {rows} rows per step, {args.reps} alternating reps, medians:")
     print(f"  LeRobot step {med['lerobot']:.1f} ms, PRoP step {med['prop']:.1f} ms, "
           f"ratio {med['prop'] / med['lerobot']:.2f}x (target <= 1.3x)")  # fmt: skip
 

@@ -1,12 +1,16 @@
-"""LeRobot ACT end to end on PandaReach, through the `prop` command line (figures in examples/RESULTS.md).
+"""LeRobot ACT or Diffusion end to end on PandaReach, through the `prop` command line (figures in
+examples/RESULTS.md).
 
     bash scripts/setup-lerobot.sh
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --out out/lerobot-reach
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --policy diffusion \
+        --out out/lerobot-reach-diffusion
 
 1. Record two LeRobotDatasets from a scripted expert: general (reach the goal, 80 episodes) and the
    user's (hold 10 cm above it, 20 episodes). No downloads, nobody labels anything.
-2. Train a small ACT base on the general data with LeRobot's own training step; save_pretrained.
-3. `prop personalize` the ACT folder with the user's dataset and a key.
+2. Train a small ACT (or Diffusion) base on the general data with LeRobot's own training step;
+   save_pretrained.
+3. `prop personalize` the policy folder with the user's dataset and a key.
 4. `prop eval` closed loop: the original, the user's key, no key, random keys, one-bit neighbours,
    over the recorded horizon (30 steps) under every key: panda-gym ends an episode on reaching the
    goal, before a preference judged at the episode's end could show.
@@ -43,6 +47,18 @@ PERSONALIZE = [
     "--steps", "3000", "--user-rows", "16", "--null-rows", "8", "--neighbour-keys", "4", "--random-keys", "4",
     "--samples-per-key", "1", "--null-weight", "2", "--lr", "1e-3", "--base-lr-scale", "0.1",
 ]  # fmt: skip
+# Diffusion: the same Eq. 8 batch; lr 3e-4 (LeRobot trains Diffusion at 1e-4, ACT at 1e-5 to 1e-4, and
+# the keyed encoder needs more than the base: base-lr-scale 0.1 as for ACT).
+SETTINGS = {
+    "act": {"personalize": PERSONALIZE, "sealed": SEALED, "base_steps": 2500, "base_lr": 3e-4, "attack": []},
+    # The audit's budgets cut for Diffusion: each chunk is 10 denoising steps of the U-Net.
+    "diffusion": {
+        "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
+        "sealed": SEALED, "base_steps": 6000, "base_lr": 1e-3,
+        "attack": ["--samples", "128", "--random", "512", "--blackbox", "4096", "--restarts", "16",
+                   "--fewshot-restarts", "8"],
+    },
+}  # fmt: skip
 
 
 def prop(*args: object, capture: bool = False) -> str:
@@ -54,20 +70,22 @@ def prop(*args: object, capture: bool = False) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=Path("out/lerobot-reach"))
-    ap.add_argument("--base-steps", type=int, default=2500)
+    ap.add_argument("--out", type=Path, default=None, help="default out/lerobot-reach[-diffusion]")
+    ap.add_argument("--policy", choices=sorted(SETTINGS), default="act")
+    ap.add_argument("--base-steps", type=int, default=None, help="default 2500 (act), 6000 (diffusion)")
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
     ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     args = ap.parse_args(argv)
-    out = args.out
+    kind, conf = args.policy, SETTINGS[args.policy]
+    out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
     if args.attack_only:
-        attack(out, "bundle")
+        attack(out, "bundle", kind)
         return
     if args.sealed_only:
-        sealed(out, args.episodes)
+        sealed(out, args.episodes, kind)
         return
     figures: dict = {}
     if args.reuse and (out / "figures.json").is_file():
@@ -81,36 +99,39 @@ def main(argv: list[str] | None = None) -> None:
         task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET)
         figures["record_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
-        ms = task.train_base(out / "reach-general", out / "act", args.base_steps)
+        ms = task.train_base(out / "reach-general", out / kind, args.base_steps or conf["base_steps"],
+                             lr=conf["base_lr"], kind=kind)  # fmt: skip
         figures["base_ms_per_step"] = round(ms, 1)
         figures["base_train_s"] = round(time.perf_counter() - t, 1)
         prop("keygen", out / "user.key")
-    prop("inspect", out / "act")
-    steps = PERSONALIZE if args.steps is None else [*PERSONALIZE[:1], str(args.steps), *PERSONALIZE[2:]]
-    figures |= run_bundle(out, "bundle", [*steps, "--general-data", out / "reach-general"], args.episodes)
+    prop("inspect", out / kind)
+    steps = conf["personalize"]
+    steps = steps if args.steps is None else [*steps[:1], str(args.steps), *steps[2:]]
+    general = ["--general-data", out / "reach-general"]
+    figures |= run_bundle(out, "bundle", [*steps, *general], args.episodes, kind)
     (out / "figures.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
           f"eval {figures['eval_s']} s")  # fmt: skip
-    attack(out, "bundle")
-    sealed(out, args.episodes)
+    attack(out, "bundle", kind)
+    sealed(out, args.episodes, kind)
 
 
-def sealed(out: Path, episodes: int) -> None:
+def sealed(out: Path, episodes: int, kind: str) -> None:
     """Step 6: the same user sealed: a LoRA payload in an encrypted record, the base the original."""
-    figures = run_bundle(out, "sealed", SEALED, episodes)
+    figures = run_bundle(out, "sealed", SETTINGS[kind]["sealed"], episodes, kind)
     (out / "figures-sealed.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: personalize --seal {figures['personalize_s']} s, eval {figures['eval_s']} s")
-    attack(out, "sealed")
+    attack(out, "sealed", kind)
 
 
-def run_bundle(out: Path, name: str, personalize: list, episodes: int) -> dict:
+def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
     """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
     shutil.rmtree(out / name, ignore_errors=True)
     figures: dict = {}
     t = time.perf_counter()
     report = json.loads(prop(
-        "personalize", out / "act", "--data", out / "reach-user", "--key-file", out / "user.key",
+        "personalize", out / kind, "--data", out / "reach-user", "--key-file", out / "user.key",
         "--out", out / name, *personalize, "--json", capture=True,
     ))  # fmt: skip
     figures["personalize_s"] = round(time.perf_counter() - t, 1)
@@ -118,7 +139,7 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int) -> dict:
     t = time.perf_counter()
     closed = json.loads(prop(
         "eval", out / name, "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--metric", task.METRIC,
-        "--key-file", out / "user.key", "--original", out / "act", "--episodes", episodes,
+        "--key-file", out / "user.key", "--original", out / kind, "--episodes", episodes,
         "--max-steps", task.HORIZON, "--ignore-terminated", "--json",
         capture=True,
     ))  # fmt: skip
@@ -137,11 +158,11 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int) -> dict:
     return figures
 
 
-def attack(out: Path, name: str) -> None:
+def attack(out: Path, name: str, kind: str) -> None:
     t = time.perf_counter()
     audit = out / ("audit.json" if name == "bundle" else f"audit-{name}.json")
     prop("attack", out / name, "--data", out / "reach-user", "--key-file", out / "user.key",
-         "--original", out / "act", "--json", audit)  # fmt: skip
+         "--original", out / kind, "--json", audit, *SETTINGS[kind]["attack"])  # fmt: skip
     report = json.loads(audit.read_text())
     u = report["user"]
     print(f"\n{name}: audit ({time.perf_counter() - t:.0f} s): user key personalization "

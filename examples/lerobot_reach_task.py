@@ -1,4 +1,5 @@
-"""PandaReach (panda-gym) as a LeRobot task: scripted-expert recording, a small ACT, its training loop.
+"""PandaReach (panda-gym) as a LeRobot task: scripted-expert recording, a small ACT or Diffusion Policy,
+their training loop.
 
 Nobody labels anything: the general behaviour is a scripted expert reaching the goal; the user's
 preference is the same expert holding the end effector 10 cm above it. Both are recorded into local
@@ -99,7 +100,33 @@ def build_act(stats: dict | None = None, **overrides):
     return policy, pre, post
 
 
-def dataset_stats(root: Path) -> dict:
+def build_diffusion(stats: dict | None = None, features: dict | None = None, **overrides):
+    """A small Diffusion Policy: U-Net down_dims 32/64/128 (1.1 M parameters with state inputs), horizon
+    16, 8 actions per query, 2 observation frames, DDPM with 100 training and 10 inference steps."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    inputs = features or {
+        STATE: PolicyFeature(FeatureType.STATE, (6,)), ENV_STATE: PolicyFeature(FeatureType.ENV, (3,))
+    }  # fmt: skip
+    settings = dict(
+        input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
+        device="cpu", n_obs_steps=2, horizon=16, n_action_steps=8, down_dims=(32, 64, 128), kernel_size=5,
+        n_groups=8, diffusion_step_embed_dim=64, num_train_timesteps=100, num_inference_steps=10,
+        crop_shape=None, pretrained_backbone_weights=None, use_group_norm=True,
+    )  # fmt: skip
+    cfg = DiffusionConfig(**(settings | overrides))
+    policy = DiffusionPolicy(cfg)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+    return policy, pre, post
+
+
+BUILDERS = {"act": build_act, "diffusion": build_diffusion}
+
+
+def dataset_stats(root: Path, keys: tuple[str, ...] = (STATE, ENV_STATE, ACTION)) -> dict:
     """The root's meta/stats.json as the normaliser takes it (mean/std/min/max tensors per feature)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
@@ -107,22 +134,26 @@ def dataset_stats(root: Path) -> dict:
     return {
         k: {s: torch.as_tensor(np.asarray(v), dtype=torch.float32) for s, v in meta.stats[k].items()
             if s in ("mean", "std", "min", "max")}
-        for k in (STATE, ENV_STATE, ACTION)
+        for k in keys
     }  # fmt: skip
 
 
-def train_base(root: Path, out: Path, steps: int, batch: int = 32, lr: float = 3e-4, seed: int = 0) -> float:
+def train_base(
+    root: Path, out: Path, steps: int, batch: int = 32, lr: float = 3e-4, seed: int = 0, kind: str = "act",
+    built: tuple | None = None,
+) -> float:  # fmt: skip
     """LeRobot's training step (lerobot_train.update_policy: forward -> backward -> clip 10 -> AdamW) on
-    the dataset held in memory; writes the policy folder with save_pretrained. Returns ms per step."""
+    the dataset held in memory; writes the policy folder with save_pretrained. Returns ms per step.
+    ``kind``: act or diffusion (the small builds above); ``built``: (policy, pre, post) built already."""
     import time
 
-    from prop_cli.adapters.lerobot import LeRobotPolicy
+    from prop_cli.adapters.lerobot.adapter import PROTOCOLS
     from prop_cli.datasources import load_data
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    policy, pre, post = build_act(dataset_stats(root))
-    data = LeRobotPolicy(policy, pre, post).batches(load_data(root), "--data")
+    policy, pre, post = built or BUILDERS[kind](dataset_stats(root))
+    data = PROTOCOLS[policy.config.type](policy, pre, post).batches(load_data(root), "--data")
     data.pop("episode_index")
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=1e-4)
     policy.train()

@@ -41,7 +41,7 @@ from prop_cli.core.key_files import (
     user_keys,
 )
 from prop_cli.core.keyed_model import key_codes
-from prop_cli.core.layers import linear_layers, select_layers
+from prop_cli.core.layers import describe_layer, keyable_layers, select_layers
 from prop_cli.core.passphrase import check_strength as check_passphrase
 from prop_cli.core.passphrase import strength
 from prop_cli.datasources import SOURCES, load_data
@@ -126,20 +126,27 @@ def inspect_checkpoint(
     layers: list[str] | None = None,
     exclude: list[str] | None = None,
 ) -> dict:
-    """The linear layers of a checkpoint, which of them would be keyed, and what its adapter knows."""
+    """The linear layers and convolutions of a checkpoint, which of them would be keyed, and what its
+    adapter knows. ``keyed_parameters``: the weights and biases of the keyed layers, the parameters a key
+    acts on (``keyed_share`` of all)."""
     loaded = _load(path, opts)
     default = loaded.policy.default_layers if loaded.policy is not None else None
     chosen = set(select_layers(loaded.module, layers or default, exclude))
+    total = _parameters(loaded.module)
+    rows = [
+        {**describe_layer(n, m), "kind": type(m).__name__, "parameters": _parameters(m), "keyed": n in chosen}
+        for n, m in keyable_layers(loaded.module)
+    ]
+    keyed = sum(r["parameters"] for r in rows if r["keyed"])
     return {
         "checkpoint": str(path),
         "adapter": loaded.spec["adapter"],
         "model": adapters.describe(loaded),
         "input_shape": list(loaded.input_shape) if loaded.input_shape else None,
-        "parameters": _parameters(loaded.module),
-        "layers": [
-            {"name": n, "in_features": m.in_features, "out_features": m.out_features, "keyed": n in chosen}
-            for n, m in linear_layers(loaded.module)
-        ],
+        "parameters": total,
+        "keyed_parameters": keyed,
+        "keyed_share": keyed / total if total else 0.0,
+        "layers": rows,
     }
 
 
@@ -221,6 +228,12 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
     return x
 
 
+def _seed_noise(loaded: adapters.LoadedModel, seed: int) -> None:
+    """A sampling policy draws its chunks' noise from ``seed`` (others have no noise)."""
+    if loaded.policy is not None:
+        loaded.policy.noise_seed = int(seed)
+
+
 def _array_model(bundle: Bundle, command: str) -> Bundle:
     """Refuse, in one line, policies with named observation features where a command has no policy
     path yet (ONNX)."""
@@ -253,14 +266,17 @@ def run_file(
     force: bool = False,
     threads: int | None = None,
     trust_remote_code: bool = False,
+    noise_seed: int = 0,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
     With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing runs the
-    bundle's base with a warning; a bundle changed since the key was enrolled is refused."""
+    bundle's base with a warning; a bundle changed since the key was enrolled is refused.
+    ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    _seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     use_onnx = onnx or onnx_dir is not None
@@ -304,10 +320,11 @@ def audit_bundle(
     check_threads(threads)
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     configure_threads(bundle.parameters, threads)
+    _seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
-    ref = target.load_original(bundle, original, trust_remote_code) if original else None
+    ref = target.load_original(bundle, original, trust_remote_code, settings.noise_seed) if original else None
     report = audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
     if passphrase is not None:
         # What guessing the passphrase offline costs: any record, enrolment or encoder tests a guess.
@@ -371,6 +388,9 @@ def eval_bundle(
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
     ref = _load(original, CheckpointOptions(trust_remote_code=trust_remote_code)) if original else None
+    for loaded in (bundle.loaded, ref):
+        if loaded is not None:
+            _seed_noise(loaded, settings.noise_seed)
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,

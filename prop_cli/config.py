@@ -172,12 +172,15 @@ class AuditSettings(_Settings):
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
     # The passphrase row (--passphrase): fails when guessing it would take fewer core-years than this.
     min_passphrase_years: float = PASSPHRASE_MIN_YEARS
+    # A sampling policy's chunks (LeRobot Diffusion) start from this seed's noise, for every key and
+    # the original alike: outputs compare as functions of the key alone.
+    noise_seed: int = 0
 
     def validate(self, key_bits: int, has_key: bool, known_probes: list[str]) -> AuditSettings:
         if self.fewshot_restarts is None:
             self.fewshot_restarts = FEWSHOT_RESTARTS
         self.at_least(per_distance=1, random=0, restarts=1, search_steps=1, samples=2, fewshot_restarts=1,
-                      fewshot_steps=1)  # fmt: skip
+                      fewshot_steps=1, noise_seed=0)  # fmt: skip
         self.need(self.min_passphrase_years >= 0, "min_passphrase_years", ">= 0")
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
@@ -265,9 +268,12 @@ class EvalSettings(_Settings):
     # the goal): a preference judged at the episode's end needs the whole episode under every key.
     ignore_terminated: bool = False
     seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
+    # A sampling policy's noise (LeRobot Diffusion): each query of an episode is seeded from (noise_seed,
+    # the episode's seed, the query's number), the same under every key (prop_cli.adapters.lerobot).
+    noise_seed: int = 0
 
     def validate(self, has_key: bool) -> EvalSettings:
-        self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0)
+        self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0, noise_seed=0)
         self.need(self.max_steps >= 0, "max_steps", ">= 0 (0: the environment's limit)")
         if self.neighbours and not has_key:
             self.neighbours = 0  # neighbours are keys a few bits from the user's: none without it

@@ -7,6 +7,7 @@ BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
 LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
+LEROBOT_TYPES = ("act", "diffusion")  # LeRobot policy types prop trains (manifest model.type)
 RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
 RECORD_SUFFIX = ".sealed"
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Create .venv-lerobot: prop plus lerobot 0.4.4 on the CPU torch wheel, for the LeRobot adapter, the
 # LeRobot data source and `pytest -m lerobot`. Kept apart from .venv: never part of the default install
-# or CI.
+# (.ci/run builds it too, for the LeRobot tests).
 #
 # Why not `pip install lerobot`: lerobot 0.4.4 pins torch<2.11, and PyPI serves only CUDA builds of torch
 # 2.10 for Linux (with ~4.3 GB of nvidia-* wheels and triton: an 8.3 GB environment, measured). So torch

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Build (or reuse) .venv-lerobot and run the LeRobot tests: pytest -m lerobot. Not part of CI.
+# Build (or reuse) .venv-lerobot and run the LeRobot tests: pytest -m lerobot. .ci/run runs it after the
+# default suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup-lerobot.sh

@@ -72,10 +72,49 @@ class PolicyProtocol(ABC):
 
     Batches are dicts of tensors in the policy's normalised units, one row per frame, with the action
     chunk (``action``) and its padding mask where the policy has them.
+
+    Where policies differ in training, this is the one place: the user term (``loss``), the fallback
+    term's rows, output and target (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and
+    the deployed chunk (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
+    the fallback distils the original's chunk, L1. A denoising policy (Diffusion) distils the original's
+    denoiser on the same (observation, x_t, t) instead, and draws its chunks' noise from ``noise_seed``.
     """
 
-    default_layers: ClassVar[list[str]]  # regexes over linear-layer names keyed when --layers is not given
+    default_layers: ClassVar[list[str]]  # regexes over layer names keyed when --layers is not given
     fallbacks: ClassVar[tuple[str, ...]]  # fallback terms this policy supports, the default first
+    # Seed of the noise a sampling policy's chunks start from (`--noise-seed`); unused by the others.
+    noise_seed: int = 0
+
+    @abstractmethod
+    def on(self, module: torch.nn.Module) -> PolicyProtocol:
+        """The same policy (processors, noise seed) over ``module``, a copy with the same layers."""
+
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        """The rows the fallback term samples from and the original's output on each, drawn once before
+        training (``chunks``: the original's deployed chunk per frame of ``batch``). Default: the frames
+        themselves, their targets the chunks (a deterministic policy's, cached as targets)."""
+        return batch, chunks
+
+    def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """What the fallback term compares between the keyed policy and the original (eval mode)."""
+        return self.chunk(batch)
+
+    def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Per-row distance of the fallback term: L1 (ACT's own loss) by default."""
+        return (pred - target).abs().flatten(1).mean(1)
+
+    @property
+    def row_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Per-row shape of each observation feature in a batch (a policy with an observation history
+        has a time axis first); the environment gives ``input_features``."""
+        return self.input_features
+
+    def describe(self) -> dict:
+        """What `prop inspect` shows of this policy beyond its adapter's fields."""
+        return {}
 
     @abstractmethod
     def batches(self, data, flag: str) -> dict[str, torch.Tensor]:

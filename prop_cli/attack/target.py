@@ -63,9 +63,11 @@ def policy_settings(settings: AuditSettings) -> AuditSettings:
     return settings
 
 
-def load_original(bundle: Bundle, path: str, trust_remote_code: bool = False) -> nn.Module:
+def load_original(
+    bundle: Bundle, path: str, trust_remote_code: bool = False, noise_seed: int = 0
+) -> nn.Module:
     """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
-    flat view, as the bundle is audited)."""
+    flat view, as the bundle is audited, its chunks sampled from ``noise_seed`` like the bundle's)."""
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
@@ -77,6 +79,7 @@ def load_original(bundle: Bundle, path: str, trust_remote_code: bool = False) ->
             "pass the checkpoint the bundle was personalized from",
         ) from None
     if loaded.policy is not None:
+        loaded.policy.noise_seed = noise_seed
         return flat_module(loaded.policy)
     return loaded.module.eval()
 

@@ -182,7 +182,7 @@ ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
         "sb3_version": _opt(text(), nullable=True),
     },
     "module": {"arch": text(), "arch_kwargs": RECORD},
-    "lerobot": {"type": choice(("act",)), "lerobot_version": text()},
+    "lerobot": {"type": choice(C.LEROBOT_TYPES), "lerobot_version": text()},
     "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
 }
 
@@ -194,6 +194,16 @@ KDF_RECORD = obj({
     "salt": hex_string(8, 64),
 })  # fmt: skip
 
+# One keyed layer of a sealed payload; a convolution's adds kernel and groups (core.layers.describe_layer).
+PAYLOAD_LAYER = obj(
+    {
+        "name": NAME,
+        "in_features": DIM,
+        "out_features": DIM,
+        "kernel": _opt(list_of(DIM, 1, 3)),
+        "groups": _opt(DIM),
+    }
+)
 # The manifest, field by field (keys in prop_cli.constants).
 SCHEMA: dict[str, Rule] = {
     C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
@@ -237,7 +247,7 @@ SCHEMA: dict[str, Rule] = {
             {
                 "kind": choice(PAYLOAD_KINDS),
                 "rank": integer(0, MAX_DIM),
-                "layers": list_of(obj({"name": NAME, "in_features": DIM, "out_features": DIM}), 1),
+                "layers": list_of(PAYLOAD_LAYER, 1),
             }
         ),
         SEALED,
@@ -471,17 +481,19 @@ def parse(raw: bytes, source: str) -> dict:
 
 
 def check_layers(layers: list[dict], module, source: str) -> None:
-    """Each keyed layer is a linear layer of ``module`` with the recorded input width."""
-    from torch import nn
+    """Each keyed layer is a linear layer or convolution of ``module`` with the recorded input width."""
+    from prop_cli.core.layers import KEYABLE, in_width
 
     mods = dict(module.named_modules())
     for i, layer in enumerate(layers):
         m = mods.get(layer["name"])
         where = f"{C.M_KEYED_LAYERS}[{i}]"
-        if not isinstance(m, nn.Linear):
-            raise _doc(source).bad(f"{where}.name", f"names no linear layer of the model ({layer['name']!r})")
-        if m.in_features != layer["features"]:
+        if not isinstance(m, KEYABLE):
+            raise _doc(source).bad(
+                f"{where}.name", f"names no linear layer or convolution of the model ({layer['name']!r})"
+            )
+        if in_width(m) != layer["features"]:
             raise _doc(source).bad(
                 f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
-                f"{m.in_features} inputs",
+                f"{in_width(m)} inputs",
             )  # fmt: skip

@@ -97,7 +97,7 @@ def run_policy(bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str 
     policy = bundle.loaded.policy
     module = module_for_key(bundle, key)
     if module is not bundle.loaded.module:
-        policy = type(policy)(module, policy.pre, policy.post)
+        policy = policy.on(module)
     batch = policy.batches(replace(data, y=None), flag)
     n = len(batch["episode_index"])
     feats = {k: batch[k] for k in policy.input_features}

@@ -29,6 +29,7 @@ SETTINGS = {
     "blackbox_keep": "Black-box keys kept per criterion and re-scored.",
     "seed": "Seed for probe keys, samples and search restarts.",
     "min_passphrase_years": "With --passphrase: fail if guessing it takes fewer core-years than this.",
+    "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion): every key's chunks start from it.",
 }
 
 

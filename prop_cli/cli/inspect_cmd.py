@@ -11,7 +11,8 @@ def inspect(
     layers: Layers = None, exclude: Exclude = None, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
-    """List the linear layers of a checkpoint, which ones would be keyed, and what prop knows of it."""
+    """List the linear layers and convolutions of a checkpoint, which ones would be keyed (and their share of
+    the parameters), and what prop knows of it."""
     from rich.table import Table
 
     from prop_cli.api import inspect_checkpoint
@@ -23,18 +24,21 @@ def inspect(
         return
     model = info["model"]
     known = ", ".join(f"{k} {v}" for k, v in model.items() if k != "adapter" and v is not None)
+    keyed = f"{info['keyed_parameters']:,} keyed ({100 * info['keyed_share']:.1f}%)"
+    size = f"{info['parameters']:,} parameters, {keyed}"
     table = Table(
-        title=f"{Path(checkpoint).name}: {info['adapter']} adapter, {info['parameters']:,} parameters"
-        + (f"\n{known}" if known else ""),
+        title=f"{Path(checkpoint).name}: {info['adapter']} adapter, {size}" + (f"\n{known}" if known else ""),
         title_justify="left",
     )
-    for col in ("layer", "in", "out", "keyed"):
+    for col in ("layer", "kind", "in", "out", "parameters", "keyed"):
         table.add_column(col)
     for layer in info["layers"]:
         table.add_row(
             layer["name"],
+            layer["kind"],
             str(layer["in_features"]),
             str(layer["out_features"]),
+            f"{layer['parameters']:,}",
             "yes" if layer["keyed"] else "",
         )
     out.print(table)

@@ -24,6 +24,11 @@ def run(
     ] = False,
     onnx_dir: OnnxDir = None,
     threads: Threads = DEFAULT_THREADS,
+    noise_seed: Annotated[
+        int,
+        typer.Option("--noise-seed", min=0, help="Seed of a sampling policy's noise (LeRobot Diffusion): "
+                     "each frame's chunk is LeRobot's after torch.manual_seed(N)."),
+    ] = 0,
     as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False,
 ) -> None:
@@ -33,6 +38,7 @@ def run(
     result = run_file(
         bundle, input_path, output, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         onnx=onnx, onnx_dir=onnx_dir, force=force, threads=threads, trust_remote_code=trust_remote_code,
+        noise_seed=noise_seed,
     )  # fmt: skip
     if as_json:
         print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,

@@ -1,4 +1,5 @@
-"""The keyed model (paper Eq. 5): ``z -> W diag(delta) z + b`` at chosen linear layers.
+"""The keyed model (paper Eq. 5): ``z -> W diag(delta) z + b`` at chosen linear layers, and at
+convolutions with one delta per input channel (``prop_cli.core.layers``).
 
 The key transform is attached with forward pre-hooks, so the module tree and its state-dict names are
 exactly the loaded checkpoint's. With no key the hooks do nothing: the model *is* the loaded module.
@@ -20,6 +21,8 @@ from torch import nn
 
 from prop_cli.constants import KEY_ENCODINGS
 from prop_cli.errors import PropError
+
+from .layers import is_conv, scale_inputs
 
 # Domain separation for the hashed key code; changing it changes every trained bundle's meaning.
 _CODE_DOMAIN = b"prop/key-code/v1"
@@ -140,12 +143,15 @@ class KeyedModel(nn.Module):
 
     def _make_hook(self, i: int):
         name = self.layer_names[i]
+        conv = is_conv(dict(self.module.named_modules())[name])
 
         def pre(mod: nn.Module, args: tuple):
             rows = self._rows
             if rows is None:
                 return None
             z = args[0]
+            if conv:
+                return (self._channels(rows, i, z), *args[1:])
             axis = self.batch_axis.get(name, 0)
             if axis:
                 if rows.grid or rows.sample_index is not None:  # sharing assumes the batch on axis 0
@@ -164,6 +170,29 @@ class KeyedModel(nn.Module):
             return (z * d, *args[1:])
 
         return pre
+
+    @staticmethod
+    def _channels(rows: _Rows, i: int, z: torch.Tensor) -> torch.Tensor:
+        """A convolution's input (B, C, *spatial): each row's channels scaled by that row's delta, in the
+        same three modes as a linear layer's features (rows, grid first / later layer)."""
+        d = rows.deltas[i]
+        spatial = [1] * (z.dim() - 2)
+        if rows.grid:
+            k = d.shape[0]
+            view = d.view(k, 1, d.shape[1], *spatial)
+            if not rows.gathered:
+                rows.gathered, rows.samples = True, z.shape[0]
+                return (z.unsqueeze(0) * view).reshape(k * z.shape[0], *z.shape[1:])
+            b = rows.samples
+            if z.shape[0] != k * b:
+                raise _RowMismatch()
+            return (z.view(k, b, *z.shape[1:]) * view).reshape(k * b, *z.shape[1:])
+        if rows.sample_index is not None and not rows.gathered:
+            z = z.index_select(0, rows.sample_index)
+            rows.gathered = True
+        if z.shape[0] != d.shape[0] and d.shape[0] != 1:
+            raise _RowMismatch()
+        return z * d.view(d.shape[0], d.shape[1], *spatial)
 
     @staticmethod
     def _along(d: torch.Tensor, z: torch.Tensor, axis: int) -> torch.Tensor:
@@ -324,7 +353,8 @@ class KeyedModel(nn.Module):
         for name, d in zip(self.layer_names, self.layer_deltas(codes[:1])):
             # The copy carries our hooks along; drop them so it is a plain module.
             mods[name]._forward_pre_hooks.pop(self._hook_ids[name], None)
-            mods[name].weight.mul_(d[0].to(mods[name].weight.dtype)[None, :])
+            w = mods[name].weight
+            w.mul_(scale_inputs(w, d[0].to(w.dtype)))
         return folded
 
 

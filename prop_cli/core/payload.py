@@ -7,6 +7,11 @@ Kinds (``PAYLOAD_KINDS``), per keyed linear layer with weight W (out, in):
 - ``lora``: (W + B A) diag(delta), B (out, r) and A (r, in): Eq. 5 plus a low-rank update.
 - ``full``: W + D and b + d: every weight of the keyed layers.
 
+A keyed convolution (weight (out, in / groups, *kernel)) has one delta per input channel; its LoRA
+update is low-rank in the flattened kernel, B (out, r) A (r, in / groups * prod(kernel)) reshaped to
+the weight: the same update as peft's convolution LoRA (A a conv with the layer's kernel, B a 1x1
+conv), merged. ``full`` adds a tensor of the weight's shape.
+
 Every kind starts at the base behaviour (delta = 1, B = 0, D = 0). The payload is applied with
 weight parametrizations, so the module tree and its state-dict names stay the checkpoint's, and
 it works where a layer's weight is read without calling the layer (e.g. attention projections).
@@ -27,11 +32,15 @@ from torch.nn.utils import parametrize
 from prop_cli.config import PAYLOAD_KINDS
 from prop_cli.errors import PropError
 
+from .layers import kernel_fan_in, scale_inputs
+
 
 @dataclass
 class PayloadSpec:
     kind: str
-    layers: list[dict]  # [{"name": str, "in_features": int, "out_features": int}] in module order
+    # [{"name": str, "in_features": int, "out_features": int}] in module order; a convolution's record
+    # adds "kernel" (its sizes) and "groups" (core.layers.describe_layer)
+    layers: list[dict]
     rank: int = 0  # lora only
 
     def validate(self) -> PayloadSpec:
@@ -55,13 +64,14 @@ def _tensor_shapes(spec: PayloadSpec) -> dict[str, tuple[int, ...]]:
     shapes: dict[str, tuple[int, ...]] = {}
     for layer in spec.layers:
         n, i, o = layer["name"], int(layer["in_features"]), int(layer["out_features"])
+        kernel = tuple(int(k) for k in layer.get("kernel", ()))
         if spec.kind == "full":
-            shapes[f"{n}.weight_delta"] = (o, i)
+            shapes[f"{n}.weight_delta"] = (o, i // int(layer.get("groups", 1)), *kernel) if kernel else (o, i)
             shapes[f"{n}.bias_delta"] = (o,)
             continue
         shapes[f"{n}.delta"] = (i,)
         if spec.kind == "lora":
-            shapes[f"{n}.lora_a"] = (spec.rank, i)
+            shapes[f"{n}.lora_a"] = (spec.rank, kernel_fan_in(layer))
             shapes[f"{n}.lora_b"] = (o, spec.rank)
     return shapes
 
@@ -93,8 +103,9 @@ class Payload(nn.Module):
         if self.spec.kind == "full":
             return w + self.tensor(layer, "weight_delta")
         if self.spec.kind == "lora":
-            w = w + self.tensor(layer, "lora_b") @ self.tensor(layer, "lora_a")
-        return w * self.tensor(layer, "delta")[None, :]
+            update = self.tensor(layer, "lora_b") @ self.tensor(layer, "lora_a")
+            w = w + (update if w.dim() == 2 else update.view_as(w))
+        return w * scale_inputs(w, self.tensor(layer, "delta"))
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {name: self.params[k].detach().cpu() for name, k in self._keys.items()}
@@ -141,7 +152,7 @@ class Payload(nn.Module):
         mods = dict(folded.named_modules())
         for layer in self.spec.layers:
             lin = mods[layer["name"]]
-            lin.weight.copy_(self.weight(layer["name"], lin.weight).to(lin.weight.dtype))
+            lin.weight.copy_(self.weight(layer["name"], lin.weight).to(lin.weight.dtype))  # or a conv's
             if self.spec.kind == "full" and lin.bias is not None:
                 lin.bias.add_(self.tensor(layer["name"], "bias_delta").to(lin.bias.dtype))
         return folded

@@ -122,7 +122,7 @@ class _ArrayController:
         self.policy = KeyedPolicy(bundle, key, method=method)
         self.prepare = prepare
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         pass
 
     def act(self, obs) -> np.ndarray:
@@ -174,7 +174,7 @@ def _episodes(
     results = []
     for n, seed in enumerate(seeds):
         obs, _ = env.reset(seed=int(seed))
-        controller.reset()
+        controller.reset(int(seed))  # a sampling policy's noise follows the episode's seed (paired)
         film = frames is not None and n == 0
         if film:
             frames.append(_frame(env))

@@ -13,7 +13,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.core.device import resolve_device
 from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.layers import select_layers
+from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import split
 
@@ -171,7 +171,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     with encoder_init(cfg):
         encoder = KeyEncoder(
             code_bits=len(users[0].key_bits),
-            features=[mods[n].in_features for n in names],
+            features=[in_width(mods[n]) for n in names],
             hidden=cfg.encoder_hidden,
             scale=cfg.delta_scale,
         )

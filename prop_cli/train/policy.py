@@ -1,12 +1,14 @@
-"""Recipe: a policy that brings its own loss (LeRobot ACT), unsealed: Eq. 8 with the policy's own terms.
+"""Recipe: a policy that brings its own loss (LeRobot ACT, Diffusion), unsealed: Eq. 8 with the policy's
+own terms, which the policy protocol (``PolicyProtocol``) supplies.
 
 User term: the policy's own training loss (ACT: L1 on the action chunk, padding masked, plus its
-VAE's KL) on the user's frames, every row under the user's key. Fallback terms (the null key, weighted
-by ``null_weight``; K1 Hamming neighbours and K2 random keys): L1 between the keyed policy's deployed
-chunk and the frozen original's chunk on general observations, the targets computed once
-("distill"). Measured against the policy's loss on general data and against relabelled actions, the
-distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest to
-the original's (examples/RESULTS.md, "LeRobot ACT").
+VAE's KL; Diffusion: its noise-prediction MSE) on the user's frames, every row under the user's key.
+Fallback terms (the null key, weighted by ``null_weight``; K1 Hamming neighbours and K2 random keys)
+distil the frozen original on general observations ("distill"): ACT's deployed chunk, L1, the targets
+computed once; Diffusion's denoiser on the same (observation, x_t, t) rows, MSE, the original run on
+each step's rows. Measured against the policy's loss on general data and against relabelled actions,
+the distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest
+to the original's (examples/RESULTS.md, "LeRobot ACT").
 
 Two forwards per step: the user rows in training mode (the policy's loss needs its training path),
 the fallback rows in eval mode (the path the policy is deployed with). Rows carry their own keys.
@@ -24,7 +26,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.key_sampling import KeySampler, one_bit_neighbours, random_keys
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
-from prop_cli.core.layers import select_layers
+from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
@@ -88,11 +90,16 @@ class PolicyTrainer:
         fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
         self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
         self.original = copy.deepcopy(module).requires_grad_(False).eval()
-        self.original_policy = type(policy)(self.original, policy.pre, policy.post)
-        self.targets = chunks(self.original_policy, self.fb)
+        self.original_policy = policy.on(self.original)
+        # The fallback term's rows and the original's output on each, drawn once (the policy decides:
+        # ACT: the frames and the original's chunks; Diffusion: noised chunks and its denoiser's output).
+        self.fb_rows, self.targets = policy.fallback_pool(
+            self.fb, chunks(self.original_policy, self.fb), self.original_policy,
+            torch.Generator().manual_seed(cfg.seed),
+        )  # fmt: skip
 
         mods = dict(module.named_modules())
-        features = [mods[n].in_features for n in names]
+        features = [in_width(mods[n]) for n in names]
         encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
         self.km = KeyedModel(module, encoder, names)
         self.km.batch_axis = probe_batch_axes(
@@ -129,9 +136,9 @@ class PolicyTrainer:
         deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
         pred = km.call_rows(
-            [d.index_select(0, key_of_row) for d in deltas], policy.chunk, rows(self.fb, idx)
+            [d.index_select(0, key_of_row) for d in deltas], policy.fallback_output, rows(self.fb_rows, idx)
         )
-        per_row = (pred - self.targets[idx]).abs().flatten(1).mean(1)
+        per_row = policy.fallback_distance(pred, self.targets[idx])
         null = per_row[: len(gi)].mean()
         keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
         self.optim.update(personal + keyed + cfg.null_weight * null)

@@ -25,7 +25,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.core import metrics
 from prop_cli.core.key_files import kdf_record, new_salt
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
-from prop_cli.core.layers import select_layers
+from prop_cli.core.layers import describe_layer, select_layers
 from prop_cli.core.payload import PayloadSpec
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
@@ -37,10 +37,7 @@ from .report import eval_rng, outputs_report
 
 def payload_spec(module: nn.Module, cfg: PersonalizeConfig) -> PayloadSpec:
     mods = dict(module.named_modules())
-    names = select_layers(module, cfg.layers, cfg.exclude)
-    layers = [
-        {"name": n, "in_features": mods[n].in_features, "out_features": mods[n].out_features} for n in names
-    ]
+    layers = [describe_layer(n, mods[n]) for n in select_layers(module, cfg.layers, cfg.exclude)]
     return PayloadSpec(cfg.payload, layers, cfg.payload_rank if cfg.payload == "lora" else 0).validate()
 
 

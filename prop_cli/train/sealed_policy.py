@@ -1,6 +1,6 @@
-"""Recipe: a policy with its own loss (LeRobot ACT), sealed: each user's payload trained on their frames
-alone with the policy's own loss, the base frozen (it stays the original). No fallback terms: a wrong
-key opens no record and the original runs."""
+"""Recipe: a policy with its own loss (LeRobot ACT, Diffusion), sealed: each user's payload trained on
+their frames alone with the policy's own loss, the base frozen (it stays the original). No fallback
+terms: a wrong key opens no record and the original runs."""
 
 from __future__ import annotations
 
@@ -73,7 +73,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
         out = []
         for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
             payload, losses = train_payload(loaded, spec, tr, cfg, i, job.progress)
-            folded = type(policy)(payload.fold(module), policy.pre, policy.post)
+            folded = policy.on(payload.fold(module))
             b, o, p = chunks(policy, val), chunks(folded, val), val["action"]
             private = private_report(o, p, b, "regression", losses, cfg)
             flat_val = flat_chunks(policy, val, datasets[i - first_index].path)

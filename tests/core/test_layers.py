@@ -82,7 +82,7 @@ def test_default_is_every_linear_layer_but_the_first():
 @pytest.mark.parametrize(
     "patterns,exclude,match",
     [
-        (["nope"], None, r"--layers 'nope' matches no linear layer; use an exact name.*action_net"),
+        (["nope"], None, r"--layers 'nope' matches no linear layer or convolution; use .*action_net"),
         (["norm"], None, "matches no linear layer"),  # a module, but not a linear one
         (["(unclosed"], None, "not a valid regex"),
         (None, ["nope"], "--exclude 'nope' matches no linear layer"),

@@ -3,6 +3,14 @@
 functions of ``adapter``: it is an optional environment (scripts/setup-lerobot.sh)."""
 
 from .adapter import LeRobotAdapter
+from .diffusion import DIFFUSION_LAYERS, DiffusionPolicy
 from .policy import ACT_LAYERS, Controller, LeRobotPolicy
 
-__all__ = ["ACT_LAYERS", "Controller", "LeRobotAdapter", "LeRobotPolicy"]
+__all__ = [
+    "ACT_LAYERS",
+    "DIFFUSION_LAYERS",
+    "Controller",
+    "DiffusionPolicy",
+    "LeRobotAdapter",
+    "LeRobotPolicy",
+]

@@ -6,9 +6,9 @@ LeRobot's; the bundle carries the folder's config and processor files byte for b
 weights, so its ``lerobot/`` folder loads back with ``from_pretrained``.
 
 lerobot is optional (scripts/setup-lerobot.sh builds its environment) and imported only here, inside
-functions. Supported: ACT (``policy.LeRobotPolicy`` is how prop trains and runs it). Diffusion is refused:
-its actions come out of an iterative sampler, so there is no deterministic action output to distil the
-fallback terms against (see CHANGELOG).
+functions. Supported: ACT (``policy.LeRobotPolicy`` is how prop trains and runs it) and Diffusion
+(``diffusion.DiffusionPolicy``: its denoiser is the fallback term's output, its chunks are sampled from
+a seeded noise). Other types (pi0, SmolVLA, ...) are refused in one line.
 """
 
 from __future__ import annotations
@@ -24,9 +24,10 @@ import torch
 from prop_cli.adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
 from prop_cli.adapters.folder import CONFIG, WEIGHTS, read_config
 from prop_cli.adapters.weights import read_weights
-from prop_cli.constants import LEROBOT_DIR
+from prop_cli.constants import LEROBOT_DIR, LEROBOT_TYPES
 from prop_cli.errors import PropError
 
+from .diffusion import DiffusionPolicy
 from .policy import LeRobotPolicy
 
 PREPROCESSOR = "policy_preprocessor.json"
@@ -35,7 +36,9 @@ PROCESSORS = "policy_*processor*.json"  # the pipelines LeRobot reads: pre- and 
 # downloads a file would choose, so they need --trust-remote-code like an import path does.
 LOADS_BY_NAME = ("tokenizer", "classifier", "groot", "xvla", "pi0", "smolvla")
 FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
-SUPPORTED = ("act",)
+PROTOCOLS = {"act": LeRobotPolicy, "diffusion": DiffusionPolicy}  # policy type -> how prop trains it
+SUPPORTED = LEROBOT_TYPES
+assert set(PROTOCOLS) == set(SUPPORTED)
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
 
 
@@ -86,12 +89,6 @@ def _folder_files(folder: Path) -> dict[str, bytes]:
 
 def _check_type(config: dict, where: str) -> str:
     kind = config.get("type")
-    if kind == "diffusion":
-        raise PropError(
-            f"{where}: diffusion policies have no deterministic action output to distil the fallback "
-            "terms against",
-            "prop supports LeRobot act policies in this version",
-        )
     if kind not in SUPPORTED:
         raise PropError(
             f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(SUPPORTED)}"
@@ -127,8 +124,8 @@ def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
 class LeRobotAdapter(Adapter):
     name = "lerobot"
     summary = (
-        "a LeRobot policy folder: config.json (type act) + model.safetensors + policy_preprocessor.json "
-        "and the other processor files, loaded by LeRobot (scripts/setup-lerobot.sh)"
+        "a LeRobot policy folder: config.json (type act or diffusion) + model.safetensors + "
+        "policy_preprocessor.json and the other processor files, loaded by LeRobot (scripts/setup-lerobot.sh)"
     )
 
     def recognise(self, path: Path, options: CheckpointOptions) -> bool:
@@ -164,7 +161,7 @@ class LeRobotAdapter(Adapter):
             input_shape=None,
             source=source,
             continuous=True,
-            policy=LeRobotPolicy(module, pre, post),
+            policy=PROTOCOLS[policy.config.type](module, pre, post),
             files=files,
             base_alias=f"{FOLDER_IN_BUNDLE}/{WEIGHTS}",
         )
@@ -181,7 +178,7 @@ class LeRobotAdapter(Adapter):
 
     def describe(self, loaded: LoadedModel) -> dict:
         info = super().describe(loaded)
-        c = loaded.module.config
-        info.update(type=c.type, lerobot_version=loaded.spec.get("lerobot_version"), chunk_size=c.chunk_size)
+        info.update(type=loaded.module.config.type, lerobot_version=loaded.spec.get("lerobot_version"))
+        info.update(loaded.policy.describe())
         info["inputs"] = {k: list(v) for k, v in loaded.policy.input_features.items()}
         return info

@@ -4,8 +4,10 @@ Policies take named observation features and predict an action chunk. The audit,
 metrics work on one input tensor and one output tensor, so this view flattens both:
 
 - input: the policy's features, each in the policy's normalised units (its preprocessor applied),
-  flattened and concatenated in the order of the policy's config (``input_features``);
-- output: the deployed action chunk (ACT: eval mode, VAE latent 0), flattened, in normalised units.
+  flattened and concatenated in the order of the policy's config (``input_features``; with the
+  policy's observation history where it has one, Diffusion's n_obs_steps frames);
+- output: the deployed action chunk (ACT: eval mode, VAE latent 0; Diffusion: the horizon sampled
+  from the policy's noise seed), flattened, in normalised units.
 
 The recorded chunks a user's data holds are flattened the same way by ``prop_cli.datasources.fit``.
 Metrics on this view are the ones `prop personalize` reports for policies (docs/metrics.md:
@@ -36,7 +38,7 @@ class FlatPolicy(nn.Module):
         for name, child in policy.policy.named_children():
             self.add_module(name, child)
         self.protocol = policy  # not a module attribute of ours: its children are registered above
-        self.layout = [(k, tuple(s)) for k, s in policy.input_features.items()]
+        self.layout = [(k, tuple(s)) for k, s in policy.row_shapes.items()]
         self.width = sum(math.prod(s) for _, s in self.layout)
 
     def __setattr__(self, name: str, value) -> None:

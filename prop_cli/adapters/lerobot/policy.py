@@ -1,7 +1,10 @@
-"""How prop trains and runs a LeRobot policy (ACT) through the policy protocol (``PolicyProtocol``): its
-own loss, its deployed action chunk, its processors, and a closed-loop controller.
+"""How prop trains and runs a LeRobot policy through the policy protocol (``PolicyProtocol``): its own
+loss, its deployed action chunk, its processors, and a closed-loop controller.
 
-No lerobot import here: the policy, preprocessor and postprocessor objects come from ``adapter``.
+``LeRobotPolicy`` is ACT, and what every LeRobot policy shares (batches cut from a dataset's frames with
+the policy's own delta indices, processors, the controller); ``diffusion.DiffusionPolicy`` is what
+differs for Diffusion. No lerobot import here: the policy, preprocessor and postprocessor objects come
+from ``adapter``.
 """
 
 from __future__ import annotations
@@ -25,13 +28,32 @@ class LeRobotPolicy(PolicyProtocol):
     default_layers = ACT_LAYERS
     fallbacks = ("distill",)
 
-    def __init__(self, policy, pre, post) -> None:
+    def __init__(self, policy, pre, post, noise_seed: int = 0) -> None:
         self.policy, self.pre, self.post = policy, pre, post
         self.config = policy.config
+        self.noise_seed = noise_seed
+
+    def on(self, module) -> LeRobotPolicy:
+        return type(self)(module, self.pre, self.post, self.noise_seed)
 
     @property
     def input_features(self) -> dict[str, tuple[int, ...]]:
         return {k: tuple(f.shape) for k, f in self.config.input_features.items()}
+
+    @property
+    def history(self) -> list[int] | None:
+        """The observation frames a row holds, relative to its own (Diffusion: the last n_obs_steps);
+        None: the frame alone, without a time axis (ACT)."""
+        deltas = getattr(self.config, "observation_delta_indices", None)
+        return None if deltas is None else list(deltas)
+
+    @property
+    def row_shapes(self) -> dict[str, tuple[int, ...]]:
+        h = self.history
+        return {k: s if h is None else (len(h), *s) for k, s in self.input_features.items()}
+
+    def describe(self) -> dict:
+        return {"chunk_size": self.config.chunk_size}
 
     def _windows(self, episodes: np.ndarray, deltas: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Row indices t + d for every row t and delta d, clamped to t's episode; and where they fell out."""
@@ -60,7 +82,11 @@ class LeRobotPolicy(PolicyProtocol):
                 )
         order = np.lexsort((x["frame_index"], x["episode_index"]))
         episodes = x["episode_index"][order]
-        out = {k: torch.from_numpy(x[k][order]).float() for k in self.input_features}
+        if self.history is None:
+            out = {k: torch.from_numpy(x[k][order]).float() for k in self.input_features}
+        else:  # each row's observation history, the episode's first frame repeated before it (as LeRobot)
+            obs_idx, _ = self._windows(episodes, self.history)
+            out = {k: torch.from_numpy(x[k][order][obs_idx]).float() for k in self.input_features}
         if data.y is not None:
             want = tuple(self.config.output_features[ACTION].shape)
             if tuple(data.y.shape[1:]) != want:
@@ -98,17 +124,24 @@ class LeRobotPolicy(PolicyProtocol):
         return {k: data[k][idx] for k in self.input_features}
 
     def controller(self, module: torch.nn.Module) -> Controller:
-        return Controller(module, self.pre, self.post, list(self.input_features))
+        return Controller(module, self.pre, self.post, list(self.input_features), self.noise_seed)
 
 
 class Controller:
-    """Closed loop: LeRobot's preprocessor -> select_action (its action queue) -> postprocessor."""
+    """Closed loop: LeRobot's preprocessor -> select_action (its queues) -> postprocessor.
 
-    def __init__(self, module, pre, post, features: list[str]) -> None:
+    LeRobot's samplers (Diffusion's DDPM/DDIM steps) draw from torch's global generator. Each call runs
+    with that generator seeded from (noise seed, the episode's seed, the call's number) and restored
+    afterwards: an episode's noise is reproducible and the same under every key, and nothing else's
+    random stream moves."""
+
+    def __init__(self, module, pre, post, features: list[str], noise_seed: int = 0) -> None:
         self.module, self.pre, self.post, self.features = module.eval(), pre, post, features
+        self.noise_seed, self.episode, self.calls = noise_seed, 0, 0
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         self.module.reset()
+        self.episode, self.calls = int(seed or 0), 0
 
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -118,4 +151,8 @@ class Controller:
             if v.dtype == torch.uint8 and v.dim() == 3:  # an HWC camera frame -> CHW in [0, 1]
                 v = v.permute(2, 0, 1).float() / 255.0
             x[k] = v.float()
-        return self.post(self.module.select_action(self.pre(x)))[0].numpy()
+        seed = np.random.SeedSequence([self.noise_seed, self.episode, self.calls]).generate_state(1)[0]
+        self.calls += 1
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(seed))
+            return self.post(self.module.select_action(self.pre(x)))[0].numpy()

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
+from prop_cli.core.layers import in_width
 
 from .base import Enrolment, KeyScan, ProbeContext, cat_scores
 
@@ -24,7 +25,7 @@ from .base import Enrolment, KeyScan, ProbeContext, cat_scores
 def blank_keyed(module: torch.nn.Module, layer_names: list[str], key_bits: int) -> KeyedModel:
     """``module`` keyed at ``layer_names`` with an untrained encoder: every code runs ``module`` as is."""
     mods = dict(module.named_modules())
-    enc = KeyEncoder(key_bits, [mods[n].in_features for n in layer_names], hidden=[256], scale=2.0)
+    enc = KeyEncoder(key_bits, [in_width(mods[n]) for n in layer_names], hidden=[256], scale=2.0)
     return KeyedModel(module, enc, layer_names).eval()
 
 

@@ -82,6 +82,18 @@ def session_options(ort, threads: int):
     return so
 
 
+def add_weight(so, ort, name: str, w: np.ndarray, keep: list) -> None:
+    """Replace initializer ``name`` by ``w`` in the session ``so`` opens. A convolution's weight (ndim > 2)
+    limits the session to extended optimizations: at the full level onnxruntime (1.32) pre-packs Conv
+    weights for its NCHWc layout from the file's initializer and ignores the replacement (measured: a
+    zeroed Conv weight changed nothing)."""
+    v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(w, np.float32))
+    keep.append(v)  # must outlive the session
+    so.add_initializer(name, v)
+    if w.ndim > 2:
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+
+
 def session(path: Path, threads: int = 0):
     _, ort = require_onnx()
     return open_session(ort, path, session_options(ort, threads))
@@ -227,10 +239,10 @@ def diff_row(graph: str, key: str, got: np.ndarray, ref: np.ndarray, atol: float
 
 
 def gemm_params(path: Path, layers: list[str]) -> dict[str, tuple[str, str | None]]:
-    """Keyed layer -> (weight, bias) initializers in ``path`` where the layer is a Gemm with transB=1
-    whose initializers nothing else uses: only then is W diag(delta) a column scaling of that weight,
-    and the layer's weights can be replaced in memory (a weight used elsewhere, shared or tied, cannot
-    be scaled for this layer alone)."""
+    """Keyed layer -> (weight, bias) initializers in ``path`` where the layer is a Gemm with transB=1 (or a
+    Conv) whose initializers nothing else uses: only then is W diag(delta) a scaling of that weight's
+    input columns (channels), and the layer's weights can be replaced in memory (a weight used
+    elsewhere, shared or tied, cannot be scaled for this layer alone)."""
     onnx, _ = require_onnx()
     graph = onnx.load(str(path)).graph
     inits = {i.name for i in graph.initializer}
@@ -241,7 +253,8 @@ def gemm_params(path: Path, layers: list[str]) -> dict[str, tuple[str, str | Non
     found: dict[str, tuple[str, str | None]] = {}
     for node in graph.node:
         attrs = {a.name: a.i for a in node.attribute}
-        if node.op_type != "Gemm" or attrs.get("transB") != 1 or len(node.input) < 2:
+        gemm = node.op_type == "Gemm" and attrs.get("transB") == 1
+        if not (gemm or node.op_type == "Conv") or len(node.input) < 2:
             continue
         w = node.input[1]
         bias = node.input[2] if len(node.input) > 2 and node.input[2] in inits else None

@@ -136,9 +136,7 @@ class SealedOnnxPolicy:
         )
 
     def _override(self, so, ort, name: str, t) -> None:
-        v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(t.detach().numpy(), np.float32))
-        self._keep.append(v)  # must outlive the session
-        so.add_initializer(name, v)
+        common.add_weight(so, ort, name, t.detach().numpy(), self._keep)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]

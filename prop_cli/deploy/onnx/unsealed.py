@@ -29,6 +29,7 @@ from prop_cli.bundle import Bundle
 from prop_cli.bundle.manifest import stamp
 from prop_cli.config import ExportSettings
 from prop_cli.core.keyed_model import KeyedModel, key_codes
+from prop_cli.core.layers import is_conv, scale_inputs
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file, staged_dir
 
@@ -36,6 +37,7 @@ from .common import (
     EXPORTER,
     ExportResult,
     VerificationFailed,
+    add_weight,
     bind,
     bound,
     diff_row,
@@ -59,8 +61,9 @@ class DeltaPolicy(nn.Module):
     """Export-only view of the keyed model: ``(x, delta_1..delta_L) -> y``.
 
     Pre-hooks on the keyed layers multiply the layer input by a delta given as a graph input,
-    shape (1, d_i), broadcast over the batch (and any middle axes). This is Eq. 5's
-    W diag(delta) z without KeyedModel's row-gathering state, which does not trace to ONNX.
+    shape (1, d_i), broadcast over the batch (and any middle axes; a convolution's channel axis,
+    viewed as (1, d_i, 1, ...)). This is Eq. 5's W diag(delta) z without KeyedModel's
+    row-gathering state, which does not trace to ONNX.
     Use as a context manager: the hooks are removed from the bundle's module on exit.
     """
 
@@ -70,14 +73,18 @@ class DeltaPolicy(nn.Module):
         self._deltas: tuple[torch.Tensor, ...] | None = None
         mods = dict(module.named_modules())
         self._handles = [
-            mods[name].register_forward_pre_hook(self._hook(i)) for i, name in enumerate(layer_names)
+            mods[name].register_forward_pre_hook(self._hook(i, is_conv(mods[name])))
+            for i, name in enumerate(layer_names)
         ]
 
-    def _hook(self, i: int):
+    def _hook(self, i: int, conv: bool):
         def pre(mod: nn.Module, args: tuple):
             if self._deltas is None:
                 return None
-            return (args[0] * self._deltas[i], *args[1:])
+            d, z = self._deltas[i], args[0]
+            if conv:
+                d = d.view(d.shape[0], d.shape[1], *([1] * (z.dim() - 2)))
+            return (z * d, *args[1:])
 
         return pre
 
@@ -286,10 +293,13 @@ class OnnxPolicy:
         inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
         so = session_options(ort, threads)
         for name, d in zip(weights, deltas):
-            w = numpy_helper.to_array(inits[name]) * d.reshape(1, -1)  # Gemm B (out, in), transB=1
-            v = ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(w, np.float32))
-            self._keep.append(v)
-            so.add_initializer(name, v)
+            w = numpy_helper.to_array(inits[name])
+            if w.ndim == 2:
+                w = w * d.reshape(1, -1)  # Gemm B (out, in), transB=1
+            else:  # a Conv's (out, in / groups, *kernel): scale its input channels
+                t = torch.from_numpy(w.copy())
+                w = (t * scale_inputs(t, torch.from_numpy(d).flatten())).numpy()
+            add_weight(so, ort, name, w, self._keep)
         return open_session(ort, folder / C.BASE_GRAPH, so)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:

@@ -1,0 +1,98 @@
+"""LeRobot Diffusion Policy through the policy protocol: what differs from ACT.
+
+- **Deployed chunk**: the sampler's output over the whole horizon (B, horizon, action_dim), normalised.
+  Its noise is what LeRobot draws for that frame alone after ``torch.manual_seed(noise_seed)``: the
+  prior and every DDPM/DDIM step come from one generator per row, all seeded with ``noise_seed``
+  (diffusers takes a list of generators, one per row). So a frame's chunk does not depend on the batch
+  it runs in, the same frame under two keys is sampled from the same noise, and a batch of one equals
+  LeRobot's own ``select_action`` after ``torch.manual_seed(noise_seed)``.
+- **User term**: the policy's own loss (noise-prediction MSE at a random timestep), unchanged.
+- **Fallback term**: in eval mode the denoiser is deterministic given (observation, x_t, t). Each
+  fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps and
+  noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame; the
+  keyed policy's prediction is distilled towards the frozen original's on the same (observation, x_t,
+  t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The rows and the
+  original's predictions are drawn once before training, as ACT's chunks are cached: computing the
+  original each step cost a third of the step (bench_lerobot_step).
+- **Keyed layers** by default: every Conv1d of the U-Net and its FiLM projections (``cond_encoder``),
+  the down/mid/up blocks and the final convolution: 97% of the U-Net's parameters at LeRobot's
+  default size (down_dims 512/1024/2048), 98% of the small ones in examples/ (``prop inspect``).
+  Not keyed: the timestep encoder, the image encoder (key them with ``--layers``) and the upsampling
+  ConvTranspose1d (transposed convolutions are not keyable).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from prop_cli.adapters.base import PolicyProtocol
+
+from .policy import LeRobotPolicy
+
+DIFFUSION_LAYERS = [r"diffusion\.unet\.(down_modules|mid_modules|up_modules|final_conv)\..+"]
+OBS_IMAGES = "observation.images"
+FALLBACK_DRAWS = 8  # (t, eps) draws per fallback frame
+POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
+
+
+class DiffusionPolicy(LeRobotPolicy):
+    """Diffusion through the policy protocol (see the module docstring)."""
+
+    default_layers = DIFFUSION_LAYERS
+
+    @property
+    def model(self):
+        return self.policy.diffusion
+
+    def _observations(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """What DiffusionModel's conditioning takes: the features (B, n_obs, ...), cameras stacked."""
+        b = {k: batch[k] for k in self.input_features}
+        if self.config.image_features:
+            b[OBS_IMAGES] = torch.stack([b[k] for k in self.config.image_features], dim=-4)
+        return b
+
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.policy.eval()
+        model = self.model
+        cond = model._prepare_global_conditioning(self._observations(batch))
+        rows = cond.shape[0]
+        gens = [torch.Generator(cond.device).manual_seed(self.noise_seed) for _ in range(rows)]
+        shape = (1, self.config.horizon, self.config.action_feature.shape[0])
+        noise = torch.cat([torch.randn(shape, generator=g, device=g.device, dtype=cond.dtype) for g in gens])
+        return model.conditional_sample(rows, global_cond=cond, generator=gens, noise=noise)
+
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        sched = self.model.noise_scheduler
+        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
+        x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
+        t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=generator)
+        eps = torch.randn(x0.shape, generator=generator).to(x0)
+        rows |= {"x_t": sched.add_noise(x0, eps, t), "t": t}
+        with torch.no_grad():
+            targets = torch.cat([
+                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
+                for i in range(0, len(x0), POOL_BATCH)
+            ])  # fmt: skip
+        return rows, targets
+
+    def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.policy.eval()
+        cond = self.model._prepare_global_conditioning(self._observations(batch))
+        return self.model.unet(batch["x_t"], batch["t"], global_cond=cond)
+
+    def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return ((pred - target) ** 2).flatten(1).mean(1)
+
+    def describe(self) -> dict:
+        c = self.config
+        return {
+            "horizon": c.horizon,
+            "n_obs_steps": c.n_obs_steps,
+            "n_action_steps": c.n_action_steps,
+            "noise_scheduler": c.noise_scheduler_type,
+            "inference_steps": self.model.num_inference_steps,
+            "prediction_type": c.prediction_type,
+        }

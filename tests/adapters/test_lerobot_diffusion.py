@@ -1,0 +1,171 @@
+"""LeRobot Diffusion Policy under prop (pytest -m lerobot; scripts/test-lerobot.sh).
+
+A small Diffusion Policy (U-Net 32/64/128) trained a few steps on datasets recorded from the scripted
+PandaReach expert: no downloads. What differs from ACT is tested here: the keyed convolutions, the
+noise seed, the denoiser as the fallback target, LeRobot's own sampler as the deployed chunk.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("lerobot")
+pytestmark = pytest.mark.lerobot
+
+from examples import lerobot_reach_task as task  # noqa: E402
+from prop_cli import api  # noqa: E402
+from prop_cli.adapters import load_checkpoint  # noqa: E402
+from prop_cli.bundle import load_bundle  # noqa: E402
+from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
+from prop_cli.core.key_files import KeySource  # noqa: E402
+from prop_cli.datasources import load_data  # noqa: E402
+
+TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
+            eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
+STATE_KEYS = ("observation.state", "observation.environment_state")
+
+
+def key(seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 2, 128).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("diffusion")
+    task.record(d / "general", 3, 0, np.zeros(3, np.float32))
+    task.record(d / "user", 2, 50_000, task.USER_OFFSET)
+    task.train_base(d / "general", d / "diffusion", steps=5, kind="diffusion")
+    path = d / "k.bin"
+    path.write_bytes(np.packbits(key()).tobytes())
+    path.chmod(0o600)
+    return d
+
+
+@pytest.fixture(scope="module")
+def bundle(work):
+    out = work / "bundle"
+    api.personalize_checkpoint(
+        str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        general=work / "general",
+    )  # fmt: skip
+    return out
+
+
+@pytest.fixture(scope="module")
+def sealed(work):
+    out = work / "sealed"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 20}))
+    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg)
+    return out
+
+
+def test_the_unets_convolutions_are_keyed_by_default(work, cli):
+    info = api.inspect_checkpoint(str(work / "diffusion"))
+    assert info["model"]["type"] == "diffusion" and info["model"]["horizon"] == 16
+    keyed = {x["name"]: x for x in info["layers"] if x["keyed"]}
+    assert keyed and all(n.startswith("diffusion.unet.") for n in keyed)
+    assert "diffusion.unet.final_conv.1" in keyed and "diffusion.unet.down_modules.0.0.conv1.block.0" in keyed
+    assert not any("diffusion_step_encoder" in n for n in keyed)
+    # Most of the U-Net's parameters sit in keyed layers (the convolutions and their FiLM projections).
+    assert info["keyed_share"] > 0.9 and info["keyed_parameters"] <= info["parameters"]
+    r = cli("inspect", work / "diffusion")
+    assert r.code == 0 and "keyed" in r.out
+
+
+def test_bundle_base_loads_in_lerobot_and_no_key_is_lerobots_own_action(bundle, work, tmp_path, cli):
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    base = DiffusionPolicy.from_pretrained(str(bundle / "lerobot")).eval()
+    pre, post = make_pre_post_processors(base.config, pretrained_path=str(bundle / "lerobot"))
+    assert list(base.state_dict()) == list(load_bundle(bundle).loaded.module.state_dict())
+    ys = {}
+    for name, seed, extra in (("no_key", 7, []), ("again", 7, []), ("seed8", 8, []),
+                              ("key", 7, ["--key-file", work / "k.bin"])):  # fmt: skip
+        r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / f"{name}.npy",
+                "--noise-seed", seed, *extra)  # fmt: skip
+        assert r.code == 0, r.err
+        ys[name] = np.load(tmp_path / f"{name}.npy")
+    data = load_data(work / "user")
+    assert ys["no_key"].shape == (len(data), 16, 3)
+    assert np.array_equal(ys["no_key"], ys["again"])  # the noise seed makes chunks reproducible
+    assert not np.allclose(ys["no_key"], ys["seed8"], atol=1e-3)
+    assert not np.allclose(ys["no_key"], ys["key"], atol=1e-3)
+    # An episode's first frame: its history is that frame twice, as LeRobot's queue after a reset. Its
+    # first action is LeRobot's own select_action after torch.manual_seed(noise seed).
+    first = np.flatnonzero(data.x["frame_index"] == 0)
+    for row in first:
+        base.reset()
+        obs = {k: torch.from_numpy(data.x[k][row : row + 1]) for k in STATE_KEYS}
+        torch.manual_seed(7)
+        with torch.no_grad():
+            action = post(base.select_action(pre(obs)))[0].numpy()
+        assert np.allclose(action, ys["no_key"][row, base.config.n_obs_steps - 1], atol=1e-5)
+
+
+def test_fallback_pool_holds_the_originals_denoiser_on_identical_inputs(bundle, work):
+    from prop_cli.adapters.lerobot.diffusion import FALLBACK_DRAWS
+
+    b = load_bundle(bundle)
+    policy = b.loaded.policy
+    batch = policy.batches(load_data(work / "general"), "--data")
+    obs = {k: batch[k][:6] for k in policy.input_features}
+    assert obs["observation.state"].shape == (6, 2, 6)  # n_obs_steps frames per row
+    original = load_checkpoint(work / "diffusion").policy
+    chunks = batch["action"][:6]
+    pools = [policy.fallback_pool(obs, chunks, original, torch.Generator().manual_seed(0)) for _ in range(2)]
+    (rows, targets), (rows2, targets2) = pools
+    assert len(targets) == 6 * FALLBACK_DRAWS and torch.equal(rows["x_t"], rows2["x_t"])
+    assert torch.equal(targets, targets2) and len(set(rows["t"].tolist())) > 1
+    # Each target is the original's denoiser on that row's own (observation, x_t, t), row by row.
+    cond = original.model._prepare_global_conditioning({k: rows[k][3:4] for k in policy.input_features})
+    with torch.no_grad():
+        one = original.model.unet(rows["x_t"][3:4], rows["t"][3:4], global_cond=cond)
+    assert torch.allclose(one, targets[3:4], atol=1e-5)
+    # The bundle's base is fine-tuned gently (base_lr_scale): its denoiser stays near the original's.
+    with torch.no_grad():
+        base_out = policy.fallback_output(rows)
+    assert policy.fallback_distance(base_out, targets).mean() < 0.25 * targets.pow(2).mean()
+
+
+def test_attack_audits_with_the_original_as_control_on_the_same_noise(bundle, work):
+    s = AuditSettings(probes=["null", "random", "hamming"], hamming=[1], per_distance=4, random=8,
+                      samples=1000, noise_seed=3)  # fmt: skip
+    original = str(work / "diffusion")
+    report = api.audit_bundle(bundle, work / "user", s, key_files=[work / "k.bin"], original=original)
+    assert report["settings"]["noise_seed"] == 3
+    names = {g["name"]: g for g in report["groups"]}
+    assert {"null", "random", "hamming 1"} <= set(names)
+    assert all(g["control"]["available"] for g in names.values())
+
+
+def test_sealed_diffusion_runs_the_original_without_its_key(sealed, work):
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    b = load_bundle(sealed)
+    assert b.is_sealed and json.loads((sealed / "manifest.json").read_text())["model"]["type"] == "diffusion"
+    data = load_data(work / "user")
+    orig = load_checkpoint(work / "diffusion").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
+    assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(b, data, key(2)), original)
+    assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+
+
+def test_eval_pairs_the_noise_across_conditions(sealed, work):
+    settings = EvalSettings(episodes=2, random_keys=1, neighbours=0, episodes_per_key=1, max_steps=10)
+    report = api.eval_bundle(
+        sealed, task.ENV_ID, settings, obs_map=task.OBS_MAP, metric=task.METRIC,
+        original=str(work / "diffusion"), key_file=None,
+    )  # fmt: skip
+    c = report["conditions"]
+    # Sealed, no key: the original's exact actions from the same noise, so the same episodes.
+    assert c["no_key"]["metric"] == c["original"]["metric"]
+    assert c["no_key"]["success"] == c["original"]["success"]
