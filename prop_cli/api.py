@@ -19,6 +19,7 @@ from prop_cli.adapters import CheckpointOptions
 from prop_cli.adapters.hub import public_name, resolve_checkpoint
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
+from prop_cli.attack.report import check_plot
 from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
@@ -81,6 +82,7 @@ __all__ = [
     "load_inputs",
     "personalize_checkpoint",
     "plot_audit",
+    "check_plot",
     "push_bundle",
     "read_key_file",
     "read_manifest",

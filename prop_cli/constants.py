@@ -94,3 +94,6 @@ SALT_BYTES = 16
 # takes x the scrypt time per guess measured on this machine); weaker ones are refused unless the user
 # insists (--weak-passphrase), and the audit's passphrase row fails below it.
 PASSPHRASE_MIN_YEARS = 100.0
+
+# The package registry name ("prop-cli" there is someone else's); the import package stays prop_cli.
+DISTRIBUTION = "prop-keys"

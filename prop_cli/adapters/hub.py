@@ -7,7 +7,7 @@ repo) is fetched with ``huggingface_hub.hf_hub_download`` into the usual hub cac
 ``HF_HUB_OFFLINE=1`` only the cache is used. A revision containing "/" is URL-encoded
 (``refs%2Fpr%2F1``), as in huggingface_hub's own ``hf://`` paths.
 
-huggingface_hub is imported inside the functions: it is an optional extra (``prop-cli[hub]``).
+huggingface_hub is imported inside the functions: it is an optional extra (``prop-keys[hub]``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from urllib.parse import unquote
 from prop_cli.errors import PropError
 
 HF_SCHEME = "hf://"
-HUB_EXTRA = "pip install 'prop-cli[hub]'"
+HUB_EXTRA = "pip install 'prop-keys[hub]'"
 
 
 @dataclass(frozen=True)
@@ -104,10 +104,10 @@ def resolve_checkpoint(path: str | Path) -> str | Path:
             # A model folder: fetch its configs and weights, not everything in the repo.
             patterns = [hp.filename + p for p in ("*.json", "*.safetensors")]
             root = hf.snapshot_download(
-                hp.repo_id, allow_patterns=patterns, library_name="prop-cli", **common
+                hp.repo_id, allow_patterns=patterns, library_name="prop-keys", **common
             )
             return str(Path(root) / hp.filename)
-        return hf.hf_hub_download(hp.repo_id, hp.filename, library_name="prop-cli", **common)
+        return hf.hf_hub_download(hp.repo_id, hp.filename, library_name="prop-keys", **common)
     except Exception as e:  # noqa: BLE001 - mapped to one line below, anything else re-raised
         raise _download_error(e, path, hp, offline) from e
 

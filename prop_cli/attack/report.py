@@ -214,6 +214,14 @@ def record(bundle_path: Path, report: dict) -> dict:
     return s
 
 
+def check_plot() -> None:
+    """Fail before any probe runs when --plot cannot be drawn (matplotlib is an extra)."""
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        raise PropError("--plot needs matplotlib, which is not installed", "pip install 'prop-keys[plot]'")
+
+
 def plot(report: dict, path: Path) -> Path:
     """PNG of the table's numbers (``cells``): per row, the worst (bar), its control (black tick) and
     beyond, written beside it as in the table; the --max-leak threshold as a line; Hamming rows' mean
@@ -225,7 +233,7 @@ def plot(report: dict, path: Path) -> Path:
         import matplotlib.pyplot as plt
     except ImportError:
         raise PropError(
-            "--plot needs matplotlib, which is not installed", "pip install prop-cli[plot]"
+            "--plot needs matplotlib, which is not installed", "pip install 'prop-keys[plot]'"
         ) from None
 
     fig = figure(report, plt)

@@ -32,7 +32,7 @@ BUCKET = 4096  # sealed plaintexts are padded to a multiple of this: sizes say n
 SALT_BYTES = 16
 NONCE_BYTES = 12  # GCM's standard nonce size
 ID_BYTES = 8
-CRYPTO_EXTRA = "pip install cryptography (prop-cli depends on it; reinstall prop-cli)"
+CRYPTO_EXTRA = "pip install cryptography (prop-keys depends on it; reinstall prop-keys)"
 
 
 def _aead():
@@ -41,7 +41,7 @@ def _aead():
         from cryptography.hazmat.primitives import hashes
         from cryptography.hazmat.primitives.ciphers.aead import AESGCM
         from cryptography.hazmat.primitives.kdf.hkdf import HKDF
-    except ImportError as e:  # a broken install; prop-cli requires cryptography
+    except ImportError as e:  # a broken install; prop-keys requires cryptography
         raise PropError(
             f"sealed bundles need the 'cryptography' package ({e.name} is missing)", CRYPTO_EXTRA
         ) from None

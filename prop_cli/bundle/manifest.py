@@ -454,7 +454,7 @@ def check_version(obj: dict, key: str, known: tuple[int, ...], doc: Doc) -> int:
     if isinstance(version, int) and not isinstance(version, bool) and version > max(known):
         raise PropError(
             f"{doc.name} has format version {version}; this prop reads up to {max(known)}",
-            "upgrade prop: pip install -U prop-cli",
+            "upgrade prop: pip install -U prop-keys",
         )
     check_value(integer(min(known), max(known)), version, key, doc)
     return version

@@ -68,6 +68,7 @@ def attack(
         audit_bundle,
         audit_decision,
         audit_table,
+        check_plot,
         plot_audit,
         record_audit,
     )
@@ -83,6 +84,8 @@ def attack(
     settings.hamming = parse_hamming(hamming) if hamming is not None else None
     if max_leak is not None and not key_file and not passphrase:
         fail("--max-leak needs the user's key and targets", "pass --key-file with --data holding x and y")
+    if plot_path is not None:
+        check_plot()  # before the probes: an extra missing is known now, not after minutes of work
     json_file = output_path(json_path)
     for path, what, flag in ((json_file, "--json file", "--json"), (plot_path, "--plot file", "--plot")):
         if path is not None:

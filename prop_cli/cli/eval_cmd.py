@@ -29,7 +29,7 @@ VecNormalize = Annotated[Path | None, opt("--vecnormalize", "SB3 VecNormalize.sa
                                           "observations as in training (read without running its "
                                           "code).")]  # fmt: skip
 Video = Annotated[Path | None, opt("--video", "New folder: one mp4 per condition, its first episode "
-                                              "(prop-cli[video]).")]  # fmt: skip
+                                              "(prop-keys[video]).")]  # fmt: skip
 
 
 @config_options(EvalSettings, SETTINGS, into="settings")

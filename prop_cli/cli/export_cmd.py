@@ -15,7 +15,7 @@ SETTINGS = {  # ExportSettings field -> help of its --flag
     "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
     "atol": "Largest accepted |onnxruntime - torch| difference in the check.",
 }
-Onnx = Annotated[bool, opt("--onnx", "Export ONNX graphs (needs: pip install 'prop-cli[onnx]').")]
+Onnx = Annotated[bool, opt("--onnx", "Export ONNX graphs (needs: pip install 'prop-keys[onnx]').")]
 OutDir = Annotated[Path | None, opt("--out", "Folder to write the graphs to (default: BUNDLE/onnx).")]
 VerifyKey = Annotated[
     Path | None,

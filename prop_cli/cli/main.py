@@ -9,7 +9,7 @@ import warnings
 
 import typer
 
-from prop_cli.constants import ENV_DEBUG
+from prop_cli.constants import DISTRIBUTION, ENV_DEBUG
 
 from . import (
     attack_cmd,
@@ -33,6 +33,29 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode=None,
 )
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            number = version(DISTRIBUTION)
+        except PackageNotFoundError:  # running from a source tree that pip never installed
+            number = "unknown (not installed)"
+        print(f"{DISTRIBUTION} {number}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    show_version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
+    """Add private keys to existing neural-network checkpoints (PRoP)."""
+
+
 app.command("keygen")(keygen_cmd.keygen)
 app.command("inspect")(inspect_cmd.inspect)
 app.command("personalize")(personalize_cmd.personalize)

@@ -21,7 +21,7 @@ def push(
         bool, typer.Option("--allow-unsealed", help="Publish an unsealed bundle to a public repo anyway.")
     ] = False,
     sign: Annotated[Path | None, typer.Option("--sign", help="Sign every uploaded file with this private "
-                                              "key (PEM, elliptic curve; prop-cli[sign]).")] = None,
+                                              "key (PEM, elliptic curve; prop-keys[sign]).")] = None,
     certificate: Annotated[Path | None, typer.Option("--certificate", help="With --sign: the key's "
                                                      "certificate (certificate signing).")] = None,
     chain: Annotated[list[Path] | None, typer.Option("--certificate-chain", help="With --certificate: "

@@ -105,4 +105,5 @@ def remove_user(
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users})
         return
-    err.print(f"removed record {result.record} from {result.bundle} ({result.users} users left)")
+    left = f"{result.users} user{'' if result.users == 1 else 's'} left"
+    err.print(f"removed record {result.record} from {result.bundle} ({left})")

@@ -106,9 +106,11 @@ def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:
     """Key bits (uint8 0/1, length 8*size) from a key file; ``bits`` is what a bundle expects."""
     path = Path(path)
     if not path.exists():
-        raise PropError(f"key file {path} does not exist", "check --key, or create one with prop keygen")
+        raise PropError(
+            f"key file {path} does not exist", "check the --key-file path, or create a key with prop keygen"
+        )
     if path.is_dir():
-        raise PropError(f"key file {path} is a directory", "pass the key file itself to --key")
+        raise PropError(f"key file {path} is a directory", "pass the key file itself to --key-file")
     st = path.stat()
     size = st.st_size
     if size == 0:
@@ -122,7 +124,7 @@ def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:
         raise PropError(
             f"key file {path} has {size} bytes; key files hold {KEY_BITS_MIN // 8} to "
             f"{KEY_BITS_MAX // 8} bytes",
-            "check --key points at a key written by prop keygen",
+            "check that --key-file points at a key written by prop keygen",
         )
     if os.name == "posix" and stat.S_IMODE(st.st_mode) & 0o077:
         warnings.warn(

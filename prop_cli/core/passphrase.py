@@ -49,7 +49,7 @@ def guesses(passphrase: str) -> float:
     """zxcvbn's estimate of the guesses a smart attacker needs (dictionaries, patterns, l33t...)."""
     try:
         from zxcvbn import zxcvbn
-    except ImportError:  # a broken install: prop-cli requires zxcvbn
+    except ImportError:  # a broken install: prop-keys requires zxcvbn
         raise PropError("estimating passphrase strength needs zxcvbn", "pip install zxcvbn") from None
     return float(zxcvbn(passphrase[:256])["guesses"])  # zxcvbn slows down on very long inputs
 

@@ -50,7 +50,7 @@ def model_card(
     model = manifest.get(C.M_MODEL, {})
     checkpoint = io.get("checkpoint")
     data = hf.ModelCardData(
-        library_name="prop-cli",
+        library_name="prop-keys",
         tags=["prop", "private-personalization", "keyed-model"] + (["onnx"] if onnx_files else []),
         base_model=parse_hub_path(checkpoint).repo_id if checkpoint and is_hub_path(checkpoint) else None,
     )

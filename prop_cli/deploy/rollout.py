@@ -217,7 +217,9 @@ def check_video(video: Path | None) -> None:
         import imageio.v2  # noqa: F401
         import imageio_ffmpeg  # noqa: F401
     except ImportError:
-        raise PropError("--video needs imageio and imageio-ffmpeg", "pip install 'prop-cli[video]'") from None
+        raise PropError(
+            "--video needs imageio and imageio-ffmpeg", "pip install 'prop-keys[video]'"
+        ) from None
     if Path(video).exists():
         raise PropError(f"--video {video} exists", "give a new folder (videos are never overwritten)")
 

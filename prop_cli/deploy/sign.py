@@ -20,7 +20,7 @@ from pathlib import Path
 from prop_cli.errors import PropError, brief
 
 SIGNATURE = "model.sig"
-SIGN_EXTRA = "pip install 'prop-cli[sign]'"
+SIGN_EXTRA = "pip install 'prop-keys[sign]'"
 # Not part of what was published: huggingface_hub's bookkeeping in a `hf download --local-dir` copy
 # (model-signing itself leaves out .git, .gitattributes, .github and .gitignore).
 IGNORED = (".cache",)

@@ -254,8 +254,24 @@ def test_plot_without_matplotlib_says_how_to_install(monkeypatch, tmp_path):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
-    with pytest.raises(PropError, match=r"pip install prop-cli\[plot\]"):
+    with pytest.raises(PropError, match=r"pip install 'prop-keys\[plot\]'"):
         audit_report.plot({"bundle": {"task": "regression"}, "user": None, "groups": []}, tmp_path / "x.png")
+
+
+def test_plot_without_matplotlib_fails_before_any_probe_runs(bundles, cli, monkeypatch, tmp_path):
+    import importlib.util
+
+    from prop_cli import api
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "matplotlib" else real(n, *a))
+    ran = []
+    monkeypatch.setattr(api, "audit_bundle", lambda *a, **k: ran.append(1))
+    d = bundles
+    r = cli("attack", d / "good.prop", "--data", d / "mine.npz", "--plot", tmp_path / "p.png",
+            "--json", tmp_path / "a.json")  # fmt: skip
+    assert r.code == 2 and "prop-keys[plot]" in r.err and len(r.err.strip().splitlines()) == 1
+    assert not ran and not (tmp_path / "a.json").exists() and not (tmp_path / "p.png").exists()
 
 
 # --- controls (where the bundle gives nothing) and the gate ---------------------------------------

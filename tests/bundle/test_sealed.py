@@ -144,6 +144,7 @@ def test_add_and_remove_users_independently(cli, sealed, workdir):
     assert again.code == 2 and "already opens" in again.err
     r = cli("remove-user", sealed, "--key-file", workdir / "k2.bin")
     assert r.code == 0, r.err
+    assert "(1 user left)" in r.err
     y2_after, err = _run(cli, sealed, workdir, "--key-file", workdir / "k2.bin")
     np.testing.assert_array_equal(y2_after, _original(workdir))
     y1_after, _ = _run(cli, sealed, workdir, "--key-file", workdir / "k.bin")

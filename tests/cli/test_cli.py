@@ -46,6 +46,23 @@ def test_help_lists_commands(cli):
         assert cmd in res.out
 
 
+def test_version_names_the_distribution(cli):
+    from importlib.metadata import version
+
+    res = cli("--version")
+    assert res.code == 0 and res.out.strip() == f"{C.DISTRIBUTION} {version(C.DISTRIBUTION)}"
+    assert C.DISTRIBUTION != "prop-cli"  # someone else's package on the registry
+
+
+def test_a_missing_key_file_names_the_flag(tmp_path):
+    from prop_cli.core.key_files import read_key_file
+    from prop_cli.errors import PropError
+
+    for path in (tmp_path / "missing.bin", tmp_path):
+        with pytest.raises(PropError, match="--key-file"):
+            read_key_file(path)
+
+
 def test_keygen_and_inspect(cli, workdir):
     res = cli("keygen", workdir / "new.bin", "--bits", "256")
     assert res.code == 0

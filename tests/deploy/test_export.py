@@ -223,10 +223,10 @@ def test_bad_options(cli, exported):
 
 def test_missing_extra_names_the_install_command(cli, monkeypatch, exported):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)
-    with pytest.raises(PropError, match=r"prop-cli\[onnx\]"):
+    with pytest.raises(PropError, match=r"prop-keys\[onnx\]"):
         rt.require_onnx()
     r = cli("export", exported, "--onnx", "--force")
-    assert r.code == 2 and "pip install 'prop-cli[onnx]'" in r.err
+    assert r.code == 2 and "pip install 'prop-keys[onnx]'" in r.err
 
 
 def test_cnn_bundle_with_image_inputs_exports(tmp_path):

@@ -140,7 +140,7 @@ def test_model_card_content(bundle):
     update_manifest(bundle, C.M_AUDIT, {"T2": {"leakage": {"worst": 0.0123}}, "verdict": "pass"})
     manifest = json.loads((bundle / C.MANIFEST).read_text())
     card = publish.model_card(manifest, "me/my-policy", ["base.onnx", "policy.onnx"])
-    assert card.startswith("---\n") and "library_name: prop-cli" in card
+    assert card.startswith("---\n") and "library_name: prop-keys" in card
     assert "model.safetensors" in card and str(bundle.parent) not in card  # file name, not the local path
     assert "| `2` | 16 |" in card and "| `4` | 2 |" not in card  # keyed layers with their sizes
     assert "128 bits" in card and "hashed" in card
@@ -251,7 +251,7 @@ def test_push_without_network_is_one_line(cli, bundle, monkeypatch):
 
 def test_missing_extra_names_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
-    with pytest.raises(PropError, match=r"prop-cli\[hub\]"):
+    with pytest.raises(PropError, match=r"prop-keys\[hub\]"):
         hub.resolve_checkpoint("hf://org/p/w.safetensors")
 
 

@@ -33,7 +33,7 @@ from prop_cli.files import sha256_file
 
 from ..streams import stdout_to_stderr
 
-ONNX_EXTRA = "pip install 'prop-cli[onnx]'"
+ONNX_EXTRA = "pip install 'prop-keys[onnx]'"
 REEXPORT = "run prop export BUNDLE --onnx --force"
 VERIFY_BATCH = 16
 EXPORTER = f"torch {torch.__version__} (TorchScript-based, dynamo=False)"
