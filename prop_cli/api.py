@@ -53,6 +53,7 @@ from prop_cli.files import check_not_input, check_output, write_file
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import Job, User, personalize, sealed_recipe
+from prop_cli.train.distributed import ranks_from_env
 from prop_cli.train.sealed import user_report as sealed_user_report
 
 __all__ = [
@@ -104,6 +105,8 @@ class PersonalizeResult:
     metrics: list[dict]
     final_losses: dict[str, float]
     manifest: dict = field(repr=False, default_factory=dict)
+    processes: int = 1  # processes that trained it together (`accelerate launch`)
+    written: bool = True  # False on every process but the first, which writes the bundle
 
 
 def formats() -> dict:
@@ -179,28 +182,37 @@ def personalize_checkpoint(
     check_threads(threads)
     check_output(out, force)  # before hours of training, not after
     check_not_input(out, "--out", [checkpoint, *(p for p, _ in users), general])
+    ranks = ranks_from_env(device)  # one process, or those `accelerate launch` started
     loaded = _load(checkpoint, opts)
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None
     trained = personalize(
         loaded, [User(d, k.bits) for d, (_, k) in zip(datasets, users)], cfg, general=general_ds,
-        device=device, progress=progress,
+        device=device, progress=progress if ranks.is_main else None, ranks=ranks,
     )  # fmt: skip
-    kinds = sorted({k.kind for _, k in users})
-    common = {
-        C.M_MODEL: loaded.spec,
-        C.M_KEY: {
-            "bits": bits.pop(),
-            "source": kinds[0] if len(kinds) == 1 else "mixed",
-            "kdf": kdf_record(salt),
-        },
-        C.M_CONFIG: cfg.to_dict(),
-        C.M_IO: {"checkpoint": public_name(checkpoint)} if public_name(checkpoint) else {},
-    }
-    written = trained.write(out, common, force=force)
-    m = written.manifest
-    return PersonalizeResult(out, m[C.M_TASK], m[C.M_KEYED_LAYERS], written.metrics, written.final_losses, m)
+    try:
+        if not ranks.is_main:  # the first process writes the bundle; the others trained the same model
+            return PersonalizeResult(out, trained.task, [], [], {}, processes=ranks.world, written=False)
+        kinds = sorted({k.kind for _, k in users})
+        common = {
+            C.M_MODEL: loaded.spec,
+            C.M_KEY: {
+                "bits": bits.pop(),
+                "source": kinds[0] if len(kinds) == 1 else "mixed",
+                "kdf": kdf_record(salt),
+            },
+            C.M_CONFIG: cfg.to_dict(),
+            C.M_IO: {"checkpoint": public_name(checkpoint)} if public_name(checkpoint) else {},
+        }
+        written = trained.write(out, common, force=force)
+        m = written.manifest
+        return PersonalizeResult(
+            out, m[C.M_TASK], m[C.M_KEYED_LAYERS], written.metrics, written.final_losses, m,
+            processes=ranks.world,
+        )  # fmt: skip
+    finally:
+        ranks.finish()
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:

@@ -118,9 +118,12 @@ def personalize(
         ),
         cfg.steps, "personalize", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
     )  # fmt: skip
+    if not result.written:  # another process of `accelerate launch` writes and reports
+        return
     if as_json:
         print_json({"bundle": str(result.out), "task": result.task, "keyed_layers": result.keyed_layers,
-                    "metrics": result.metrics, "final_losses": result.final_losses})  # fmt: skip
+                    "metrics": result.metrics, "final_losses": result.final_losses,
+                    "processes": result.processes})  # fmt: skip
         return
     _print_report(result)
 
@@ -147,4 +150,5 @@ def _print_report(result) -> None:
     layers = ", ".join(f"{x['name']} ({x['features']})" for x in result.keyed_layers)
     records = [r["id"] for r in result.manifest.get("records", [])]
     sealed = f"; sealed, user records {', '.join(records)}" if records else ""
-    out.print(f"wrote {result.out} (keyed layers: {layers}{sealed})")
+    together = f"; trained on {result.processes} processes" if result.processes > 1 else ""
+    out.print(f"wrote {result.out} (keyed layers: {layers}{sealed}{together})")

@@ -20,7 +20,7 @@ from prop_cli.datasources.fit import split
 from .data import outputs, prepare_users, targets_tensor
 from .hardening import code_negatives, encoder_init
 from .loop import Optimiser, run_steps
-from .objective import Batch, check_user_keys, prop_loss
+from .objective import Batch, check_user_keys, prop_loss, prop_loss_share
 from .recipe import Job, Recipe, User
 from .report import eval_rng, user_report
 from .unsealed import Personalized
@@ -182,7 +182,9 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     base = [p for p in module.parameters() if p.requires_grad]
     if base:
         groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
-    optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor)
+    ranks = job.ranks
+    reduce = ranks.sum_gradients if ranks.world > 1 else None
+    optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, reduce=reduce)
     user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
     sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
 
@@ -190,10 +192,18 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
         batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
         deltas = km.layer_deltas(batch.codes, null=1)
-        out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
-        loss, losses = prop_loss(out, batch, task, cfg.null_weight)
+        if ranks.world == 1:
+            out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
+            loss, losses = prop_loss(out, batch, task, cfg.null_weight)
+            optim.update(loss)
+            return losses
+        # Data parallel: this process's share of the step's rows; the gradients are summed over processes.
+        rows = ranks.share(len(batch.key_index)).to(dev)
+        out = km.run_rows(batch.x, deltas, batch.key_index[rows], batch.sample_index[rows])
+        loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight)
         optim.update(loss)
-        return losses
+        parts = ranks.sum_tensor(parts)
+        return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 
     losses = run_steps(step, cfg.steps, job.progress)
     reports = [

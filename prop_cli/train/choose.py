@@ -9,6 +9,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from . import array, policy, sealed_array, sealed_policy
+from .distributed import Ranks
 from .recipe import Job, Progress, Recipe, SealedRecipe, Trained, User
 
 
@@ -29,9 +30,18 @@ def personalize(
     general: Dataset | None = None,
     device: str = "cpu",
     progress: Progress | None = None,
+    ranks: Ranks | None = None,
 ) -> Trained:
     """Train ``loaded`` for ``users`` with the recipe for its kind and ``cfg.seal``; the loaded module is
-    updated in place (unsealed) or stays the original (sealed)."""
+    updated in place (unsealed) or stays the original (sealed). ``ranks``: the processes `accelerate
+    launch` started (``distributed``); data parallel is the unsealed array recipe's in this version."""
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
-    return choose(loaded, cfg.seal).personalize(Job(loaded, cfg, device, progress), users, general)
+    recipe = choose(loaded, cfg.seal)
+    ranks = ranks or Ranks()
+    if ranks.world > 1 and recipe is not array.RECIPE:
+        raise PropError(
+            f"{ranks.world} processes: only unsealed array models train data parallel in this version",
+            "run this personalize as one process (without accelerate launch)",
+        )
+    return recipe.personalize(Job(loaded, cfg, device, progress, ranks), users, general)

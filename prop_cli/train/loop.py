@@ -21,16 +21,20 @@ class Optimiser:
     """One update per ``update(loss)``: zero the gradients, backpropagate, clip, step, decay the rate."""
 
     def __init__(
-        self, groups: list, lr: float, steps: int, lr_floor: float, clip: float | None = None
-    ) -> None:
+        self, groups: list, lr: float, steps: int, lr_floor: float, clip: float | None = None,
+        reduce: Callable[[list[torch.Tensor]], None] | None = None,
+    ) -> None:  # fmt: skip
         self.adam = Adam(groups, lr=lr)
         self.params = [p for g in self.adam.groups for p in g["params"]]
         self.steps, self.lr_floor, self.clip = steps, lr_floor, clip
+        self.reduce = reduce  # several processes: sum the gradients over them (``distributed``)
         self.t = 0
 
     def update(self, loss: torch.Tensor) -> None:
         self.adam.zero_grad()
         loss.backward()
+        if self.reduce is not None:
+            self.reduce(self.params)
         if self.clip is not None:
             torch.nn.utils.clip_grad_norm_(self.params, self.clip)
         self.adam.step()

@@ -68,3 +68,27 @@ def prop_loss(
     keyed = fb[:-n0].mean() if fb.shape[0] > n0 else out.new_zeros(())
     total = personal + keyed + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
+
+
+def prop_loss_share(
+    out: torch.Tensor, batch: Batch, rows: torch.Tensor, task: str, null_weight: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 8 restricted to ``rows`` of the step (``out``: their outputs), as a sum over rows weighted by
+    each row's share of its term, so that the shares of all processes add up to ``prop_loss``
+    (``distributed``). Returns the loss and its three terms' partial sums (personal, keyed fallback,
+    null), to be summed over the processes for the progress line."""
+    u, n0 = batch.user_rows, batch.null_rows
+    n = len(batch.key_index)
+    n_keyed = n - u - n0
+    is_user = rows < u
+    parts = out.new_zeros(3)
+    if is_user.any():
+        personal = row_loss(out[is_user], batch.user_targets[rows[is_user]], task, distill=False)
+        parts = parts + torch.stack([personal.sum() / u, out.new_zeros(()), out.new_zeros(())])
+    fb_rows = rows[~is_user]
+    if len(fb_rows):
+        fb = row_loss(out[~is_user], batch.fallback_targets[fb_rows - u], task, distill=True)
+        null = fb_rows >= n - n0
+        keyed = fb[~null].sum() / n_keyed if n_keyed else out.new_zeros(())
+        parts = parts + torch.stack([out.new_zeros(()), keyed, fb[null].sum() / n0])
+    return parts[0] + parts[1] + null_weight * parts[2], parts.detach()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,8 @@ from torch import nn
 from prop_cli.adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import Dataset
+
+from .distributed import Ranks
 
 Progress = Callable[[int, dict[str, float]], None]  # (step, latest losses)
 
@@ -30,6 +32,7 @@ class Job:
     cfg: PersonalizeConfig
     device: str = "cpu"
     progress: Progress | None = None
+    ranks: Ranks = field(default_factory=Ranks)  # the processes training together (``distributed``)
 
 
 @dataclass
