@@ -1,9 +1,9 @@
 """Running a bundle: the key is turned into behaviour once (folded into a copy of the weights), then
 each step is a base step.
 
-``KeyedPolicy(bundle, key).predict(obs)`` works like Stable-Baselines3's ``predict(obs,
-deterministic=True)``: numpy in and out, one observation or a batch, continuous actions clipped to the
-bounds the checkpoint records, the argmax for discrete actions. ``run_policy`` runs a policy with
+``KeyedPolicy(bundle, key).predict(obs)`` is Stable-Baselines3's ``predict(observation, state=None,
+episode_start=None, deterministic=True)``: numpy in, ``(action, state)`` out, one observation or a
+batch, continuous actions clipped to the bounds the checkpoint records, the argmax for discrete actions. ``run_policy`` runs a policy with
 named observation features (LeRobot) over a dataset. The counterpart for an ONNX export is
 ``prop_cli.deploy.onnx``.
 """
@@ -19,6 +19,7 @@ from torch import nn
 
 from prop_cli import constants as C
 from prop_cli.datasources import Dataset
+from prop_cli.errors import PropError
 
 from .read import Bundle
 
@@ -70,16 +71,29 @@ class KeyedPolicy:
         with torch.inference_mode():
             return self.module(torch.from_numpy(np.ascontiguousarray(x, np.float32))).numpy()
 
-    def predict(self, obs: np.ndarray) -> np.ndarray:
-        """Actions for one observation (``input_shape``) or a batch of them, as SB3's predict gives."""
-        obs = np.asarray(obs, np.float32)
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """SB3's ``predict``: ``(action, state)`` for one observation (``input_shape``) or a batch of them.
+        The policies prop keys are feed-forward, so ``state`` comes back as given; the action is the
+        deterministic one (the mean, or the argmax): the key changes the policy's output, not its noise."""
+        if not deterministic:
+            raise PropError(
+                "KeyedPolicy.predict(deterministic=False): prop runs the deterministic policy",
+                "pass deterministic=True (the mean action, or the argmax)",
+            )
+        obs = np.asarray(observation, np.float32)
         single = obs.shape == self.input_shape
         y = self(obs[None] if single else obs)
         if self.discrete:
             y = y.argmax(-1)
         elif self.low is not None and self.high is not None:
             y = np.clip(y, self.low, self.high)
-        return y[0] if single else y
+        return (y[0] if single else y), state
 
 
 def run_bundle(bundle: Bundle, x: np.ndarray, key: np.ndarray | None) -> np.ndarray:

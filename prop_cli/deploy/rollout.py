@@ -126,7 +126,7 @@ class _ArrayController:
         pass
 
     def act(self, obs) -> np.ndarray:
-        return self.policy.predict(self.prepare(obs))
+        return self.policy.predict(self.prepare(obs))[0]
 
 
 @dataclass
