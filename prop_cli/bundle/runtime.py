@@ -4,8 +4,8 @@ each step is a base step.
 ``KeyedPolicy(bundle, key).predict(obs)`` is Stable-Baselines3's ``predict(observation, state=None,
 episode_start=None, deterministic=True)``: numpy in, ``(action, state)`` out, one observation or a
 batch, continuous actions clipped to the bounds the checkpoint records, the argmax for discrete
-actions. ``run_policy`` runs a policy with named observation features (LeRobot) over a dataset. The counterpart for an ONNX export is
-``prop_cli.deploy.onnx``.
+actions. ``run_policy`` runs a policy with named observation features (LeRobot) over a dataset. The
+counterpart for an ONNX export is ``prop_cli.deploy.onnx``.
 """
 
 from __future__ import annotations
