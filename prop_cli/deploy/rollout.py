@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from prop_cli.adapters.sb3 import observation_array
 from prop_cli.adapters.sb3.vecnormalize import ObsNormalizer
@@ -116,10 +117,17 @@ def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -
 
 
 class _ArrayController:
-    """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives."""
+    """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives.
+    ``module``: act with this module instead (``--original``), through the same observation preparation,
+    clipping and argmax as the bundle."""
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool) -> None:
+    def __init__(
+        self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool,
+        module: torch.nn.Module | None = None,
+    ) -> None:  # fmt: skip
         self.policy = KeyedPolicy(bundle, key, method=method)
+        if module is not None:
+            self.policy.module = module.eval()
         self.prepare = prepare
 
     def reset(self, seed: int | None = None) -> None:
@@ -291,14 +299,30 @@ def evaluate_bundle(
             ctl = _Source(bundle, codes_or_bits, method).controller()
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
+    original_ctl = None
+    if original is not None:  # checked before any rollout
+        if (original.policy is None) != (policy is None):
+            raise PropError(
+                "--original is not the kind of model the bundle holds (a LeRobot policy and an array model)",
+                "pass the checkpoint the bundle was personalized from",
+            )
+        if policy is not None:
+            original_ctl = original.policy.controller(original.module.eval())
+        else:
+            shapes = [{k: tuple(v.shape) for k, v in m.state_dict().items()} for m in (bundle.loaded.module,
+                      original.module)]  # fmt: skip
+            if shapes[0] != shapes[1]:
+                raise PropError(
+                    "--original does not fit the bundle's model (other layers or shapes)",
+                    "pass the checkpoint the bundle was personalized from",
+                )
+            original_ctl = _ArrayController(bundle, None, prepare, False, module=original.module)
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
     cond = report["conditions"]
-    if original is not None:
+    if original_ctl is not None:
         if progress is not None:
             progress("original")
-        ctl = original.policy.controller(original.module.eval()) if original.policy else None
-        if ctl is None:
-            raise PropError("--original: only LeRobot policies are compared this way", "drop --original")
+        ctl = original_ctl
         cond["original"] = _summary(
             _episodes(env, ctl, first, features, obs_map, settings, metric, film("original"))
         )

@@ -156,7 +156,7 @@ def test_frozen_base_cnn_bundle_without_key_is_the_original(tmp_path, cli):
     hwc = np.moveaxis(x[:5], 1, -1).astype(np.uint8)
     for img in hwc:
         want, _ = model.predict(img, deterministic=True)
-        got = ours.predict(observation_array(ours_spec(tmp_path / "b"), img))
+        got, _ = ours.predict(observation_array(ours_spec(tmp_path / "b"), img))
         np.testing.assert_allclose(got, want, atol=1e-5)
 
 

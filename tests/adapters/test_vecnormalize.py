@@ -143,7 +143,7 @@ def test_eval_with_vecnormalize_acts_as_sb3_on_its_normalised_env(tmp_path, cli)
     obs, _ = env.reset(seed=3)
     worst = 0.0
     for _ in range(30):
-        a = ours.predict(prepare(obs))
+        a, _ = ours.predict(prepare(obs))
         want, _ = model.predict(venv.normalize_obs(obs), deterministic=True)
         worst = max(worst, float(np.abs(a - want).max()))
         obs, *_ = env.step(a)

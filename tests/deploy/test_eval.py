@@ -68,3 +68,20 @@ def test_eval_reports_every_condition_on_the_same_seeds(pendulum, cli):
 def test_eval_bad_input_is_one_line(pendulum, cli, extra, message):
     r = cli("eval", "b", *extra)
     assert r.code == 2 and message in r.err and len(r.err.strip().splitlines()) == 1, r.err
+
+
+def test_original_is_the_control_for_array_bundles_on_the_same_seeds(pendulum, cli, tmp_path):
+    r = cli("eval", "b", "--env", "Pendulum-v1", *QUICK, "--original", "pi.safetensors", "--json")
+    assert r.code == 0, r.err
+    cond = json.loads(r.out)["conditions"]
+    assert {"original", "no_key", "random_keys"} <= set(cond) and cond["original"]["episodes"] == 2
+    # Frozen base: the no-key bundle is the original bit for bit, so the paired rollouts are equal too.
+    frozen = cli("personalize", "pi.safetensors", "--data", "mine.npz", "--key-file", "k.bin", "--out", "f",
+                 *FAST, "--freeze-base")  # fmt: skip
+    assert frozen.code == 0, frozen.err
+    same = json.loads(cli("eval", "f", "--env", "Pendulum-v1", *QUICK, "--original", "pi.safetensors",
+                          "--json").out)["conditions"]  # fmt: skip
+    assert same["original"]["return"] == same["no_key"]["return"]
+    make_mlp_checkpoint(tmp_path / "other.safetensors", sizes=(3, 8, 1))
+    r = cli("eval", "b", "--env", "Pendulum-v1", *QUICK, "--original", tmp_path / "other.safetensors")
+    assert r.code == 2 and "--original does not fit" in r.err and len(r.err.strip().splitlines()) == 1
