@@ -83,6 +83,8 @@ __all__ = [
     "load_inputs",
     "personalize_checkpoint",
     "plot_audit",
+    "describe_bundle",
+    "is_bundle",
     "check_plot",
     "push_bundle",
     "read_key_file",
@@ -344,6 +346,19 @@ def audit_bundle(
         # What guessing the passphrase offline costs: any record, enrolment or encoder tests a guess.
         report["passphrase"] = strength(passphrase, min_core_years=settings.min_passphrase_years).to_dict()
     return report
+
+
+def describe_bundle(bundle_path: Path) -> dict:
+    """`prop inspect BUNDLE`: mode, users, keyed layers, the recorded audit, a signature (from the
+    manifest, checked; nothing is imported and no key is needed)."""
+    from prop_cli.bundle.describe import describe_bundle as describe
+
+    return describe(Path(bundle_path))
+
+
+def is_bundle(path: str) -> bool:
+    """Whether ``path`` is a bundle folder (has a manifest) rather than a checkpoint."""
+    return (Path(path) / C.MANIFEST).is_file()
 
 
 def record_audit(bundle_path: Path, report: dict) -> dict:

@@ -97,6 +97,11 @@ class Mode(ABC):
     def describe(cls, manifest: dict) -> str:
         """One line for people (the model card): what this mode keeps where."""
 
+    @classmethod
+    @abstractmethod
+    def facts(cls, manifest: dict) -> dict:
+        """What `prop inspect BUNDLE` shows of this mode (``bundle.describe``)."""
+
 
 NOT_ENROLLED = "the key is enrolled in no user of {where}"
 
@@ -149,6 +154,10 @@ class Unsealed(Mode):
         return []
 
     hides_behaviour = False
+
+    @classmethod
+    def facts(cls, manifest: dict) -> dict:
+        return {"users": cls.users(manifest)}  # users whose keys were trained (and enrolled, format 4)
 
     @classmethod
     def describe(cls, manifest: dict) -> str:
@@ -209,6 +218,12 @@ class Sealed(Mode):
     @classmethod
     def users(cls, manifest: dict) -> int:
         return len(manifest.get(C.M_RECORDS, []))
+
+    @classmethod
+    def facts(cls, manifest: dict) -> dict:
+        # Records, not users: each opens with one key, and the manifest cannot say whose.
+        payload = manifest.get(C.M_PAYLOAD, {})
+        return {"records": cls.users(manifest), "payload": {k: payload.get(k) for k in ("kind", "rank")}}
 
     def parameters(self, loaded: LoadedModel) -> int:
         return sum(p.numel() for p in loaded.module.parameters())

@@ -12,10 +12,16 @@ def inspect(
     trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
     """List the linear layers and convolutions of a checkpoint, which ones would be keyed (and their share of
-    the parameters), and what prop knows of it."""
+    the parameters), and what prop knows of it. Given a bundle: its mode, users, keyed layers, recorded
+    audit and signature."""
     from rich.table import Table
 
-    from prop_cli.api import inspect_checkpoint
+    from prop_cli.api import describe_bundle, inspect_checkpoint, is_bundle
+
+    if is_bundle(checkpoint):
+        info = describe_bundle(checkpoint)
+        print_json(info) if as_json else out.print(_bundle_table(info))
+        return
 
     opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
     info = inspect_checkpoint(checkpoint, opts, layers, exclude)
@@ -42,3 +48,38 @@ def inspect(
             "yes" if layer["keyed"] else "",
         )
     out.print(table)
+
+
+def _bundle_table(info: dict):
+    from rich.table import Table
+
+    model = ", ".join(f"{k} {v}" for k, v in info["model"].items())
+    n = info.get("records", info.get("users"))
+    who = f"{n} {'record' if 'records' in info else 'enrolled user'}{'' if n == 1 else 's'}"
+    table = Table(title=f"{info['bundle']}: {info['mode']} bundle, format {info['format_version']}",
+                  title_justify="left", show_header=False)  # fmt: skip
+    a = info["audit"]
+    if a is None:
+        audit = "none recorded (prop attack --record)"
+    else:
+        leak = a["max_leak"]
+        if not leak:
+            decision = "no --max-leak"
+        else:
+            verdict = "passed" if leak["passed"] else "FAILED " + ", ".join(leak["failing"] or [])
+            decision = f"--max-leak {leak['threshold']}: {verdict}"
+        audit = f"recorded {a['recorded_utc']} by prop {a['prop_version']}; {decision}"
+    layers = ", ".join(x["name"] for x in info["keyed_layers"])
+    rows = [
+        ("model", f"{model}; task {info['task']}"),
+        ("key", f"{info['key_bits']} bits; {who}"),
+        ("keyed layers", f"{len(info['keyed_layers'])}: {layers}"),
+        ("payload", ", ".join(f"{k} {v}" for k, v in info["payload"].items()) if "payload" in info else "-"),
+        ("files", f"{info['files']}, every sha256 checked"),
+        ("audit", audit),
+        ("signed", "yes (model.sig: check it with prop verify)" if info["signed"] else "no"),
+        ("onnx export", "yes" if info["onnx_export"] else "no"),
+    ]
+    for k, v in rows:
+        table.add_row(k, v)
+    return table

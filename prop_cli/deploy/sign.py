@@ -17,9 +17,10 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+from prop_cli import constants as C
 from prop_cli.errors import PropError, brief
 
-SIGNATURE = "model.sig"
+SIGNATURE = C.SIGNATURE_FILE
 SIGN_EXTRA = "pip install 'prop-keys[sign]'"
 # Not part of what was published: huggingface_hub's bookkeeping in a `hf download --local-dir` copy
 # (model-signing itself leaves out .git, .gitattributes, .github and .gitignore).

@@ -1,0 +1,55 @@
+"""`prop inspect BUNDLE`: what a bundle is, read from its manifest as data (nothing it names is imported,
+no model is built, no key is needed): mode, users, keyed layers, the recorded audit, a signature.
+
+The manifest's schema, format version and digest are checked (``read_manifest``) and every listed file
+against its sha256 (``check_files``), so what this says is what the bundle holds. Key material is never
+in a bundle, so nothing here can print it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from prop_cli import constants as C
+
+from .modes import mode_of
+from .read import check_files, read_manifest
+
+
+def _audit(m: dict) -> dict | None:
+    """The summary `prop attack --record` stored: when, by which prop, and its --max-leak decision."""
+    a = m.get(C.M_AUDIT)
+    if not a:
+        return None
+    leak = a.get("max_leak") or None
+    return {
+        "recorded_utc": a.get("recorded_utc"),
+        "prop_version": a.get("prop_version"),
+        "schema": a.get("schema"),
+        "max_leak": None if leak is None else {k: leak.get(k) for k in ("threshold", "passed", "failing")},
+    }
+
+
+def describe_bundle(path: Path) -> dict:
+    """The bundle at ``path`` described from its manifest (checked) and its files (hashes checked)."""
+    path = Path(path)
+    m = read_manifest(path)
+    check_files(path, m)
+    model = m[C.M_MODEL]
+    return {
+        "bundle": str(path),
+        "format_version": m[C.M_FORMAT],
+        "prop_version": m.get(C.M_PROP_VERSION),
+        "mode": m.get(C.M_MODE, C.MODE_UNSEALED),
+        "model": {k: v for k, v in model.items() if k in ("adapter", "type", "arch", "family", "builder")},
+        "task": m.get(C.M_TASK),
+        "key_bits": m[C.M_KEY]["bits"],
+        **mode_of(m).facts(m),
+        "keyed_layers": [
+            {"name": x["name"], "features": x["features"]} for x in m.get(C.M_KEYED_LAYERS, [])
+        ],
+        "files": len(m[C.M_FILES]),
+        "audit": _audit(m),
+        "signed": (path / C.SIGNATURE_FILE).is_file(),
+        "onnx_export": (path / C.EXPORT_DIR).is_dir(),
+    }
