@@ -236,12 +236,33 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
     if x.shape[1:] != want:
         if x.shape == want:
             x = x[None]  # a single sample
-        else:
+        elif not _other_size(x.shape[1:], want):
             raise PropError(
                 f"{flag} {path}: samples have shape {x.shape[1:]}, the bundle expects {want}",
                 "give an array of shape (N, " + ", ".join(map(str, want)) + ")",
             )
     return x
+
+
+def _other_size(got: tuple, want: tuple) -> bool:
+    """Images of another size than the bundle was personalized on (same channels): a fully
+    convolutional model takes them. Whether this one does shows when it runs (``_run_array``)."""
+    return len(want) >= 2 and len(got) == len(want) and got[0] == want[0]
+
+
+def _run_array(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str) -> np.ndarray:
+    """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
+    try:
+        return run_bundle(bundle, x, key)
+    except RuntimeError as e:
+        want = tuple(bundle.manifest[C.M_IO]["input_shape"])
+        if x.shape[1:] == want:
+            raise
+        raise PropError(
+            f"{flag}: the model does not run on samples of shape {x.shape[1:]} (personalized on {want}: "
+            f"{str(e).splitlines()[0][:120]})",
+            "give samples of shape " + str(want),
+        ) from None
 
 
 def _seed_noise(loaded: adapters.LoadedModel, seed: int) -> None:
@@ -306,7 +327,7 @@ def run_file(
 
         y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads)
     else:
-        y = run_bundle(bundle, load_inputs(input_path, bundle), key)
+        y = _run_array(bundle, load_inputs(input_path, bundle), key, "--input")
 
     def save(tmp: Path) -> None:
         with open(tmp, "wb") as f:

@@ -25,5 +25,9 @@ def make_conv_only() -> nn.Module:
     return nn.Sequential(nn.Conv2d(1, 2, 3))
 
 
+def make_bn_only() -> nn.Module:
+    return nn.Sequential(nn.BatchNorm1d(2))
+
+
 def not_a_module() -> dict:
     return {"hello": 1}

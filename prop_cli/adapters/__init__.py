@@ -12,8 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from torch import nn
 
+from prop_cli.core.layers import keyable_layers
 from prop_cli.errors import PropError, brief
 
 from .base import TRUST_FLAG, Adapter, CheckpointOptions, LoadedModel, check_exists, require_trust
@@ -59,10 +59,10 @@ def adapter_named(name: str | None, source: str) -> Adapter:
 
 
 def _require_linear(loaded: LoadedModel) -> LoadedModel:
-    if not any(isinstance(m, nn.Linear) for m in loaded.module.modules()):
+    if not keyable_layers(loaded.module):
         raise PropError(
-            f"no linear layers in {loaded.source}",
-            "prop adds keys to nn.Linear layers; use a model that has at least one",
+            f"no linear layers or convolutions in {loaded.source}",
+            "prop adds keys to nn.Linear and nn.Conv1d/2d/3d layers; use a model that has at least one",
         )
     return loaded
 

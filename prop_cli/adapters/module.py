@@ -1,4 +1,11 @@
-"""The user's own module class: ``--arch package.module:factory`` plus JSON keyword arguments."""
+"""The user's own module class: ``--arch package.module:factory`` (or ``path/to/file.py:factory``) plus
+JSON keyword arguments.
+
+A module name is imported from the folder prop runs in (first on the path, as ``python -m`` does), then
+``PYTHONPATH`` and installed packages; a ``.py`` path is loaded from that file (relative to the folder
+prop runs in). The bundle records ``--arch`` as given, so later commands need the same module where
+they run.
+"""
 
 from __future__ import annotations
 
@@ -16,25 +23,17 @@ from prop_cli.errors import PropError
 from .base import Adapter, CheckpointOptions, LoadedModel, finish
 from .weights import is_weights_file, read_weights
 
-ARCH_FORMAT = "give --arch as package.module:factory, e.g. mypolicies.nets:make_policy"
+ARCH_FORMAT = (
+    "give --arch as package.module:factory or path/to/file.py:factory, e.g. mypolicies.nets:make_policy"
+)
 
 
 def resolve_factory(arch: str):
     """Import ``package.module:attr.path`` and return the attribute (a class or function)."""
-    mod_name, sep, attr = arch.partition(":")
+    mod_name, sep, attr = arch.rpartition(":")
     if not sep or not mod_name or not attr:
         raise PropError(f"--arch '{arch}' is not of the form package.module:factory", ARCH_FORMAT)
-    # A model file next to where the user runs prop should just work, as with `python -m`.
-    cwd = os.getcwd()
-    if cwd not in sys.path:
-        sys.path.insert(0, cwd)
-    try:
-        obj = importlib.import_module(mod_name)
-    except Exception as e:  # ImportError, or any error raised while the user's module runs
-        raise PropError(
-            f"--arch '{arch}': cannot import '{mod_name}' ({type(e).__name__}: {e})",
-            "run prop from the folder holding the module, or install its package",
-        ) from None
+    obj = _import_file(arch, mod_name) if mod_name.endswith(".py") else _import_module(arch, mod_name)
     for part in attr.split("."):
         if not hasattr(obj, part):
             raise PropError(
@@ -45,6 +44,45 @@ def resolve_factory(arch: str):
     if not callable(obj):
         raise PropError(f"--arch '{arch}': '{attr}' is not callable", ARCH_FORMAT)
     return obj
+
+
+def _import_module(arch: str, mod_name: str):
+    # A model file next to where the user runs prop should just work, as with `python -m`.
+    cwd = os.getcwd()
+    if cwd not in sys.path:
+        sys.path.insert(0, cwd)
+    try:
+        return importlib.import_module(mod_name)
+    except Exception as e:  # ImportError, or any error raised while the user's module runs
+        raise PropError(
+            f"--arch '{arch}': cannot import '{mod_name}' ({type(e).__name__}: {e}); it must be importable "
+            f"from the folder prop runs in ({cwd}), PYTHONPATH or an installed package",
+            "run prop from the folder holding the module, add its folder to PYTHONPATH, or install it",
+        ) from None
+
+
+def _import_file(arch: str, file_name: str):
+    path = Path(file_name)
+    if not path.is_file():
+        raise PropError(
+            f"--arch '{arch}': {path} does not exist (relative to the folder prop runs in, {os.getcwd()})",
+            "run prop from the folder the path is relative to, or give the file's path from here",
+        )
+    import importlib.util
+
+    # A name of its own per file, so two files called model.py do not replace each other.
+    name = f"prop_arch_{abs(hash(str(path.resolve())))}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:  # any error raised while the user's file runs
+        del sys.modules[name]
+        raise PropError(
+            f"--arch '{arch}': running {path} failed ({type(e).__name__}: {e})", "fix the file"
+        ) from None
+    return module
 
 
 def make_module(arch: str, arch_kwargs: dict | None) -> nn.Module:
@@ -125,7 +163,7 @@ class ModuleAdapter(Adapter):
     name = "module"
     summary = (
         "a state dict of your own module: .safetensors or .pt/.pth/.bin with "
-        "--arch package.module:factory [--arch-kwargs JSON]"
+        "--arch package.module:factory or file.py:factory [--arch-kwargs JSON]"
     )
     options = ("arch", "arch_kwargs")
 

@@ -128,9 +128,11 @@ def select_layers(
     """Names of the layers to key (linear and convolution), in module order; validated before the model
     is touched."""
     linear = [n for n, _ in linear_layers(module)]
-    if not linear:
-        raise PropError("the model has no nn.Linear layers", "prop keys linear layers only")
     names = [n for n, _ in keyable_layers(module)]
+    if not names:
+        raise PropError(
+            "the model has no nn.Linear or nn.Conv1d/2d/3d layers", "prop keys linear layers and convolutions"
+        )
     listing = ", ".join(names[:20]) + (f" (+{len(names) - 20} more)" if len(names) > 20 else "")
 
     def check(p: str, which: str) -> None:
@@ -149,6 +151,11 @@ def select_layers(
     if not patterns:
         # An adapter may name its own default (DEFAULT_LAYERS_ATTR on the module, e.g. SB3 CnnPolicy).
         own = getattr(module, DEFAULT_LAYERS_ATTR, None)
+        if not own and not linear:  # the default choice is linear-only (bundles before keyed convolutions)
+            raise PropError(
+                "the model has no nn.Linear layers, which the default choice keys",
+                f"name the convolutions to key with {flag} (layers: {listing})",
+            )
         chosen = [n for n in names if n in own] if own else default_layers(linear)
     else:
         for p in patterns:

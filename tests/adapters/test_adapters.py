@@ -366,9 +366,16 @@ def test_arch_bad_kwargs(tmp_path, fixtures_path):
 
 
 def test_arch_without_linear(tmp_path, fixtures_path):
+    from prop_cli.core.layers import select_layers
+
     path = _save(nn.Sequential(nn.Conv2d(1, 2, 3)).state_dict(), tmp_path / "c.safetensors")
-    with pytest.raises(PropError, match=r"no linear layers in .*c\.safetensors"):
-        load_checkpoint(path, arch=f"{fixtures_path}:make_conv_only")
+    loaded = load_checkpoint(path, arch=f"{fixtures_path}:make_conv_only")  # a convolution is keyable
+    with pytest.raises(PropError, match=r"no nn.Linear layers, which the default choice keys.*--layers"):
+        select_layers(loaded.module)
+    assert select_layers(loaded.module, ["0"]) == ["0"]
+    bn = _save(nn.Sequential(nn.BatchNorm1d(2)).state_dict(), tmp_path / "bn.safetensors")
+    with pytest.raises(PropError, match=r"no linear layers or convolutions in .*bn\.safetensors"):
+        load_checkpoint(bn, arch=f"{fixtures_path}:make_bn_only")
 
 
 def test_arch_from_current_directory(tmp_path, monkeypatch):
