@@ -14,6 +14,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
 PY="${PYTHON:-python3.11}"
+# pip ends every install with a "dependency resolver" ERROR listing lerobot 0.4.4's torch/torchvision/
+# torchcodec pins, which this environment breaks on purpose (CPU torch 2.13, see above). Those lines
+# are expected: they are dropped, and anything else pip says is shown. A failed install still fails.
+KNOWN_NOISE="^WARNING: Location|^ERROR: pip's dependency resolver does not currently take into account|^lerobot 0\.4\.4 requires (torch|torchvision|torchcodec)"
+pip_install() {
+  local out rc=0
+  out=$("$VENV/bin/pip" install -q "$@" 2>&1) || rc=$?
+  printf '%s\n' "$out" | grep -v -E "$KNOWN_NOISE" | grep -v '^$' >&2 || true
+  return $rc
+}
 drop_draccus_tests() {
   # draccus 0.10.0 (lerobot's config library) installs its own test suite as a top-level package
   # `tests`, which shadows this repository's tests/ under pytest; it is not needed to run draccus.
@@ -24,7 +34,7 @@ drop_draccus_tests() {
 # prop's own requirements are met by what is installed (torch 2.13 is in its range), so `pip install -e .`
 # with dependencies adds only what prop needs beyond lerobot (e.g. cryptography) and never touches torch.
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, prop_cli" 2>/dev/null; then
-  "$VENV/bin/pip" install -q -e . 2>&1 | grep -v "^WARNING: Location" || true
+  pip_install -e .
   drop_draccus_tests
   exit 0
 fi
@@ -41,10 +51,10 @@ PIP="$VENV/bin/pip"
 TV_META="$("$VENV/bin/python" -c 'import importlib.util as u; print(u.find_spec("torchvision").submodule_search_locations[0])')/_meta_registrations.py"
 sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.library.register_fake("torchvision::\1") if torchvision.extension._has_ops() else (lambda f: f))/' "$TV_META"
 [ "$(grep -c '_has_ops() else (lambda f: f)' "$TV_META")" = 2 ] || { echo "torchvision patch did not apply" >&2; exit 1; }
-"$PIP" install -q --no-deps "lerobot==0.4.4" "torchcodec==0.13.0"
+pip_install --no-deps "lerobot==0.4.4" "torchcodec==0.13.0"
 # lerobot 0.4.4's base requirements (its METADATA) minus torch/torchvision/torchcodec; the simulator for
 # the example and tests (panda-gym); prop itself and its test tools.
-"$PIP" install -q \
+pip_install \
   "datasets>=4.0.0,<5.0.0" "diffusers>=0.27.2,<0.36.0" "huggingface-hub[cli,hf-transfer]>=0.34.2,<0.36.0" \
   "accelerate>=1.10.0,<2.0.0" "setuptools>=71.0.0,<81.0.0" "cmake>=3.29.0.1,<4.2.0" "einops>=0.8.0,<0.9.0" \
   "opencv-python-headless>=4.9.0,<4.13.0" "av>=15.0.0,<16.0.0" "jsonlines>=4.0.0,<5.0.0" \
@@ -52,7 +62,7 @@ sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.
   "draccus==0.10.0" "gymnasium>=1.1.1,<2.0.0" "rerun-sdk>=0.24.0,<0.27.0" "deepdiff>=7.0.1,<9.0.0" \
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
   "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5"
-"$PIP" install -q -e . 2>&1 | grep -v "^WARNING: Location" || true
+pip_install -e .
 drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'
 import lerobot, numpy, torch, torchvision
@@ -61,4 +71,4 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: F401
 import prop_cli, prop_adapters  # noqa: F401
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, numpy {numpy.__version__}")
 PYEOF
-echo "setup-lerobot: $(( $(date +%s) - start )) s, $(du -sh "$VENV" | cut -f1)" >&2
+echo "setup-lerobot: $(( $(date +%s) - start )) s, $(du -sh "$VENV" | cut -f1) (lerobot 0.4.4 on CPU torch 2.13: pip's notice that lerobot pins torch<2.11 is expected and not shown)" >&2
