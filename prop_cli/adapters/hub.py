@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import unquote
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 
 HF_SCHEME = "hf://"
 HUB_EXTRA = "pip install 'prop-keys[hub]'"
@@ -144,9 +144,13 @@ def _download_error(e: Exception, path: str | Path, hp: HubPath, offline: bool) 
             "check the path inside the repo",
         ),
         (errors.HfHubHTTPError, f"{path}: the hub answered with an error ({first_line})", "try again"),
-        (OSError, f"{path}: cannot reach the hub ({type(e).__name__})", "check the network"),
+        (OSError, f"{path}: cannot reach the hub for {hp.repo_id} ({type(e).__name__})", "check the network"),
     ]
     for cls, what, fix in cases:
         if isinstance(e, cls):
             return PropError(what, fix)
-    raise e
+    # The hub client's transport errors (httpx's ConnectError, timeouts) are not OSErrors.
+    return PropError(
+        f"{path}: cannot reach the hub for {hp.repo_id} ({brief(e)})",
+        "check the network; HF_HUB_OFFLINE=1 uses only the local cache",
+    )

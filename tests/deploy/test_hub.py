@@ -249,6 +249,20 @@ def test_push_without_network_is_one_line(cli, bundle, monkeypatch):
     assert r.err.splitlines()[-1].startswith("prop: error: upload to me/x failed: cannot reach the hub")
 
 
+def test_download_without_network_is_one_line_naming_the_repo(cli, monkeypatch):
+    class ConnectTimeout(Exception):  # as httpx's: not an OSError
+        pass
+
+    def unreachable(*a, **kw):
+        raise ConnectTimeout("timed out")
+
+    monkeypatch.setattr(hub, "_offline", lambda: False)
+    monkeypatch.setattr(hf, "hf_hub_download", unreachable)
+    r = cli("inspect", "hf://org/policy/model.safetensors")
+    assert r.code == 2 and "Traceback" not in r.err and r.err.count("\n") == 1
+    assert "cannot reach the hub for org/policy" in r.err and "check the network" in r.err
+
+
 def test_missing_extra_names_the_install_command(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
     with pytest.raises(PropError, match=r"prop-keys\[hub\]"):
