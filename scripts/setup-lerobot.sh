@@ -14,16 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
 PY="${PYTHON:-python3.11}"
-# pip ends every install with a "dependency resolver" ERROR listing lerobot 0.4.4's torch/torchvision/
-# torchcodec pins, which this environment breaks on purpose (CPU torch 2.13, see above). Those lines
-# are expected: they are dropped, and anything else pip says is shown. A failed install still fails.
-KNOWN_NOISE="^WARNING: Location|^ERROR: pip's dependency resolver does not currently take into account|^lerobot 0\.4\.4 requires (torch|torchvision|torchcodec)"
-pip_install() {
-  local out rc=0
-  out=$("$VENV/bin/pip" install -q "$@" 2>&1) || rc=$?
-  printf '%s\n' "$out" | grep -v -E "$KNOWN_NOISE" | grep -v '^$' >&2 || true
-  return $rc
-}
+. scripts/pip-quiet.sh  # pip_install: pip without the messages this set-up expects (listed there)
 drop_draccus_tests() {
   # draccus 0.10.0 (lerobot's config library) installs its own test suite as a top-level package
   # `tests`, which shadows this repository's tests/ under pytest; it is not needed to run draccus.
@@ -34,16 +25,16 @@ drop_draccus_tests() {
 # prop's own requirements are met by what is installed (torch 2.13 is in its range), so `pip install -e .`
 # with dependencies adds only what prop needs beyond lerobot (e.g. cryptography) and never touches torch.
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, prop_cli" 2>/dev/null; then
-  pip_install -e .
+  pip_install "$VENV/bin/pip" -e .
   drop_draccus_tests
   exit 0
 fi
 start=$(date +%s)
 "$PY" -m venv "$VENV"
 PIP="$VENV/bin/pip"
-"$PIP" install -q --upgrade "pip>=24"
+pip_install "$PIP" --upgrade "pip>=24"
 # torchvision 0.28.0 is the release for torch 2.13 (2.13.0+cpu satisfies its torch==2.13.0).
-"$PIP" install -q "torch==2.13.0" "torchvision==0.28.0"
+pip_install "$PIP" "torch==2.13.0" "torchvision==0.28.0"
 "$VENV/bin/python" -c 'import torch; assert "+cpu" in torch.__version__, torch.__version__'
 # PyPI's torchvision is built against CUDA torch: its C ops do not load under CPU torch, and import then
 # fails on the two meta registrations (nms, qnms) that torchvision does not guard with _has_ops().
@@ -51,10 +42,10 @@ PIP="$VENV/bin/pip"
 TV_META="$("$VENV/bin/python" -c 'import importlib.util as u; print(u.find_spec("torchvision").submodule_search_locations[0])')/_meta_registrations.py"
 sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.library.register_fake("torchvision::\1") if torchvision.extension._has_ops() else (lambda f: f))/' "$TV_META"
 [ "$(grep -c '_has_ops() else (lambda f: f)' "$TV_META")" = 2 ] || { echo "torchvision patch did not apply" >&2; exit 1; }
-pip_install --no-deps "lerobot==0.4.4" "torchcodec==0.13.0"
+pip_install "$PIP" --no-deps "lerobot==0.4.4" "torchcodec==0.13.0"
 # lerobot 0.4.4's base requirements (its METADATA) minus torch/torchvision/torchcodec; the simulator for
 # the example and tests (panda-gym); prop itself and its test tools.
-pip_install \
+pip_install "$PIP" \
   "datasets>=4.0.0,<5.0.0" "diffusers>=0.27.2,<0.36.0" "huggingface-hub[cli,hf-transfer]>=0.34.2,<0.36.0" \
   "accelerate>=1.10.0,<2.0.0" "setuptools>=71.0.0,<81.0.0" "cmake>=3.29.0.1,<4.2.0" "einops>=0.8.0,<0.9.0" \
   "opencv-python-headless>=4.9.0,<4.13.0" "av>=15.0.0,<16.0.0" "jsonlines>=4.0.0,<5.0.0" \
@@ -62,13 +53,13 @@ pip_install \
   "draccus==0.10.0" "gymnasium>=1.1.1,<2.0.0" "rerun-sdk>=0.24.0,<0.27.0" "deepdiff>=7.0.1,<9.0.0" \
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
   "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5"
-pip_install -e .
+pip_install "$VENV/bin/pip" -e .
 drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'
 import lerobot, numpy, torch, torchvision
 from lerobot.policies.act.modeling_act import ACTPolicy  # noqa: F401
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: F401
-import prop_cli, prop_adapters  # noqa: F401
+import prop_cli  # noqa: F401
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, numpy {numpy.__version__}")
 PYEOF
 echo "setup-lerobot: $(( $(date +%s) - start )) s, $(du -sh "$VENV" | cut -f1) (lerobot 0.4.4 on CPU torch 2.13: pip's notice that lerobot pins torch<2.11 is expected and not shown)" >&2

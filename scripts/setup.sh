@@ -11,6 +11,7 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 . .venv/bin/activate
-python -m pip install -q --disable-pip-version-check "torch==2.13.0" 2>&1 | grep -v "^WARNING: Location" || true
-python -m pip install -q --disable-pip-version-check -e ".${EXTRAS:+[$EXTRAS]}" 2>&1 | grep -v "^WARNING: Location" || true
-python -c "import torch, prop_cli, prop_adapters" # fail here, not later, if the install did not work
+. scripts/pip-quiet.sh
+pip_install .venv/bin/pip "torch==2.13.0"
+pip_install .venv/bin/pip -e ".${EXTRAS:+[$EXTRAS]}"
+python -c "import torch, prop_cli" # fail here, not later, if the install did not work
