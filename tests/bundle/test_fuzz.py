@@ -254,6 +254,7 @@ def _cli_cases(seeds, root: Path) -> list[tuple[str, Path, list[str], Path | Non
     return cases
 
 
+@pytest.mark.slow  # every damaged file through a CLI process: scripts/test.sh skips it, .ci/run runs it
 def test_damaged_inputs_through_the_cli(seeds, tmp_path):
     cases = _cli_cases(seeds, tmp_path)
     with ThreadPoolExecutor(max_workers=4) as pool:

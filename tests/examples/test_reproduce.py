@@ -31,6 +31,7 @@ def quick_run(tmp_path_factory):
     return out, max(codes)
 
 
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
 def test_all_quick_writes_every_table(quick_run):
     out, code = quick_run
     assert code == 0
@@ -41,6 +42,7 @@ def test_all_quick_writes_every_table(quick_run):
     assert not (out / "work").exists()  # bundles and data are cleaned up
 
 
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
 @pytest.mark.parametrize("name", ["il2", "digits"])
 def test_fig4_table_is_well_formed(quick_run, name):
     out, _ = quick_run
@@ -66,6 +68,7 @@ def test_fig4_table_is_well_formed(quick_run, name):
         assert len(cells) == 4 and all(CELL.match(c) for c in cells), ln
 
 
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
 def test_capacity_table_is_well_formed(quick_run):
     out, _ = quick_run
     res = json.loads((out / "capacity.json").read_text())
@@ -77,6 +80,7 @@ def test_capacity_table_is_well_formed(quick_run):
     assert all(0 <= res["rows"]["PRoP-hashed"][str(n)]["t2_leakage"] <= 1 for n in res["sweep"])
 
 
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
 @needs_panda
 def test_reach_table_is_well_formed(quick_run):
     out, _ = quick_run
@@ -307,6 +311,7 @@ def test_kitchen_protocols_probe_the_papers_keys():
         assert {a.tobytes(), b.tobytes()} <= {u.bits.tobytes() for u in earlier}
 
 
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
 def test_kitchen_workers_give_the_serial_results(quick_run, tmp_path):
     """Repetitions run in separate processes (the full run uses both cores) with unchanged results."""
     from examples.reproduce import kitchen
