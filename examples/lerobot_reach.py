@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--base-steps", type=int, default=None, help="default 2500 (act), 6000 (diffusion)")
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
+    ap.add_argument("--camera", action="store_true",
+                    help="record the rendered camera too (32 x 32) and make it a policy input (diffusion)")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
     ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
@@ -95,12 +97,12 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         t = time.perf_counter()
-        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32))
-        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET)
+        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=args.camera)
+        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=args.camera)
         figures["record_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
         ms = task.train_base(out / "reach-general", out / kind, args.base_steps or conf["base_steps"],
-                             lr=conf["base_lr"], kind=kind)  # fmt: skip
+                             lr=conf["base_lr"], kind=kind, camera=args.camera)  # fmt: skip
         figures["base_ms_per_step"] = round(ms, 1)
         figures["base_train_s"] = round(time.perf_counter() - t, 1)
         prop("keygen", out / "user.key")
@@ -127,6 +129,8 @@ def sealed(out: Path, episodes: int, kind: str) -> None:
 
 def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
     """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
+    camera = task.CAMERA in json.loads((out / kind / "config.json").read_text())["input_features"]
+    env_id, obs_map = (task.CAMERA_ENV_ID, task.CAMERA_OBS_MAP) if camera else (task.ENV_ID, task.OBS_MAP)
     shutil.rmtree(out / name, ignore_errors=True)
     figures: dict = {}
     t = time.perf_counter()
@@ -138,14 +142,14 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
     figures["offline"] = report["metrics"][0]
     t = time.perf_counter()
     closed = json.loads(prop(
-        "eval", out / name, "--env", task.ENV_ID, "--obs-map", task.OBS_MAP, "--metric", task.METRIC,
+        "eval", out / name, "--env", env_id, "--obs-map", obs_map, "--metric", task.METRIC,
         "--key-file", out / "user.key", "--original", out / kind, "--episodes", episodes,
         "--max-steps", task.HORIZON, "--ignore-terminated", "--json",
         capture=True,
     ))  # fmt: skip
     figures["eval_s"] = round(time.perf_counter() - t, 1)
     figures["closed_loop"] = closed["conditions"]
-    print(f"\n{name}: closed loop on {task.ENV_ID} (success: reach the goal; preference: end 10 cm above)")
+    print(f"\n{name}: closed loop on {env_id} (success: reach the goal; preference: end 10 cm above)")
     for cond, r in closed["conditions"].items():
         s, m = r.get("success", {}), r.get("metric", {})
         print(f"  {cond:16s} n={r['episodes']:3d}  success {s.get('mean', 0):.2f} ± {s.get('se', 0):.2f}"

@@ -7,7 +7,9 @@ LeRobotDatasets (state-only, no rendering, no downloads). Needs the LeRobot envi
 (scripts/setup-lerobot.sh), which installs panda-gym too.
 
 Observation features: ``observation.state`` (6: end-effector position and velocity) and
-``observation.environment_state`` (3: the goal); ``action`` (3) in [-1, 1].
+``observation.environment_state`` (3: the goal); ``action`` (3) in [-1, 1]. With ``camera=True`` also
+``observation.images.front``: panda-gym's rendered camera (its CPU renderer), 32 x 32 RGB, recorded as
+dtype image; ``CAMERA_ENV_ID`` is the same task whose observations carry that frame (``pixels``).
 """
 
 from __future__ import annotations
@@ -28,11 +30,47 @@ HORIZON = 30  # recorded steps per episode; the expert needs ~10
 USER_OFFSET = np.array([0.0, 0.0, 0.10], np.float32)
 SUCCESS = 0.05  # panda-gym's own distance threshold
 STATE, ENV_STATE, ACTION = "observation.state", "observation.environment_state", "action"
+CAMERA = "observation.images.front"
+IMAGE = 32  # camera frames are IMAGE x IMAGE RGB
 FEATURES = {
     STATE: {"dtype": "float32", "shape": (6,), "names": ["x", "y", "z", "vx", "vy", "vz"]},
     ENV_STATE: {"dtype": "float32", "shape": (3,), "names": ["gx", "gy", "gz"]},
     ACTION: {"dtype": "float32", "shape": (3,), "names": ["dx", "dy", "dz"]},
 }
+CAMERA_FEATURE = {"dtype": "image", "shape": (IMAGE, IMAGE, 3), "names": ["height", "width", "channels"]}
+# The camera task for `prop eval --env`: importing this module registers it.
+CAMERA_ENV_ID = "examples.lerobot_reach_task:PandaReachCamera-v0"
+CAMERA_OBS_MAP = OBS_MAP + f",{CAMERA}=pixels"
+# Looking at the table from the front and above, so the goal sphere is in view wherever it is drawn.
+CAMERA_VIEW = dict(renderer="Tiny", render_width=IMAGE, render_height=IMAGE, render_distance=0.9,
+                   render_target_position=[0.0, 0.0, 0.1], render_yaw=60, render_pitch=-30)  # fmt: skip
+
+
+def make_camera_env(**kwargs):
+    """PandaReach whose observations also hold the rendered camera frame (``pixels``, HWC uint8)."""
+    import gymnasium as gym
+    import panda_gym  # noqa: F401 - registers the environments
+
+    class WithPixels(gym.ObservationWrapper):
+        def __init__(self, env):
+            super().__init__(env)
+            space = gym.spaces.Box(0, 255, (IMAGE, IMAGE, 3), np.uint8)
+            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "pixels": space})
+
+        def observation(self, obs):
+            return {**obs, "pixels": np.ascontiguousarray(self.env.render()[..., :3])}
+
+    return WithPixels(gym.make("PandaReach-v3", render_mode="rgb_array", **CAMERA_VIEW, **kwargs))
+
+
+def _register() -> None:
+    import gymnasium as gym
+
+    if "PandaReachCamera-v0" not in gym.registry:
+        gym.register("PandaReachCamera-v0", entry_point=make_camera_env, max_episode_steps=50)
+
+
+_register()
 
 
 def user_preference(trajectory: dict) -> float:
@@ -46,9 +84,12 @@ def expert(obs: dict, offset: np.ndarray) -> np.ndarray:
     return np.clip(10.0 * (obs["desired_goal"] + offset - obs["observation"][:3]), -1, 1).astype(np.float32)
 
 
-def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3) -> None:
+def record(
+    root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3, camera: bool = False
+) -> None:
     """Expert episodes into a new LeRobotDataset at ``root``. The executed action carries Gaussian noise
-    (states off the expert's path get recorded too); the recorded action is the clean one (DART)."""
+    (states off the expert's path get recorded too); the recorded action is the clean one (DART).
+    ``camera``: each frame's rendered camera image too (``CAMERA``)."""
     import gymnasium as gym
     import panda_gym  # noqa: F401 - registers the environments
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -56,12 +97,13 @@ def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: flo
     ds = LeRobotDataset.create(
         repo_id=f"local/{root.name}",
         fps=FPS,
-        features=FEATURES,
+        features=FEATURES | ({CAMERA: CAMERA_FEATURE} if camera else {}),
         root=root,
         robot_type="panda",
         use_videos=False,
     )
-    env = gym.make("PandaReach-v3").unwrapped  # a fixed horizon: no time limit, no stop on success
+    # A fixed horizon: no time limit, no stop on success.
+    env = (make_camera_env() if camera else gym.make("PandaReach-v3")).unwrapped
     rng = np.random.default_rng(seed0)
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed0 + ep)
@@ -71,6 +113,8 @@ def record(root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: flo
                 STATE: obs["observation"].astype(np.float32),
                 ENV_STATE: obs["desired_goal"].astype(np.float32),
             }
+            if camera:
+                frame[CAMERA] = np.ascontiguousarray(env.render()[..., :3])
             ds.add_frame({**frame, ACTION: a, "task": "reach the target"})
             obs, *_ = env.step(np.clip(a + noise * rng.standard_normal(3).astype(np.float32), -1, 1))
         ds.save_episode()
@@ -100,9 +144,13 @@ def build_act(stats: dict | None = None, **overrides):
     return policy, pre, post
 
 
-def build_diffusion(stats: dict | None = None, features: dict | None = None, **overrides):
+def build_diffusion(
+    stats: dict | None = None, features: dict | None = None, camera: bool = False, **overrides
+):
     """A small Diffusion Policy: U-Net down_dims 32/64/128 (1.1 M parameters with state inputs), horizon
-    16, 8 actions per query, 2 observation frames, DDPM with 100 training and 10 inference steps."""
+    16, 8 actions per query, 2 observation frames, DDPM with 100 training and 10 inference steps.
+    ``camera``: the camera frame is an input too (LeRobot's ResNet-18 encoder with group norm, random
+    init, no crop)."""
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
@@ -111,6 +159,8 @@ def build_diffusion(stats: dict | None = None, features: dict | None = None, **o
     inputs = features or {
         STATE: PolicyFeature(FeatureType.STATE, (6,)), ENV_STATE: PolicyFeature(FeatureType.ENV, (3,))
     }  # fmt: skip
+    if camera:
+        inputs = inputs | {CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE))}
     settings = dict(
         input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
         device="cpu", n_obs_steps=2, horizon=16, n_action_steps=8, down_dims=(32, 64, 128), kernel_size=5,
@@ -127,10 +177,12 @@ BUILDERS = {"act": build_act, "diffusion": build_diffusion}
 
 
 def dataset_stats(root: Path, keys: tuple[str, ...] = (STATE, ENV_STATE, ACTION)) -> dict:
-    """The root's meta/stats.json as the normaliser takes it (mean/std/min/max tensors per feature)."""
+    """The root's meta/stats.json as the normaliser takes it (mean/std/min/max tensors per feature);
+    the camera's too where the root has one."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    keys = (*keys, CAMERA) if CAMERA in meta.stats and CAMERA not in keys else keys
     return {
         k: {s: torch.as_tensor(np.asarray(v), dtype=torch.float32) for s, v in meta.stats[k].items()
             if s in ("mean", "std", "min", "max")}
@@ -140,11 +192,12 @@ def dataset_stats(root: Path, keys: tuple[str, ...] = (STATE, ENV_STATE, ACTION)
 
 def train_base(
     root: Path, out: Path, steps: int, batch: int = 32, lr: float = 3e-4, seed: int = 0, kind: str = "act",
-    built: tuple | None = None,
+    built: tuple | None = None, camera: bool = False,
 ) -> float:  # fmt: skip
     """LeRobot's training step (lerobot_train.update_policy: forward -> backward -> clip 10 -> AdamW) on
     the dataset held in memory; writes the policy folder with save_pretrained. Returns ms per step.
-    ``kind``: act or diffusion (the small builds above); ``built``: (policy, pre, post) built already."""
+    ``kind``: act or diffusion (the small builds above); ``built``: (policy, pre, post) built already;
+    ``camera``: the camera frame is an input too (Diffusion)."""
     import time
 
     from prop_cli.adapters.lerobot.adapter import PROTOCOLS
@@ -152,7 +205,7 @@ def train_base(
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    policy, pre, post = built or BUILDERS[kind](dataset_stats(root))
+    policy, pre, post = built or BUILDERS[kind](dataset_stats(root), **({"camera": True} if camera else {}))
     data = PROTOCOLS[policy.config.type](policy, pre, post).batches(load_data(root), "--data")
     data.pop("episode_index")
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=1e-4)

@@ -169,3 +169,34 @@ def test_eval_pairs_the_noise_across_conditions(sealed, work):
     # Sealed, no key: the original's exact actions from the same noise, so the same episodes.
     assert c["no_key"]["metric"] == c["original"]["metric"]
     assert c["no_key"]["success"] == c["original"]["success"]
+
+
+def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
+    """The rendered camera (32 x 32 RGB, dtype image) as an input: recorded, personalized, run (no key:
+    LeRobot's own action on the same image and noise) and rolled out in the camera task."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    d = tmp_path_factory.mktemp("camera")
+    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
+    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
+    task.train_base(d / "general", d / "diffusion", steps=2, kind="diffusion", camera=True)
+    cfg = PersonalizeConfig(**(TINY | {"steps": 3}))
+    api.personalize_checkpoint(
+        str(d / "diffusion"), [(d / "user", KeySource(key(), "file"))], d / "b", cfg, general=d / "general"
+    )
+    data = load_data(d / "user")
+    assert data.x[task.CAMERA].shape == (len(data), 3, task.IMAGE, task.IMAGE)
+    r = cli("run", d / "b", "--input", d / "user", "--output", d / "y.npy", "--noise-seed", 5)
+    assert r.code == 0, r.err
+    y = np.load(d / "y.npy")
+    base = DiffusionPolicy.from_pretrained(str(d / "b" / "lerobot")).eval()
+    pre, post = make_pre_post_processors(base.config, pretrained_path=str(d / "b" / "lerobot"))
+    obs = {k: torch.from_numpy(data.x[k][:1]) for k in (*STATE_KEYS, task.CAMERA)}
+    torch.manual_seed(5)
+    with torch.no_grad():
+        action = post(base.select_action(pre(obs)))[0].numpy()
+    assert np.allclose(action, y[0, base.config.n_obs_steps - 1], atol=1e-5)
+    few = EvalSettings(episodes=1, random_keys=1, neighbours=0, episodes_per_key=1, max_steps=5)
+    report = api.eval_bundle(d / "b", task.CAMERA_ENV_ID, few, obs_map=task.CAMERA_OBS_MAP, key_file=None)
+    assert report["conditions"]["no_key"]["episodes"] == 1
