@@ -32,7 +32,7 @@ from prop_cli.bundle.records import (
     with_records,
 )
 from prop_cli.bundle.runtime import run_policy
-from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
+from prop_cli.config import LOW_RANK_KINDS, AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
     KeySource,
     generate_key_file,
@@ -84,6 +84,7 @@ __all__ = [
     "personalize_checkpoint",
     "plot_audit",
     "describe_bundle",
+    "export_peft_adapter",
     "is_bundle",
     "check_plot",
     "push_bundle",
@@ -390,6 +391,28 @@ def record_audit(bundle_path: Path, report: dict) -> dict:
     return record(Path(bundle_path), report)
 
 
+def export_peft_adapter(
+    bundle_path: Path,
+    out: Path,
+    *,
+    key_file: Path | None = None,
+    passphrase: str | None = None,
+    force: bool = False,
+    trust_remote_code: bool = False,
+):
+    """`prop export --peft`: the payload a key opens in a sealed bundle, as a standard peft LoRA adapter
+    folder (``deploy.peft``); never written inside the bundle."""
+    from prop_cli.deploy.peft import export_peft
+
+    check_output(Path(out), force, what="adapter folder", flag="--peft")
+    check_not_input(Path(out), "--peft", [bundle_path, key_file])
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    if key is None:
+        raise PropError("--peft exports the payload your key opens", "pass --key-file or --passphrase")
+    return export_peft(bundle, key, Path(out))
+
+
 def export_bundle(
     bundle_path: Path,
     out: Path | None = None,
@@ -487,7 +510,8 @@ def add_user(
     bundle.check_key(key.bits, "the new user's key")
     cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
-    if (cfg.payload, cfg.payload_rank if cfg.payload == "lora" else 0) != (spec["kind"], spec["rank"]):
+    rank = cfg.payload_rank if cfg.payload in LOW_RANK_KINDS else 0
+    if (cfg.payload, rank) != (spec["kind"], spec["rank"]):
         raise PropError(
             f"--payload {cfg.payload} (rank {cfg.payload_rank}) differs from the bundle's {spec['kind']} "
             f"(rank {spec['rank']})",

@@ -13,7 +13,8 @@ from .constants import KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
-PAYLOAD_KINDS = ("lora", "delta", "full")  # what a sealed bundle stores per user (prop_cli.core.payload)
+PAYLOAD_KINDS = ("lora", "delta", "full", "peft-lora")  # what a sealed bundle stores per user (core.payload)
+LOW_RANK_KINDS = ("lora", "peft-lora")  # payload kinds with a rank (--payload-rank)
 ENCODER_INITS = ("seed", "os")
 # `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
 HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}

@@ -54,6 +54,8 @@ DEFAULT_LAYERS_ATTR = "prop_default_layers"
 
 # ONNX export (a folder; `prop export --onnx`).
 EXPORT_DIR = "onnx"  # default place: <bundle>/onnx
+PEFT_CONFIG = "adapter_config.json"  # `prop export --peft`: a standard peft adapter folder
+PEFT_WEIGHTS = "adapter_model.safetensors"
 SIGNATURE_FILE = "model.sig"  # `prop push --sign`: the publisher's signature (a sigstore bundle)
 EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
 # 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.

@@ -24,7 +24,7 @@ drop_draccus_tests() {
 }
 # prop's own requirements are met by what is installed (torch 2.13 is in its range), so `pip install -e .`
 # with dependencies adds only what prop needs beyond lerobot (e.g. cryptography) and never touches torch.
-if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, prop_cli" 2>/dev/null; then
+if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, peft, prop_cli" 2>/dev/null; then
   pip_install "$VENV/bin/pip" -e .
   drop_draccus_tests
   exit 0
@@ -43,8 +43,9 @@ TV_META="$("$VENV/bin/python" -c 'import importlib.util as u; print(u.find_spec(
 sed -i -E 's/^@torch\.library\.register_fake\("torchvision::(q?nms)"\)$/@(torch.library.register_fake("torchvision::\1") if torchvision.extension._has_ops() else (lambda f: f))/' "$TV_META"
 [ "$(grep -c '_has_ops() else (lambda f: f)' "$TV_META")" = 2 ] || { echo "torchvision patch did not apply" >&2; exit 1; }
 pip_install "$PIP" --no-deps "lerobot==0.4.4" "torchcodec==0.13.0"
-# lerobot 0.4.4's base requirements (its METADATA) minus torch/torchvision/torchcodec; the simulator for
-# the example and tests (panda-gym); prop itself and its test tools.
+# lerobot 0.4.4's base requirements (its METADATA) minus torch/torchvision/torchcodec; its `peft` extra
+# (peft >=0.18,<1 with transformers >=4.57.1,<5: LeRobot's own pins, which keep huggingface-hub <0.36);
+# the simulator for the example and tests (panda-gym); prop itself and its test tools.
 pip_install "$PIP" \
   "datasets>=4.0.0,<5.0.0" "diffusers>=0.27.2,<0.36.0" "huggingface-hub[cli,hf-transfer]>=0.34.2,<0.36.0" \
   "accelerate>=1.10.0,<2.0.0" "setuptools>=71.0.0,<81.0.0" "cmake>=3.29.0.1,<4.2.0" "einops>=0.8.0,<0.9.0" \
@@ -52,7 +53,8 @@ pip_install "$PIP" \
   "packaging>=24.2,<26.0" "pynput>=1.7.7,<1.9.0" "pyserial>=3.5,<4.0" "wandb>=0.24.0,<0.25.0" \
   "draccus==0.10.0" "gymnasium>=1.1.1,<2.0.0" "rerun-sdk>=0.24.0,<0.27.0" "deepdiff>=7.0.1,<9.0.0" \
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
-  "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5"
+  "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5" \
+  "peft>=0.18,<1.0" "transformers>=4.57.1,<5.0.0"
 pip_install "$VENV/bin/pip" -e .
 drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'

@@ -102,6 +102,14 @@ class Mode(ABC):
     def facts(cls, manifest: dict) -> dict:
         """What `prop inspect BUNDLE` shows of this mode (``bundle.describe``)."""
 
+    def payload_for(self, bits: np.ndarray):
+        """The payload ``bits`` opens (``core.payload.Payload``), checked as ``unlock`` checks it; None:
+        the key opens nothing. Only sealed bundles keep payloads."""
+        raise PropError(
+            "this bundle is unsealed: its users' behaviour is in its base and encoder, not in a payload",
+            "personalize with --seal (--payload peft-lora) to get a payload a key opens",
+        )
+
 
 NOT_ENROLLED = "the key is enrolled in no user of {where}"
 
@@ -203,6 +211,14 @@ class Sealed(Mode):
         if opened.changed:
             raise enrol.changed_error(self.where, opened.changed)
         return opened.payload.fold(module)
+
+    def payload_for(self, bits: np.ndarray):
+        opened = self.state.open(bits)
+        if opened is None or self._unbound_files:
+            return None
+        if opened.changed:
+            raise enrol.changed_error(self.where, opened.changed)
+        return opened.payload
 
     def not_enrolled(self, where: str) -> str:
         if self._unbound_files:

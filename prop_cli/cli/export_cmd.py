@@ -17,6 +17,11 @@ SETTINGS = {  # ExportSettings field -> help of its --flag
 }
 Onnx = Annotated[bool, opt("--onnx", "Export ONNX graphs (needs: pip install 'prop-keys[onnx]').")]
 OutDir = Annotated[Path | None, opt("--out", "Folder to write the graphs to (default: BUNDLE/onnx).")]
+PeftDir = Annotated[
+    Path | None,
+    opt("--peft", "New folder: the payload your key opens in a sealed bundle (--payload peft-lora) as a "
+                  "standard peft LoRA adapter. It is your behaviour in the clear."),
+]  # fmt: skip
 VerifyKey = Annotated[
     Path | None,
     opt("--key-file", "Verify with your key and bind it to the graphs (prop run --onnx runs bound keys)."),
@@ -27,13 +32,18 @@ VerifyInputs = Annotated[Path | None, opt("--input", "Verify on these inputs (.n
 @config_options(ExportSettings, SETTINGS, into="settings")
 def export(
     bundle: BundleArg, settings: ExportSettings, onnx: Onnx = False, out_dir: OutDir = None,
+    peft: PeftDir = None,
     key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False,
 ) -> None:  # fmt: skip
-    """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime."""
-    if not onnx:
-        fail("choose an export format", "pass --onnx")
+    """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; or a
+    sealed user's payload as a peft LoRA adapter (--peft DIR)."""
+    if onnx == (peft is not None):
+        fail("choose one export format", "pass --onnx or --peft DIR")
+    if peft is not None:
+        _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code)
+        return
     from prop_cli.api import export_bundle
 
     result = export_bundle(
@@ -54,6 +64,22 @@ def export(
         raise typer.Exit(1)
     if not as_json:
         out.print(f"wrote {result.out} ({', '.join(result.files)})")
+
+
+def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code) -> None:
+    from prop_cli.api import export_peft_adapter
+
+    result = export_peft_adapter(
+        bundle, peft, key_file=key_file, passphrase=read_passphrase() if passphrase else None, force=force,
+        trust_remote_code=trust_remote_code,
+    )  # fmt: skip
+    err.print(f"prop: note: {result.out} holds your behaviour unencrypted: keep it as you keep your key")
+    if as_json:
+        print_json({"out": str(result.out), "layers": result.layers, "rank": result.rank,
+                    "base": result.base})  # fmt: skip
+    else:
+        out.print(f"wrote {result.out} (peft LoRA adapter: {result.layers} layers, rank {result.rank}; "
+                  f"base {result.base})")  # fmt: skip
 
 
 def _print_table(result) -> None:

@@ -56,8 +56,9 @@ SETTINGS = {
     "code_flip_max": "Code-space negatives: at most this many bits flipped.",
     "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
     "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
-    "payload": "With --seal: lora, delta or full (what is stored per user).",
-    "payload_rank": "With --seal --payload lora: the update's rank.",
+    "payload": "With --seal: lora, delta, full or peft-lora (what is stored per user; peft-lora exports "
+    "as a standard peft adapter: prop export --peft).",
+    "payload_rank": "With --seal --payload lora or peft-lora: the update's rank.",
     "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
 }
 

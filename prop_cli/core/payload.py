@@ -6,6 +6,9 @@ Kinds (``PAYLOAD_KINDS``), per keyed linear layer with weight W (out, in):
   instead of produced by a key encoder.
 - ``lora``: (W + B A) diag(delta), B (out, r) and A (r, in): Eq. 5 plus a low-rank update.
 - ``full``: W + D and b + d: every weight of the keyed layers.
+- ``peft-lora``: W + B A, no delta: exactly peft's LoRA (``lora_alpha = r``, so its scaling is 1), so
+  the key's holder can export it as a standard peft adapter (``prop_cli.deploy.peft``). ``lora``'s
+  per-input delta makes its update full-rank, which no peft LoRA can hold.
 
 A keyed convolution (weight (out, in / groups, *kernel)) has one delta per input channel; its LoRA
 update is low-rank in the flattened kernel, B (out, r) A (r, in / groups * prod(kernel)) reshaped to
@@ -29,7 +32,7 @@ import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
-from prop_cli.config import PAYLOAD_KINDS
+from prop_cli.config import LOW_RANK_KINDS, PAYLOAD_KINDS
 from prop_cli.errors import PropError
 
 from .layers import kernel_fan_in, scale_inputs
@@ -46,7 +49,7 @@ class PayloadSpec:
     def validate(self) -> PayloadSpec:
         if self.kind not in PAYLOAD_KINDS:
             raise PropError(f"--payload {self.kind!r} is unknown", f"use one of {', '.join(PAYLOAD_KINDS)}")
-        if self.kind == "lora" and self.rank < 1:
+        if self.kind in LOW_RANK_KINDS and self.rank < 1:
             raise PropError(f"--payload-rank {self.rank} is invalid", "--payload-rank must be at least 1")
         if not self.layers:
             raise PropError("the payload has no keyed layers", "choose layers with --layers")
@@ -69,8 +72,9 @@ def _tensor_shapes(spec: PayloadSpec) -> dict[str, tuple[int, ...]]:
             shapes[f"{n}.weight_delta"] = (o, i // int(layer.get("groups", 1)), *kernel) if kernel else (o, i)
             shapes[f"{n}.bias_delta"] = (o,)
             continue
-        shapes[f"{n}.delta"] = (i,)
-        if spec.kind == "lora":
+        if spec.kind != "peft-lora":
+            shapes[f"{n}.delta"] = (i,)
+        if spec.kind in LOW_RANK_KINDS:
             shapes[f"{n}.lora_a"] = (spec.rank, kernel_fan_in(layer))
             shapes[f"{n}.lora_b"] = (o, spec.rank)
     return shapes
@@ -102,9 +106,11 @@ class Payload(nn.Module):
     def weight(self, layer: str, w: torch.Tensor) -> torch.Tensor:
         if self.spec.kind == "full":
             return w + self.tensor(layer, "weight_delta")
-        if self.spec.kind == "lora":
+        if self.spec.kind in LOW_RANK_KINDS:
             update = self.tensor(layer, "lora_b") @ self.tensor(layer, "lora_a")
             w = w + (update if w.dim() == 2 else update.view_as(w))
+        if self.spec.kind == "peft-lora":
+            return w
         return w * scale_inputs(w, self.tensor(layer, "delta"))
 
     def tensors(self) -> dict[str, torch.Tensor]:

@@ -21,7 +21,7 @@ from prop_cli import constants as C
 from prop_cli.adapters import LoadedModel
 from prop_cli.bundle import write_sealed
 from prop_cli.bundle.records import SealedState
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import LOW_RANK_KINDS, PersonalizeConfig
 from prop_cli.core import metrics
 from prop_cli.core.key_files import kdf_record, new_salt
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
@@ -38,7 +38,8 @@ from .report import eval_rng, outputs_report
 def payload_spec(module: nn.Module, cfg: PersonalizeConfig) -> PayloadSpec:
     mods = dict(module.named_modules())
     layers = [describe_layer(n, mods[n]) for n in select_layers(module, cfg.layers, cfg.exclude)]
-    return PayloadSpec(cfg.payload, layers, cfg.payload_rank if cfg.payload == "lora" else 0).validate()
+    rank = cfg.payload_rank if cfg.payload in LOW_RANK_KINDS else 0
+    return PayloadSpec(cfg.payload, layers, rank).validate()
 
 
 def check_distinct(keys: list[np.ndarray]) -> None:
