@@ -66,8 +66,10 @@ def check_output(out: Path, force: bool, what: str = "bundle", flag: str = "--ou
     """Refuse to replace what the user owns without --force; fail early if the place is unwritable."""
     out = Path(out)
     if out.exists() and not force:
+        # Named for both callers: the command line's flags, and the Python API's force= parameter.
         raise PropError(
-            f"{what} {out} already exists", f"choose another {flag} or pass --force to replace it"
+            f"{what} {out} already exists",
+            f"choose another {flag} or pass --force to replace it (force=True in Python)",
         )
     parent = out.resolve().parent
     if not parent.is_dir():

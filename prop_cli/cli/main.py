@@ -109,15 +109,36 @@ def _on_late_sigint(signum, frame) -> None:
     _exit_interrupted(" while exiting")
 
 
+def _usage_errors() -> tuple[type, type | tuple]:
+    """The parser's usage errors: typer >= 0.24 carries its own copy of click (``typer._click``), older
+    typers use click's. (typer exports Exit and Abort, not these.)"""
+    try:
+        from typer._click import exceptions
+    except ImportError:
+        from click import exceptions
+    return exceptions.UsageError, getattr(exceptions, "NoArgsIsHelpError", ())
+
+
 def main() -> None:
     warnings.showwarning = _one_line_warning
     debug = bool(os.environ.get(ENV_DEBUG))
     if not debug:
         signal.signal(signal.SIGINT, _on_sigint)
+    usage_error, help_error = _usage_errors()
     try:
-        app()
+        code = app(standalone_mode=False)
     except Interrupted:
         _exit_interrupted()
+    except help_error as e:  # `prop` alone: the help, as before
+        e.show()
+        sys.exit(EXIT_BAD_INPUT)
+    except usage_error as e:  # a missing or unknown option: the one-line format every error has
+        where = e.ctx.command_path if e.ctx is not None else "prop"
+        print(f"prop: error: {e.format_message().rstrip('.')}; see {where} --help", file=sys.stderr)
+        sys.exit(EXIT_BAD_INPUT)
+    except typer.Abort:  # end of input at a prompt (a passphrase): nothing was written
+        print(f"prop: interrupted; {_what_was_written()}", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
     except Exception as e:
         from prop_cli.errors import PropError
 
@@ -125,6 +146,8 @@ def main() -> None:
             raise
         print(f"prop: error: {e.line()}", file=sys.stderr)
         sys.exit(EXIT_BAD_INPUT)
+    else:
+        sys.exit(code if isinstance(code, int) else 0)  # typer.Exit(n) returns n without standalone mode
     finally:
         if not debug:  # the work is done; a Ctrl-C during interpreter exit gets a line, not a traceback
             signal.signal(signal.SIGINT, _on_late_sigint)

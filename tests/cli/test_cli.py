@@ -442,3 +442,24 @@ def test_run_and_keygen_json(cli, workdir):
         "run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy", "--json"
     )
     assert res.code == 0 and json.loads(res.out)["shape"] == [8, 2]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["run", "b.prop", "--input", "x.npy"], "Missing option '--output'; see prop run --help"),
+        (["personalize", "m.safetensors", "--bogus"], "No such option: --bogus"),
+    ],
+)
+def test_usage_errors_are_one_prop_error_line(cli, args, words):
+    res = cli(*args)
+    assert_clean_error(res, words)
+    assert "Usage:" not in res.err and "Try '" not in res.err
+
+
+def test_an_existing_output_names_the_flag_and_the_parameter(tmp_path):
+    from prop_cli.errors import PropError
+    from prop_cli.files import check_output
+
+    with pytest.raises(PropError, match=r"--force to replace it \(force=True in Python\)"):
+        check_output(tmp_path, force=False)
