@@ -126,7 +126,7 @@ def main() -> None:
         signal.signal(signal.SIGINT, _on_sigint)
     usage_error, help_error = _usage_errors()
     try:
-        code = app(standalone_mode=False)
+        code = app(standalone_mode=False, prog_name="prop")
     except Interrupted:
         _exit_interrupted()
     except help_error as e:  # `prop` alone: the help, as before
