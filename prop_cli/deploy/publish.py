@@ -23,7 +23,7 @@ from prop_cli.bundle.records import load_state
 from prop_cli.errors import PropError, brief
 
 from .onnx import read_export
-from .sign import sign_folder, signed_note
+from .sign import require_signing, sign_folder, signed_note
 
 CARD_FILE = "README.md"
 
@@ -197,6 +197,8 @@ def push_bundle(
     if repo_id.count("/") != 1 or not all(repo_id.split("/")):
         raise PropError(f"repo {repo_id!r} is not a hub repo id", "write <org or user>/<name>")
     hf = hub_module()
+    if sign is not None:
+        require_signing()  # before the bundle is read and staged
     manifest, mode = verified_files(Path(bundle))  # never publish a modified bundle; nothing is imported
     if not mode.hides_behaviour and not private and not allow_unsealed:
         raise PropError(

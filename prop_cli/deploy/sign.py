@@ -35,6 +35,11 @@ def _lib():
     return hashing, signing, verifying
 
 
+def require_signing() -> None:
+    """Fail before any work when --sign cannot sign (model-signing is the extra `sign`)."""
+    _lib()
+
+
 def _read(path: Path, flag: str) -> bytes:
     try:
         return Path(path).read_bytes()
