@@ -289,3 +289,19 @@ def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch):
     record = json.loads((sealed / C.MANIFEST).read_text())[C.M_RECORDS][0]["file"]
     assert seen["files"] == sorted(["README.md", C.MANIFEST, C.BASE_WEIGHTS, record])
     assert "**sealed**" in seen["card"] and "Audit verdict: no audit recorded" in seen["card"]
+
+
+def test_push_sign_without_its_extra_fails_before_the_bundle_is_read(cli, bundle, monkeypatch, tmp_path):
+    from prop_cli.deploy import sign
+
+    def missing():
+        raise PropError("signatures need the 'sign' extra (model_signing is not installed)", sign.SIGN_EXTRA)
+
+    read = []
+    monkeypatch.setattr(sign, "_lib", missing)
+    monkeypatch.setattr(publish, "verified_files", lambda *a: read.append(1))
+    (tmp_path / "key.pem").write_text("not used")
+    r = cli("push", bundle, "me/x", "--private", "--sign", tmp_path / "key.pem")
+    assert r.code == 2 and "Traceback" not in r.err, r.err
+    assert r.err.splitlines()[-1].startswith("prop: error: signatures need the 'sign' extra")
+    assert "prop-keys[sign]" in r.err and not read
