@@ -1,0 +1,98 @@
+"""A sealed payload's training step vs a plain peft LoRA step on the same policy, rows, rank and optimiser.
+
+    bash scripts/setup-lerobot.sh
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_payload_step --policy diffusion --reps 30
+
+Payload step: what `prop personalize --seal` runs per step (``prop_cli.train.sealed_policy``): the
+payload applied to the frozen base through weight parametrizations, the policy's own loss on 32 user
+rows, backward, clip 10, prop's Adam. Plain step: the same policy wrapped by peft's ``get_peft_model``
+(LoRA of the same rank on the same layers), the same loss, rows, clip and optimiser. Both payload kinds
+are timed: ``peft-lora`` (W + B A, what peft computes) and ``lora`` (W + B A, then a per-input delta).
+The steps alternate (the machine is shared); medians and ratios are printed. Target (issue 22): <= 1.1x.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from examples import lerobot_reach_task as task
+from prop_cli.adapters import load_checkpoint
+from prop_cli.config import PersonalizeConfig
+from prop_cli.core.payload import Payload
+from prop_cli.datasources import load_data
+from prop_cli.train.loop import Optimiser
+from prop_cli.train.policy import CLIP, rows
+from prop_cli.train.sealed import payload_spec
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--policy", choices=sorted(task.BUILDERS), default="diffusion")
+    ap.add_argument("--reps", type=int, default=30)
+    ap.add_argument("--rank", type=int, default=4)
+    args = ap.parse_args(argv)
+    from peft import LoraConfig, get_peft_model
+
+    torch.manual_seed(0)
+    work = Path(tempfile.mkdtemp(prefix="prop-bench-payload-"))
+    task.record(work / "user", 6, 50_000, task.USER_OFFSET)
+    task.train_base(work / "user", work / args.policy, steps=1, kind=args.policy)
+    rng = np.random.default_rng(0)
+    steps: dict = {}
+    attached = []  # the payloads stay attached while the benchmark runs (a dropped context detaches)
+    for kind in ("peft-lora", "lora"):
+        loaded = load_checkpoint(work / args.policy)
+        policy, module = loaded.policy, loaded.module.eval().requires_grad_(False)
+        cfg = PersonalizeConfig(seal=True, payload=kind, payload_rank=args.rank, layers=policy.default_layers)
+        spec = payload_spec(module, cfg)
+        data = policy.batches(load_data(work / "user"), "--data")
+        payload = Payload(spec, torch.Generator().manual_seed(0))
+        optim = Optimiser(list(payload.parameters()), 1e-3, 10**6, 1.0, clip=CLIP)
+        attached.append(payload.attached(module))
+        attached[-1].__enter__()
+
+        def step(policy=policy, data=data, optim=optim) -> None:
+            optim.update(policy.loss(rows(data, torch.from_numpy(rng.integers(0, len(data["action"]), 32)))))
+
+        steps[f"payload {kind}"] = step
+    names = [layer["name"] for layer in spec.layers]
+    plain = load_checkpoint(work / args.policy)
+    wrapped = get_peft_model(copy.deepcopy(plain.module), LoraConfig(r=args.rank, lora_alpha=args.rank,
+                                                                      target_modules=names))  # fmt: skip
+    plain_policy = plain.policy.on(wrapped.base_model.model)
+    data = plain.policy.batches(load_data(work / "user"), "--data")
+    trainable = [p for p in wrapped.parameters() if p.requires_grad]
+    plain_optim = Optimiser(trainable, 1e-3, 10**6, 1.0, clip=CLIP)
+
+    def plain_step() -> None:
+        idx = torch.from_numpy(rng.integers(0, len(data["action"]), 32))
+        plain_optim.update(plain_policy.loss(rows(data, idx)))
+
+    steps = {"peft LoRA": plain_step, **steps}
+    torch.set_flush_denormal(True)
+    for fn in steps.values():  # warm-up
+        for _ in range(3):
+            fn()
+    times: dict[str, list[float]] = {k: [] for k in steps}
+    for _ in range(args.reps):
+        for name, fn in steps.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    med = {k: statistics.median(v) * 1000 for k, v in times.items()}
+    print(f"{args.policy}: {len(names)} layers, rank {args.rank}, 32 rows, {args.reps} alternating reps, "
+          "medians:")  # fmt: skip
+    for name, ms in med.items():
+        print(f"  {name:18s} {ms:7.1f} ms  {ms / med['peft LoRA']:.2f}x the peft LoRA step (target <= 1.1x)")
+
+
+if __name__ == "__main__":
+    main()
