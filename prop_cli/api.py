@@ -24,6 +24,7 @@ from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
 from prop_cli.bundle import Bundle, KeyedPolicy, load_bundle, read_manifest, run_bundle
+from prop_cli.bundle.read import rebuild_original
 from prop_cli.bundle.records import (
     SealedState,
     check_new_key,
@@ -460,7 +461,8 @@ def eval_bundle(
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
-    ref = _load(original, CheckpointOptions(trust_remote_code=trust_remote_code)) if original else None
+    # The original rebuilt as the bundle's base is (its recorded spec: --arch and the rest need no repeat).
+    ref = rebuild_original(bundle, original, trust_remote_code) if original else None
     for loaded in (bundle.loaded, ref):
         if loaded is not None:
             _seed_noise(loaded, settings.noise_seed)

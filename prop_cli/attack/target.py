@@ -19,21 +19,18 @@ from __future__ import annotations
 
 import copy
 from dataclasses import fields, replace
-from pathlib import Path
 
 import torch
 from torch import nn
 
-from prop_cli import adapters
 from prop_cli import constants as C
-from prop_cli.adapters.hub import resolve_checkpoint
 from prop_cli.adapters.lerobot.flat import flat_module
 from prop_cli.bundle import Bundle
+from prop_cli.bundle.read import rebuild_original
 from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.datasources.fit import flat_dataset
-from prop_cli.errors import PropError
 
 from .probes.base import ProbeContext
 from .probes.sealed_context import SealedContext, blank_keyed
@@ -68,16 +65,7 @@ def load_original(
 ) -> nn.Module:
     """The original checkpoint as the reference b, rebuilt the way the bundle's base is (a policy: its
     flat view, as the bundle is audited, its chunks sampled from ``noise_seed`` like the bundle's)."""
-    spec = bundle.manifest[C.M_MODEL]
-    adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
-    weights = adapter.weights(Path(resolve_checkpoint(path)))
-    try:
-        loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code)
-    except (RuntimeError, KeyError, ValueError) as e:
-        raise PropError(
-            f"--original {path} does not fit the bundle's model ({type(e).__name__})",
-            "pass the checkpoint the bundle was personalized from",
-        ) from None
+    loaded = rebuild_original(bundle, path, trust_remote_code)
     if loaded.policy is not None:
         loaded.policy.noise_seed = noise_seed
         return flat_module(loaded.policy)

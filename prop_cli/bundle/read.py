@@ -123,3 +123,20 @@ def check_files(path: Path, manifest: dict) -> None:
                 f"bundle {path}: {name} does not match its sha256 in {C.MANIFEST} (modified or corrupt)",
                 "restore the bundle from a trusted copy",
             )
+
+
+def rebuild_original(bundle: Bundle, path: str, trust_remote_code: bool = False) -> LoadedModel:
+    """The checkpoint at ``path`` (the original, `--original`) rebuilt the way ``bundle``'s base is: the
+    bundle's recorded model spec with that checkpoint's weights, so no flag has to be given again."""
+    from prop_cli.adapters.hub import resolve_checkpoint
+
+    spec = bundle.manifest[C.M_MODEL]
+    adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
+    weights = adapter.weights(Path(resolve_checkpoint(path)))
+    try:
+        return adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code)
+    except (RuntimeError, KeyError, ValueError) as e:
+        raise PropError(
+            f"--original {path} does not fit the bundle's model ({type(e).__name__})",
+            "pass the checkpoint the bundle was personalized from",
+        ) from None

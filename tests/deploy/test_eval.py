@@ -84,4 +84,32 @@ def test_original_is_the_control_for_array_bundles_on_the_same_seeds(pendulum, c
     assert same["original"]["return"] == same["no_key"]["return"]
     make_mlp_checkpoint(tmp_path / "other.safetensors", sizes=(3, 8, 1))
     r = cli("eval", "b", "--env", "Pendulum-v1", *QUICK, "--original", tmp_path / "other.safetensors")
-    assert r.code == 2 and "--original does not fit" in r.err and len(r.err.strip().splitlines()) == 1
+    assert r.code == 2 and "other.safetensors" in r.err and "match" in r.err
+    assert len(r.err.strip().splitlines()) == 1 and "eval:" not in r.err  # before any rollout
+
+
+def test_original_of_an_arch_bundle_needs_no_arch_again(tmp_path, cli, monkeypatch):
+    import torch
+    from safetensors.torch import save_file
+
+    (tmp_path / "pend_model.py").write_text(
+        "from torch import nn\n\n\ndef build():\n"
+        "    return nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1))\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from pend_model import build
+
+    torch.manual_seed(0)
+    save_file(build().state_dict(), str(tmp_path / "pi.safetensors"))
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (100, 3)).astype(np.float32)
+    np.savez(tmp_path / "mine.npz", x=x, y=np.clip(-x[:, :1], -1, 1))
+    (tmp_path / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+    r = cli("personalize", "pi.safetensors", "--arch", "pend_model:build", "--data", "mine.npz", "--key-file",
+            "k.bin", "--out", "b", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    r = cli("eval", "b", "--env", "Pendulum-v1", *QUICK, "--original", "pi.safetensors",
+            "--trust-remote-code", "--json")  # fmt: skip
+    assert r.code == 0, r.err
+    assert json.loads(r.out)["conditions"]["original"]["episodes"] == 2
