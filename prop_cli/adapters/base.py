@@ -98,6 +98,17 @@ class PolicyProtocol(ABC):
         themselves, their targets the chunks (a deterministic policy's, cached as targets)."""
         return batch, chunks
 
+    # True where the user term and the fallback output can share one forward (``joint_terms``): the
+    # policy's training and eval paths compute the same thing (no dropout, no random crop, no batch norm).
+    joins_terms: bool = False
+
+    def joint_terms(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(loss(user), fallback_output(fallback))`` from one forward over the user rows, then the
+        fallback rows (in that order: rows carry their own keys). Only where ``joins_terms``."""
+        raise NotImplementedError
+
     def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """What the fallback term compares between the keyed policy and the original (eval mode)."""
         return self.chunk(batch)

@@ -125,7 +125,6 @@ class PolicyTrainer:
         ub = {k: torch.cat([rows(tr, p)[k] for tr, p in zip(self.pool, picks)]) for k in self.pool[0]}
         user_of_row = torch.arange(len(self.users)).repeat_interleave(self.per_user)
         d_user = [d.index_select(0, user_of_row) for d in km.layer_deltas(self.user_codes)]
-        personal = km.call_rows(d_user, policy.loss, ub)
         # Fallback rows: null rows, then each sampled key on samples_per_key of the same frames.
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
@@ -135,9 +134,14 @@ class PolicyTrainer:
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
         deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
-        pred = km.call_rows(
-            [d.index_select(0, key_of_row) for d in deltas], policy.fallback_output, rows(self.fb_rows, idx)
-        )
+        d_fb = [d.index_select(0, key_of_row) for d in deltas]
+        fb_rows = rows(self.fb_rows, idx)
+        if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
+            both = [torch.cat([du, df]) for du, df in zip(d_user, d_fb)]
+            personal, pred = km.call_rows(both, policy.joint_terms, ub, fb_rows)
+        else:
+            personal = km.call_rows(d_user, policy.loss, ub)
+            pred = km.call_rows(d_fb, policy.fallback_output, fb_rows)
         per_row = policy.fallback_distance(pred, self.targets[idx])
         null = per_row[: len(gi)].mean()
         keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
