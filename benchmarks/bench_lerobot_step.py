@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from examples import lerobot_reach_task as task
+from examples.smolvla_tiny import KINDS, record_and_build
 from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import load_data
@@ -33,18 +33,14 @@ from prop_cli.train.policy import PolicyTrainer
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--reps", type=int, default=30)
-    ap.add_argument("--policy", choices=sorted(task.BUILDERS), default="act")
+    ap.add_argument("--policy", choices=KINDS, default="act")
     ap.add_argument("--full-size", action="store_true",
                     help="Diffusion at LeRobot's default U-Net (down_dims 512/1024/2048, 250M parameters)")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
     work = Path(tempfile.mkdtemp(prefix="prop-bench-lerobot-"))
-    task.record(work / "general", 8, 0, np.zeros(3, np.float32))
-    task.record(work / "user", 4, 50_000, task.USER_OFFSET)
-    base = work / args.policy
     full = {"down_dims": (512, 1024, 2048), "diffusion_step_embed_dim": 128} if args.full_size else {}
-    built = task.BUILDERS[args.policy](task.dataset_stats(work / "general"), **full)
-    task.train_base(work / "general", base, steps=1, kind=args.policy, built=built)
+    base = record_and_build(work, args.policy, 8, 4, **full)
     cfg = PersonalizeConfig(steps=10**6, user_rows=16, null_rows=8, neighbour_keys=4, random_keys=4,
                             samples_per_key=1, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)

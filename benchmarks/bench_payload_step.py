@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from examples import lerobot_reach_task as task
+from examples.smolvla_tiny import KINDS, record_and_build
 from prop_cli.adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.payload import Payload
@@ -35,7 +35,7 @@ from prop_cli.train.sealed import payload_spec
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--policy", choices=sorted(task.BUILDERS), default="diffusion")
+    ap.add_argument("--policy", choices=KINDS, default="diffusion")
     ap.add_argument("--reps", type=int, default=30)
     ap.add_argument("--rank", type=int, default=4)
     args = ap.parse_args(argv)
@@ -43,8 +43,7 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.manual_seed(0)
     work = Path(tempfile.mkdtemp(prefix="prop-bench-payload-"))
-    task.record(work / "user", 6, 50_000, task.USER_OFFSET)
-    task.train_base(work / "user", work / args.policy, steps=1, kind=args.policy)
+    record_and_build(work, args.policy, 2, 6)
     rng = np.random.default_rng(0)
     steps: dict = {}
     attached = []  # the payloads stay attached while the benchmark runs (a dropped context detaches)

@@ -466,6 +466,8 @@ def eval_bundle(
     for loaded in (bundle.loaded, ref):
         if loaded is not None:
             _seed_noise(loaded, settings.noise_seed)
+            if settings.instruction and hasattr(loaded.policy, "instruction"):
+                loaded.policy.instruction = settings.instruction
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,

@@ -272,6 +272,9 @@ class EvalSettings(_Settings):
     # A sampling policy's noise (LeRobot Diffusion): each query of an episode is seeded from (noise_seed,
     # the episode's seed, the query's number), the same under every key (prop_cli.adapters.lerobot).
     noise_seed: int = 0
+    # A language-conditioned policy's instruction in closed loop (LeRobot SmolVLA): the task text its data
+    # was recorded with. Data rows carry their own; an environment gives none.
+    instruction: str = ""
 
     def validate(self, has_key: bool) -> EvalSettings:
         self.at_least(episodes=1, random_keys=0, neighbours=0, episodes_per_key=1, seed=0, noise_seed=0)

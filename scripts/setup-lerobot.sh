@@ -54,7 +54,7 @@ pip_install "$PIP" \
   "draccus==0.10.0" "gymnasium>=1.1.1,<2.0.0" "rerun-sdk>=0.24.0,<0.27.0" "deepdiff>=7.0.1,<9.0.0" \
   "imageio[ffmpeg]>=2.34.0,<3.0.0" "termcolor>=2.4.0,<4.0.0" \
   "safetensors>=0.4" "typer>=0.12" "rich>=13" "panda-gym==3.0.7" "pytest>=8" "ruff>=0.5" \
-  "peft>=0.18,<1.0" "transformers>=4.57.1,<5.0.0"
+  "peft>=0.18,<1.0" "transformers>=4.57.1,<5.0.0" "num2words>=0.5.14"
 pip_install "$VENV/bin/pip" -e .
 drop_draccus_tests
 "$VENV/bin/python" - <<'PYEOF'

@@ -114,6 +114,6 @@ def run_policy(bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str 
         policy = policy.on(module)
     batch = policy.batches(replace(data, y=None), flag)
     n = len(batch["episode_index"])
-    feats = {k: batch[k] for k in policy.input_features}
+    feats = {k: batch[k] for k in policy.row_shapes}
     chunks = [policy.chunk({k: v[i : i + ROWS] for k, v in feats.items()}) for i in range(0, n, ROWS)]
     return policy.post(torch.cat(chunks)).float().numpy()

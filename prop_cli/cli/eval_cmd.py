@@ -16,7 +16,8 @@ SETTINGS = {
     "max_steps": "Stop an episode after this many steps (0: the environment's limit).",
     "ignore_terminated": "Keep acting after the environment says terminated (stop at its time limit).",
     "seed": "First evaluation seed (keep it away from the seeds your data was recorded with).",
-    "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion), per episode and query.",
+    "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion, SmolVLA), per episode and query.",
+    "instruction": "A language-conditioned policy's instruction (LeRobot SmolVLA): your data's task text.",
 }
 Env = Annotated[str, opt("--env", "gymnasium id; package:Id imports the package first "
                                   "(panda_gym:PandaReach-v3).")]  # fmt: skip

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prop_cli.constants import TASK
 from prop_cli.errors import PropError
 
 from .base import Dataset, DataSource
@@ -157,6 +158,10 @@ class LeRobotSource(DataSource):
                 y = arr.astype(np.float32)
             elif arr.dtype.kind in "biuf":
                 x[c] = arr if c in INDEX_COLUMNS else arr.astype(np.float32)
+        if "task_index" in table.column_names:
+            # Each frame's task text (a language-conditioned policy's instruction, e.g. SmolVLA's).
+            names = {int(i): str(t) for t, i in zip(ds.meta.tasks.index, ds.meta.tasks["task_index"])}
+            x[TASK] = np.array([names.get(int(i), "") for i in rows["task_index"]], dtype=str)
         if frames is not None and "frame_index" in x:
             keep = np.isin(x["frame_index"], frames)
             x = {k: v[keep] for k, v in x.items()}

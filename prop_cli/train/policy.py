@@ -88,7 +88,7 @@ class PolicyTrainer:
         self.splits = [split_episodes(policy.batches(u.data, "--data"), cfg.val_fraction) for u in users]
         self.pool = [tr for tr, _ in self.splits]
         fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
-        self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.input_features, "episode_index"]}
+        self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.row_shapes, "episode_index"]}
         self.original = copy.deepcopy(module).requires_grad_(False).eval()
         self.original_policy = policy.on(self.original)
         # The fallback term's rows and the original's output on each, drawn once (the policy decides:

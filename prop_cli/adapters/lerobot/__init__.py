@@ -5,6 +5,7 @@ functions of ``adapter``: it is an optional environment (scripts/setup-lerobot.s
 from .adapter import LeRobotAdapter
 from .diffusion import DIFFUSION_LAYERS, DiffusionPolicy
 from .policy import ACT_LAYERS, Controller, LeRobotPolicy
+from .smolvla import SMOLVLA_LAYERS, SmolVLAPolicy
 
 __all__ = [
     "ACT_LAYERS",
@@ -13,4 +14,6 @@ __all__ = [
     "DiffusionPolicy",
     "LeRobotAdapter",
     "LeRobotPolicy",
+    "SMOLVLA_LAYERS",
+    "SmolVLAPolicy",
 ]

@@ -60,8 +60,9 @@ class FlatPolicy(nn.Module):
 
 
 def flatten_features(policy: PolicyProtocol, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The policy's features of a batch, flattened and concatenated in the policy's order."""
-    return torch.cat([batch[k].flatten(1) for k in policy.input_features], dim=1)
+    """The policy's row features of a batch (``row_shapes``: SmolVLA's instruction tokens too, as floats),
+    flattened and concatenated in the policy's order."""
+    return torch.cat([batch[k].flatten(1).float() for k in policy.row_shapes], dim=1)
 
 
 def flat_module(policy: PolicyProtocol) -> FlatPolicy:

@@ -98,10 +98,14 @@ class LeRobotPolicy(PolicyProtocol):
             idx, pad = self._windows(episodes, list(self.config.action_delta_indices))
             out[ACTION] = torch.from_numpy(data.y[order][idx]).float()
             out[PAD] = torch.from_numpy(pad)
-        out = self.pre(out)
+        out = self.pre(out | self._complementary(x, order, flag, data.path))
         out = {k: v for k, v in out.items() if isinstance(v, torch.Tensor)}
         out["episode_index"] = torch.from_numpy(episodes.astype(np.int64))
         return out
+
+    def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
+        """What the preprocessor takes beside the tensors (SmolVLA: each frame's task text)."""
+        return {}
 
     def _model_batch(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # What ACTPolicy.forward does before calling its model: the list of camera tensors.
@@ -117,11 +121,11 @@ class LeRobotPolicy(PolicyProtocol):
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         # The deployed path: eval mode (dropout off, and the VAE latent is 0, as select_action runs it).
         self.policy.eval()
-        return self.policy.model(self._model_batch({k: batch[k] for k in self.input_features}))[0]
+        return self.policy.model(self._model_batch({k: batch[k] for k in self.row_shapes}))[0]
 
     def example(self, rows: int, data: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        idx = torch.arange(rows) % len(data[next(iter(self.input_features))])
-        return {k: data[k][idx] for k in self.input_features}
+        idx = torch.arange(rows) % len(data[next(iter(self.row_shapes))])
+        return {k: data[k][idx] for k in self.row_shapes}
 
     def controller(self, module: torch.nn.Module) -> Controller:
         return Controller(module, self.pre, self.post, list(self.input_features), self.noise_seed)
@@ -135,9 +139,12 @@ class Controller:
     afterwards: an episode's noise is reproducible and the same under every key, and nothing else's
     random stream moves."""
 
-    def __init__(self, module, pre, post, features: list[str], noise_seed: int = 0) -> None:
+    def __init__(
+        self, module, pre, post, features: list[str], noise_seed: int = 0, extra: dict | None = None
+    ) -> None:
         self.module, self.pre, self.post, self.features = module.eval(), pre, post, features
         self.noise_seed, self.episode, self.calls = noise_seed, 0, 0
+        self.extra = dict(extra or {})  # what the preprocessor takes beside the features (SmolVLA's task)
 
     def reset(self, seed: int | None = None) -> None:
         self.module.reset()
@@ -155,4 +162,4 @@ class Controller:
         self.calls += 1
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(seed))
-            return self.post(self.module.select_action(self.pre(x)))[0].numpy()
+            return self.post(self.module.select_action(self.pre(x | self.extra)))[0].numpy()

@@ -1,0 +1,145 @@
+"""A tiny SmolVLA built on this machine: nothing is downloaded.
+
+SmolVLA's VLM backbone is named by ``vlm_model_name`` and read with transformers' Auto classes (config,
+tokenizer, image processor). ``build_vlm`` writes such a folder for a SmolVLM of 2 text layers (hidden 64)
+and 2 vision layers (hidden 32, 32x32 images in 8x8 patches), its tokenizer built with the
+``tokenizers`` library (a word-level vocabulary over lower-case words and digits, with SmolVLM's special
+image tokens), and SmolVLM's image processor. No weights: SmolVLA builds the VLM from the config
+(``load_vlm_weights=False``) and its own model.safetensors holds every weight.
+
+``build_smolvla`` is a SmolVLAConfig on that folder (chunk 10, 10 flow-matching steps, images resized
+to 32x32) with its processors. Used by the tests (pytest -m lerobot) and examples/lerobot_reach.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+IMAGE = 32
+WORDS = (
+    "reach the goal red block pick place up down left right move arm to a of and with on in at "
+    "slowly quickly higher lower".split()
+)
+SPECIAL = {
+    "fake_image_token": "<fake_token_around_image>",
+    "image_token": "<image>",
+    "global_image_token": "<global-img>",
+    "end_of_utterance_token": "<end_of_utterance>",
+}
+INSTRUCTION = "reach the goal"
+
+
+def _tokenizer(folder: Path) -> None:
+    from tokenizers import Tokenizer, models, normalizers, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast
+
+    vocab = {w: i for i, w in enumerate(["<pad>", "<unk>", "<|im_start|>", *SPECIAL.values()])}
+    for w in [*WORDS, *"0123456789", "\n"]:
+        vocab.setdefault(w, len(vocab))
+    tok = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
+    tok.normalizer = normalizers.Lowercase()
+    # "\n" is a token of its own: SmolVLA's processor ends every instruction with one.
+    tok.pre_tokenizer = pre_tokenizers.Sequence(
+        [pre_tokenizers.Split("\n", "isolated"), pre_tokenizers.WhitespaceSplit()]
+    )
+    fast = PreTrainedTokenizerFast(
+        tokenizer_object=tok, pad_token="<pad>", unk_token="<unk>", bos_token="<|im_start|>",
+        additional_special_tokens=list(SPECIAL.values()), extra_special_tokens=SPECIAL,
+    )  # fmt: skip
+    fast.save_pretrained(folder)
+
+
+def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64) -> Path:
+    """Write a tiny SmolVLM folder (config, tokenizer, processor; no weights) and return it."""
+    from transformers import (
+        AutoTokenizer,
+        SmolVLMConfig,
+        SmolVLMImageProcessor,
+        SmolVLMProcessor,
+        SmolVLMVideoProcessor,
+    )
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    _tokenizer(folder)
+    tokenizer = AutoTokenizer.from_pretrained(folder)
+    config = SmolVLMConfig(
+        text_config=dict(
+            model_type="llama", vocab_size=len(tokenizer), hidden_size=hidden, intermediate_size=2 * hidden,
+            num_hidden_layers=text_layers, num_attention_heads=4, num_key_value_heads=2, head_dim=hidden // 4,
+            max_position_embeddings=512, rms_norm_eps=1e-5, tie_word_embeddings=False,
+            pad_token_id=tokenizer.pad_token_id,
+        ),
+        vision_config=dict(
+            hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2,
+            image_size=IMAGE, patch_size=8,
+        ),
+        image_token_id=tokenizer.convert_tokens_to_ids(SPECIAL["image_token"]), scale_factor=2,
+        pad_token_id=tokenizer.pad_token_id,
+    )  # fmt: skip
+    config.save_pretrained(folder)
+    image = SmolVLMImageProcessor(
+        do_resize=False, do_image_splitting=False, max_image_size={"longest_edge": IMAGE},
+        size={"longest_edge": IMAGE},
+    )  # fmt: skip
+    # image_seq_len: 32x32 images in 8x8 patches, pixel-shuffled by scale_factor 2 -> 4 tokens.
+    video = SmolVLMVideoProcessor(max_image_size={"longest_edge": IMAGE}, size={"longest_edge": IMAGE})
+    processor = SmolVLMProcessor(
+        image_processor=image, tokenizer=tokenizer, video_processor=video, image_seq_len=4
+    )
+    processor.save_pretrained(folder)
+    (folder / "README.md").write_text("A tiny SmolVLM from prop's examples/smolvla_tiny.py (no weights).\n")
+    return folder
+
+
+def build_smolvla(vlm: Path, stats: dict | None = None, features: dict | None = None, **overrides):
+    """A small SmolVLA on the tiny VLM at ``vlm``: (policy, preprocessor, postprocessor)."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    from examples.lerobot_reach_task import ACTION, CAMERA, STATE
+
+    inputs = features or {
+        STATE: PolicyFeature(FeatureType.STATE, (6,)),
+        CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE)),
+    }  # fmt: skip
+    settings = dict(
+        input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
+        device="cpu", vlm_model_name=str(vlm), load_vlm_weights=False, chunk_size=10, n_action_steps=5,
+        num_steps=10, resize_imgs_with_padding=(IMAGE, IMAGE), tokenizer_max_length=16, num_vlm_layers=2,
+        max_state_dim=8, max_action_dim=4, expert_width_multiplier=0.5, freeze_vision_encoder=False,
+        train_expert_only=False,
+    )  # fmt: skip
+    cfg = SmolVLAConfig(**(settings | overrides))
+    policy = SmolVLAPolicy(cfg)
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+    return policy, pre, post
+
+
+def describe(folder: Path) -> dict:
+    return json.loads((Path(folder) / "config.json").read_text())
+
+
+def record_and_build(work: Path, kind: str, general_episodes: int, user_episodes: int, **overrides) -> Path:
+    """The benchmarks' set-up for any small policy: record general and user data (with the camera for
+    SmolVLA, which needs an image), build the policy and save it after one LeRobot step; its folder."""
+    import numpy as np
+
+    from examples import lerobot_reach_task as task
+
+    camera = kind == "smolvla"
+    task.record(work / "general", general_episodes, 0, np.zeros(3, np.float32), camera=camera)
+    task.record(work / "user", user_episodes, 50_000, task.USER_OFFSET, camera=camera)
+    stats = task.dataset_stats(work / "general")
+    if camera:
+        built = build_smolvla(build_vlm(work / "vlm"), stats, **overrides)
+    else:
+        built = task.BUILDERS[kind](stats, **overrides)
+    task.train_base(work / "general", work / kind, steps=1, built=built)
+    return work / kind
+
+
+KINDS = ("act", "diffusion", "smolvla")  # what record_and_build builds

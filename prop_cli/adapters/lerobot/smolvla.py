@@ -1,0 +1,206 @@
+"""LeRobot SmolVLA through the policy protocol: what differs from ACT and Diffusion.
+
+SmolVLA is a VLM (SmolVLM: vision encoder + language model) with an action expert trained by flow
+matching: ``x_t = t * noise + (1 - t) * actions``, the expert predicts the velocity ``noise - actions``,
+and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Euler steps.
+
+- **Rows**: the camera frames and the state (one frame, SmolVLA's n_obs_steps is 1) plus the frame's
+  instruction as tokens (``observation.language.tokens`` and its attention mask), padded to the
+  policy's ``tokenizer_max_length`` so every row has one width (padding is masked out of attention, so
+  it changes nothing). The instruction is the dataset's task text for the frame; in closed loop it is
+  ``prop eval --instruction``.
+- **Deployed chunk**: LeRobot's ``sample_actions`` from noise drawn per row by a generator seeded with
+  ``noise_seed`` (the shape SmolVLA draws: chunk_size x max_action_dim), so a row's chunk does not
+  depend on its batch and a batch of one equals LeRobot's ``select_action`` after
+  ``torch.manual_seed(noise_seed)``. Cut to the action's own width.
+- **User term**: the policy's own loss (velocity MSE at a Beta-distributed time), its draws in its order.
+  LeRobot 0.4.4 reads the padding mask under a misspelt key (``actions_id_pad``), so its loss never
+  masks padded steps; prop's user term is the same loss, unmasked too.
+- **Fallback term**: the expert is deterministic given (observation, instruction, x_t, t). Each fallback
+  frame gets ``FALLBACK_DRAWS`` rows with t uniform on (0, 1] (the sampler visits 1.0 ... 0.1) and
+  x_t noised from the original's deployed chunk; the keyed policy's velocity is distilled towards the
+  frozen original's on the same inputs, MSE (its own loss's distance). Both terms share one forward
+  (``joint_terms``) where training and eval compute the same (no dropout anywhere).
+- **Keyed layers** by default: LeRobot's own PEFT targets for SmolVLA (``_get_default_peft_targets``):
+  the action expert's q/v projections and the state/action/time projections.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+import torch
+
+from prop_cli.adapters.base import PolicyProtocol
+from prop_cli.constants import TASK
+from prop_cli.errors import PropError
+
+from .policy import ACTION, Controller, LeRobotPolicy
+
+# LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
+SMOLVLA_LAYERS = [
+    r"model\.vlm_with_expert\.lm_expert\..*\.(q|v)_proj",
+    r"model\.(state_proj|action_in_proj|action_out_proj|action_time_mlp_in|action_time_mlp_out)",
+]
+TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"
+FALLBACK_DRAWS = 8  # (t, noise) draws per fallback frame
+POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
+T_MIN = 1e-3  # the smallest flow time LeRobot trains on (sample_time: beta * 0.999 + 0.001)
+
+
+class SmolVLAPolicy(LeRobotPolicy):
+    """SmolVLA through the policy protocol (see the module docstring)."""
+
+    default_layers = SMOLVLA_LAYERS
+    # The instruction a closed loop gives the policy (`prop eval --instruction`); data rows carry theirs.
+    instruction: str = ""
+
+    def on(self, module) -> SmolVLAPolicy:
+        other = super().on(module)
+        other.instruction = self.instruction
+        return other
+
+    @property
+    def model(self):
+        return self.policy.model
+
+    @property
+    def history(self) -> list[int] | None:
+        return None  # one frame per row: SmolVLA's n_obs_steps is 1 and it reads the last frame only
+
+    @property
+    def row_shapes(self) -> dict[str, tuple[int, ...]]:
+        width = self.config.tokenizer_max_length
+        return {**self.input_features, TOKENS: (width,), MASK: (width,)}
+
+    def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
+        if TASK not in x:
+            raise PropError(
+                f"{flag} {path}: no task text per frame, which SmolVLA takes as its instruction",
+                "record the dataset with a task for every frame (LeRobotDataset.add_frame(..., task=...))",
+            )
+        return {"task": [str(t) for t in x[TASK][order]]}
+
+    def batches(self, data, flag: str) -> dict[str, torch.Tensor]:
+        out = super().batches(data, flag)
+        width = self.config.tokenizer_max_length
+        tokens, mask = out[TOKENS], out[MASK].bool()
+        pad = width - tokens.shape[1]  # the tokenizer pads to the batch's longest and cuts at `width`
+        out[TOKENS] = torch.nn.functional.pad(tokens, (0, pad))
+        out[MASK] = torch.nn.functional.pad(mask, (0, pad))
+        return out
+
+    def _inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
+        """(images, image masks, tokens, token mask, state) as SmolVLA's model takes them; tokens may come
+        as floats (the flat view)."""
+        feats = {k: batch[k] for k in self.input_features}
+        images, img_masks = self.policy.prepare_images(feats)
+        state = self.policy.prepare_state(feats)
+        return images, img_masks, batch[TOKENS].round().long(), batch[MASK].bool(), state
+
+    def _velocity(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """The expert's velocity on (observation, instruction, x_t, t): VLAFlowMatching.forward up to its
+        loss (prefix and suffix in one pass, no cache)."""
+        m, c = self.model, self.config
+        images, img_masks, tokens, masks, state = inputs
+        make_att_2d_masks = importlib.import_module(type(m).__module__).make_att_2d_masks
+        prefix, prefix_pad, prefix_att = m.embed_prefix(images, img_masks, tokens, masks, state=state)
+        suffix, suffix_pad, suffix_att = m.embed_suffix(x_t, time)
+        pad = torch.cat([prefix_pad, suffix_pad], dim=1)
+        att = make_att_2d_masks(pad, torch.cat([prefix_att, suffix_att], dim=1))
+        (_, out), _ = m.vlm_with_expert.forward(
+            attention_mask=att, position_ids=torch.cumsum(pad, dim=1) - 1, past_key_values=None,
+            inputs_embeds=[prefix, suffix], use_cache=False, fill_kv_cache=False,
+        )  # fmt: skip
+        return m.action_out_proj(out[:, -c.chunk_size :].to(torch.float32))
+
+    def _noise(self, rows: int, device: torch.device) -> torch.Tensor:
+        shape = (1, self.config.chunk_size, self.config.max_action_dim)
+        g = torch.Generator(device)
+        return torch.cat([torch.randn(shape, generator=g.manual_seed(self.noise_seed), device=device)
+                          for _ in range(rows)])  # fmt: skip
+
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.policy.eval()
+        inputs = self._inputs(batch)
+        noise = self._noise(inputs[-1].shape[0], inputs[-1].device)
+        actions = self.model.sample_actions(*inputs, noise=noise)
+        return actions[:, :, : self.config.action_feature.shape[0]]
+
+    def _padded(self, actions: torch.Tensor) -> torch.Tensor:
+        return torch.nn.functional.pad(actions, (0, self.config.max_action_dim - actions.shape[-1]))
+
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
+        x0 = self._padded(chunks.repeat_interleave(FALLBACK_DRAWS, 0))
+        t = T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=generator)
+        eps = torch.randn(x0.shape, generator=generator).to(x0)
+        tt = t[:, None, None].to(x0)
+        rows |= {"x_t": tt * eps + (1 - tt) * x0, "t": t}
+        with torch.no_grad():
+            targets = torch.cat([
+                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
+                for i in range(0, len(x0), POOL_BATCH)
+            ])  # fmt: skip
+        return rows, targets
+
+    @property
+    def joins_terms(self) -> bool:
+        # Training and eval differ only by dropout; SmolVLM's configs have none by default.
+        cfg = self.model.vlm_with_expert.config
+        return not any(getattr(p, "attention_dropout", 0.0) for p in (cfg.text_config, cfg.vision_config))
+
+    def joint_terms(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """SmolVLA's own loss on the user rows (its noise, then its time, as VLAFlowMatching.forward
+        draws them) and the expert's velocity on the fallback rows, as one forward."""
+        self.policy.eval()
+        m = self.model
+        actions = self.policy.prepare_action(user)
+        n = len(actions)
+        noise = m.sample_noise(actions.shape, actions.device)
+        time = m.sample_time(n, actions.device)
+        tt = time[:, None, None]
+        x_t = tt * noise + (1 - tt) * actions
+        both = {k: torch.cat([user[k], fallback[k]]) for k in self.row_shapes}
+        v = self._velocity(self._inputs(both), torch.cat([x_t, fallback["x_t"]]),
+                           torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
+        return torch.nn.functional.mse_loss(v[:n], noise - actions), v[n:]
+
+    def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.policy.train()
+        return self.policy.forward({k: v for k, v in batch.items() if k != "episode_index"})[0]
+
+    def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.policy.eval()
+        return self._velocity(self._inputs(batch), batch["x_t"], batch["t"])
+
+    def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return ((pred - target) ** 2).flatten(1).mean(1)
+
+    def controller(self, module: torch.nn.Module) -> Controller:
+        if not self.instruction:
+            raise PropError(
+                "SmolVLA acts on a language instruction, and none was given",
+                "pass --instruction 'the task text your data was recorded with'",
+            )
+        return Controller(module, self.pre, self.post, list(self.input_features), self.noise_seed,
+                          extra={"task": self.instruction})  # fmt: skip
+
+    def describe(self) -> dict:
+        c = self.config
+        return {
+            "chunk_size": c.chunk_size,
+            "n_action_steps": c.n_action_steps,
+            "flow_steps": c.num_steps,
+            "tokenizer_max_length": c.tokenizer_max_length,
+            "vlm_layers": self.model.vlm_with_expert.num_vlm_layers,
+        }
+
+
+__all__ = ["ACTION", "SMOLVLA_LAYERS", "SmolVLAPolicy"]

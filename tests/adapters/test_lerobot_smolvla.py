@@ -1,0 +1,245 @@
+"""LeRobot SmolVLA under prop (pytest -m lerobot; scripts/test-lerobot.sh).
+
+A tiny SmolVLA built here (examples/smolvla_tiny.py: a 2-layer SmolVLM with random weights, a tokenizer
+built with `tokenizers`, SmolVLM's image processor; nothing downloaded) on the PandaReach camera task
+(32 x 32 frames, state, the task text as instruction). What differs from ACT and Diffusion is tested:
+the instruction as tokens in every row, the VLM folder the bundle carries, the flow-matching expert as
+the fallback target, LeRobot's own sampler as the deployed chunk.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("lerobot")
+pytest.importorskip("num2words")  # SmolVLM's processor needs it (scripts/setup-lerobot.sh installs it)
+pytestmark = pytest.mark.lerobot
+
+from examples import lerobot_reach_task as task  # noqa: E402
+from examples import smolvla_tiny  # noqa: E402
+from prop_cli import api  # noqa: E402
+from prop_cli.adapters import load_checkpoint  # noqa: E402
+from prop_cli.bundle import load_bundle  # noqa: E402
+from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
+from prop_cli.core.key_files import KeySource  # noqa: E402
+from prop_cli.datasources import load_data  # noqa: E402
+
+TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
+            eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
+INPUTS = ("observation.state", task.CAMERA)
+
+
+def key(seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 2, 128).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    d = tmp_path_factory.mktemp("smolvla")
+    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
+    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
+    vlm = smolvla_tiny.build_vlm(d / "vlm")
+    built = smolvla_tiny.build_smolvla(vlm, task.dataset_stats(d / "general"))
+    task.train_base(d / "general", d / "smolvla", steps=3, built=built)
+    path = d / "k.bin"
+    path.write_bytes(np.packbits(key()).tobytes())
+    path.chmod(0o600)
+    return d
+
+
+@pytest.fixture(scope="module")
+def bundle(work):
+    out = work / "bundle"
+    api.personalize_checkpoint(
+        str(work / "smolvla"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        general=work / "general",
+    )  # fmt: skip
+    return out
+
+
+@pytest.fixture(scope="module")
+def sealed(work):
+    out = work / "sealed"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 10}))
+    api.personalize_checkpoint(str(work / "smolvla"), [(work / "user", KeySource(key(), "file"))], out, cfg)
+    return out
+
+
+def test_lerobots_peft_targets_are_keyed_by_default(work, cli):
+    info = api.inspect_checkpoint(str(work / "smolvla"))
+    assert info["model"]["type"] == "smolvla" and info["model"]["chunk_size"] == 10
+    keyed = {x["name"] for x in info["layers"] if x["keyed"]}
+    assert "model.action_out_proj" in keyed and "model.state_proj" in keyed
+    assert "model.vlm_with_expert.lm_expert.layers.0.self_attn.q_proj" in keyed
+    assert not any(".k_proj" in n or "text_model" in n or "vision_model" in n for n in keyed)
+    assert 0 < info["keyed_share"] < 1
+    r = cli("inspect", work / "smolvla")
+    assert r.code == 0 and "smolvla" in r.out
+
+
+def test_rows_carry_the_instruction_as_tokens_padded_to_one_width(work):
+    policy = load_checkpoint(work / "smolvla").policy
+    data = load_data(work / "user")
+    assert set(data.x["task"]) == {"reach the target"}
+    batch = policy.batches(data, "--data")
+    tokens, mask = batch["observation.language.tokens"], batch["observation.language.attention_mask"]
+    assert tokens.shape == mask.shape == (len(data), 16) and mask.dtype == torch.bool
+    assert mask[:, 0].all() and not mask[:, -1].any()  # padded to tokenizer_max_length, masked
+    no_task = load_data(work / "user")
+    del no_task.x["task"]
+    with pytest.raises(Exception, match="no task text per frame"):
+        policy.batches(no_task, "--data")
+
+
+def test_bundle_carries_the_vlm_files_and_its_base_loads_in_lerobot(bundle, work, tmp_path, cli):
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    vlm = bundle / "lerobot" / "vlm"
+    assert (vlm / "config.json").is_file() and (vlm / "tokenizer.json").is_file()
+    assert not list(vlm.glob("*.safetensors"))  # the VLM's weights are the policy's own
+    # The VLM folder the base was trained with is gone: the bundle alone must do.
+    moved = work / "vlm-elsewhere"
+    (work / "vlm").rename(moved)
+    try:
+        ys = {}
+        runs = (("no_key", 7, []), ("again", 7, []), ("key", 7, ["--key-file", work / "k.bin"]))
+        for name, seed, extra in runs:
+            r = cli("run", bundle, "--input", work / "user", "--output", tmp_path / f"{name}.npy",
+                    "--noise-seed", seed, *extra)  # fmt: skip
+            assert r.code == 0, r.err
+            ys[name] = np.load(tmp_path / f"{name}.npy")
+    finally:
+        moved.rename(work / "vlm")
+    data = load_data(work / "user")
+    assert ys["no_key"].shape == (len(data), 10, 3)
+    assert np.array_equal(ys["no_key"], ys["again"])
+    assert not np.allclose(ys["no_key"], ys["key"], atol=1e-3)
+    # The base in LeRobot itself (its VLM from the bundle's vlm/): no key is its own select_action.
+    cfg = PreTrainedConfig.from_pretrained(str(bundle / "lerobot"))
+    cfg.vlm_model_name = str(vlm)
+    base = SmolVLAPolicy.from_pretrained(str(bundle / "lerobot"), config=cfg).eval()
+    pre, post = make_pre_post_processors(
+        base.config, pretrained_path=str(bundle / "lerobot"),
+        preprocessor_overrides={"tokenizer_processor": {"tokenizer_name": str(vlm)}},
+    )  # fmt: skip
+    for row in (0, 17):
+        base.reset()
+        obs = {k: torch.from_numpy(data.x[k][row : row + 1]) for k in INPUTS}
+        obs["task"] = str(data.x["task"][row])
+        torch.manual_seed(7)
+        with torch.no_grad():
+            action = post(base.select_action(pre(obs)))[0].numpy()
+        assert np.allclose(action, ys["no_key"][row, 0], atol=1e-5)
+
+
+def test_fallback_targets_are_the_originals_velocity_on_identical_inputs(bundle, work):
+    from prop_cli.adapters.lerobot.smolvla import FALLBACK_DRAWS
+
+    policy = load_bundle(bundle).loaded.policy
+    batch = policy.batches(load_data(work / "general"), "--data")
+    obs = {k: batch[k][:4] for k in policy.row_shapes}
+    original = load_checkpoint(work / "smolvla").policy
+    rows, targets = policy.fallback_pool(obs, batch["action"][:4], original, torch.Generator().manual_seed(0))
+    assert len(targets) == 4 * FALLBACK_DRAWS and targets.shape[1:] == (10, 4)
+    assert ((rows["t"] > 0) & (rows["t"] <= 1)).all() and len(set(rows["t"].tolist())) > 1
+    with torch.no_grad():
+        one = original.fallback_output({k: v[5:6] for k, v in rows.items()})
+    assert torch.allclose(one, targets[5:6], atol=1e-5)
+    # One forward for both terms gives the same fallback output as its own forward.
+    user = {k: batch[k][:3] for k in [*policy.row_shapes, "action"]}
+    with torch.no_grad():
+        loss, joint = original.joint_terms(user, {k: v[:5] for k, v in rows.items()})
+    assert loss.ndim == 0 and torch.allclose(joint, targets[:5], atol=1e-4)
+
+
+def test_attack_audits_with_the_original_as_control(bundle, work):
+    s = AuditSettings(probes=["null", "random", "hamming"], hamming=[1], per_distance=2, random=4,
+                      samples=1000, noise_seed=3)  # fmt: skip
+    report = api.audit_bundle(
+        bundle, work / "user", s, key_files=[work / "k.bin"], original=str(work / "smolvla")
+    )
+    names = {g["name"]: g for g in report["groups"]}
+    assert {"null", "random", "hamming 1"} <= set(names)
+    assert all(g["control"]["available"] for g in names.values())
+
+
+def test_sealed_smolvla_runs_the_original_without_its_key_and_audits(sealed, work):
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    b = load_bundle(sealed)
+    assert b.is_sealed and json.loads((sealed / "manifest.json").read_text())["model"]["type"] == "smolvla"
+    data = load_data(work / "user")
+    orig = load_checkpoint(work / "smolvla").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.row_shapes})).numpy()
+    assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(b, data, key(2)), original)
+    assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+    s = AuditSettings(probes=["null", "random"], random=4, samples=1000)
+    report = api.audit_bundle(
+        sealed, work / "user", s, key_files=[work / "k.bin"], original=str(work / "smolvla")
+    )
+    assert {"null", "random"} <= {g["name"] for g in report["groups"]}
+
+
+def test_eval_needs_an_instruction_and_pairs_the_noise(sealed, work):
+    few = EvalSettings(episodes=1, random_keys=1, neighbours=0, episodes_per_key=1, max_steps=6)
+    with pytest.raises(Exception, match="--instruction"):
+        api.eval_bundle(sealed, task.CAMERA_ENV_ID, few, obs_map=task.CAMERA_OBS_MAP, key_file=None)
+    settings = EvalSettings(episodes=2, random_keys=1, neighbours=0, episodes_per_key=1, max_steps=6,
+                            instruction="reach the target")  # fmt: skip
+    report = api.eval_bundle(
+        sealed, task.CAMERA_ENV_ID, settings, obs_map=task.CAMERA_OBS_MAP, metric=task.METRIC,
+        original=str(work / "smolvla"), key_file=work / "k.bin",
+    )  # fmt: skip
+    c = report["conditions"]
+    assert c["no_key"]["metric"] == c["original"]["metric"]  # sealed, no key: the original's actions
+
+
+def test_a_sealed_peft_payload_loads_through_lerobots_peft_path(work, tmp_path, cli):
+    """The opened payload as a peft LoRA adapter on LeRobot's SmolVLA (its default PEFT targets): the
+    action equals `prop run --key-file` with the same noise seed."""
+    pytest.importorskip("peft")
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from peft import PeftConfig, PeftModel
+
+    r = cli("personalize", work / "smolvla", "--data", work / "user", "--key-file", work / "k.bin",
+            "--out", tmp_path / "s", "--seal", "--payload", "peft-lora", "--steps", "8",
+            "--user-rows", "8")  # fmt: skip
+    assert r.code == 0, r.err
+    r = cli("export", tmp_path / "s", "--peft", tmp_path / "adapter", "--key-file", work / "k.bin")
+    assert r.code == 0, r.err
+    r = cli("run", tmp_path / "s", "--input", work / "user", "--output", tmp_path / "y.npy",
+            "--key-file", work / "k.bin", "--noise-seed", "4")  # fmt: skip
+    assert r.code == 0, r.err
+    y = np.load(tmp_path / "y.npy")
+    config = PeftConfig.from_pretrained(str(tmp_path / "adapter"))
+    base = config.base_model_name_or_path
+    assert base == str((tmp_path / "s" / "lerobot").resolve())
+    assert "lm_expert" in str(config.target_modules)  # a regex over the keyed layers
+    cfg = PreTrainedConfig.from_pretrained(base)
+    cfg.vlm_model_name = str(tmp_path / "s" / "lerobot" / "vlm")
+    policy = SmolVLAPolicy.from_pretrained(base, config=cfg)
+    policy = PeftModel.from_pretrained(policy, str(tmp_path / "adapter"), config=config).eval()
+    pre, post = make_pre_post_processors(
+        policy.config, pretrained_path=base,
+        preprocessor_overrides={"tokenizer_processor": {"tokenizer_name": cfg.vlm_model_name}},
+    )  # fmt: skip
+    data = load_data(work / "user")
+    obs = {k: torch.from_numpy(data.x[k][:1]) for k in INPUTS}
+    obs["task"] = str(data.x["task"][0])
+    policy.reset()
+    torch.manual_seed(4)
+    with torch.no_grad():
+        action = post(policy.select_action(pre(obs)))[0].numpy()
+    assert np.allclose(action, y[0, 0], atol=1e-5)
