@@ -1,5 +1,5 @@
-"""LeRobot ACT or Diffusion end to end on PandaReach, through the `prop` command line (figures in
-examples/RESULTS.md).
+"""LeRobot ACT, Diffusion or SmolVLA end to end on PandaReach, through the `prop` command line (figures
+in examples/RESULTS.md).
 
     bash scripts/setup-lerobot.sh
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --out out/lerobot-reach
@@ -51,6 +51,14 @@ PERSONALIZE = [
 # the keyed encoder needs more than the base: base-lr-scale 0.1 as for ACT).
 SETTINGS = {
     "act": {"personalize": PERSONALIZE, "sealed": SEALED, "base_steps": 2500, "base_lr": 3e-4, "attack": []},
+    # SmolVLA (the tiny one of examples/smolvla_tiny.py, camera + state with the goal + instruction):
+    # lr 1e-3 for the base trained from scratch; the audit's budgets cut as for Diffusion (10 flow steps).
+    "smolvla": {
+        "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
+        "sealed": SEALED, "base_steps": 4000, "base_lr": 1e-3,
+        "attack": ["--samples", "128", "--random", "512", "--blackbox", "4096", "--restarts", "16",
+                   "--fewshot-restarts", "8"],
+    },
     # The audit's budgets cut for Diffusion: each chunk is 10 denoising steps of the U-Net.
     "diffusion": {
         "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
@@ -72,7 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=None, help="default out/lerobot-reach[-diffusion]")
     ap.add_argument("--policy", choices=sorted(SETTINGS), default="act")
-    ap.add_argument("--base-steps", type=int, default=None, help="default 2500 (act), 6000 (diffusion)")
+    ap.add_argument("--base-steps", type=int, default=None,
+                    help="default 2500 (act), 6000 (diffusion), 4000 (smolvla)")
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--camera", action="store_true",
@@ -97,12 +106,15 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         t = time.perf_counter()
-        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=args.camera)
-        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=args.camera)
+        vla = kind == "smolvla"  # camera frames and the goal in the state, always
+        camera = args.camera or vla
+        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=camera, goal_in_state=vla)
+        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=camera, goal_in_state=vla)
         figures["record_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
+        built = smolvla(out) if vla else None
         ms = task.train_base(out / "reach-general", out / kind, args.base_steps or conf["base_steps"],
-                             lr=conf["base_lr"], kind=kind, camera=args.camera)  # fmt: skip
+                             lr=conf["base_lr"], kind=kind, camera=args.camera, built=built)  # fmt: skip
         figures["base_ms_per_step"] = round(ms, 1)
         figures["base_train_s"] = round(time.perf_counter() - t, 1)
         prop("keygen", out / "user.key")
@@ -119,6 +131,20 @@ def main(argv: list[str] | None = None) -> None:
     sealed(out, args.episodes, kind)
 
 
+def smolvla(out: Path) -> tuple:
+    """The tiny SmolVLA (examples/smolvla_tiny.py) on the camera and the state with the goal."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from examples.smolvla_tiny import build_smolvla, build_vlm
+
+    features = {
+        task.STATE: PolicyFeature(FeatureType.STATE, (9,)),
+        task.CAMERA: PolicyFeature(FeatureType.VISUAL, (3, task.IMAGE, task.IMAGE)),
+    }
+    stats = task.dataset_stats(out / "reach-general", keys=(task.STATE, task.ACTION))
+    return build_smolvla(build_vlm(out / "vlm"), stats, features=features)
+
+
 def sealed(out: Path, episodes: int, kind: str) -> None:
     """Step 6: the same user sealed: a LoRA payload in an encrypted record, the base the original."""
     figures = run_bundle(out, "sealed", SETTINGS[kind]["sealed"], episodes, kind)
@@ -131,6 +157,9 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
     """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
     camera = task.CAMERA in json.loads((out / kind / "config.json").read_text())["input_features"]
     env_id, obs_map = (task.CAMERA_ENV_ID, task.CAMERA_OBS_MAP) if camera else (task.ENV_ID, task.OBS_MAP)
+    extra = []
+    if kind == "smolvla":
+        obs_map, extra = task.SMOLVLA_OBS_MAP, ["--instruction", task.INSTRUCTION]
     shutil.rmtree(out / name, ignore_errors=True)
     figures: dict = {}
     t = time.perf_counter()
@@ -144,7 +173,7 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
     closed = json.loads(prop(
         "eval", out / name, "--env", env_id, "--obs-map", obs_map, "--metric", task.METRIC,
         "--key-file", out / "user.key", "--original", out / kind, "--episodes", episodes,
-        "--max-steps", task.HORIZON, "--ignore-terminated", "--json",
+        "--max-steps", task.HORIZON, "--ignore-terminated", "--json", *extra,
         capture=True,
     ))  # fmt: skip
     figures["eval_s"] = round(time.perf_counter() - t, 1)

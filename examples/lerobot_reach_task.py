@@ -37,10 +37,16 @@ FEATURES = {
     ENV_STATE: {"dtype": "float32", "shape": (3,), "names": ["gx", "gy", "gz"]},
     ACTION: {"dtype": "float32", "shape": (3,), "names": ["dx", "dy", "dz"]},
 }
+STATE_GOAL_FEATURE = {"dtype": "float32", "shape": (9,),
+                      "names": [*FEATURES[STATE]["names"], "gx", "gy", "gz"]}  # fmt: skip
 CAMERA_FEATURE = {"dtype": "image", "shape": (IMAGE, IMAGE, 3), "names": ["height", "width", "channels"]}
 # The camera task for `prop eval --env`: importing this module registers it.
 CAMERA_ENV_ID = "examples.lerobot_reach_task:PandaReachCamera-v0"
 CAMERA_OBS_MAP = OBS_MAP + f",{CAMERA}=pixels"
+# SmolVLA reads one state vector (observation.state): its camera task's state holds the goal too.
+STATE_GOAL = "state_goal"  # the camera task's observation key: observation + desired_goal
+SMOLVLA_OBS_MAP = f"{STATE}={STATE_GOAL},{CAMERA}=pixels"
+INSTRUCTION = "reach the target"  # every frame's task text
 # Looking at the table from the front and above, so the goal sphere is in view wherever it is drawn.
 CAMERA_VIEW = dict(renderer="Tiny", render_width=IMAGE, render_height=IMAGE, render_distance=0.9,
                    render_target_position=[0.0, 0.0, 0.1], render_yaw=60, render_pitch=-30)  # fmt: skip
@@ -55,10 +61,14 @@ def make_camera_env(**kwargs):
         def __init__(self, env):
             super().__init__(env)
             space = gym.spaces.Box(0, 255, (IMAGE, IMAGE, 3), np.uint8)
-            self.observation_space = gym.spaces.Dict({**env.observation_space.spaces, "pixels": space})
+            both = gym.spaces.Box(-np.inf, np.inf, (9,), np.float32)
+            self.observation_space = gym.spaces.Dict(
+                {**env.observation_space.spaces, "pixels": space, STATE_GOAL: both}
+            )
 
         def observation(self, obs):
-            return {**obs, "pixels": np.ascontiguousarray(self.env.render()[..., :3])}
+            pixels = np.ascontiguousarray(self.env.render()[..., :3])
+            return {**obs, "pixels": pixels, STATE_GOAL: state_goal(obs)}
 
     return WithPixels(gym.make("PandaReach-v3", render_mode="rgb_array", **CAMERA_VIEW, **kwargs))
 
@@ -80,16 +90,22 @@ def user_preference(trajectory: dict) -> float:
     return float(np.linalg.norm(np.asarray(last["achieved_goal"]) - target) < SUCCESS)
 
 
+def state_goal(obs: dict) -> np.ndarray:
+    return np.concatenate([obs["observation"], obs["desired_goal"]]).astype(np.float32)
+
+
 def expert(obs: dict, offset: np.ndarray) -> np.ndarray:
     return np.clip(10.0 * (obs["desired_goal"] + offset - obs["observation"][:3]), -1, 1).astype(np.float32)
 
 
 def record(
-    root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3, camera: bool = False
-) -> None:
+    root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3, camera: bool = False,
+    goal_in_state: bool = False,
+) -> None:  # fmt: skip
     """Expert episodes into a new LeRobotDataset at ``root``. The executed action carries Gaussian noise
     (states off the expert's path get recorded too); the recorded action is the clean one (DART).
-    ``camera``: each frame's rendered camera image too (``CAMERA``)."""
+    ``camera``: each frame's rendered camera image too (``CAMERA``). ``goal_in_state``: the state is
+    observation + goal (9 values; SmolVLA reads one state vector)."""
     import gymnasium as gym
     import panda_gym  # noqa: F401 - registers the environments
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -97,7 +113,8 @@ def record(
     ds = LeRobotDataset.create(
         repo_id=f"local/{root.name}",
         fps=FPS,
-        features=FEATURES | ({CAMERA: CAMERA_FEATURE} if camera else {}),
+        features=FEATURES | ({CAMERA: CAMERA_FEATURE} if camera else {})
+        | ({STATE: STATE_GOAL_FEATURE} if goal_in_state else {}),
         root=root,
         robot_type="panda",
         use_videos=False,
@@ -110,12 +127,12 @@ def record(
         for _ in range(HORIZON):
             a = expert(obs, offset)
             frame = {
-                STATE: obs["observation"].astype(np.float32),
+                STATE: state_goal(obs) if goal_in_state else obs["observation"].astype(np.float32),
                 ENV_STATE: obs["desired_goal"].astype(np.float32),
             }
             if camera:
                 frame[CAMERA] = np.ascontiguousarray(env.render()[..., :3])
-            ds.add_frame({**frame, ACTION: a, "task": "reach the target"})
+            ds.add_frame({**frame, ACTION: a, "task": INSTRUCTION})
             obs, *_ = env.step(np.clip(a + noise * rng.standard_normal(3).astype(np.float32), -1, 1))
         ds.save_episode()
     ds.finalize()  # writes the parquet footers; without it the root does not load

@@ -110,7 +110,7 @@ def build_smolvla(vlm: Path, stats: dict | None = None, features: dict | None = 
         input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
         device="cpu", vlm_model_name=str(vlm), load_vlm_weights=False, chunk_size=10, n_action_steps=5,
         num_steps=10, resize_imgs_with_padding=(IMAGE, IMAGE), tokenizer_max_length=16, num_vlm_layers=2,
-        max_state_dim=8, max_action_dim=4, expert_width_multiplier=0.5, freeze_vision_encoder=False,
+        max_state_dim=16, max_action_dim=4, expert_width_multiplier=0.5, freeze_vision_encoder=False,
         train_expert_only=False,
     )  # fmt: skip
     cfg = SmolVLAConfig(**(settings | overrides))

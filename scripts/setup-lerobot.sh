@@ -24,7 +24,7 @@ drop_draccus_tests() {
 }
 # prop's own requirements are met by what is installed (torch 2.13 is in its range), so `pip install -e .`
 # with dependencies adds only what prop needs beyond lerobot (e.g. cryptography) and never touches torch.
-if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, peft, prop_cli" 2>/dev/null; then
+if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "import lerobot, peft, num2words, prop_cli" 2>/dev/null; then
   pip_install "$VENV/bin/pip" -e .
   drop_draccus_tests
   exit 0

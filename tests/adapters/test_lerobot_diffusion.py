@@ -157,6 +157,12 @@ def test_sealed_diffusion_runs_the_original_without_its_key(sealed, work):
     with pytest.warns(WrongKeyWarning):
         assert np.array_equal(run_policy(b, data, key(2)), original)
     assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+    # The audit of a sealed Diffusion bundle: its key rows are the original's chunks from the same noise.
+    s = AuditSettings(probes=["null", "random"], random=4, samples=1000, noise_seed=2)
+    report = api.audit_bundle(sealed, work / "user", s, key_files=[work / "k.bin"],
+                              original=str(work / "diffusion"))  # fmt: skip
+    rows = {g["name"]: g for g in report["groups"]}
+    assert rows["null"]["leakage"]["worst"] == 0 and rows["random"]["leakage"]["worst"] == 0
 
 
 def test_eval_pairs_the_noise_across_conditions(sealed, work):

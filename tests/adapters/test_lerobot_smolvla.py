@@ -243,3 +243,33 @@ def test_a_sealed_peft_payload_loads_through_lerobots_peft_path(work, tmp_path, 
     with torch.no_grad():
         action = post(policy.select_action(pre(obs)))[0].numpy()
     assert np.allclose(action, y[0, 0], atol=1e-5)
+
+
+def test_a_swapped_tokenizer_in_a_sealed_bundle_is_refused_with_the_key(sealed, work, tmp_path):
+    """Whoever can write the files swaps two words of the carried tokenizer (so the instruction maps to
+    other tokens) and re-hashes the manifest: the user's record opens, but the bundle changed since the
+    key was enrolled, so nothing runs under that key."""
+    import shutil
+
+    from prop_cli import constants as C
+    from prop_cli.bundle.manifest import stamp
+    from prop_cli.bundle.runtime import run_policy
+    from prop_cli.errors import PropError
+    from prop_cli.files import dump_json, sha256_file
+
+    planted = tmp_path / "s"
+    shutil.copytree(sealed, planted)
+    m = json.loads((planted / C.MANIFEST).read_text())
+    assert "lerobot/vlm/tokenizer.json" in m[C.M_FILES]  # listed, so it is part of what a key enrolled
+    f = planted / "lerobot" / "vlm" / "tokenizer.json"
+    doc = json.loads(f.read_text())
+    vocab = doc["model"]["vocab"]
+    vocab["reach"], vocab["goal"] = vocab["goal"], vocab["reach"]
+    f.write_text(json.dumps(doc))
+    m[C.M_FILES] = {n: sha256_file(planted / n) for n in m[C.M_FILES]}
+    (planted / C.MANIFEST).write_text(dump_json(stamp(m)))
+    b = load_bundle(planted)
+    data = load_data(work / "user")
+    with pytest.raises(PropError, match="changed since this key was enrolled"):
+        run_policy(b, data, key())
+    run_policy(b, data, None)  # without a key: the bundle's base, as it now is
