@@ -16,6 +16,7 @@ TASKS = ("classification", "regression")
 PAYLOAD_KINDS = ("lora", "delta", "full", "peft-lora")  # what a sealed bundle stores per user (core.payload)
 LOW_RANK_KINDS = ("lora", "peft-lora")  # payload kinds with a rank (--payload-rank)
 ENCODER_INITS = ("seed", "os")
+PRECISIONS = ("fp32", "bf16")  # --precision: bf16 = autocast mixed precision (prop_cli.train.loop)
 # `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
 HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}
 PLAIN_PRESET = {"encoder_init": "seed", "code_negatives": 0}
@@ -110,6 +111,9 @@ class PersonalizeConfig(_Settings):
     code_negatives: int | None = None
     code_flip_max: int = 48
     code_relax_min: float = 0.1
+    # The step's forward and loss: fp32, or bf16 autocast with fp32 parameters and optimiser state
+    # (prop_cli.train.loop.mixed_precision). Recorded so a run can be repeated as it was trained.
+    precision: str = PRECISIONS[0]
 
     @property
     def batch_rows(self) -> int:
@@ -138,6 +142,7 @@ class PersonalizeConfig(_Settings):
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
         self.at_least(code_negatives=0, code_flip_max=1)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
+        self.need(self.precision in PRECISIONS, "precision", " or ".join(PRECISIONS))
         return self
 
 

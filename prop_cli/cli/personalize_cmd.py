@@ -60,6 +60,7 @@ SETTINGS = {
     "as a standard peft adapter: prop export --peft).",
     "payload_rank": "With --seal --payload lora or peft-lora: the update's rank.",
     "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
+    "precision": "fp32, or bf16: mixed precision (bf16 autocast; weights and Adam stay fp32).",
 }
 
 

@@ -205,7 +205,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 
-    losses = run_steps(step, cfg.steps, job.progress)
+    losses = run_steps(step, cfg.steps, job.progress, cfg.precision, dev)
     reports = [
         user_report(
             km,

@@ -15,8 +15,10 @@ _CHUNK = 8192
 
 @torch.no_grad()
 def outputs(module: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """The module's outputs on many inputs, in chunks."""
-    return torch.cat([module(x[i : i + _CHUNK]) for i in range(0, len(x), _CHUNK)])
+    """The module's outputs on many inputs, in chunks, in fp32 even inside a bf16 step: these are the
+    original's outputs the fallback is distilled towards, and they should be the original's exactly."""
+    with torch.autocast(x.device.type, enabled=False):
+        return torch.cat([module(x[i : i + _CHUNK]) for i in range(0, len(x), _CHUNK)])
 
 
 def targets_tensor(ds: Dataset, task: str) -> torch.Tensor:

@@ -49,6 +49,8 @@ class Batch:
 
 def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) -> torch.Tensor:
     """Per-row loss: MSE for float targets, cross-entropy for labels, KL to soft targets for distill."""
+    if out.dtype == torch.bfloat16:
+        out = out.float()  # a bf16 forward (--precision bf16): the loss itself reduces in fp32
     if task == "classification":
         if distill:
             logp = F.log_softmax(target, -1)

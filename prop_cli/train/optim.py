@@ -34,7 +34,9 @@ class Adam:
         self.beta1, self.beta2 = betas
         self.eps = eps
         self.t = 0
-        self._step = torch.zeros(())
+        # The step count as the fused kernel takes it: a tensor on the parameters' device (on CUDA it
+        # refuses a CPU one; torch's Adam keeps it there too), one per device the groups live on.
+        self._steps: dict[torch.device, torch.Tensor] = {}
         for g in self.groups:
             g["m"] = [torch.zeros_like(p) for p in g["params"]]
             g["v"] = [torch.zeros_like(p) for p in g["params"]]
@@ -53,19 +55,23 @@ class Adam:
         if not any(p.grad is not None for g in self.groups for p in g["params"]):
             return
         self.t += 1
-        self._step.fill_(self.t)
+        for count in self._steps.values():
+            count.fill_(self.t)
         for g in self.groups:
             live = [i for i, p in enumerate(g["params"]) if p.grad is not None]
             if not live:
                 continue
             ps = [g["params"][i] for i in live]
+            count = self._steps.get(ps[0].device)
+            if count is None:
+                count = self._steps[ps[0].device] = torch.full((), float(self.t), device=ps[0].device)
             torch._fused_adam_(
                 ps,
                 [p.grad for p in ps],
                 [g["m"][i] for i in live],
                 [g["v"][i] for i in live],
                 [],
-                [self._step] * len(ps),  # every parameter is on the same step
+                [count] * len(ps),  # every parameter is on the same step
                 lr=g["lr"],
                 beta1=self.beta1,
                 beta2=self.beta2,

@@ -179,7 +179,7 @@ class PolicyRecipe(Recipe):
         loaded, cfg = job.loaded, job.cfg
         check_cpu(job.device)
         t = PolicyTrainer(loaded, users, cfg, general)
-        losses = run_steps(t.step, cfg.steps, job.progress)
+        losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, "cpu")
         t.module.eval()
         reports = [
             chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i))

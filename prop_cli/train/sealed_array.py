@@ -45,7 +45,7 @@ def train_payload(
             optim.update(loss)
             return {"personal": loss.item()}
 
-        losses = run_steps(step, cfg.steps, progress)
+        losses = run_steps(step, cfg.steps, progress, cfg.precision, dev)
     return payload.eval(), losses
 
 

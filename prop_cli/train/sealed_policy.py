@@ -41,7 +41,7 @@ def train_payload(
             optim.update(loss)
             return {"personal": loss.item()}
 
-        losses = run_steps(step, cfg.steps, progress)
+        losses = run_steps(step, cfg.steps, progress, cfg.precision, "cpu")  # policies: CPU only
     module.eval()
     return payload.eval(), losses
 

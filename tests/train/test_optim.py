@@ -6,19 +6,24 @@ import math
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from prop_cli.train.optim import Adam, cosine_lr
 
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (scripts/gpu-smoke.sh)")
 
-def _params(seed: int) -> list[torch.Tensor]:
+
+def _params(seed: int, device: str = "cpu") -> list[torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
-    return [torch.randn(7, 5, generator=g).requires_grad_(), torch.randn(5, generator=g).requires_grad_()]
+    w, b = torch.randn(7, 5, generator=g), torch.randn(5, generator=g)
+    return [w.to(device).requires_grad_(), b.to(device).requires_grad_()]
 
 
-def test_same_weights_as_torch_adam_with_groups_and_a_cosine_schedule():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
+def test_same_weights_as_torch_adam_with_groups_and_a_cosine_schedule(device):
     steps, floor = 25, 0.05
-    ours_a, ours_b = _params(0), _params(1)
+    ours_a, ours_b = _params(0, device), _params(1, device)
     ref_a, ref_b = ([p.detach().clone().requires_grad_() for p in ps] for ps in (ours_a, ours_b))
     ours = Adam([{"params": ours_a}, {"params": ours_b, "lr": 3e-3}], lr=1e-2)
     ref = torch.optim.Adam([{"params": ref_a}, {"params": ref_b, "lr": 3e-3}], lr=1e-2, fused=True)
@@ -27,7 +32,7 @@ def test_same_weights_as_torch_adam_with_groups_and_a_cosine_schedule():
     )
     g = torch.Generator().manual_seed(2)
     for step in range(steps):
-        x = torch.randn(4, 7, generator=g)
+        x = torch.randn(4, 7, generator=g).to(device)
         for (w, b), (w2, b2), opt in ((ours_a, ours_b, ours), (ref_a, ref_b, ref)):
             ((x @ w + b).pow(2).sum() + (x @ w2 + b2).tanh().sum()).backward()
             opt.step()
@@ -36,7 +41,7 @@ def test_same_weights_as_torch_adam_with_groups_and_a_cosine_schedule():
         sched.step()
     for a, b in zip(ours_a + ours_b, ref_a + ref_b):
         assert torch.equal(a, b)
-    assert not torch.equal(ours_a[0], _params(0)[0])  # it did train
+    assert not torch.equal(ours_a[0], _params(0, device)[0])  # it did train
 
 
 def test_a_parameter_without_grad_is_left_alone():
