@@ -24,6 +24,7 @@ import torch
 from prop_cli.adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
+from prop_cli.core.device import resolve_device
 from prop_cli.core.key_sampling import KeySampler, one_bit_neighbours, random_keys
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import in_width, select_layers
@@ -64,30 +65,42 @@ def chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
 
 
 def check_cpu(device: str) -> None:
+    """Sealed LeRobot policies train on the CPU in this version (unsealed ones take --device)."""
     if device not in ("cpu", "auto"):
         raise PropError(
-            f"--device {device}: LeRobot policies train on the CPU in this version", "drop --device"
+            f"--device {device}: sealed LeRobot policies train on the CPU in this version", "drop --device"
         )
+
+
+def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device) for k, v in batch.items()}
 
 
 class PolicyTrainer:
     """The state of one personalize run and its step (kept apart so benchmarks time exactly this step)."""
 
     def __init__(
-        self, loaded: LoadedModel, users: list[User], cfg: PersonalizeConfig, general: Dataset | None
-    ) -> None:
+        self, loaded: LoadedModel, users: list[User], cfg: PersonalizeConfig, general: Dataset | None,
+        device: torch.device | None = None,
+    ) -> None:  # fmt: skip
         policy = self.policy = loaded.policy
         cfg.validate(key_bits=len(users[0].key_bits))
         check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
         self.cfg, self.users = cfg, users
-        module = self.module = loaded.module
+        # The policy's processors run on the CPU (its DeviceProcessorStep says cpu); batches move after.
+        dev = self.device = device or torch.device("cpu")
+        module = self.module = loaded.module.to(dev)
         names = select_layers(module, cfg.layers or policy.default_layers, cfg.exclude)
         torch.manual_seed(cfg.seed)
         self.rng = rng = np.random.default_rng(cfg.seed)
 
-        self.splits = [split_episodes(policy.batches(u.data, "--data"), cfg.val_fraction) for u in users]
+        self.splits = [
+            split_episodes(to_device(policy.batches(u.data, "--data"), dev), cfg.val_fraction) for u in users
+        ]
         self.pool = [tr for tr, _ in self.splits]
-        fb_parts = self.pool + ([policy.batches(general, "--general-data")] if general is not None else [])
+        fb_parts = list(self.pool)
+        if general is not None:
+            fb_parts.append(to_device(policy.batches(general, "--general-data"), dev))
         self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.row_shapes, "episode_index"]}
         self.original = copy.deepcopy(module).requires_grad_(False).eval()
         self.original_policy = policy.on(self.original)
@@ -101,7 +114,7 @@ class PolicyTrainer:
         mods = dict(module.named_modules())
         features = [in_width(mods[n]) for n in names]
         encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
-        self.km = KeyedModel(module, encoder, names)
+        self.km = KeyedModel(module, encoder, names).to(dev)
         self.km.batch_axis = probe_batch_axes(
             module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
         )
@@ -112,28 +125,30 @@ class PolicyTrainer:
         if base:
             groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
         self.optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, clip=CLIP)
-        self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding)
+        self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
         self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
         self.per_user = max(1, cfg.user_rows // len(users))
 
     def step(self) -> dict[str, float]:
-        cfg, km, rng, policy = self.cfg, self.km, self.rng, self.policy
+        cfg, km, rng, policy, dev = self.cfg, self.km, self.rng, self.policy, self.device
         # User rows: the policy's own loss, each user's rows under that user's key.
         picks = [
-            torch.from_numpy(rng.integers(0, len(tr["episode_index"]), self.per_user)) for tr in self.pool
-        ]
+            torch.from_numpy(rng.integers(0, len(tr["episode_index"]), self.per_user)).to(dev)
+            for tr in self.pool
+        ]  # fmt: skip
         ub = {k: torch.cat([rows(tr, p)[k] for tr, p in zip(self.pool, picks)]) for k in self.pool[0]}
-        user_of_row = torch.arange(len(self.users)).repeat_interleave(self.per_user)
+        user_of_row = torch.arange(len(self.users), device=dev).repeat_interleave(self.per_user)
         d_user = [d.index_select(0, user_of_row) for d in km.layer_deltas(self.user_codes)]
         # Fallback rows: null rows, then each sampled key on samples_per_key of the same frames.
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
         )
-        gi = torch.from_numpy(rng.integers(0, len(self.targets), cfg.null_rows))
-        k_rows = torch.arange(len(sampled)).repeat_interleave(cfg.samples_per_key)
-        idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows)))]])
-        deltas = km.layer_deltas(key_codes(sampled, cfg.key_encoding) if len(sampled) else None, null=1)
-        key_of_row = torch.cat([torch.full((len(gi),), len(sampled)), k_rows])
+        gi = torch.from_numpy(rng.integers(0, len(self.targets), cfg.null_rows)).to(dev)
+        k_rows = torch.arange(len(sampled), device=dev).repeat_interleave(cfg.samples_per_key)
+        idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows))).to(dev)]])
+        codes = key_codes(sampled, cfg.key_encoding).to(dev) if len(sampled) else None
+        deltas = km.layer_deltas(codes, null=1)
+        key_of_row = torch.cat([torch.full((len(gi),), len(sampled), device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         fb_rows = rows(self.fb_rows, idx)
         if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
@@ -161,7 +176,7 @@ def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: Persona
     def under(codes: torch.Tensor | None) -> torch.Tensor:
         if codes is None:
             return chunks(policy, val)[None]
-        every = km.layer_deltas(codes)
+        every = km.layer_deltas(codes.to(p.device))
         return torch.stack(
             [km.call_rows([d[i : i + 1] for d in every], chunks, policy, val) for i in range(len(codes))]
         )
@@ -175,16 +190,19 @@ def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: Persona
 
 class PolicyRecipe(Recipe):
     def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
-        """Train the keyed policy (Eq. 5) with Eq. 8. CPU only in this version."""
+        """Train the keyed policy (Eq. 5) with Eq. 8 on ``job.device``; the result comes back to the CPU
+        (the bundle is written, and runs, there)."""
         loaded, cfg = job.loaded, job.cfg
-        check_cpu(job.device)
-        t = PolicyTrainer(loaded, users, cfg, general)
-        losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, "cpu")
+        dev = resolve_device(job.device)
+        t = PolicyTrainer(loaded, users, cfg, general, dev)
+        losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, dev)
         t.module.eval()
         reports = [
             chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i))
             for i, (u, (_, val)) in enumerate(zip(users, t.splits))
         ]
+        for part in (t.km, t.module, t.original):
+            part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
         return Personalized(
             t.km, t.original, "regression", reports, losses, loaded=loaded, cfg=cfg, input_shape=shape,

@@ -72,7 +72,7 @@ class DiffusionPolicy(LeRobotPolicy):
         sched = self.model.noise_scheduler
         rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
         x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
-        t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=generator)
+        t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=generator).to(x0.device)
         eps = torch.randn(x0.shape, generator=generator).to(x0)
         rows |= {"x_t": sched.add_noise(x0, eps, t), "t": t}
         with torch.no_grad():

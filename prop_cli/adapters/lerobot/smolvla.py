@@ -137,7 +137,7 @@ class SmolVLAPolicy(LeRobotPolicy):
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
         rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
         x0 = self._padded(chunks.repeat_interleave(FALLBACK_DRAWS, 0))
-        t = T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=generator)
+        t = (T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=generator)).to(x0.device)
         eps = torch.randn(x0.shape, generator=generator).to(x0)
         tt = t[:, None, None].to(x0)
         rows |= {"x_t": tt * eps + (1 - tt) * x0, "t": t}
