@@ -6,8 +6,8 @@
 LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_train.update_policy).
 PRoP step: prop_cli.train.policy.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
 through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
-against the original (ACT: its cached chunks; Diffusion: its denoiser on the same noised rows, one more
-forward without gradients), key encoder in the graph, same clip. The two alternate (the machine is
+against the original (ACT: its cached chunks; Diffusion / SmolVLA: its denoiser / velocity on noised
+rows drawn once, both terms in one forward), key encoder in the graph, same clip. The two alternate (the machine is
 shared); medians and their ratio are printed. Target (issues 11 and 22): <= 1.3x.
 """
 
@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> None:
             times[name].append(time.perf_counter() - t)
     med = {k: statistics.median(v) * 1000 for k, v in times.items()}
     unet = "512/1024/2048" if args.full_size else "32/64/128"
-    what = {"act": "ACT (dim 64, chunk 10)", "diffusion": f"Diffusion (U-Net {unet}, horizon 16)"}
+    what = {"act": "ACT (dim 64, chunk 10)", "diffusion": f"Diffusion (U-Net {unet}, horizon 16)",
+            "smolvla": "SmolVLA (tiny SmolVLM, 2 layers; chunk 10)"}  # fmt: skip
     print(f"{what[args.policy]}, {rows} rows per step, {args.reps} alternating reps, medians:")
     print(f"  LeRobot step {med['lerobot']:.1f} ms, PRoP step {med['prop']:.1f} ms, "
           f"ratio {med['prop'] / med['lerobot']:.2f}x (target <= 1.3x)")  # fmt: skip

@@ -206,3 +206,22 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
     few = EvalSettings(episodes=1, random_keys=1, neighbours=0, episodes_per_key=1, max_steps=5)
     report = api.eval_bundle(d / "b", task.CAMERA_ENV_ID, few, obs_map=task.CAMERA_OBS_MAP, key_file=None)
     assert report["conditions"]["no_key"]["episodes"] == 1
+    # The audit takes the camera frames in its flat rows; sealed, a wrong key runs the original exactly.
+    path = d / "k.bin"
+    path.write_bytes(np.packbits(key()).tobytes())
+    path.chmod(0o600)
+    s = AuditSettings(probes=["null", "random"], random=2, samples=1000)
+    audit = api.audit_bundle(d / "b", d / "user", s, key_files=[path], original=str(d / "diffusion"))
+    assert {"null", "random"} <= {g["name"] for g in audit["groups"]}
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 3}))
+    api.personalize_checkpoint(str(d / "diffusion"), [(d / "user", KeySource(key(), "file"))], d / "s", cfg)
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    orig = load_checkpoint(d / "diffusion").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.row_shapes})).numpy()
+    sealed = load_bundle(d / "s")
+    assert np.array_equal(run_policy(sealed, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(sealed, data, key(2)), original)
