@@ -7,8 +7,8 @@ LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_t
 PRoP step: prop_cli.train.policy.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
 through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
 against the original (ACT: its cached chunks; Diffusion / SmolVLA: its denoiser / velocity on noised
-rows drawn once, both terms in one forward), key encoder in the graph, same clip. The two alternate (the machine is
-shared); medians and their ratio are printed. Target (issues 11 and 22): <= 1.3x.
+rows drawn once, both terms in one forward), key encoder in the graph, same clip. The two alternate
+(the machine is shared); medians and their ratio are printed. Target (issues 11 and 22): <= 1.3x.
 """
 
 from __future__ import annotations

@@ -30,13 +30,11 @@ import torch
 
 from prop_cli.adapters.base import PolicyProtocol
 
-from .policy import LeRobotPolicy
+from .policy import FALLBACK_DRAWS, LeRobotPolicy
 
 DIFFUSION_LAYERS = [r"diffusion\.unet\.(down_modules|mid_modules|up_modules|final_conv)\..+"]
 OBS_IMAGES = "observation.images"
 ACTION = "action"
-FALLBACK_DRAWS = 8  # (t, eps) draws per fallback frame
-POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
 class DiffusionPolicy(LeRobotPolicy):
@@ -70,17 +68,13 @@ class DiffusionPolicy(LeRobotPolicy):
         generator: torch.Generator,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
         sched = self.model.noise_scheduler
-        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
-        x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
-        t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=generator).to(x0.device)
-        eps = torch.randn(x0.shape, generator=generator).to(x0)
-        rows |= {"x_t": sched.add_noise(x0, eps, t), "t": t}
-        with torch.no_grad():
-            targets = torch.cat([
-                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
-                for i in range(0, len(x0), POOL_BATCH)
-            ])  # fmt: skip
-        return rows, targets
+
+        def noised(x0: torch.Tensor, g: torch.Generator) -> dict[str, torch.Tensor]:
+            t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=g).to(x0.device)
+            eps = torch.randn(x0.shape, generator=g).to(x0)
+            return {"x_t": sched.add_noise(x0, eps, t), "t": t}
+
+        return self._denoiser_pool(batch, chunks, original, generator, noised)
 
     @property
     def joins_terms(self) -> bool:
@@ -130,3 +124,6 @@ class DiffusionPolicy(LeRobotPolicy):
             "inference_steps": self.model.num_inference_steps,
             "prediction_type": c.prediction_type,
         }
+
+
+__all__ = ["DIFFUSION_LAYERS", "FALLBACK_DRAWS", "DiffusionPolicy"]

@@ -20,6 +20,8 @@ ACTION, PAD = "action", "action_is_pad"
 # transformer encoder and decoder and the action head. Not the attention out_proj (never called through
 # its forward) nor the VAE encoder (training only).
 ACT_LAYERS = [r"model\.(encoder|decoder)\.layers\.\d+\.linear[12]", r"model\.action_head"]
+FALLBACK_DRAWS = 8  # a denoising policy's (t, noise) draws per fallback frame (Diffusion, SmolVLA)
+POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
 class LeRobotPolicy(PolicyProtocol):
@@ -102,6 +104,22 @@ class LeRobotPolicy(PolicyProtocol):
         out = {k: v for k, v in out.items() if isinstance(v, torch.Tensor)}
         out["episode_index"] = torch.from_numpy(episodes.astype(np.int64))
         return out
+
+    def _denoiser_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator, noised,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        """A denoising policy's fallback rows: FALLBACK_DRAWS per frame, each with the ``{"x_t", "t"}``
+        that ``noised(x0, generator)`` makes of the frame's chunk, and the original's output on each."""
+        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
+        rows |= noised(chunks.repeat_interleave(FALLBACK_DRAWS, 0), generator)
+        n = len(rows["t"])
+        with torch.no_grad():
+            targets = torch.cat([
+                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
+                for i in range(0, n, POOL_BATCH)
+            ])  # fmt: skip
+        return rows, targets
 
     def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
         """What the preprocessor takes beside the tensors (SmolVLA: each frame's task text)."""

@@ -36,7 +36,7 @@ from prop_cli.adapters.base import PolicyProtocol
 from prop_cli.constants import TASK
 from prop_cli.errors import PropError
 
-from .policy import ACTION, Controller, LeRobotPolicy
+from .policy import ACTION, FALLBACK_DRAWS, Controller, LeRobotPolicy
 
 # LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
 SMOLVLA_LAYERS = [
@@ -44,8 +44,6 @@ SMOLVLA_LAYERS = [
     r"model\.(state_proj|action_in_proj|action_out_proj|action_time_mlp_in|action_time_mlp_out)",
 ]
 TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"
-FALLBACK_DRAWS = 8  # (t, noise) draws per fallback frame
-POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 T_MIN = 1e-3  # the smallest flow time LeRobot trains on (sample_time: beta * 0.999 + 0.001)
 
 
@@ -135,18 +133,14 @@ class SmolVLAPolicy(LeRobotPolicy):
         self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
         generator: torch.Generator,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
-        rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
-        x0 = self._padded(chunks.repeat_interleave(FALLBACK_DRAWS, 0))
-        t = (T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=generator)).to(x0.device)
-        eps = torch.randn(x0.shape, generator=generator).to(x0)
-        tt = t[:, None, None].to(x0)
-        rows |= {"x_t": tt * eps + (1 - tt) * x0, "t": t}
-        with torch.no_grad():
-            targets = torch.cat([
-                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
-                for i in range(0, len(x0), POOL_BATCH)
-            ])  # fmt: skip
-        return rows, targets
+        def noised(x0: torch.Tensor, g: torch.Generator) -> dict[str, torch.Tensor]:
+            x0 = self._padded(x0)
+            t = (T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=g)).to(x0.device)
+            eps = torch.randn(x0.shape, generator=g).to(x0)
+            tt = t[:, None, None].to(x0)
+            return {"x_t": tt * eps + (1 - tt) * x0, "t": t}
+
+        return self._denoiser_pool(batch, chunks, original, generator, noised)
 
     @property
     def joins_terms(self) -> bool:
@@ -203,4 +197,4 @@ class SmolVLAPolicy(LeRobotPolicy):
         }
 
 
-__all__ = ["ACTION", "SMOLVLA_LAYERS", "SmolVLAPolicy"]
+__all__ = ["ACTION", "FALLBACK_DRAWS", "SMOLVLA_LAYERS", "SmolVLAPolicy"]
