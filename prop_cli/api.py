@@ -466,7 +466,7 @@ def eval_bundle(
     for loaded in (bundle.loaded, ref):
         if loaded is not None:
             _seed_noise(loaded, settings.noise_seed)
-            if settings.instruction and hasattr(loaded.policy, "instruction"):
+            if loaded.policy is not None:
                 loaded.policy.instruction = settings.instruction
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(

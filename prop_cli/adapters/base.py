@@ -84,6 +84,9 @@ class PolicyProtocol(ABC):
     fallbacks: ClassVar[tuple[str, ...]]  # fallback terms this policy supports, the default first
     # Seed of the noise a sampling policy's chunks start from (`--noise-seed`); unused by the others.
     noise_seed: int = 0
+    # A language-conditioned policy's instruction in closed loop (`prop eval --instruction`); unused by
+    # the others (data rows carry their own task text).
+    instruction: str = ""
 
     @abstractmethod
     def on(self, module: torch.nn.Module) -> PolicyProtocol:

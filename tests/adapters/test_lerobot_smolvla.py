@@ -273,3 +273,45 @@ def test_a_swapped_tokenizer_in_a_sealed_bundle_is_refused_with_the_key(sealed, 
     with pytest.raises(PropError, match="changed since this key was enrolled"):
         run_policy(b, data, key())
     run_policy(b, data, None)  # without a key: the bundle's base, as it now is
+
+
+@pytest.mark.parametrize("name", ["config.json", "tokenizer_config.json"])
+def test_a_vlm_file_naming_code_is_never_imported_and_the_key_refuses(name, sealed, work, tmp_path):
+    """Whoever can write the files makes the carried VLM config (or tokenizer config) name a code
+    module through transformers' `auto_map`, and re-hashes the manifest: nothing is imported (LeRobot
+    and transformers never get trust_remote_code), and the user's key does not run."""
+    import shutil
+    import sys
+
+    from prop_cli import constants as C
+    from prop_cli.bundle.manifest import stamp
+    from prop_cli.bundle.runtime import run_policy
+    from prop_cli.errors import PropError
+    from prop_cli.files import dump_json, sha256_file
+
+    planted = tmp_path / "s"
+    shutil.copytree(sealed, planted)
+    marker = tmp_path / "pwned"
+    (tmp_path / "pwn_vlm.py").write_text(
+        f"open({str(marker)!r}, 'w').close()\nclass Anything: pass\n"
+    )
+    f = planted / "lerobot" / "vlm" / name
+    doc = json.loads(f.read_text())
+    doc["auto_map"] = {k: "pwn_vlm.Anything" for k in ("AutoConfig", "AutoTokenizer", "AutoProcessor")}
+    f.write_text(json.dumps(doc))
+    m = json.loads((planted / C.MANIFEST).read_text())
+    m[C.M_FILES] = {n: sha256_file(planted / n) for n in m[C.M_FILES]}
+    (planted / C.MANIFEST).write_text(dump_json(stamp(m)))
+    sys.path.insert(0, str(tmp_path))
+    try:
+        data = load_data(work / "user")
+        try:
+            b = load_bundle(planted)
+        except PropError:
+            b = None  # refused while loading: fine, as long as nothing was imported
+        if b is not None:
+            with pytest.raises(PropError, match="changed since this key was enrolled"):
+                run_policy(b, data, key())
+        assert not marker.exists() and "pwn_vlm" not in sys.modules
+    finally:
+        sys.path.remove(str(tmp_path))

@@ -51,8 +51,6 @@ class SmolVLAPolicy(LeRobotPolicy):
     """SmolVLA through the policy protocol (see the module docstring)."""
 
     default_layers = SMOLVLA_LAYERS
-    # The instruction a closed loop gives the policy (`prop eval --instruction`); data rows carry theirs.
-    instruction: str = ""
 
     def on(self, module) -> SmolVLAPolicy:
         other = super().on(module)
