@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from examples.il_task import write_example
-from prop_cli.adapters import load_checkpoint
+from prop_adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes

@@ -55,7 +55,7 @@ def context(bundle_path: Path, data: Path, key_file: Path, original: str | None,
     from prop_cli.config import AuditSettings
     from prop_cli.core.key_files import read_key_file
     from prop_cli.datasources import load_data
-    from prop_cli.datasources.fit import prepare
+    from prop_cli.fit import prepare
 
     bundle = load_bundle(bundle_path)
     key = read_key_file(key_file, bundle.key_bits)

@@ -53,7 +53,7 @@ def user_key(seed: int) -> np.ndarray:
 
 def train(base: Path, data, key: np.ndarray, cfg) -> tuple:
     """`prop personalize` in memory: (keyed model, original, task, wall seconds)."""
-    from prop_cli import adapters
+    import prop_adapters as adapters
     from prop_cli.train import User, personalize
 
     t0 = time.perf_counter()

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from examples.smolvla_tiny import KINDS, record_and_build
-from prop_cli.adapters import load_checkpoint
+from prop_adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.payload import Payload
 from prop_cli.datasources import load_data

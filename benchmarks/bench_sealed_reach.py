@@ -28,8 +28,8 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
+import prop_adapters as adapters
 from examples.reproduce import common, ppo, reach
-from prop_cli import adapters
 from prop_cli import constants as C
 from prop_cli.bundle import load_bundle, write_sealed
 from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning

@@ -62,7 +62,7 @@ def machine() -> str:
 
 
 def _params(path: Path) -> int:
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
 
     return sum(p.numel() for p in load_checkpoint(str(path)).module.parameters())
 
@@ -103,7 +103,7 @@ def _users(n_users: int, rows: int, seed: int) -> list:
 
 
 def personalize_rows(il: dict, mode: dict) -> list[tuple[str, str, str]]:
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
     from prop_cli.config import PersonalizeConfig
     from prop_cli.threads import configure
     from prop_cli.train import personalize

@@ -42,7 +42,7 @@ def _example(task: str, out: Path, seed: int) -> dict[str, Path]:
 
 
 def _layer_names(base: Path) -> list[str]:
-    from prop_cli import adapters
+    import prop_adapters as adapters
     from prop_cli.core.layers import linear_layers
 
     return [n for n, _ in linear_layers(adapters.load_checkpoint(base).module)]

@@ -217,7 +217,7 @@ def train_base(
     ``camera``: the camera frame is an input too (Diffusion)."""
     import time
 
-    from prop_cli.adapters.lerobot.adapter import PROTOCOLS
+    from prop_adapters.lerobot.adapter import PROTOCOLS
     from prop_cli.datasources import load_data
 
     torch.manual_seed(seed)

@@ -57,7 +57,7 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict | None = None) ->
     x = torch.from_numpy(test["x"])
     y, yp = torch.from_numpy(test["y"]), torch.from_numpy(test["y_personal"])
     with torch.no_grad():
-        from prop_cli.adapters import load_checkpoint
+        from prop_adapters import load_checkpoint
 
         b = load_checkpoint(str(paths["base"])).module(x)
         o_null = bundle.keyed(x)

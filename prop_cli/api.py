@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from prop_cli import adapters
+import prop_adapters as adapters
+from prop_adapters import CheckpointOptions
+from prop_adapters.hub import public_name, resolve_checkpoint
 from prop_cli import constants as C
-from prop_cli.adapters import CheckpointOptions
-from prop_cli.adapters.hub import public_name, resolve_checkpoint
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
 from prop_cli.attack.report import check_plot
@@ -450,7 +450,7 @@ def eval_bundle(
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""
-    from prop_cli.adapters.sb3.vecnormalize import read_vecnormalize
+    from prop_adapters.sb3.vecnormalize import read_vecnormalize
     from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map
 
     settings = settings or EvalSettings()

@@ -91,7 +91,7 @@ class PersonalizeConfig(_Settings):
     layers: list[str] | None = None  # None = default choice (see layers.default_layers)
     exclude: list[str] | None = None
     eval_random_keys: int = 64
-    task: str | None = None  # None: decided against the model (prop_cli.datasources.fit.resolve_task)
+    task: str | None = None  # None: decided against the model (prop_cli.fit.resolve_task)
     # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
     # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
     seal: bool = False
@@ -275,7 +275,7 @@ class EvalSettings(_Settings):
     ignore_terminated: bool = False
     seed: int = 1_000_000  # first evaluation seed; keep it away from the seeds the data was recorded with
     # A sampling policy's noise (LeRobot Diffusion): each query of an episode is seeded from (noise_seed,
-    # the episode's seed, the query's number), the same under every key (prop_cli.adapters.lerobot).
+    # the episode's seed, the query's number), the same under every key (prop_adapters.lerobot).
     noise_seed: int = 0
     # A language-conditioned policy's instruction in closed loop (LeRobot SmolVLA): the task text its data
     # was recorded with. Data rows carry their own; an environment gives none.

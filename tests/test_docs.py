@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from prop_cli import adapters
+import prop_adapters as adapters
 from prop_cli.attack import probes
 from prop_cli.datasources import SOURCES
 
@@ -25,7 +25,7 @@ DOCS = sorted((ROOT / "docs").glob("*.md"))
 OWN = [README_PATH, *DOCS]
 # The Extending sketches' files: shown in docs/extending.md, not shipped.
 SKETCHES = (
-    "prop_cli/adapters/npz_mlp.py",
+    "adapters/npz_mlp.py",
     "prop_cli/datasources/csv.py",
     "prop_cli/attack/probes/complement.py",
 )
@@ -99,8 +99,11 @@ def _module(path: str, name: str, monkeypatch) -> types.ModuleType:
 
 
 def _is_module_file(module: str) -> bool:
-    """A module of the current layout (not an old path kept as a deprecated alias)."""
-    base = ROOT / module.replace(".", "/")
+    """A module of the current layout: a file of prop_cli/, or of adapters/ (installed as prop_adapters)."""
+    parts = module.split(".")
+    if parts[0] == "prop_adapters":
+        parts[0] = "adapters"
+    base = ROOT.joinpath(*parts)
     return base.with_suffix(".py").is_file() or (base / "__init__.py").is_file()
 
 
@@ -139,7 +142,7 @@ def test_docs_are_in_the_repository_and_cited():
         assert (ROOT / "docs" / doc).is_file(), doc
     for doc in DOCS:  # every page of docs/ is reachable from the README
         assert f"](docs/{doc.name}" in README, doc.name
-    for path in [*OWN, *ROOT.glob("prop_cli/**/*.py"), *ROOT.glob("adapters/*.py")]:
+    for path in [*OWN, *ROOT.glob("prop_cli/**/*.py"), *ROOT.glob("adapters/**/*.py")]:
         assert "DESIGN.md" not in path.read_text() and "../shared" not in path.read_text(), path
 
 
@@ -166,15 +169,14 @@ def test_the_docs_name_modules_by_their_current_paths(path):
     text = path.read_text()
     for mod, _ in _imports(text):
         assert _is_module_file(mod), f"{path.name}: `from {mod} import` is an old path"
-    old = re.search(r"\bprop_adapters\.\w", text)
-    assert not old, f"{path.name}: prop_adapters.* moved to prop_cli.adapters.*"
-    for dotted in sorted(set(re.findall(r"\bprop_cli(?:\.\w+)+", text))):
+    assert "prop_cli.adapters" not in text, f"{path.name}: prop_cli.adapters is prop_adapters since 0.2"
+    for dotted in sorted(set(re.findall(r"\b(?:prop_cli|prop_adapters)(?:\.\w+)+", text))):
         parts = dotted.split(".")
         n = max(i for i in range(1, len(parts) + 1) if _is_module_file(".".join(parts[:i])))
         obj = importlib.import_module(".".join(parts[:n]))
         for attr in parts[n:]:
             obj = getattr(obj, attr, None)
-            # a module here is an old path (a deprecated alias): current modules are files
+            # a module here would be a name that is no file of the layout
             assert obj is not None and not isinstance(obj, types.ModuleType), f"{path.name}: {dotted}"
     for span in re.findall(r"`([\w./-]+\.py)`", text):
         if span in SKETCHES or "/" not in span:
@@ -199,20 +201,21 @@ def test_every_relative_link_points_to_a_file(path):
 
 
 def test_design_maps_the_layout():
-    """docs/design.md's "Layout" names every module and package of prop_cli, and only those."""
+    """docs/design.md's "Layout" names every module and package of prop_cli and adapters/, and only those."""
     section = _section(_doc("design.md"), "## Layout")
     tree = re.search(r"```\n(.*?)```", section, flags=re.S).group(1)
-    pkg = ROOT / "prop_cli"
-    files = {p.name for p in pkg.rglob("*.py")}
-    for path in pkg.rglob("*.py"):
+    roots = (ROOT / "prop_cli", ROOT / "adapters")
+    paths = [p for root in roots for p in root.rglob("*.py")]
+    files = {p.name for p in paths}
+    for path in paths:
         if path.name == "__init__.py" or (path.name.endswith("_cmd.py") and "<command>_cmd.py" in tree):
             continue
         assert re.search(rf"(?<![\w<>]){re.escape(path.name)}", tree), path.relative_to(ROOT)
-    for folder in (p.parent for p in pkg.rglob("__init__.py") if p.parent != pkg):
+    for folder in (p.parent for p in paths if p.name == "__init__.py" and p.parent not in roots):
         assert f"{folder.name}/" in tree, folder.relative_to(ROOT)
     for named in re.findall(r"(?<![\w<>])(\w+\.py)", tree):
-        assert named in files, f"design.md Layout names {named}, which prop_cli does not have"
-    assert "prop_adapters/" in tree and (ROOT / "prop_adapters" / "__init__.py").is_file()
+        assert named in files, f"design.md Layout names {named}, which the layout does not have"
+    assert "adapters/" in tree and not (ROOT / "prop_cli" / "adapters").exists()
 
 
 # ---- the tables the registries make ------------------------------------------------------------------
@@ -260,7 +263,7 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
     from prop_cli.api import KeySource, load_bundle, personalize_checkpoint
     from prop_cli.config import PersonalizeConfig
 
-    mod = _module("prop_cli/adapters/npz_mlp.py", "prop_cli.adapters.npz_mlp", monkeypatch)
+    mod = _module("adapters/npz_mlp.py", "prop_adapters.npz_mlp", monkeypatch)
     registry = list(adapters.ADAPTERS)
     registry.insert(registry.index(next(a for a in registry if a.name == "mlp")), mod.NpzMLPAdapter())
     monkeypatch.setattr(adapters, "ADAPTERS", registry)

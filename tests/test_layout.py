@@ -17,21 +17,27 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "prop_cli"
-# The stages: the folders of prop_cli, and the modules at its root as one more.
+# The checkpoint adapters: the top-level adapters/ folder, installed as prop_adapters (pyproject.toml).
+ADAPTERS = ROOT / "adapters"
+# The stages: the folders of prop_cli, and the modules at its root as one more; prop_adapters is one too.
 STAGES = sorted(p.name for p in PKG.iterdir() if p.is_dir() and (p / "__init__.py").is_file())
 
 
 def _name(path: Path) -> str:
     rel = path.relative_to(ROOT).with_suffix("")
     parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    if parts[0] == "adapters":
+        parts = ("prop_adapters", *parts[1:])
     return ".".join(parts)
 
 
-MODULES = {_name(p): p for p in sorted(PKG.rglob("*.py"))}
+MODULES = {_name(p): p for p in [*sorted(PKG.rglob("*.py")), *sorted(ADAPTERS.rglob("*.py"))]}
 
 
 def _stage(module: str) -> str:
     parts = module.split(".")
+    if parts[0] == "prop_adapters":
+        return "adapters"
     return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in STAGES) else "(root)"
 
 
@@ -128,6 +134,15 @@ def test_a_circle_is_found():
     assert any("prop_cli.bundle.read" in c and "prop_cli.train.choose" in c for c in _cycles(graph))
 
 
+def test_every_package_is_installed():
+    """pyproject.toml lists the packages by hand (package-dir renames adapters/): none is left out."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {m for m, p in MODULES.items() if p.name == "__init__.py"}
+    assert listed == found
+
+
 def test_the_root_holds_at_most_eight_modules():
     root = sorted(p.name for p in PKG.glob("*.py"))
     assert len(root) <= 8, root
@@ -189,7 +204,9 @@ def _private_uses(path: Path) -> list[str]:
     modules: set[str] = set()
     out = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("prop_cli")):
+        if isinstance(node, ast.ImportFrom) and (
+            node.level or (node.module or "").startswith(("prop_cli", "prop_adapters"))
+        ):
             for a in node.names:
                 if a.name.startswith("_") and a.name != "__version__":
                     out.append(f"{node.module}.{a.name}")
@@ -197,7 +214,9 @@ def _private_uses(path: Path) -> list[str]:
                 if base in MODULES or node.level:
                     modules.add(a.asname or a.name)
         elif isinstance(node, ast.Import):
-            modules.update(a.asname or a.name for a in node.names if a.name.startswith("prop_cli"))
+            modules.update(
+                a.asname or a.name for a in node.names if a.name.startswith(("prop_cli", "prop_adapters"))
+            )
     for node in ast.walk(tree):
         if (
             isinstance(node, ast.Attribute)

@@ -306,7 +306,7 @@ def t2_leakage(ka: _KeyedActor, actor_path: Path, key: np.ndarray, states: np.nd
 
     The owner's targets are their key's actions (the personalized policy), the reference the base.
     """
-    from prop_cli import adapters
+    import prop_adapters as adapters
     from prop_cli.bundle import describe_layers, load_bundle, write_unsealed
 
     loaded = adapters.load_checkpoint(str(actor_path))

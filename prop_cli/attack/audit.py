@@ -23,9 +23,9 @@ from prop_cli.core import metrics
 from prop_cli.core.device import resolve_device
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import prepare
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file
+from prop_cli.fit import prepare
 
 from . import probes, target, verdict
 from .probes.base import Counter, Group, ProbeContext, Progress, Reference

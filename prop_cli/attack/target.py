@@ -1,7 +1,7 @@
 """What the audit attacks, decided here for every mode and kind of model.
 
 - A policy with named features (LeRobot) is audited as an array model: its flat view
-  (``prop_cli.adapters.lerobot.flat``), its data as flat rows (``prop_cli.datasources.fit``).
+  (``prop_adapters.lerobot.flat``), its data as flat rows (``prop_cli.fit``).
 - White-box probes read ``km``: an unsealed bundle's own key encoder over its base; for a sealed
   bundle, which has no encoder, a blank one of the attacker's over the public base (its zero head
   gives delta = 1 for every code).
@@ -23,14 +23,14 @@ from dataclasses import fields, replace
 import torch
 from torch import nn
 
+from prop_adapters.lerobot.flat import flat_module
 from prop_cli import constants as C
-from prop_cli.adapters.lerobot.flat import flat_module
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.read import rebuild_original
 from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import flat_dataset
+from prop_cli.fit import flat_dataset
 
 from .probes.base import ProbeContext
 from .probes.sealed_context import SealedContext, blank_keyed

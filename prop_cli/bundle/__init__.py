@@ -21,27 +21,3 @@ __all__ = [
     "write_unsealed",
 ]
 
-
-def __getattr__(name: str):
-    # The writers of prop 0.1.x (one release, with a warning): write_bundle returned the path.
-    import warnings
-
-    from . import write
-
-    old = {"write_bundle": "write_unsealed", "write_sealed_bundle": "write_sealed"}
-    if name not in old:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    warnings.warn(
-        f"prop_cli.bundle.{name} is now prop_cli.bundle.{old[name]} (it returns the manifest written); "
-        "the old name goes in prop 0.3",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    if name == "write_sealed_bundle":
-        return write.write_sealed
-
-    def write_bundle(out, **kwargs):
-        write.write_unsealed(out, **{"keys": [], **kwargs})  # no users enrolled: keys run the base
-        return out
-
-    return write_bundle

@@ -150,7 +150,7 @@ INPUT_SHAPE = Rule(
 )  # fmt: skip
 SEALED = ("sealed",)
 
-# What each built-in adapter's model spec holds (prop_cli.adapters.*.build reads these). An adapter this
+# What each built-in adapter's model spec holds (prop_adapters.*.build reads these). An adapter this
 # table does not know (an extension) is checked for "adapter" only; its rebuild reports the rest.
 _ACTION = obj({
     "space": choice(("Box", "Discrete")),

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from prop_adapters import LoadedModel, read_weights
 from prop_cli import constants as C
-from prop_cli.adapters import LoadedModel, read_weights
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.errors import PropError
 

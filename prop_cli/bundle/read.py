@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from prop_cli import adapters
+import prop_adapters as adapters
+from prop_adapters import LoadedModel
 from prop_cli import constants as C
-from prop_cli.adapters import LoadedModel
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.errors import PropError
 from prop_cli.files import sha256_file
@@ -128,7 +128,7 @@ def check_files(path: Path, manifest: dict) -> None:
 def rebuild_original(bundle: Bundle, path: str, trust_remote_code: bool = False) -> LoadedModel:
     """The checkpoint at ``path`` (the original, `--original`) rebuilt the way ``bundle``'s base is: the
     bundle's recorded model spec with that checkpoint's weights, so no flag has to be given again."""
-    from prop_cli.adapters.hub import resolve_checkpoint
+    from prop_adapters.hub import resolve_checkpoint
 
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))

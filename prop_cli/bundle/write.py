@@ -17,10 +17,10 @@ import numpy as np
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from prop_adapters import LoadedModel
+from prop_adapters.hub import public_name
 from prop_cli import __version__
 from prop_cli import constants as C
-from prop_cli.adapters import LoadedModel
-from prop_cli.adapters.hub import public_name
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text

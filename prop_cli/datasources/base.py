@@ -3,7 +3,7 @@
 A data source is one file holding a subclass of :class:`DataSource` plus one line in the registry
 (``prop_cli.datasources.SOURCES``). It reads and checks what its format can check (numbers, finite,
 shapes, one target per input); what depends on the model (features, task, bounds) is checked later
-against the checkpoint (``prop_cli.datasources.fit``).
+against the checkpoint (``prop_cli.fit``).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ chunks are cut from the selected frames, padded as at an episode's end); both co
 ``ROOT:episodes=0-3:frames=0-49``. Every frame is one row: ``x`` holds
 each state, environment and image feature (images as CHW float in [0, 1], as LeRobot yields them) plus
 ``episode_index`` and ``frame_index``; ``y`` is the recorded ``action``. Action chunks are cut per
-policy from these rows (``prop_cli.adapters.lerobot``), with the policy's own delta indices.
+policy from these rows (``prop_adapters.lerobot``), with the policy's own delta indices.
 
 Needs the optional lerobot environment (scripts/setup-lerobot.sh). ``meta/info.json`` and the
 episode selection are checked before LeRobot is touched: LeRobot fetches an episode missing from a

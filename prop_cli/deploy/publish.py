@@ -1,5 +1,5 @@
 """Publishing a bundle to the Hugging Face hub (`prop push`), with a generated model card (pulling
-``hf://`` checkpoints is ``prop_cli.adapters.hub``).
+``hf://`` checkpoints is ``prop_adapters.hub``).
 
 `prop push` uploads an allow-list of files: the bundle's manifest and weight files, its ONNX export
 if there is one, and a generated model card. Nothing else in the bundle folder (a key file someone
@@ -15,8 +15,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from prop_adapters.hub import hub_module, is_hub_path, parse_hub_path, public_name
 from prop_cli import constants as C
-from prop_cli.adapters.hub import hub_module, is_hub_path, parse_hub_path, public_name
 from prop_cli.bundle import check_files, read_manifest
 from prop_cli.bundle.modes import Mode, mode_of
 from prop_cli.bundle.records import load_state

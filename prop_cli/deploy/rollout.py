@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from prop_cli.adapters.sb3 import observation_array
-from prop_cli.adapters.sb3.vecnormalize import ObsNormalizer
+from prop_adapters.sb3 import observation_array
+from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle, KeyedPolicy
 from prop_cli.bundle.runtime import module_for_key
 from prop_cli.config import EvalSettings

@@ -15,7 +15,7 @@ from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import split
+from prop_cli.fit import split
 
 from .data import outputs, prepare_users, targets_tensor
 from .hardening import code_negatives, encoder_init

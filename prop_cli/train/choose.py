@@ -3,7 +3,7 @@ here and nowhere else."""
 
 from __future__ import annotations
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import torch
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import output_width, prepare
 from prop_cli.errors import PropError
+from prop_cli.fit import output_width, prepare
 
 # Inputs per forward when caching a module's outputs.
 _CHUNK = 8192

@@ -21,7 +21,7 @@ import copy
 import numpy as np
 import torch
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from torch import nn
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.datasources import Dataset
 

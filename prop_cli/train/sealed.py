@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from prop_adapters import LoadedModel
 from prop_cli import constants as C
-from prop_cli.adapters import LoadedModel
 from prop_cli.bundle import write_sealed
 from prop_cli.bundle.records import SealedState
 from prop_cli.config import LOW_RANK_KINDS, PersonalizeConfig

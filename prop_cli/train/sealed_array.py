@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.device import resolve_device
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import split
+from prop_cli.fit import split
 
 from .data import prepare_users, targets_tensor
 from .loop import Optimiser, run_steps

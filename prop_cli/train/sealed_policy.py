@@ -9,13 +9,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from prop_cli.adapters import LoadedModel
-from prop_cli.adapters.lerobot.flat import flat_module
+from prop_adapters import LoadedModel
+from prop_adapters.lerobot.flat import flat_module
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.datasources import Dataset
-from prop_cli.datasources.fit import flat_chunks
+from prop_cli.fit import flat_chunks
 
 from .loop import Optimiser, run_steps
 from .policy import CLIP, check_cpu, chunks, rows, split_episodes
@@ -57,7 +57,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
         self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
         first_index: int = 0,
     ) -> tuple[list[SealedUser], str, dict[str, int]]:
-        """Validation rows are kept as the flat view's (``prop_cli.datasources.fit.flat_chunks``); the
+        """Validation rows are kept as the flat view's (``prop_cli.fit.flat_chunks``); the
         keyed layers' batch axes are returned too (the audit keys the public base at those layers)."""
         loaded, cfg = job.loaded, job.cfg
         check_cpu(job.device)

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import torch
 
+from prop_adapters import LoadedModel
 from prop_cli import constants as C
-from prop_cli.adapters import LoadedModel
 from prop_cli.bundle import describe_layers, write_unsealed
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.keyed_model import KeyedModel

@@ -11,8 +11,8 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from prop_cli.adapters import LoadedModel, load_checkpoint, read_weights, rebuild
-from prop_cli.adapters.mlp import natural_key
+from prop_adapters import LoadedModel, load_checkpoint, read_weights, rebuild
+from prop_adapters.mlp import natural_key
 from prop_cli.errors import PropError
 
 HERE = Path(__file__).parent

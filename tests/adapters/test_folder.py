@@ -11,8 +11,8 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from prop_cli.adapters import load_checkpoint
-from prop_cli.adapters.folder import ENTRY_POINT_GROUP
+from prop_adapters import load_checkpoint
+from prop_adapters.folder import ENTRY_POINT_GROUP
 from prop_cli.bundle import load_bundle
 from prop_cli.errors import PropError
 from tests.conftest import FAST

@@ -18,8 +18,8 @@ pytest.importorskip("lerobot")
 pytestmark = pytest.mark.lerobot
 
 from examples import lerobot_reach_task as task  # noqa: E402
+from prop_adapters import load_checkpoint  # noqa: E402
 from prop_cli import api  # noqa: E402
-from prop_cli.adapters import load_checkpoint  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402

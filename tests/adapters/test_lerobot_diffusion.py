@@ -17,8 +17,8 @@ pytest.importorskip("lerobot")
 pytestmark = pytest.mark.lerobot
 
 from examples import lerobot_reach_task as task  # noqa: E402
+from prop_adapters import load_checkpoint  # noqa: E402
 from prop_cli import api  # noqa: E402
-from prop_cli.adapters import load_checkpoint  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
@@ -108,7 +108,7 @@ def test_bundle_base_loads_in_lerobot_and_no_key_is_lerobots_own_action(bundle, 
 
 
 def test_fallback_pool_holds_the_originals_denoiser_on_identical_inputs(bundle, work):
-    from prop_cli.adapters.lerobot.diffusion import FALLBACK_DRAWS
+    from prop_adapters.lerobot.diffusion import FALLBACK_DRAWS
 
     b = load_bundle(bundle)
     policy = b.loaded.policy

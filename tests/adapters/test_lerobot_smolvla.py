@@ -21,8 +21,8 @@ pytestmark = pytest.mark.lerobot
 
 from examples import lerobot_reach_task as task  # noqa: E402
 from examples import smolvla_tiny  # noqa: E402
+from prop_adapters import load_checkpoint  # noqa: E402
 from prop_cli import api  # noqa: E402
-from prop_cli.adapters import load_checkpoint  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
@@ -139,7 +139,7 @@ def test_bundle_carries_the_vlm_files_and_its_base_loads_in_lerobot(bundle, work
 
 
 def test_fallback_targets_are_the_originals_velocity_on_identical_inputs(bundle, work):
-    from prop_cli.adapters.lerobot.smolvla import FALLBACK_DRAWS
+    from prop_adapters.lerobot.smolvla import FALLBACK_DRAWS
 
     policy = load_bundle(bundle).loaded.policy
     batch = policy.batches(load_data(work / "general"), "--data")

@@ -13,7 +13,7 @@ import torch
 from safetensors.torch import load_file
 from torch import nn
 
-from prop_cli.adapters import activations, load_checkpoint
+from prop_adapters import activations, load_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.errors import PropError
 from tests.conftest import FAST

@@ -10,8 +10,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from prop_cli.adapters import load_checkpoint
-from prop_cli.adapters.sb3.adapter import observation_array
+from prop_adapters import load_checkpoint
+from prop_adapters.sb3.adapter import observation_array
 from tests.conftest import FAST
 
 pytest.importorskip("stable_baselines3")

@@ -8,7 +8,7 @@ import pickle
 import numpy as np
 import pytest
 
-from prop_cli.adapters.sb3.vecnormalize import read_vecnormalize
+from prop_adapters.sb3.vecnormalize import read_vecnormalize
 from prop_cli.errors import PropError
 from tests.conftest import FAST
 

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from safetensors.torch import save_file
 
-from prop_cli import adapters
+import prop_adapters as adapters
 from prop_cli import constants as C
 from prop_cli.bundle import manifest as schema
 from prop_cli.datasources import load_data

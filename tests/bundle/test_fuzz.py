@@ -322,7 +322,7 @@ def test_ctrl_c_during_exit_hooks_gives_a_line_not_a_traceback(workdir):
 
 @pytest.mark.parametrize("config", [b"[" * 100_000, b"\xff\xfe{}", b'{"type": 1', b"[]"])
 def test_a_damaged_config_folder_is_one_error(seeds, tmp_path, config):
-    from prop_cli import adapters
+    import prop_adapters as adapters
 
     (tmp_path / "model.safetensors").write_bytes(seeds["checkpoint"][0].files["model.safetensors"])
     (tmp_path / "config.json").write_bytes(config)

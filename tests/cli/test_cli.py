@@ -134,7 +134,7 @@ def test_freeze_base_keeps_file_and_no_key_is_original(cli, workdir):
     src = (workdir / "model.safetensors").read_bytes()
     assert (workdir / "mine.prop" / C.BASE_WEIGHTS).read_bytes() == src
     cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y0.npy")
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
 
     with torch.no_grad():
         ref = (

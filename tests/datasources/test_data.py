@@ -7,10 +7,10 @@ import pytest
 import torch
 from torch import nn
 
-from prop_cli.adapters import LoadedModel
+from prop_adapters import LoadedModel
 from prop_cli.datasources import Dataset, load_data
-from prop_cli.datasources.fit import check_features, prepare, resolve_task, split
 from prop_cli.errors import PropError
+from prop_cli.fit import check_features, prepare, resolve_task, split
 
 load_npz = load_data  # the .npz source, through the registry
 

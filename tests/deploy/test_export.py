@@ -233,7 +233,7 @@ def test_cnn_bundle_with_image_inputs_exports(tmp_path):
     """A user module (conv features, linear head): rank-4 inputs, keyed layers in the head."""
     from safetensors.torch import save_file
 
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
     from tests.fixtures_arch import make_cnn
 
     torch.manual_seed(0)

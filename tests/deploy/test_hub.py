@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from prop_adapters import hub
 from prop_cli import constants as C
-from prop_cli.adapters import hub
 from prop_cli.bundle import update_manifest
 from prop_cli.deploy import publish
 from prop_cli.errors import PropError

@@ -31,7 +31,7 @@ def _peft_outputs(model: nn.Module, adapter, x: np.ndarray) -> np.ndarray:
 
 
 def test_an_mlps_adapter_in_peft_acts_as_prop_run_with_the_key(tmp_path, cli):
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
 
     rng = np.random.default_rng(0)
     write_user_data(tmp_path, 120, rng)

@@ -57,7 +57,7 @@ def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world):
 
 
 def test_only_unsealed_array_models_train_on_several_processes(tmp_path):
-    from prop_cli.adapters import load_checkpoint
+    from prop_adapters import load_checkpoint
     from prop_cli.datasources import load_data
     from prop_cli.train import User, personalize
 

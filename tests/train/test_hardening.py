@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from prop_cli.adapters import load_checkpoint
+from prop_adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.keyed_model import KeyEncoder
 from prop_cli.datasources import Dataset

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from prop_cli.adapters import activations
+from prop_adapters import activations
 from prop_cli.core.keyed_model import KeyedModel
 
 

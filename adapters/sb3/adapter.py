@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from prop_cli.adapters import activations
-from prop_cli.adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
+from prop_adapters import activations
+from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
 from prop_cli.constants import DEFAULT_LAYERS_ATTR
 from prop_cli.errors import PropError, brief
 

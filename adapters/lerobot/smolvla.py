@@ -32,7 +32,7 @@ import importlib
 import numpy as np
 import torch
 
-from prop_cli.adapters.base import PolicyProtocol
+from prop_adapters.base import PolicyProtocol
 from prop_cli.constants import TASK
 from prop_cli.errors import PropError
 

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import torch
 
-from prop_cli.adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
-from prop_cli.adapters.folder import CONFIG, WEIGHTS, read_config
-from prop_cli.adapters.weights import read_weights
+from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
+from prop_adapters.folder import CONFIG, WEIGHTS, read_config
+from prop_adapters.weights import read_weights
 from prop_cli.constants import LEROBOT_DIR, LEROBOT_TYPES, LEROBOT_VLM_DIR
 from prop_cli.errors import PropError
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from prop_cli.adapters.base import PolicyProtocol
+from prop_adapters.base import PolicyProtocol
 from prop_cli.errors import PropError
 
 ACTION, PAD = "action", "action_is_pad"

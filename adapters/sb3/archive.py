@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from prop_cli.adapters.weights import ZIP_ERRORS, load_state_dict, verify_zip
+from prop_adapters.weights import ZIP_ERRORS, load_state_dict, verify_zip
 from prop_cli.errors import PropError, brief
 
 SUPPORTED = (

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from prop_cli.adapters.base import PolicyProtocol
+from prop_adapters.base import PolicyProtocol
 
 from .policy import FALLBACK_DRAWS, LeRobotPolicy
 

@@ -2,7 +2,7 @@
 
 An adapter turns one checkpoint format into a ``torch.nn.Module`` whose state-dict names are the
 checkpoint's own. It is one file holding a subclass of :class:`Adapter`, plus one line in the
-registry (``prop_cli.adapters.ADAPTERS``); dispatch, option checks, help text and ``prop formats`` come
+registry (``prop_adapters.ADAPTERS``); dispatch, option checks, help text and ``prop formats`` come
 from the registry.
 """
 

@@ -12,11 +12,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from prop_cli.adapters.base import LoadedModel, PolicyProtocol
-from prop_cli.adapters.lerobot.flat import flatten_features
+from prop_adapters.base import LoadedModel, PolicyProtocol
+from prop_adapters.lerobot.flat import flatten_features
+from prop_cli.datasources.base import Dataset
 from prop_cli.errors import PropError
-
-from .base import Dataset
 
 # Targets this far outside a recorded action bound still count as inside (float32 round-off).
 _BOUND_TOL = 1e-5
@@ -137,7 +136,7 @@ def split(ds: Dataset, val_fraction: float, seed: int) -> tuple[Dataset, Dataset
 
 def flat_chunks(policy: PolicyProtocol, batch: dict[str, torch.Tensor], path: str) -> Dataset:
     """A policy's batch -> x (N, F) normalised features and y (N, chunk * action_dim) recorded chunks
-    (None without actions): the rows of the policy's flat view (``prop_cli.adapters.lerobot.flat``)."""
+    (None without actions): the rows of the policy's flat view (``prop_adapters.lerobot.flat``)."""
     x = flatten_features(policy, batch).numpy().astype(np.float32)
     y = batch["action"].flatten(1).numpy().astype(np.float32) if "action" in batch else None
     return Dataset(x=x, y=y, path=path, meta={"episode_index": batch["episode_index"].numpy()})

@@ -9,7 +9,7 @@ metrics work on one input tensor and one output tensor, so this view flattens bo
 - output: the deployed action chunk (ACT: eval mode, VAE latent 0; Diffusion: the horizon sampled
   from the policy's noise seed), flattened, in normalised units.
 
-The recorded chunks a user's data holds are flattened the same way by ``prop_cli.datasources.fit``.
+The recorded chunks a user's data holds are flattened the same way by ``prop_cli.fit``.
 Metrics on this view are the ones `prop personalize` reports for policies (docs/metrics.md:
 personalization, leakage, fidelity on whole chunks in normalised units), so audit and personalize
 figures compare.
@@ -22,7 +22,7 @@ import math
 import torch
 from torch import nn
 
-from prop_cli.adapters.base import PolicyProtocol
+from prop_adapters.base import PolicyProtocol
 
 
 class FlatPolicy(nn.Module):
