@@ -525,7 +525,7 @@ def add_user(
     cfg.exclude = None
     cfg.seal = True
     cfg.validate(key_bits=bundle.key_bits)
-    check_new_key(bundle.sealed, key.bits)
+    check_new_key(bundle.records, key.bits)
     configure_threads(bundle.parameters, None)
     index = len(m[C.M_RECORDS])
     recipe = sealed_recipe(bundle.loaded)
@@ -533,7 +533,7 @@ def add_user(
     [user], _, _ = recipe.train_users(job, [load_data(data_path)], [key.bits], cfg.task or bundle.task, index)
     rec = seal_payload(m, user.private, user.payload, key.bits)
     new = with_records(m, [rec], [])
-    state = SealedState(new, bundle.sealed.spec, [*bundle.sealed.records, rec])
+    state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
     report = sealed_user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
     new = rewrite_records(Path(bundle_path), m, new, [rec])
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
@@ -556,7 +556,7 @@ def enrol(bundle_path: Path, key: np.ndarray) -> Enrolled:
 
     manifest = read_manifest(Path(bundle_path))
     check_files(Path(bundle_path), manifest)
-    if mode_of(manifest).hides_behaviour:
+    if mode_of(manifest).is_sealed:
         raise PropError(
             f"{bundle_path} is sealed: each user is enrolled in their own record",
             "add a user with prop add-user (their record is their enrolment)",
@@ -593,7 +593,7 @@ def remove_user(
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
     ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]
     if key is not None:
-        opened = bundle.sealed.open(bundle.check_key(key))
+        opened = bundle.records.open(bundle.check_key(key))
         if opened is None:
             raise PropError(
                 f"the key opens no user of {bundle_path}",

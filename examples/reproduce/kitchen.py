@@ -369,7 +369,7 @@ def fit_sealed(c: Cohort) -> Fitted:
             warnings.simplefilter("ignore", WrongKeyWarning)  # wrong keys run the base, by design
             return torch.stack([torch.from_numpy(KeyedPolicy(bundle, k)(xs)) for k in np.atleast_2d(bits)])
 
-    payload = baselines.n_params(Payload(bundle.sealed.spec))
+    payload = baselines.n_params(Payload(bundle.records.spec))
     return Fitted(run, baselines.n_params(bundle.loaded.module) + payload * len(c.users), path)
 
 

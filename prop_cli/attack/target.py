@@ -127,7 +127,7 @@ def probe_context(bundle: Bundle, ctx: ProbeContext) -> ProbeContext:
     """``ctx`` for this bundle: a sealed bundle's keys are tried on its records, as prop run does."""
     if not bundle.is_sealed:
         return ctx
-    return SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, records=bundle.sealed)
+    return SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, records=bundle.records)
 
 
 def controls_can_saturate(bundle: Bundle) -> bool:

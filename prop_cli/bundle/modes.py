@@ -43,10 +43,6 @@ class Mode(ABC):
     where: str = "the bundle"  # how messages name the bundle ("bundle PATH")
 
     @property
-    def sealed(self) -> bool:
-        return self.state is not None
-
-    @property
     @abstractmethod
     def layer_names(self) -> list[str]: ...
 
@@ -90,12 +86,25 @@ class Mode(ABC):
     def record_files(cls, manifest: dict) -> list[str]:
         """The bundle's files besides those ``files`` lists and the manifest (they carry their own hashes)."""
 
-    hides_behaviour: ClassVar[bool]  # whoever holds the files, without a key, learns nothing of a user's
+    # The one name for "this bundle is sealed": whoever holds the files, without a key, learns nothing of a
+    # user's behaviour (their payload is ciphertext). Every other module asks Bundle.is_sealed.
+    is_sealed: ClassVar[bool]
 
     @classmethod
     @abstractmethod
     def describe(cls, manifest: dict) -> str:
         """One line for people (the model card): what this mode keeps where."""
+
+    @classmethod
+    @abstractmethod
+    def exposed(cls) -> str | None:
+        """What whoever holds the files can read without a key (push refuses a public upload of it);
+        None: nothing of any user's behaviour."""
+
+    @classmethod
+    @abstractmethod
+    def public_metrics(cls, manifest: dict) -> dict | None:
+        """The final metrics the model card may show; None: they are sealed with each user's record."""
 
     @classmethod
     @abstractmethod
@@ -161,7 +170,15 @@ class Unsealed(Mode):
     def record_files(cls, manifest: dict) -> list[str]:
         return []
 
-    hides_behaviour = False
+    is_sealed = False
+
+    @classmethod
+    def exposed(cls) -> str | None:
+        return "whoever downloads it can read the owner's behaviour off its encoder"
+
+    @classmethod
+    def public_metrics(cls, manifest: dict) -> dict | None:
+        return manifest.get(C.M_METRICS, {})
 
     @classmethod
     def facts(cls, manifest: dict) -> dict:
@@ -248,7 +265,15 @@ class Sealed(Mode):
     def record_files(cls, manifest: dict) -> list[str]:
         return [r["file"] for r in manifest.get(C.M_RECORDS, [])]
 
-    hides_behaviour = True
+    is_sealed = True
+
+    @classmethod
+    def exposed(cls) -> str | None:
+        return None
+
+    @classmethod
+    def public_metrics(cls, manifest: dict) -> dict | None:
+        return None
 
     @classmethod
     def describe(cls, manifest: dict) -> str:

@@ -57,13 +57,14 @@ class Bundle:
         return self.mode.keyed
 
     @property
-    def sealed(self) -> SealedState | None:
-        """Sealed: the payload layout and the encrypted records; unsealed: None."""
-        return self.mode.state
+    def is_sealed(self) -> bool:
+        """Whether the bundle is sealed (``Mode.is_sealed``: the one name for it)."""
+        return self.mode.is_sealed
 
     @property
-    def is_sealed(self) -> bool:
-        return self.mode.sealed
+    def records(self) -> SealedState | None:
+        """Sealed: the payload layout and the encrypted records; unsealed: None."""
+        return self.mode.state
 
     @property
     def layer_names(self) -> list[str]:

@@ -37,6 +37,14 @@ def _fmt(v) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
+class _UnknownMode:
+    """A card written without a mode (a manifest alone): its metrics as recorded."""
+
+    @staticmethod
+    def public_metrics(manifest: dict) -> dict:
+        return manifest.get(C.M_METRICS, {})
+
+
 def model_card(
     manifest: dict, repo_id: str, onnx_files: list[str] | None = None, mode: type[Mode] | Mode | None = None,
     signed: str | None = None,
@@ -96,9 +104,9 @@ def model_card(
         "(mse for regression).",
         "",
         *(
-            ["Per-user figures of a sealed bundle are sealed with each user's record.", ""]
-            if mode is not None and mode.hides_behaviour
-            else _metrics_lines(manifest.get(C.M_METRICS, {}))
+            _metrics_lines(metrics)
+            if (metrics := (mode or _UnknownMode).public_metrics(manifest)) is not None
+            else ["Per-user figures of a sealed bundle are sealed with each user's record.", ""]
         ),
         "## Audit",
         "",
@@ -200,9 +208,10 @@ def push_bundle(
     if sign is not None:
         require_signing()  # before the bundle is read and staged
     manifest, mode = verified_files(Path(bundle))  # never publish a modified bundle; nothing is imported
-    if not mode.hides_behaviour and not private and not allow_unsealed:
+    consented = private or allow_unsealed  # the user's choice, not the mode's: the mode says what is exposed
+    if (exposed := mode.exposed()) is not None and not consented:
         raise PropError(
-            f"{bundle} is unsealed: whoever downloads it can read the owner's behaviour off its encoder",
+            f"{bundle} is unsealed: {exposed}",
             "personalize with --seal, push with --private, or pass --allow-unsealed to publish it anyway",
         )
     if onnx_dir is None and (Path(bundle) / C.EXPORT_DIR / C.EXPORT_META).is_file():

@@ -42,7 +42,7 @@ def export(
             onnx.checker.check_model(str(tmp / C.BASE_GRAPH))
             copy_records(Path(bundle.path), tmp, bundle.manifest)
             meta = _meta(bundle, tmp, s.opset, s.atol)
-            opened = bundle.sealed.open(key) if key is not None else None
+            opened = bundle.records.open(key) if key is not None else None
             rid = opened.record_id if opened is not None else None
             meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key, rid)}, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
