@@ -33,7 +33,7 @@ from prop_cli.bundle.records import (
     with_records,
 )
 from prop_cli.bundle.runtime import run_policy
-from prop_cli.config import LOW_RANK_KINDS, AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
+from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
     KeySource,
     generate_key_file,
@@ -46,6 +46,7 @@ from prop_cli.core.keyed_model import key_codes
 from prop_cli.core.layers import describe_layer, keyable_layers, select_layers
 from prop_cli.core.passphrase import check_strength as check_passphrase
 from prop_cli.core.passphrase import strength
+from prop_cli.core.payload import payload_kind
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.datasources.npz import read_npy
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
@@ -514,7 +515,7 @@ def add_user(
     bundle.check_key(key.bits, "the new user's key")
     cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
-    rank = cfg.payload_rank if cfg.payload in LOW_RANK_KINDS else 0
+    rank = payload_kind(cfg.payload).rank(cfg.payload_rank)
     if (cfg.payload, rank) != (spec["kind"], spec["rank"]):
         raise PropError(
             f"--payload {cfg.payload} (rank {cfg.payload_rank}) differs from the bundle's {spec['kind']} "

@@ -13,8 +13,8 @@ from .constants import KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
-PAYLOAD_KINDS = ("lora", "delta", "full", "peft-lora")  # what a sealed bundle stores per user (core.payload)
-LOW_RANK_KINDS = ("lora", "peft-lora")  # payload kinds with a rank (--payload-rank)
+# What a sealed bundle stores per user: the names of core.payload.KINDS (one class each, which checks these).
+PAYLOAD_KINDS = ("lora", "delta", "full", "peft-lora")
 ENCODER_INITS = ("seed", "os")
 PRECISIONS = ("fp32", "bf16")  # --precision: bf16 = autocast mixed precision (prop_cli.train.loop)
 # `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.

@@ -1,6 +1,6 @@
 """A user's payload in a sealed bundle: what turns the public base into their behaviour.
 
-Kinds (``PAYLOAD_KINDS``), per keyed linear layer with weight W (out, in):
+Kinds (``KINDS``: one class each), per keyed linear layer with weight W (out, in):
 
 - ``delta``: a scale per input feature, W diag(delta): the paper's Eq. 5 with delta stored
   instead of produced by a key encoder.
@@ -27,15 +27,115 @@ import contextlib
 import copy
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import torch
 from torch import nn
 from torch.nn.utils import parametrize
 
-from prop_cli.config import LOW_RANK_KINDS, PAYLOAD_KINDS
+from prop_cli.config import PAYLOAD_KINDS
 from prop_cli.errors import PropError
 
 from .layers import kernel_fan_in, scale_inputs
+
+
+class PayloadKind:
+    """One kind of payload (as peft's LoRA variants): the tensors it keeps per keyed layer and how they
+    change that layer's weight and bias. Every kind starts at the base behaviour."""
+
+    name: ClassVar[str]
+    has_rank: ClassVar[bool] = False  # takes --payload-rank
+    changes_bias: ClassVar[bool] = False  # adds a bias delta (its layers' biases must be reachable)
+    peft_lora: ClassVar[bool] = False  # exactly a peft LoRA adapter (prop export --peft)
+
+    @classmethod
+    def rank(cls, requested: int) -> int:
+        """The rank a bundle records for ``--payload-rank requested``: 0 for kinds without one."""
+        return requested if cls.has_rank else 0
+
+    @classmethod
+    def shapes(cls, layer: dict, rank: int) -> dict[str, tuple[int, ...]]:
+        """Part name -> shape of the tensors this kind keeps for one keyed layer (``describe_layer``)."""
+        raise NotImplementedError
+
+    @classmethod
+    def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class Delta(PayloadKind):
+    """W diag(delta): the paper's Eq. 5 with delta stored instead of produced by a key encoder."""
+
+    name = "delta"
+
+    @classmethod
+    def shapes(cls, layer: dict, rank: int) -> dict[str, tuple[int, ...]]:
+        return {"delta": (int(layer["in_features"]),)}
+
+    @classmethod
+    def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
+        return w * scale_inputs(w, payload.tensor(layer, "delta"))
+
+
+class PeftLoRA(PayloadKind):
+    """W + B A, no delta: exactly peft's LoRA (lora_alpha = r)."""
+
+    name = "peft-lora"
+    has_rank = True
+    peft_lora = True
+
+    @classmethod
+    def shapes(cls, layer: dict, rank: int) -> dict[str, tuple[int, ...]]:
+        return {"lora_a": (rank, kernel_fan_in(layer)), "lora_b": (int(layer["out_features"]), rank)}
+
+    @classmethod
+    def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
+        update = payload.tensor(layer, "lora_b") @ payload.tensor(layer, "lora_a")
+        return w + (update if w.dim() == 2 else update.view_as(w))
+
+
+class LoRA(PayloadKind):
+    """(W + B A) diag(delta): Eq. 5 plus a low-rank update (full-rank with delta: no peft LoRA)."""
+
+    name = "lora"
+    has_rank = True
+
+    @classmethod
+    def shapes(cls, layer: dict, rank: int) -> dict[str, tuple[int, ...]]:
+        return {**Delta.shapes(layer, rank), **PeftLoRA.shapes(layer, rank)}
+
+    @classmethod
+    def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
+        return Delta.weight(payload, layer, PeftLoRA.weight(payload, layer, w))
+
+
+class Full(PayloadKind):
+    """W + D and b + d: every weight of the keyed layers."""
+
+    name = "full"
+    changes_bias = True
+
+    @classmethod
+    def shapes(cls, layer: dict, rank: int) -> dict[str, tuple[int, ...]]:
+        i, o = int(layer["in_features"]), int(layer["out_features"])
+        kernel = tuple(int(k) for k in layer.get("kernel", ()))
+        weight = (o, i // int(layer.get("groups", 1)), *kernel) if kernel else (o, i)
+        return {"weight_delta": weight, "bias_delta": (o,)}
+
+    @classmethod
+    def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
+        return w + payload.tensor(layer, "weight_delta")
+
+
+# The kinds by the name a manifest records; the CLI's --payload choices (config.PAYLOAD_KINDS) are these.
+KINDS: dict[str, type[PayloadKind]] = {k.name: k for k in (LoRA, Delta, Full, PeftLoRA)}
+assert tuple(KINDS) == PAYLOAD_KINDS, "config.PAYLOAD_KINDS names the kinds defined here"
+
+
+def payload_kind(name: str) -> type[PayloadKind]:
+    if name not in KINDS:
+        raise PropError(f"--payload {name!r} is unknown", f"use one of {', '.join(KINDS)}")
+    return KINDS[name]
 
 
 @dataclass
@@ -44,12 +144,14 @@ class PayloadSpec:
     # [{"name": str, "in_features": int, "out_features": int}] in module order; a convolution's record
     # adds "kernel" (its sizes) and "groups" (core.layers.describe_layer)
     layers: list[dict]
-    rank: int = 0  # lora only
+    rank: int = 0  # kinds with a rank only
+
+    @property
+    def variant(self) -> type[PayloadKind]:
+        return payload_kind(self.kind)
 
     def validate(self) -> PayloadSpec:
-        if self.kind not in PAYLOAD_KINDS:
-            raise PropError(f"--payload {self.kind!r} is unknown", f"use one of {', '.join(PAYLOAD_KINDS)}")
-        if self.kind in LOW_RANK_KINDS and self.rank < 1:
+        if self.variant.has_rank and self.rank < 1:
             raise PropError(f"--payload-rank {self.rank} is invalid", "--payload-rank must be at least 1")
         if not self.layers:
             raise PropError("the payload has no keyed layers", "choose layers with --layers")
@@ -64,20 +166,11 @@ class PayloadSpec:
 
 
 def _tensor_shapes(spec: PayloadSpec) -> dict[str, tuple[int, ...]]:
-    shapes: dict[str, tuple[int, ...]] = {}
-    for layer in spec.layers:
-        n, i, o = layer["name"], int(layer["in_features"]), int(layer["out_features"])
-        kernel = tuple(int(k) for k in layer.get("kernel", ()))
-        if spec.kind == "full":
-            shapes[f"{n}.weight_delta"] = (o, i // int(layer.get("groups", 1)), *kernel) if kernel else (o, i)
-            shapes[f"{n}.bias_delta"] = (o,)
-            continue
-        if spec.kind != "peft-lora":
-            shapes[f"{n}.delta"] = (i,)
-        if spec.kind in LOW_RANK_KINDS:
-            shapes[f"{n}.lora_a"] = (spec.rank, kernel_fan_in(layer))
-            shapes[f"{n}.lora_b"] = (o, spec.rank)
-    return shapes
+    return {
+        f"{layer['name']}.{part}": shape
+        for layer in spec.layers
+        for part, shape in spec.variant.shapes(layer, spec.rank).items()
+    }
 
 
 class Payload(nn.Module):
@@ -104,14 +197,7 @@ class Payload(nn.Module):
         return self.params[self._keys[f"{layer}.{part}"]]
 
     def weight(self, layer: str, w: torch.Tensor) -> torch.Tensor:
-        if self.spec.kind == "full":
-            return w + self.tensor(layer, "weight_delta")
-        if self.spec.kind in LOW_RANK_KINDS:
-            update = self.tensor(layer, "lora_b") @ self.tensor(layer, "lora_a")
-            w = w + (update if w.dim() == 2 else update.view_as(w))
-        if self.spec.kind == "peft-lora":
-            return w
-        return w * scale_inputs(w, self.tensor(layer, "delta"))
+        return self.spec.variant.weight(self, layer, w)
 
     def tensors(self) -> dict[str, torch.Tensor]:
         return {name: self.params[k].detach().cpu() for name, k in self._keys.items()}
@@ -141,7 +227,7 @@ class Payload(nn.Module):
                 lin = mods[layer["name"]]
                 done.append((lin, list(lin._parameters)))
                 parametrize.register_parametrization(lin, "weight", _Weight(self, layer["name"]))
-                if self.spec.kind == "full":
+                if self.spec.variant.changes_bias:
                     parametrize.register_parametrization(lin, "bias", _Bias(self, layer["name"]))
             yield module
         finally:
@@ -159,7 +245,7 @@ class Payload(nn.Module):
         for layer in self.spec.layers:
             lin = mods[layer["name"]]
             lin.weight.copy_(self.weight(layer["name"], lin.weight).to(lin.weight.dtype))  # or a conv's
-            if self.spec.kind == "full" and lin.bias is not None:
+            if self.spec.variant.changes_bias and lin.bias is not None:
                 lin.bias.add_(self.tensor(layer["name"], "bias_delta").to(lin.bias.dtype))
         return folded
 

@@ -86,7 +86,7 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
         raise PropError(
             f"--peft: the key opens no record of {bundle.path}", "pass the key this bundle was sealed for"
         )
-    if payload.spec.kind != "peft-lora":
+    if not payload.spec.variant.peft_lora:
         raise PropError(
             f"--peft: {bundle.path} holds {payload.spec.kind} payloads, which no peft LoRA adapter can hold",
             "personalize with --seal --payload peft-lora",

@@ -21,12 +21,12 @@ from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.bundle import write_sealed
 from prop_cli.bundle.records import SealedState
-from prop_cli.config import LOW_RANK_KINDS, PersonalizeConfig
+from prop_cli.config import PersonalizeConfig
 from prop_cli.core import metrics
 from prop_cli.core.key_files import kdf_record, new_salt
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.layers import describe_layer, select_layers
-from prop_cli.core.payload import PayloadSpec
+from prop_cli.core.payload import PayloadSpec, payload_kind
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
@@ -38,8 +38,7 @@ from .report import eval_rng, outputs_report
 def payload_spec(module: nn.Module, cfg: PersonalizeConfig) -> PayloadSpec:
     mods = dict(module.named_modules())
     layers = [describe_layer(n, mods[n]) for n in select_layers(module, cfg.layers, cfg.exclude)]
-    rank = cfg.payload_rank if cfg.payload in LOW_RANK_KINDS else 0
-    return PayloadSpec(cfg.payload, layers, rank).validate()
+    return PayloadSpec(cfg.payload, layers, payload_kind(cfg.payload).rank(cfg.payload_rank)).validate()
 
 
 def check_distinct(keys: list[np.ndarray]) -> None:

@@ -114,8 +114,8 @@ class SealedOnnxPolicy:
             from onnx import numpy_helper
 
             missing = [x["layer"] for x in self.meta["layers"] if not x["weight"]]
-            full = self.opened.payload.spec.kind == "full"
-            missing += [x["layer"] for x in self.meta["layers"] if full and x["weight"] and not x["bias"]]
+            bias = self.opened.payload.spec.variant.changes_bias
+            missing += [x["layer"] for x in self.meta["layers"] if bias and x["weight"] and not x["bias"]]
             if missing:
                 raise PropError(
                     f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
@@ -126,7 +126,7 @@ class SealedOnnxPolicy:
                 for x in self.meta["layers"]:
                     w = torch.from_numpy(numpy_helper.to_array(inits[x["weight"]]).copy())
                     self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
-                    if full:
+                    if bias:
                         b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
                         self._override(
                             so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")

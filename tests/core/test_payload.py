@@ -1,0 +1,52 @@
+"""Payload kinds are classes (core.payload.KINDS): one per name the manifest records, the rank rule once."""
+
+import pytest
+import torch
+
+from prop_cli.config import PAYLOAD_KINDS, PersonalizeConfig
+from prop_cli.core.payload import KINDS, Payload, PayloadSpec, payload_kind
+from prop_cli.errors import PropError
+
+LAYER = {"name": "fc", "in_features": 3, "out_features": 2}
+
+
+def test_every_configurable_kind_is_a_class():
+    assert tuple(KINDS) == PAYLOAD_KINDS
+    assert all(KINDS[name].name == name for name in KINDS)
+
+
+@pytest.mark.parametrize("name", PAYLOAD_KINDS)
+def test_the_rank_rule(name):
+    kind = payload_kind(name)
+    assert kind.rank(4) == (4 if name in ("lora", "peft-lora") else 0)
+
+
+def test_an_unknown_kind_is_one_line():
+    with pytest.raises(PropError, match="--payload 'qlora' is unknown"):
+        payload_kind("qlora")
+    with pytest.raises(PropError, match="--payload"):
+        PersonalizeConfig(payload="qlora").validate()
+
+
+@pytest.mark.parametrize("name", PAYLOAD_KINDS)
+def test_each_kind_starts_at_the_base(name):
+    spec = PayloadSpec(name, [LAYER], payload_kind(name).rank(2)).validate()
+    p = Payload(spec, torch.Generator().manual_seed(0))
+    w = torch.randn(2, 3)
+    assert torch.equal(p.weight("fc", w), w)
+
+
+def test_kinds_differ_where_they_should():
+    w = torch.randn(2, 3)
+    lora = Payload(PayloadSpec("lora", [LAYER], 2))
+    peft = Payload(PayloadSpec("peft-lora", [LAYER], 2))
+    with torch.no_grad():
+        for p in (lora, peft):
+            p.tensor("fc", "lora_b").fill_(0.5)
+        lora.tensor("fc", "delta").fill_(2.0)
+        lora.tensor("fc", "lora_a").copy_(peft.tensor("fc", "lora_a"))
+    update = 0.5 * torch.ones(2, 2) @ peft.tensor("fc", "lora_a")
+    assert torch.allclose(peft.weight("fc", w), w + update)
+    assert torch.allclose(lora.weight("fc", w), (w + update) * 2.0)
+    assert KINDS["full"].changes_bias and not KINDS["lora"].changes_bias
+    assert KINDS["peft-lora"].peft_lora and not KINDS["lora"].peft_lora
