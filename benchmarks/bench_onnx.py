@@ -4,9 +4,9 @@ Builds the IL example, personalizes it with the default settings (~10-20 s), exp
 then times one control step (batch 1) for:
 
 - onnxruntime: base.onnx; the split form (delta once from encoder.onnx, then policy.onnx per step);
-  base.onnx with delta folded into the keyed weights in memory (``OnnxPolicy(fold=True)``);
+  base.onnx with delta folded into the keyed weights in memory (``OnnxRunner(fold=True)``);
   keyed.onnx (encoder inside the graph, recomputed every step). All but keyed.onnx through
-  ``OnnxPolicy`` (IOBinding, delta bound once).
+  ``OnnxRunner`` (IOBinding, delta bound once).
 - torch: the base module; the folded module (delta folded into a copy of the weights, in memory).
 
 Ratios are keyed / base measured in the same run, timings interleaved (round-robin over repeats)
@@ -33,7 +33,7 @@ from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import KEYED_GRAPH
 from prop_cli.core.keyed_model import key_codes
-from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
+from prop_cli.deploy.onnx import OnnxRunner, export_onnx
 from prop_cli.deploy.onnx.common import session
 
 
@@ -71,9 +71,9 @@ def main() -> None:
 
         keyed_sess = session(res.out / KEYED_GRAPH, threads=1)
         code_np = code.numpy()
-        ort_base = OnnxPolicy(res.out, None, threads=1)  # base.onnx
-        split = OnnxPolicy(res.out, code=code_np, threads=1, fold=False)  # delta computed once; policy.onnx
-        folded_ort = OnnxPolicy(res.out, code=code_np, threads=1, fold=True)  # W diag(delta) in memory
+        ort_base = OnnxRunner(res.out, None, threads=1)  # base.onnx
+        split = OnnxRunner(res.out, code=code_np, threads=1, fold=False)  # delta computed once; policy.onnx
+        folded_ort = OnnxRunner(res.out, code=code_np, threads=1, fold=True)  # W diag(delta) in memory
         module = bundle.keyed.module
         folded = bundle.keyed.fold(code)
 

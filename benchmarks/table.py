@@ -182,16 +182,16 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
     from prop_cli.bundle import load_bundle
     from prop_cli.core.keyed_model import key_codes
-    from prop_cli.deploy.onnx import OnnxPolicy, export_onnx
+    from prop_cli.deploy.onnx import OnnxRunner, export_onnx
 
     bundle = load_bundle(bundle_path)
     res = export_onnx(bundle, key=key)
     code = key_codes(key, bundle.key_encoding)
     module, folded = bundle.keyed.module, bundle.keyed.fold(code)
     ort = {
-        "base": OnnxPolicy(res.out, None, threads=1),
-        "split": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=False),
-        "folded": OnnxPolicy(res.out, code=code.numpy(), threads=1, fold=True),
+        "base": OnnxRunner(res.out, None, threads=1),
+        "split": OnnxRunner(res.out, code=code.numpy(), threads=1, fold=False),
+        "folded": OnnxRunner(res.out, code=code.numpy(), threads=1, fold=True),
     }
     rows = []
     for batch in (1, 256):

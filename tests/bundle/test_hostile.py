@@ -228,7 +228,7 @@ def test_a_bundle_replaced_by_another_users_runs_its_base(cli, d):
 def test_onnx_graph_swap_is_refused_with_the_key(cli, d, mode):
     """base.onnx replaced by the attacker's, export.json's hashes recomputed: refused; export.json's
     key bindings deleted too: refused where the bundle is at hand, base.onnx with a warning alone."""
-    from prop_cli.deploy.onnx import OnnxPolicy, SealedOnnxPolicy
+    from prop_cli.deploy.onnx import OnnxRunner, SealedOnnxRunner
 
     bundle, folder = d / mode, d / mode / C.EXPORT_DIR
     assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
@@ -239,7 +239,7 @@ def test_onnx_graph_swap_is_refused_with_the_key(cli, d, mode):
     (folder / C.EXPORT_META).write_text(dump_json(stamp(meta, C.EXPORT_DIGEST)))
     code, y, err = _run(cli, bundle, d, "--onnx", "--key-file", d / "k.bin")
     _one_line_refusal(code, y, err, "ONNX export", "changed since this key was enrolled", "base.onnx")
-    policy = SealedOnnxPolicy if mode == "sealed.prop" else OnnxPolicy
+    policy = SealedOnnxRunner if mode == "sealed.prop" else OnnxRunner
     with pytest.raises(PropError, match="changed since this key was enrolled"):
         policy(folder, read_key_file(d / "k.bin"))
     meta[C.M_ENROLMENTS] = []

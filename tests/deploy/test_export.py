@@ -150,10 +150,10 @@ def test_onnx_policy_split_and_folded_paths_agree_with_torch(exported):
     x = np.random.default_rng(3).standard_normal((6, 4)).astype(np.float32)
     want = run_bundle(b, x, bits)
     folder = exported / C.EXPORT_DIR
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code, fold=False)(x), want, atol=1e-5)
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code, fold=True)(x), want, atol=1e-5)
-    np.testing.assert_allclose(rt.OnnxPolicy(folder, code=code)(x), want, atol=1e-5)  # the default: folded
-    np.testing.assert_allclose(rt.OnnxPolicy(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxRunner(folder, code=code, fold=False)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxRunner(folder, code=code, fold=True)(x), want, atol=1e-5)
+    np.testing.assert_allclose(rt.OnnxRunner(folder, code=code)(x), want, atol=1e-5)  # the default: folded
+    np.testing.assert_allclose(rt.OnnxRunner(folder)(x[:1]), run_bundle(b, x[:1], None), atol=1e-5)
 
 
 def test_existing_output_needs_force(cli, exported):
@@ -265,8 +265,8 @@ def test_one_onnx_policy_serves_changing_batch_sizes(exported):
     code = key_codes(bits, b.key_encoding).numpy()
     x = np.random.default_rng(4).standard_normal((256, 4)).astype(np.float32)
     folder = exported / C.EXPORT_DIR
-    split, folded = rt.OnnxPolicy(folder, code=code, fold=False), rt.OnnxPolicy(folder, bits)
-    policies = (split, folded, rt.OnnxPolicy(folder))
+    split, folded = rt.OnnxRunner(folder, code=code, fold=False), rt.OnnxRunner(folder, bits)
+    policies = (split, folded, rt.OnnxRunner(folder))
     for policy, key in zip(policies, (bits, bits, None)):
         for n in (1, 256, 7, 1, 256):
             got = policy(x[:n])

@@ -20,14 +20,14 @@ from prop_cli.files import check_output
 
 from . import sealed, unsealed
 from .common import ExportResult, bound, read_export, require_onnx, session, verify_inputs
-from .sealed import SealedOnnxPolicy, drop_record
-from .unsealed import DeltaPolicy, OnnxPolicy, delta_names
+from .sealed import SealedOnnxRunner, drop_record
+from .unsealed import DeltaInputView, OnnxRunner, delta_names
 
 __all__ = [
-    "DeltaPolicy",
+    "DeltaInputView",
     "ExportResult",
-    "OnnxPolicy",
-    "SealedOnnxPolicy",
+    "OnnxRunner",
+    "SealedOnnxRunner",
     "delta_names",
     "drop_record",
     "export_onnx",

@@ -1,7 +1,7 @@
 """ONNX export of a sealed bundle, and running it.
 
 A sealed bundle exports as ``base.onnx`` (the original) plus its encrypted records: the runtime
-(``SealedOnnxPolicy``) opens the user's record with their key and folds the payload into the keyed
+(``SealedOnnxRunner``) opens the user's record with their key and folds the payload into the keyed
 layers' initializers in this process's memory. No graph holds a payload in the clear.
 """
 
@@ -88,12 +88,12 @@ def verify(
         warnings.simplefilter("ignore")  # the random key opens nothing, by design
         for key_name, bits in keys:
             ref = KeyedPolicy(bundle, bits)(x)
-            got = SealedOnnxPolicy(folder, bits, threads=1)(x)
+            got = SealedOnnxRunner(folder, bits, threads=1)(x)
             rows.append(common.diff_row(C.BASE_GRAPH, key_name, got, ref, atol))
     return rows
 
 
-class SealedOnnxPolicy:
+class SealedOnnxRunner:
     """A sealed bundle's export run with onnxruntime: ``base.onnx``, with the user's payload folded
     into the keyed layers' initializers in this process's memory when ``key_bits`` is bound to the
     export (``prop export --onnx --key-file``) and opens its record. A key the export does not bind
@@ -167,4 +167,4 @@ def drop_record(folder: Path, record_id: str) -> None:
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
-    return SealedOnnxPolicy(folder, None if key is None else bundle.check_key(key), threads=threads)(x)
+    return SealedOnnxRunner(folder, None if key is None else bundle.check_key(key), threads=threads)(x)

@@ -57,7 +57,7 @@ def delta_names(n_layers: int) -> list[str]:
     return [f"delta_{i + 1}" for i in range(n_layers)]
 
 
-class DeltaPolicy(nn.Module):
+class DeltaInputView(nn.Module):
     """Export-only view of the keyed model: ``(x, delta_1..delta_L) -> y``.
 
     Pre-hooks on the keyed layers multiply the layer input by a delta given as a graph input,
@@ -95,7 +95,7 @@ class DeltaPolicy(nn.Module):
         finally:
             self._deltas = None
 
-    def __enter__(self) -> DeltaPolicy:
+    def __enter__(self) -> DeltaInputView:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -106,7 +106,7 @@ class DeltaPolicy(nn.Module):
 class _KeyedGraph(nn.Module):
     """(x, code) -> y: the encoder feeding the delta policy."""
 
-    def __init__(self, encoder: nn.Module, policy: DeltaPolicy) -> None:
+    def __init__(self, encoder: nn.Module, policy: DeltaInputView) -> None:
         super().__init__()
         self.encoder, self.policy = encoder, policy
 
@@ -129,7 +129,7 @@ def _export_all(km: KeyedModel, folder: Path, in_shape: tuple, names: list[str],
     code0 = torch.ones(1, km.encoder.code_bits)
     ones = tuple(torch.ones(1, f) for f in km.encoder.features)
     batch = {"x": {0: "batch"}, "y": {0: "batch"}}
-    with DeltaPolicy(km.module, km.layer_names) as policy:
+    with DeltaInputView(km.module, km.layer_names) as policy:
         export_graph(km.module, (x0,), folder / C.BASE_GRAPH, ["x"], ["y"], batch, opset)
         export_graph(policy, (x0, *ones), folder / C.POLICY_GRAPH, ["x", *names], ["y"], batch, opset)
         graph = _KeyedGraph(km.encoder, policy)
@@ -229,7 +229,7 @@ def _export_meta(bundle: Bundle, folder: Path, names: list[str], opset: int, ato
     }
 
 
-class OnnxPolicy:
+class OnnxRunner:
     """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
 
     ``key``: the key bits. It runs only if export.json binds it to these graphs (``prop export --onnx
@@ -315,4 +315,4 @@ class OnnxPolicy:
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
-    return OnnxPolicy(folder, key, threads=threads)(x)
+    return OnnxRunner(folder, key, threads=threads)(x)
