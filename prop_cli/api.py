@@ -15,7 +15,7 @@ import numpy as np
 
 import prop_adapters as adapters
 from prop_adapters import CheckpointOptions
-from prop_adapters.hub import public_name, resolve_checkpoint
+from prop_adapters.hub import resolve_checkpoint
 from prop_cli import constants as C
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
@@ -23,21 +23,20 @@ from prop_cli.attack.report import check_plot
 from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
-from prop_cli.bundle import Bundle, KeyedPolicy, load_bundle, read_manifest, run_bundle
-from prop_cli.bundle.read import rebuild_original
+from prop_cli.bundle import KeyedPolicy, load_bundle, read_manifest, run_bundle
+from prop_cli.bundle.inputs import load_inputs, require_array_model, run_array, seed_noise
+from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
-    SealedState,
     check_new_key,
     rewrite_records,
-    seal_payload,
     with_records,
 )
 from prop_cli.bundle.runtime import run_policy
+from prop_cli.bundle.write import common_fields
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
     KeySource,
     generate_key_file,
-    kdf_record,
     key_for_bundle,
     read_key_file,
     user_keys,
@@ -46,17 +45,15 @@ from prop_cli.core.keyed_model import key_codes
 from prop_cli.core.layers import describe_layer, keyable_layers, select_layers
 from prop_cli.core.passphrase import check_strength as check_passphrase
 from prop_cli.core.passphrase import strength
-from prop_cli.core.payload import payload_kind
 from prop_cli.datasources import SOURCES, load_data
-from prop_cli.datasources.npz import read_npy
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
 from prop_cli.files import check_not_input, check_output, write_file
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
-from prop_cli.train import Job, User, personalize, sealed_recipe
+from prop_cli.train import User, personalize
+from prop_cli.train.added_user import added_user_config, train_added_user
 from prop_cli.train.distributed import ranks_from_env
-from prop_cli.train.sealed import user_report as sealed_user_report
 
 __all__ = [
     "AuditSettings",
@@ -199,17 +196,7 @@ def personalize_checkpoint(
     try:
         if not ranks.is_main:  # the first process writes the bundle; the others trained the same model
             return PersonalizeResult(out, trained.task, [], [], {}, processes=ranks.world, written=False)
-        kinds = sorted({k.kind for _, k in users})
-        common = {
-            C.M_MODEL: loaded.spec,
-            C.M_KEY: {
-                "bits": bits.pop(),
-                "source": kinds[0] if len(kinds) == 1 else "mixed",
-                "kdf": kdf_record(salt),
-            },
-            C.M_CONFIG: cfg.to_dict(),
-            C.M_IO: {"checkpoint": public_name(checkpoint)} if public_name(checkpoint) else {},
-        }
+        common = common_fields(loaded, [k for _, k in users], salt, cfg.to_dict(), checkpoint)
         written = trained.write(out, common, force=force)
         m = written.manifest
         return PersonalizeResult(
@@ -218,72 +205,6 @@ def personalize_checkpoint(
         )  # fmt: skip
     finally:
         ranks.finish()
-
-
-def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
-    """Inputs for `prop run`: a .npy array, or the ``x`` of a data file; checked against the bundle."""
-    path = Path(path)
-    if path.suffix == ".npy":
-        if not path.is_file():
-            raise PropError(f"{flag} {path} does not exist", "give a .npy or .npz file")
-        fix = "save inputs with numpy.save"
-        x = read_npy(lambda: np.load(path, allow_pickle=False), f"{flag} {path}", fix)
-        if not isinstance(x, np.ndarray) or x.ndim == 0:
-            raise PropError(f"{flag} {path} holds no array of samples", fix)
-        if x.dtype.kind not in "fiu" or not np.isfinite(x).all():
-            raise PropError(f"{flag} {path} must hold finite numbers", "check the array")
-        x = x.astype(np.float32)
-    else:
-        x = load_data(path, require_y=False, min_samples=1, flag=flag).x
-    want = tuple(bundle.manifest[C.M_IO]["input_shape"])
-    if x.shape[1:] != want:
-        if x.shape == want:
-            x = x[None]  # a single sample
-        elif not _other_size(x.shape[1:], want):
-            raise PropError(
-                f"{flag} {path}: samples have shape {x.shape[1:]}, the bundle expects {want}",
-                "give an array of shape (N, " + ", ".join(map(str, want)) + ")",
-            )
-    return x
-
-
-def _other_size(got: tuple, want: tuple) -> bool:
-    """Images of another size than the bundle was personalized on (same channels): a fully
-    convolutional model takes them. Whether this one does shows when it runs (``_run_array``)."""
-    return len(want) >= 2 and len(got) == len(want) and got[0] == want[0]
-
-
-def _run_array(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str) -> np.ndarray:
-    """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
-    try:
-        return run_bundle(bundle, x, key)
-    except RuntimeError as e:
-        want = tuple(bundle.manifest[C.M_IO]["input_shape"])
-        if x.shape[1:] == want:
-            raise
-        raise PropError(
-            f"{flag}: the model does not run on samples of shape {x.shape[1:]} (personalized on {want}: "
-            f"{str(e).splitlines()[0][:120]})",
-            "give samples of shape " + str(want),
-        ) from None
-
-
-def _seed_noise(loaded: adapters.LoadedModel, seed: int) -> None:
-    """A sampling policy draws its chunks' noise from ``seed`` (others have no noise)."""
-    if loaded.policy is not None:
-        loaded.policy.noise_seed = int(seed)
-
-
-def _array_model(bundle: Bundle, command: str) -> Bundle:
-    """Refuse, in one line, policies with named observation features where a command has no policy
-    path yet (ONNX)."""
-    if bundle.loaded.policy is not None:
-        raise PropError(
-            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
-            "with named observation features",
-            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
-        )
-    return bundle
 
 
 @dataclass
@@ -316,7 +237,7 @@ def run_file(
     check_output(output, force, what="output", flag="--output")
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
-    _seed_noise(bundle.loaded, noise_seed)
+    seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     use_onnx = onnx or onnx_dir is not None
@@ -330,7 +251,7 @@ def run_file(
 
         y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads)
     else:
-        y = _run_array(bundle, load_inputs(input_path, bundle), key, "--input")
+        y = run_array(bundle, load_inputs(input_path, bundle), key, "--input")
 
     def save(tmp: Path) -> None:
         with open(tmp, "wb") as f:
@@ -360,7 +281,7 @@ def audit_bundle(
     check_threads(threads)
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
     configure_threads(bundle.parameters, threads)
-    _seed_noise(bundle.loaded, settings.noise_seed)
+    seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
     bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
@@ -434,7 +355,7 @@ def export_bundle(
     check_threads(threads)
     target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
-    bundle = _array_model(load_bundle(bundle_path, trust_remote_code=trust_remote_code), "prop export")
+    bundle = require_array_model(load_bundle(bundle_path, trust_remote_code=trust_remote_code), "prop export")
     require_onnx()
     configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -466,7 +387,7 @@ def eval_bundle(
     ref = rebuild_original(bundle, original, trust_remote_code) if original else None
     for loaded in (bundle.loaded, ref):
         if loaded is not None:
-            _seed_noise(loaded, settings.noise_seed)
+            seed_noise(loaded, settings.noise_seed)
             if loaded.policy is not None:
                 loaded.policy.instruction = settings.instruction
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
@@ -474,17 +395,6 @@ def eval_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
         normalizer=normalizer, video=video,
     )  # fmt: skip
-
-
-def _sealed_bundle(bundle_path: Path, command: str, trust_remote_code: bool = False) -> Bundle:
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
-    if not bundle.is_sealed:
-        raise PropError(
-            f"{command} works on sealed bundles; {bundle_path} is unsealed (its users share one encoder and "
-            "base, trained together)",
-            "personalize again with every user's data, or with --seal to make users independent",
-        )
-    return bundle
 
 
 @dataclass
@@ -510,33 +420,13 @@ def add_user(
     Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
     payload kind, rank and layers must stay the bundle's (every record is enrolled in them). The
     manifest is written once, with the new record (no figure of the user goes in the clear)."""
-    bundle = _sealed_bundle(bundle_path, "add-user", trust_remote_code)
-    m = bundle.manifest
+    bundle = load_sealed(bundle_path, "add-user", trust_remote_code)
     bundle.check_key(key.bits, "the new user's key")
-    cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
-    spec = m[C.M_PAYLOAD]
-    rank = payload_kind(cfg.payload).rank(cfg.payload_rank)
-    if (cfg.payload, rank) != (spec["kind"], spec["rank"]):
-        raise PropError(
-            f"--payload {cfg.payload} (rank {cfg.payload_rank}) differs from the bundle's {spec['kind']} "
-            f"(rank {spec['rank']})",
-            "drop --payload/--payload-rank: every user of a bundle has the same payload layout",
-        )
-    cfg.layers = [x["name"] for x in spec["layers"]]
-    cfg.exclude = None
-    cfg.seal = True
-    cfg.validate(key_bits=bundle.key_bits)
+    cfg = added_user_config(bundle, cfg)
     check_new_key(bundle.records, key.bits)
     configure_threads(bundle.parameters, None)
-    index = len(m[C.M_RECORDS])
-    recipe = sealed_recipe(bundle.loaded)
-    job = Job(bundle.loaded, cfg, device, progress)
-    [user], _, _ = recipe.train_users(job, [load_data(data_path)], [key.bits], cfg.task or bundle.task, index)
-    rec = seal_payload(m, user.private, user.payload, key.bits)
-    new = with_records(m, [rec], [])
-    state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
-    report = sealed_user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
-    new = rewrite_records(Path(bundle_path), m, new, [rec])
+    rec, new, report = train_added_user(bundle, load_data(data_path), key.bits, cfg, device, progress)
+    new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
 
 
@@ -589,7 +479,7 @@ def remove_user(
     removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's maintainer
     when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
     add or change one without its key."""
-    bundle = _sealed_bundle(bundle_path, "remove-user", trust_remote_code)
+    bundle = load_sealed(bundle_path, "remove-user", trust_remote_code)
     if (key is None) == (record is None):
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
     ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]

@@ -96,6 +96,17 @@ class Mode(ABC):
         """One line for people (the model card): what this mode keeps where."""
 
     @classmethod
+    def require_independent_users(cls, command: str, path: Path) -> None:
+        """Commands that add or remove one user alone (add-user, remove-user) need users that do not
+        share weights: a sealed bundle's records. Unsealed users share one encoder and base."""
+        if not cls.is_sealed:
+            raise PropError(
+                f"{command} works on sealed bundles; {path} is unsealed (its users share one encoder and "
+                "base, trained together)",
+                "personalize again with every user's data, or with --seal to make users independent",
+            )
+
+    @classmethod
     @abstractmethod
     def exposed(cls) -> str | None:
         """What whoever holds the files can read without a key (push refuses a public upload of it);

@@ -141,3 +141,10 @@ def rebuild_original(bundle: Bundle, path: str, trust_remote_code: bool = False)
             f"--original {path} does not fit the bundle's model ({type(e).__name__})",
             "pass the checkpoint the bundle was personalized from",
         ) from None
+
+
+def load_sealed(bundle_path: Path, command: str, trust_remote_code: bool = False) -> Bundle:
+    """A sealed bundle for a command that only sealed bundles take (add-user, remove-user)."""
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle.mode.require_independent_users(command, bundle_path)
+    return bundle

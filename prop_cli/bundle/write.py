@@ -21,6 +21,7 @@ from prop_adapters import LoadedModel
 from prop_adapters.hub import public_name
 from prop_cli import __version__
 from prop_cli import constants as C
+from prop_cli.core.key_files import KeySource, kdf_record
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
@@ -182,3 +183,23 @@ def describe_layers(keyed: KeyedModel) -> list[dict]:
         if keyed.batch_axis.get(layer["name"], 0):
             layer[C.M_BATCH_AXIS] = keyed.batch_axis[layer["name"]]
     return out
+
+
+def common_fields(
+    loaded: LoadedModel, keys: list[KeySource], salt: bytes | None, config: dict, checkpoint: str
+) -> dict:
+    """The manifest fields every mode writes alike: the model spec, the key (its size, where it came from,
+    the passphrase KDF; never the key or its hash), the training settings and the checkpoint's public
+    name (a hub path or none: a local path stays private)."""
+    kinds = sorted({k.kind for k in keys})
+    name = public_name(checkpoint)
+    return {
+        C.M_MODEL: loaded.spec,
+        C.M_KEY: {
+            "bits": len(keys[0].bits),
+            "source": kinds[0] if len(kinds) == 1 else "mixed",
+            "kdf": kdf_record(salt),
+        },
+        C.M_CONFIG: config,
+        C.M_IO: {"checkpoint": name} if name else {},
+    }
