@@ -20,7 +20,9 @@ SETTINGS = {
     "instruction": "A language-conditioned policy's instruction (LeRobot SmolVLA): your data's task text.",
 }
 Env = Annotated[str, opt("--env", "gymnasium id; package:Id imports the package first "
-                                  "(panda_gym:PandaReach-v3).")]  # fmt: skip
+                                  "(panda_gym:PandaReach-v3); or your factory, package.module:make or "
+                                  "file.py:make (called with no arguments; render_mode='rgb_array' with "
+                                  "--video).")]  # fmt: skip
 ObsMap = Annotated[str | None, opt("--obs-map", "Policy feature=observation key, comma-separated "
                                                 "(dict observations).")]  # fmt: skip
 Metric = Annotated[str | None, opt("--metric", "Your preference metric: "
