@@ -33,23 +33,16 @@ def resolve_factory(arch: str, *, what: str | None = None, fix: str | None = Non
     or function). ``what`` names it in errors (default ``--arch 'ARCH'``); ``fix``: what to do when the
     module or file is not found (default: where to run prop from)."""
     what = what or f"--arch '{arch}'"
-    mod_name, attr = split_code(arch, what, ARCH_FORMAT)
-    obj = import_code(mod_name, what, fix)
-    obj = code_attribute(obj, mod_name, attr, what)
+    # The last ':' splits, so a Windows drive letter stays in the path.
+    mod_name, sep, attr = arch.rpartition(":")
+    if not sep or not mod_name or not attr:
+        raise PropError(f"{what} is not of the form package.module:factory", ARCH_FORMAT)
+    obj = code_attribute(import_code(mod_name, what, fix), attr)
     if obj is None:
         raise PropError(f"{what}: '{mod_name}' has no attribute '{attr}'", "check the name after the ':'")
     if not callable(obj):
         raise PropError(f"{what}: '{attr}' is not callable", ARCH_FORMAT)
     return obj
-
-
-def split_code(spec: str, what: str, form: str) -> tuple[str, str]:
-    """``module_or_file.py:attr`` -> (module or file, attr); the last ':' splits (a Windows drive keeps its
-    own)."""
-    mod_name, sep, attr = spec.rpartition(":")
-    if not sep or not mod_name or not attr:
-        raise PropError(f"{what} is not of the form package.module:factory", form)
-    return mod_name, attr
 
 
 def import_code(mod_name: str, what: str, fix: str | None = None):
@@ -60,7 +53,7 @@ def import_code(mod_name: str, what: str, fix: str | None = None):
     return _import_module(what, mod_name, fix)
 
 
-def code_attribute(module, mod_name: str, attr: str, what: str):
+def code_attribute(module, attr: str):
     """``module.attr.path``, or None if some part of the path is missing."""
     obj = module
     for part in attr.split("."):

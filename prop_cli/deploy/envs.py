@@ -62,7 +62,7 @@ def env_factory(env_id: str, registry) -> Callable | None:
     module = import_code(mod_name, what)
     if not mod_name.endswith(".py") and attr in registry:
         return None  # the module registered it: gymnasium.make, with the registration's wrappers
-    factory = code_attribute(module, mod_name, attr, what)
+    factory = code_attribute(module, attr)
     if factory is None:
         if mod_name.endswith(".py"):
             raise PropError(f"{what}: {mod_name} has no attribute '{attr}'", "check the name after the ':'")
