@@ -39,6 +39,7 @@ __all__ = [
     "LoadedModel",
     "TRUST_FLAG",
     "adapter_named",
+    "check_arch_applies",
     "describe",
     "load_checkpoint",
     "read_weights",
@@ -112,14 +113,20 @@ def remote_code(spec: dict, source: str) -> list[str]:
 
 
 def rebuild(
-    spec: dict, weights: dict[str, torch.Tensor], source: str, *, trust_remote_code: bool = False
-) -> LoadedModel:
+    spec: dict, weights: dict[str, torch.Tensor], source: str, *, trust_remote_code: bool = False,
+    arch: str | None = None,
+) -> LoadedModel:  # fmt: skip
     """Rebuild the module a bundle describes (``spec`` from its manifest) with ``weights``. Code the spec
-    names (``remote_code``) is imported only with ``trust_remote_code``; otherwise nothing is."""
+    names (``remote_code``) is imported only with ``trust_remote_code``; otherwise nothing is. ``arch``:
+    the user's own ``--arch`` for this command, called instead of the recorded ``model.arch`` (the only
+    code a module or folder bundle names, so it needs no trust; its JSON arch_kwargs are handed to it)."""
     adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
-    require_trust(adapter.remote_code(spec, str(source)), f"bundle {source}", trust_remote_code)
+    check_arch_applies(spec, source, arch)
+    if arch is None:
+        require_trust(adapter.remote_code(spec, str(source)), f"bundle {source}", trust_remote_code)
+    given = {} if arch is None else {"arch": arch}
     try:
-        return _require_linear(adapter.rebuild(spec, weights, str(source)))
+        return _require_linear(adapter.rebuild(spec, weights, str(source), **given))
     except KeyError as e:
         raise PropError(
             f"{source}: model spec lacks field {e}", "the manifest is damaged; re-create the bundle"
@@ -130,6 +137,20 @@ def rebuild(
             f"{source}: the model spec in the manifest does not build ({brief(e)})",
             "the manifest is damaged; re-create the bundle",
         ) from None
+
+
+def check_arch_applies(spec: dict, source: str, arch: str | None) -> None:
+    """``--arch`` on a bundle command replaces the recorded factory of bundles built by one (module and
+    folder adapters); any other bundle rebuilds from its own files, and the flag is refused."""
+    if arch is None:
+        return
+    adapter = adapter_named(spec.get("adapter") if isinstance(spec, dict) else None, str(source))
+    if "arch" not in adapter.options:
+        raise PropError(
+            f"--arch does not apply to bundle {source}: its model is a {adapter.name} checkpoint, rebuilt "
+            "from the bundle's own files",
+            "drop --arch",
+        )
 
 
 def describe(loaded: LoadedModel) -> dict:

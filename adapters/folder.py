@@ -24,7 +24,7 @@ from torch import nn
 from prop_cli.errors import PropError
 
 from .base import Adapter, CheckpointOptions, LoadedModel
-from .module import load_strict, resolve_factory
+from .module import load_strict, recorded_arch, resolve_factory
 from .weights import read_weights
 
 CONFIG = "config.json"
@@ -104,19 +104,24 @@ def _builder(folder: Path, config: dict, arch: str | None) -> tuple[str, str]:
     return value, f"entry point '{type_name}'"
 
 
-def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    arch, kwargs = spec["arch"], dict(spec.get("arch_kwargs") or {})
-    factory = resolve_factory(arch)
+def build(
+    spec: dict, weights: dict[str, torch.Tensor], source: str, arch: str | None = None,
+    what: str | None = None, fix: str | None = None,
+) -> LoadedModel:  # fmt: skip
+    """The module ``arch`` (default: ``spec["arch"]``) builds from the config, with ``weights``."""
+    arch, kwargs = arch or spec["arch"], dict(spec.get("arch_kwargs") or {})
+    what = what or arch
+    factory = resolve_factory(arch, what=what, fix=fix)
     try:
         module = factory(spec["config"], **kwargs)
     except Exception as e:
         raise PropError(
-            f"{arch}: calling it as factory(config, **arch_kwargs) failed ({type(e).__name__}: {e})",
+            f"{what}: calling it as factory(config, **arch_kwargs) failed ({type(e).__name__}: {e})",
             "the factory must take the parsed config.json (a dict) as its first argument",
         ) from None
     if not isinstance(module, nn.Module):
         raise PropError(
-            f"{arch} returned a {type(module).__name__}, not a torch.nn.Module", "return the model"
+            f"{what} returned a {type(module).__name__}, not a torch.nn.Module", "return the model"
         )
     return load_strict(
         module,
@@ -156,8 +161,11 @@ class FolderAdapter(Adapter):
         spec = {"adapter": self.name, "arch": value, "arch_kwargs": kwargs, "builder": via, "config": config}
         return build(spec, weights, source)
 
-    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-        return build(spec, weights, source)
+    def rebuild(
+        self, spec: dict, weights: dict[str, torch.Tensor], source: str, arch: str | None = None
+    ) -> LoadedModel:
+        """``arch``: the user's --arch of this command instead of the recorded model.arch."""
+        return build(spec, weights, source, *recorded_arch(spec, source, arch))
 
     def remote_code(self, spec: dict, source: str) -> list[str]:
         return [f"model.arch {spec.get('arch')!r} (called with model.config and model.arch_kwargs)"]

@@ -4,7 +4,7 @@ JSON keyword arguments.
 A module name is imported from the folder prop runs in (first on the path, as ``python -m`` does), then
 ``PYTHONPATH`` and installed packages; a ``.py`` path is loaded from that file (relative to the folder
 prop runs in). The bundle records ``--arch`` as given, so later commands need the same module where
-they run.
+they run, or ``--arch`` again naming it from there (``prop run``, ``eval``, ``attack``, ``export``, ...).
 """
 
 from __future__ import annotations
@@ -28,25 +28,42 @@ ARCH_FORMAT = (
 )
 
 
-def resolve_factory(arch: str):
-    """Import ``package.module:attr.path`` and return the attribute (a class or function)."""
+def resolve_factory(arch: str, *, what: str | None = None, fix: str | None = None):
+    """Import ``package.module:attr.path`` (or ``path/to/file.py:attr``) and return the attribute (a class
+    or function). ``what`` names it in errors (default ``--arch 'ARCH'``); ``fix``: what to do when the
+    module or file is not found (default: where to run prop from)."""
+    what = what or f"--arch '{arch}'"
+    # The last ':' splits, so a Windows drive letter stays in the path.
     mod_name, sep, attr = arch.rpartition(":")
     if not sep or not mod_name or not attr:
-        raise PropError(f"--arch '{arch}' is not of the form package.module:factory", ARCH_FORMAT)
-    obj = _import_file(arch, mod_name) if mod_name.endswith(".py") else _import_module(arch, mod_name)
-    for part in attr.split("."):
-        if not hasattr(obj, part):
-            raise PropError(
-                f"--arch '{arch}': '{mod_name}' has no attribute '{attr}'",
-                "check the name after the ':'",
-            )
-        obj = getattr(obj, part)
+        raise PropError(f"{what} is not of the form package.module:factory", ARCH_FORMAT)
+    obj = code_attribute(import_code(mod_name, what, fix), attr)
+    if obj is None:
+        raise PropError(f"{what}: '{mod_name}' has no attribute '{attr}'", "check the name after the ':'")
     if not callable(obj):
-        raise PropError(f"--arch '{arch}': '{attr}' is not callable", ARCH_FORMAT)
+        raise PropError(f"{what}: '{attr}' is not callable", ARCH_FORMAT)
     return obj
 
 
-def _import_module(arch: str, mod_name: str):
+def import_code(mod_name: str, what: str, fix: str | None = None):
+    """The user's module: a ``.py`` path loaded from that file, else a module name imported from the
+    folder prop runs in, PYTHONPATH or an installed package. Every failure is one PropError."""
+    if mod_name.endswith(".py"):
+        return _import_file(what, mod_name, fix)
+    return _import_module(what, mod_name, fix)
+
+
+def code_attribute(module, attr: str):
+    """``module.attr.path``, or None if some part of the path is missing."""
+    obj = module
+    for part in attr.split("."):
+        if not part.isidentifier() or not hasattr(obj, part):
+            return None
+        obj = getattr(obj, part)
+    return obj
+
+
+def _import_module(what: str, mod_name: str, fix: str | None):
     # A model file next to where the user runs prop should just work, as with `python -m`.
     cwd = os.getcwd()
     if cwd not in sys.path:
@@ -55,18 +72,18 @@ def _import_module(arch: str, mod_name: str):
         return importlib.import_module(mod_name)
     except Exception as e:  # ImportError, or any error raised while the user's module runs
         raise PropError(
-            f"--arch '{arch}': cannot import '{mod_name}' ({type(e).__name__}: {e}); it must be importable "
+            f"{what}: cannot import '{mod_name}' ({type(e).__name__}: {e}); it must be importable "
             f"from the folder prop runs in ({cwd}), PYTHONPATH or an installed package",
-            "run prop from the folder holding the module, add its folder to PYTHONPATH, or install it",
+            fix or "run prop from the folder holding the module, add its folder to PYTHONPATH, or install it",
         ) from None
 
 
-def _import_file(arch: str, file_name: str):
+def _import_file(what: str, file_name: str, fix: str | None):
     path = Path(file_name)
     if not path.is_file():
         raise PropError(
-            f"--arch '{arch}': {path} does not exist (relative to the folder prop runs in, {os.getcwd()})",
-            "run prop from the folder the path is relative to, or give the file's path from here",
+            f"{what}: {path} does not exist (relative to the folder prop runs in, {os.getcwd()})",
+            fix or "run prop from the folder the path is relative to, or give the file's path from here",
         )
     import importlib.util
 
@@ -79,30 +96,47 @@ def _import_file(arch: str, file_name: str):
         spec.loader.exec_module(module)
     except Exception as e:  # any error raised while the user's file runs
         del sys.modules[name]
-        raise PropError(
-            f"--arch '{arch}': running {path} failed ({type(e).__name__}: {e})", "fix the file"
-        ) from None
+        raise PropError(f"{what}: running {path} failed ({type(e).__name__}: {e})", "fix the file") from None
     return module
 
 
-def make_module(arch: str, arch_kwargs: dict | None) -> nn.Module:
+def recorded_arch(spec: dict, source: str, arch: str | None) -> tuple[str, str, str | None]:
+    """(the factory to call, how errors name it, the fix when it is not found): the user's ``--arch`` of
+    this command if given, else the one the bundle at ``source`` records. A bundle records --arch as
+    given to personalize, so from another folder the user names their code again."""
+    if arch is not None:
+        return arch, f"--arch '{arch}'", None
+    recorded = spec["arch"]
+    where = "the file's path" if recorded.rpartition(":")[0].endswith(".py") else "the module"
+    fix = (
+        f"pass --arch naming {where} from here (path/to/file.py:factory or package.module:factory; your "
+        "own code needs no --trust-remote-code), or run prop from the folder the bundle was made in"
+    )
+    return recorded, f"bundle {source}: model.arch '{recorded}'", fix
+
+
+def make_module(
+    arch: str, arch_kwargs: dict | None, what: str | None = None, fix: str | None = None
+) -> nn.Module:
+    """``factory(**arch_kwargs)``, checked; ``what`` and ``fix`` as ``resolve_factory`` takes them."""
+    what = what or f"--arch '{arch}'"
     kwargs = dict(arch_kwargs or {})
     try:
         json.dumps(kwargs)
     except (TypeError, ValueError) as e:
         raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
-    factory = resolve_factory(arch)
+    factory = resolve_factory(arch, what=what, fix=fix)
     try:
         module = factory(**kwargs)
     except Exception as e:
         raise PropError(
-            f"--arch '{arch}': calling it with --arch-kwargs {json.dumps(kwargs)} failed "
+            f"{what}: calling it with --arch-kwargs {json.dumps(kwargs)} failed "
             f"({type(e).__name__}: {e})",
             "check the keyword arguments the factory expects",
         ) from None
     if not isinstance(module, nn.Module):
         raise PropError(
-            f"--arch '{arch}' returned a {type(module).__name__}, not a torch.nn.Module",
+            f"{what} returned a {type(module).__name__}, not a torch.nn.Module",
             "point --arch at a class or a function that returns the model",
         )
     return module
@@ -147,14 +181,19 @@ def load_strict(
     )
 
 
-def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-    arch = spec["arch"]
+def build(
+    spec: dict, weights: dict[str, torch.Tensor], source: str, arch: str | None = None,
+    what: str | None = None, fix: str | None = None,
+) -> LoadedModel:  # fmt: skip
+    """The module ``arch`` (default: ``spec["arch"]``) builds, with ``weights``; the spec stays as given."""
+    arch = arch or spec["arch"]
+    what = what or f"--arch '{arch}'"
     return load_strict(
-        make_module(arch, spec.get("arch_kwargs")),
+        make_module(arch, spec.get("arch_kwargs"), what, fix),
         weights,
         spec,
         source,
-        what=f"--arch '{arch}'",
+        what=what,
         fix="check --arch and --arch-kwargs match the model that saved the checkpoint",
     )
 
@@ -175,10 +214,13 @@ class ModuleAdapter(Adapter):
         spec = {"adapter": self.name, "arch": options.arch, "arch_kwargs": dict(options.arch_kwargs or {})}
         return build(spec, tensors, str(path))
 
-    def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-        return build(spec, weights, source)
+    def rebuild(
+        self, spec: dict, weights: dict[str, torch.Tensor], source: str, arch: str | None = None
+    ) -> LoadedModel:
+        """``arch``: the user's --arch of this command instead of the recorded model.arch."""
+        return build(spec, weights, source, *recorded_arch(spec, source, arch))
 
     def remote_code(self, spec: dict, source: str) -> list[str]:
         # A bundle's model.arch was written by whoever wrote the bundle: --arch on personalize was the
-        # user's consent for that command only.
-        return [f"model.arch {spec.get('arch')!r} (called with model.arch_kwargs)"]
+        # user's consent for that command only (--arch on a later command is consent for that one).
+        return [f"model.arch {spec.get('arch')!r} (called with model.arch_kwargs; or give yours with --arch)"]

@@ -228,6 +228,7 @@ def run_file(
     threads: int | None = None,
     trust_remote_code: bool = False,
     noise_seed: int = 0,
+    arch: str | None = None,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
     With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing runs the
@@ -236,7 +237,7 @@ def run_file(
     check_threads(threads)
     check_output(output, force, what="output", flag="--output")
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -275,11 +276,12 @@ def audit_bundle(
     progress: Callable[[str, int, int], None] | None = None,
     threads: int | None = None,
     trust_remote_code: bool = False,
+    arch: str | None = None,
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``attack.audit``) from files. The audited user's key
     is the passphrase's if given, else the first key file; further key files are other users'."""
     check_threads(threads)
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     configure_threads(bundle.parameters, threads)
     seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
@@ -322,6 +324,7 @@ def export_peft_adapter(
     passphrase: str | None = None,
     force: bool = False,
     trust_remote_code: bool = False,
+    arch: str | None = None,
 ):
     """`prop export --peft`: the payload a key opens in a sealed bundle, as a standard peft LoRA adapter
     folder (``deploy.peft``); never written inside the bundle."""
@@ -329,7 +332,7 @@ def export_peft_adapter(
 
     check_output(Path(out), force, what="adapter folder", flag="--peft")
     check_not_input(Path(out), "--peft", [bundle_path, key_file])
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     if key is None:
         raise PropError("--peft exports the payload your key opens", "pass --key-file or --passphrase")
@@ -347,6 +350,7 @@ def export_bundle(
     force: bool = False,
     threads: int | None = None,
     trust_remote_code: bool = False,
+    arch: str | None = None,
 ):
     """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
     The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these."""
@@ -355,7 +359,8 @@ def export_bundle(
     check_threads(threads)
     target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
-    bundle = require_array_model(load_bundle(bundle_path, trust_remote_code=trust_remote_code), "prop export")
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
+    bundle = require_array_model(bundle, "prop export")
     require_onnx()
     configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -368,6 +373,7 @@ def eval_bundle(
     key_file: Path | None = None, passphrase: str | None = None, obs_map: str | None = None,
     metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
     vecnormalize: Path | None = None, video: Path | None = None, trust_remote_code: bool = False,
+    arch: str | None = None,
 ) -> dict:  # fmt: skip
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
@@ -379,7 +385,7 @@ def eval_bundle(
     check_video(video)
     if video is not None:
         check_not_input(video, "--video", [bundle_path, key_file, vecnormalize])
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
@@ -414,13 +420,14 @@ def add_user(
     device: str = "cpu",
     progress: Callable[[int, dict[str, float]], None] | None = None,
     trust_remote_code: bool = False,
+    arch: str | None = None,
 ) -> UserChange:
     """`prop add-user`: train one more user's payload on their data alone and seal it into the bundle.
 
     Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
     payload kind, rank and layers must stay the bundle's (every record is enrolled in them). The
     manifest is written once, with the new record (no figure of the user goes in the clear)."""
-    bundle = load_sealed(bundle_path, "add-user", trust_remote_code)
+    bundle = load_sealed(bundle_path, "add-user", trust_remote_code, arch)
     bundle.check_key(key.bits, "the new user's key")
     cfg = added_user_config(bundle, cfg)
     check_new_key(bundle.records, key.bits)
@@ -472,14 +479,14 @@ def verify_bundle(folder: Path, *, public_key: Path | None = None, chain: list[P
 
 def remove_user(
     bundle_path: Path, *, key: np.ndarray | None = None, record: str | None = None,
-    trust_remote_code: bool = False,
+    trust_remote_code: bool = False, arch: str | None = None,
 ) -> UserChange:  # fmt: skip
     """`prop remove-user`: delete one user's record, from the bundle and from its ONNX export
     (``<bundle>/onnx``) if it has one. Ownership is proven by the key: it must open the record it
     removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's maintainer
     when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
     add or change one without its key."""
-    bundle = load_sealed(bundle_path, "remove-user", trust_remote_code)
+    bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
     if (key is None) == (record is None):
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
     ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]

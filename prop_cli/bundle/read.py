@@ -50,6 +50,7 @@ class Bundle:
     manifest: dict
     loaded: LoadedModel
     mode: Mode
+    arch: str | None = None  # the user's --arch of this command, building the base instead of model.arch
 
     @property
     def keyed(self) -> KeyedModel | None:
@@ -96,21 +97,24 @@ class Bundle:
         return key
 
 
-def load_bundle(path: Path, *, trust_remote_code: bool = False) -> Bundle:
+def load_bundle(path: Path, *, trust_remote_code: bool = False, arch: str | None = None) -> Bundle:
     """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle.
 
     A bundle is data: code its manifest or files name (a module adapter's ``model.arch``, a folder's
     factory, LeRobot processor steps LeRobot does not register) is imported only with
-    ``trust_remote_code``; without it such a bundle is refused before anything is imported."""
+    ``trust_remote_code``; without it such a bundle is refused before anything is imported. ``arch``
+    (``--arch``): the user's own factory for a module or folder bundle, called instead of the recorded
+    one (their consent, as on personalize; relative paths are from the folder prop runs in)."""
     path = Path(path)
     manifest = read_manifest(path)
     check_files(path, manifest)
-    adapters.require_trust(
-        adapters.remote_code(manifest[C.M_MODEL], str(path)), f"bundle {path}", trust_remote_code
-    )
+    spec = manifest[C.M_MODEL]
+    adapters.check_arch_applies(spec, str(path), arch)
+    if arch is None:
+        adapters.require_trust(adapters.remote_code(spec, str(path)), f"bundle {path}", trust_remote_code)
     weights = adapters.read_weights(path / C.BASE_WEIGHTS)[0]
-    loaded = adapters.rebuild(manifest[C.M_MODEL], weights, str(path), trust_remote_code=trust_remote_code)
-    return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded))
+    loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code, arch=arch)
+    return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded), arch)
 
 
 def check_files(path: Path, manifest: dict) -> None:
@@ -128,14 +132,17 @@ def check_files(path: Path, manifest: dict) -> None:
 
 def rebuild_original(bundle: Bundle, path: str, trust_remote_code: bool = False) -> LoadedModel:
     """The checkpoint at ``path`` (the original, `--original`) rebuilt the way ``bundle``'s base is: the
-    bundle's recorded model spec with that checkpoint's weights, so no flag has to be given again."""
+    bundle's recorded model spec with that checkpoint's weights, so no flag has to be given again (the
+    bundle's ``--arch``, if the user gave one, builds it too)."""
     from prop_adapters.hub import resolve_checkpoint
 
     spec = bundle.manifest[C.M_MODEL]
     adapter = adapters.adapter_named(spec.get("adapter"), str(bundle.path))
     weights = adapter.weights(Path(resolve_checkpoint(path)))
     try:
-        return adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code)
+        return adapters.rebuild(
+            spec, weights, str(path), trust_remote_code=trust_remote_code, arch=bundle.arch
+        )
     except (RuntimeError, KeyError, ValueError) as e:
         raise PropError(
             f"--original {path} does not fit the bundle's model ({type(e).__name__})",
@@ -143,8 +150,10 @@ def rebuild_original(bundle: Bundle, path: str, trust_remote_code: bool = False)
         ) from None
 
 
-def load_sealed(bundle_path: Path, command: str, trust_remote_code: bool = False) -> Bundle:
+def load_sealed(
+    bundle_path: Path, command: str, trust_remote_code: bool = False, arch: str | None = None
+) -> Bundle:
     """A sealed bundle for a command that only sealed bundles take (add-user, remove-user)."""
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     bundle.mode.require_independent_users(command, bundle_path)
     return bundle

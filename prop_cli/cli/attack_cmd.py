@@ -10,7 +10,7 @@ from prop_cli.config import AuditSettings, parse_hamming, parse_list
 from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
-from .options import BundleArg, Device, Force, Threads, TrustRemoteCode, config_options, opt
+from .options import BundleArch, BundleArg, Device, Force, Threads, TrustRemoteCode, config_options, opt
 
 # The audit settings attack exposes as --flags: AuditSettings field -> help (--probes and --hamming
 # take comma lists and are parsed below).
@@ -60,7 +60,7 @@ def attack(
     probes: Probes = None, search: Search = None, hamming: Hamming = None, original: Original = None,
     device: Device = DEFAULT_DEVICE, threads: Threads = DEFAULT_THREADS,
     json_path: JsonReport = None, plot_path: Plot = None, max_leak: MaxLeak = None, record: Record = False,
-    force: Force = False, trust_remote_code: TrustRemoteCode = False,
+    force: Force = False, trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
     from prop_cli.api import (
@@ -95,7 +95,7 @@ def attack(
     report = stage_progress(
         lambda cb: audit_bundle(
             bundle, data, settings, key_files=key_file, passphrase=phrase, original=original, device=device,
-            progress=cb, threads=threads, trust_remote_code=trust_remote_code,
+            progress=cb, threads=threads, trust_remote_code=trust_remote_code, arch=arch,
         )
     )  # fmt: skip
     for w in report["warnings"]:

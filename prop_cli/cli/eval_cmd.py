@@ -6,7 +6,7 @@ from typing import Annotated
 from prop_cli.config import EvalSettings
 
 from .common import err, out, print_json, read_passphrase
-from .options import BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, config_options, opt
+from .options import BundleArch, BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, config_options, opt
 
 SETTINGS = {
     "episodes": "Episodes for the user key, no key and --original.",
@@ -20,7 +20,9 @@ SETTINGS = {
     "instruction": "A language-conditioned policy's instruction (LeRobot SmolVLA): your data's task text.",
 }
 Env = Annotated[str, opt("--env", "gymnasium id; package:Id imports the package first "
-                                  "(panda_gym:PandaReach-v3).")]  # fmt: skip
+                                  "(panda_gym:PandaReach-v3); or your factory, package.module:make or "
+                                  "file.py:make (called with no arguments; render_mode='rgb_array' with "
+                                  "--video).")]  # fmt: skip
 ObsMap = Annotated[str | None, opt("--obs-map", "Policy feature=observation key, comma-separated "
                                                 "(dict observations).")]  # fmt: skip
 Metric = Annotated[str | None, opt("--metric", "Your preference metric: "
@@ -38,7 +40,7 @@ def eval_(
     bundle: BundleArg, settings: EvalSettings, env: Env, key_file: KeyFile = None,
     passphrase: Passphrase = False, obs_map: ObsMap = None, metric: Metric = None, original: Original = None,
     vecnormalize: VecNormalize = None, video: Video = None, as_json: Json = False,
-    trust_remote_code: TrustRemoteCode = False,
+    trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
 ) -> None:  # fmt: skip
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
     from prop_cli.api import eval_bundle
@@ -46,7 +48,7 @@ def eval_(
     report = eval_bundle(
         bundle, env, settings, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
-        vecnormalize=vecnormalize, video=video, trust_remote_code=trust_remote_code,
+        vecnormalize=vecnormalize, video=video, trust_remote_code=trust_remote_code, arch=arch,
     )  # fmt: skip
     if as_json:
         print_json(report)

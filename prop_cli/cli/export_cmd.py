@@ -9,7 +9,17 @@ from prop_cli.config import ExportSettings
 from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, fail, out, print_json, read_passphrase
-from .options import BundleArg, Force, Json, Passphrase, Threads, TrustRemoteCode, config_options, opt
+from .options import (
+    BundleArch,
+    BundleArg,
+    Force,
+    Json,
+    Passphrase,
+    Threads,
+    TrustRemoteCode,
+    config_options,
+    opt,
+)
 
 SETTINGS = {  # ExportSettings field -> help of its --flag
     "opset": f"ONNX opset version ({ExportSettings.MIN_OPSET}..{ExportSettings.MAX_OPSET}).",
@@ -35,21 +45,21 @@ def export(
     peft: PeftDir = None,
     key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
-    trust_remote_code: TrustRemoteCode = False,
+    trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
 ) -> None:  # fmt: skip
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; or a
     sealed user's payload as a peft LoRA adapter (--peft DIR)."""
     if onnx == (peft is not None):
         fail("choose one export format", "pass --onnx or --peft DIR")
     if peft is not None:
-        _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code)
+        _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch)
         return
     from prop_cli.api import export_bundle
 
     result = export_bundle(
         bundle, out_dir, settings, key_file=key_file,
         passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
-        threads=threads, trust_remote_code=trust_remote_code,
+        threads=threads, trust_remote_code=trust_remote_code, arch=arch,
     )  # fmt: skip
     if as_json:
         print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,
@@ -66,12 +76,12 @@ def export(
         out.print(f"wrote {result.out} ({', '.join(result.files)})")
 
 
-def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code) -> None:
+def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch) -> None:
     from prop_cli.api import export_peft_adapter
 
     result = export_peft_adapter(
         bundle, peft, key_file=key_file, passphrase=read_passphrase() if passphrase else None, force=force,
-        trust_remote_code=trust_remote_code,
+        trust_remote_code=trust_remote_code, arch=arch,
     )  # fmt: skip
     err.print(f"prop: note: {result.out} holds your behaviour unencrypted: keep it as you keep your key")
     if as_json:

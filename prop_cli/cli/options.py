@@ -31,6 +31,15 @@ Checkpoint = Annotated[
 BundleArg = Annotated[Path, typer.Argument(help="Bundle directory written by prop personalize.")]
 
 Arch = Annotated[str | None, typer.Option("--arch", help="Your module: package.module:factory.")]
+BundleArch = Annotated[
+    str | None,
+    typer.Option(
+        "--arch",
+        help="A bundle of your own module: its factory named from here (file.py:factory or "
+        "package.module:factory), called instead of the one the bundle records; your code, so no "
+        "--trust-remote-code.",
+    ),
+]
 ArchKwargs = Annotated[str | None, typer.Option("--arch-kwargs", help="JSON keyword arguments for --arch.")]
 Activation = Annotated[
     str | None,

@@ -12,6 +12,7 @@ from prop_cli.constants import DEFAULT_DEVICE
 
 from .common import err, fail, out, print_json, read_passphrase, step_progress
 from .options import (
+    BundleArch,
     BundleArg,
     Device,
     Json,
@@ -56,6 +57,7 @@ def add_user(
     as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False,
     weak_passphrase: WeakPassphrase = False,
+    arch: BundleArch = None,
 ) -> None:
     """Add a user to a sealed bundle, with their data and key only (no one else's)."""
     from prop_cli.api import KeySource, read_manifest
@@ -69,7 +71,7 @@ def add_user(
     result = step_progress(
         lambda cb: api_add_user(
             bundle, data, KeySource(bits, "passphrase" if passphrase else "file"), cfg=base, device=device,
-            progress=cb, trust_remote_code=trust_remote_code,
+            progress=cb, trust_remote_code=trust_remote_code, arch=arch,
         ),
         base.steps, "add-user", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
     )  # fmt: skip
@@ -96,12 +98,13 @@ def remove_user(
     ] = None,
     as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False,
+    arch: BundleArch = None,
 ) -> None:
     """Remove a user from a sealed bundle (and its ONNX export): the one your key opens (or --record ID)."""
     from prop_cli.api import remove_user as api_remove_user
 
     bits = _key(bundle, key_file, passphrase, required=record is None)
-    result = api_remove_user(bundle, key=bits, record=record, trust_remote_code=trust_remote_code)
+    result = api_remove_user(bundle, key=bits, record=record, trust_remote_code=trust_remote_code, arch=arch)
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users})
         return

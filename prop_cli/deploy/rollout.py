@@ -6,7 +6,8 @@ the original checkpoint. Per condition: mean return, success (``info["is_success
 end, where the environment reports it) and the user's preference metric, each with its standard error.
 Every condition runs the same evaluation seeds: random keys and neighbours take them in turn,
 ``episodes_per_key`` each (6 keys x 5 episodes = the 30 seeds of the other conditions), so the
-conditions differ only in the key, not in the starting states.
+conditions differ only in the key, not in the starting states. A key enrolled in nothing of the bundle
+runs the bundle's base: its row is ``key_not_enrolled``, not ``user_key``. The environment: ``envs``.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
 from prop_cli.files import staged_dir
 
-from .streams import stdout_to_stderr
+from .envs import frame, make_env
 
 # A trajectory as the preference metric receives it.
 Trajectory = dict  # {"observations": [...], "actions": [...], "rewards": [...], "infos": [...]}
@@ -73,26 +74,6 @@ def load_metric(spec: str | None) -> Metric | None:
     if not callable(fn):
         raise PropError(f"--metric {spec!r} is not callable", "name a function f(trajectory) -> float")
     return fn
-
-
-def make_env(env_id: str, render: bool = False):
-    """gymnasium.make(env_id); ``module:EnvId`` imports the module that registers the environment first.
-    ``render``: frames from ``env.render()`` (render_mode rgb_array), for --video."""
-    try:
-        import gymnasium as gym
-    except ImportError:
-        raise PropError(
-            "prop eval needs gymnasium", "pip install gymnasium (and the environment's package)"
-        ) from None
-    try:  # simulators print banners from C (pybullet's argv lines): keep stdout for results (--json)
-        with stdout_to_stderr():
-            return gym.make(env_id, render_mode="rgb_array") if render else gym.make(env_id)
-    except Exception as e:  # noqa: BLE001 - unknown id, missing package, bad arguments
-        raise PropError(
-            f"--env {env_id!r}: gymnasium cannot make it "
-            f"({type(e).__name__}: {str(e).splitlines()[0][:120]})",
-            "give a registered id; package:Id imports its package first (panda_gym:PandaReach-v3)",
-        ) from None
 
 
 def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -> Callable:
@@ -185,7 +166,7 @@ def _episodes(
         controller.reset(int(seed))  # a sampling policy's noise follows the episode's seed (paired)
         film = frames is not None and n == 0
         if film:
-            frames.append(_frame(env))
+            frames.append(frame(env))
         traj: Trajectory = {"observations": [obs], "actions": [], "rewards": [], "infos": []}
         total, steps, info = 0.0, 0, {}
         while True:
@@ -194,7 +175,7 @@ def _episodes(
             total += float(reward)
             steps += 1
             if film:
-                frames.append(_frame(env))
+                frames.append(frame(env))
             for k, v in (("observations", obs), ("actions", action), ("rewards", reward), ("infos", info)):
                 traj[k].append(v)
             if truncated or (terminated and not settings.ignore_terminated):
@@ -208,13 +189,6 @@ def _episodes(
             r["metric"] = float(metric(traj))
         results.append(r)
     return results
-
-
-def _frame(env) -> np.ndarray:
-    frame = env.render()
-    if not isinstance(frame, np.ndarray) or frame.ndim != 3:
-        raise PropError("--video: the environment renders no rgb_array frames", "drop --video")
-    return frame
 
 
 def check_video(video: Path | None) -> None:
@@ -270,6 +244,10 @@ def evaluate_bundle(
     a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's)."""
     settings.validate(has_key=key is not None)
     check_video(video)
+    # A key enrolled in nothing runs the base (a changed bundle raises here, before any rollout): its
+    # row is named for what ran, not "user_key".
+    enrolled = key is None or bundle.mode.enrolled(bundle.check_key(key))
+    user_row = "user_key" if enrolled else "key_not_enrolled"
     films: dict[str, list[np.ndarray]] = {}
 
     def film(label: str) -> list | None:
@@ -282,7 +260,7 @@ def evaluate_bundle(
             "drop --vecnormalize",
         )
     prepare = array_observation(bundle, normalizer)
-    env = make_env(env_id, render=video is not None)
+    env = make_env(env_id, render=video is not None, seed=settings.seed)
     features = list(policy.input_features) if policy is not None else None
     obs_map = obs_map or {}
     first = [settings.seed + i for i in range(settings.episodes)]
@@ -328,7 +306,8 @@ def evaluate_bundle(
         )
     cond["no_key"] = _summary(run("no key", None, first, "no_key"))
     if key is not None:
-        cond["user_key"] = _summary(run("user key", key, first, "user_key"))
+        label = "user key" if user_row == "user_key" else "key not enrolled (the bundle's base)"
+        cond[user_row] = _summary(run(label, key, first, user_row))
     groups = [("random_keys", random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key))]
     if key is not None and settings.neighbours:
         nbrs = one_bit_neighbours(key)

@@ -3,6 +3,9 @@ convolutional model run on another image size than it was personalized on (issue
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import torch
 from safetensors.torch import save_file
@@ -53,6 +56,45 @@ def test_arch_as_a_file_path_and_other_image_sizes(tmp_path, cli, monkeypatch):
     r = cli("run", "../b", "--input", "../x10.npy", "--output", "y.npy", "--trust-remote-code")
     assert r.code == 2 and "relative to the folder prop runs in" in r.err, r.err
     assert len(r.err.strip().splitlines()) == 1 and "TypeError" not in r.err
+
+
+def test_a_relative_arch_is_given_again_from_another_folder(tmp_path, cli, monkeypatch):
+    """Personalized in A with a relative --arch, run from B: the error names the path and --arch, and
+    --arch naming the file from B runs the bundle (the user's consent: no --trust-remote-code), the
+    user's key included (its enrolment holds: the bundle is unchanged)."""
+    a = tmp_path / "A"
+    a.mkdir()
+    _cnn(a, monkeypatch)
+    monkeypatch.chdir(a)
+    r = cli("personalize", "cnn.safetensors", "--arch", "models/cnn_file.py:build", "--layers", "2",
+            "--data", "img.npz", "--key-file", "k.bin", "--out", "b", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    r = cli("run", "b", "--input", "x10.npy", "--output", "here.npy", "--key-file", "k.bin",
+            "--trust-remote-code")  # fmt: skip
+    assert r.code == 0, r.err
+    (tmp_path / "B").mkdir()
+    monkeypatch.chdir(tmp_path / "B")
+    run = ["run", "../A/b", "--input", "../A/x10.npy", "--key-file", "../A/k.bin"]
+    r = cli(*run, "--output", "y.npy", "--trust-remote-code")
+    assert r.code == 2 and "model.arch 'models/cnn_file.py:build'" in r.err and "models/cnn_file.py" in r.err
+    assert "pass --arch naming the file's path from here" in r.err and len(r.err.strip().splitlines()) == 1
+    r = cli(*run, "--output", "y.npy", "--arch", "../A/models/cnn_file.py:build", "--json")
+    assert r.code == 0, r.err
+    assert json.loads(r.out)["keyed"] is True
+    assert np.array_equal(np.load("y.npy"), np.load(a / "here.npy"))
+    # A wrong --arch path names itself, from here; --arch on a bundle not built by one is refused.
+    r = cli(*run, "--output", "z.npy", "--arch", "cnn_file.py:build")
+    assert r.code == 2 and "--arch 'cnn_file.py:build': cnn_file.py does not exist" in r.err, r.err
+    from tests.conftest import write_user_data
+
+    write_user_data(tmp_path / "B", 40, np.random.default_rng(1))
+    r = cli("personalize", "model.safetensors", "--data", "mine.npz", "--key-file", "../A/k.bin", "--out",
+            "mlp", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    np.save("x4.npy", np.zeros((2, 4), np.float32))
+    cnn = "../A/models/cnn_file.py:build"
+    r = cli("run", "mlp", "--input", "x4.npy", "--output", "y4.npy", "--arch", cnn)
+    assert r.code == 2 and "--arch does not apply to bundle mlp" in r.err and not Path("y4.npy").exists()
 
 
 def test_a_module_name_says_where_it_must_be_importable_from(tmp_path, cli, monkeypatch):

@@ -113,3 +113,180 @@ def test_original_of_an_arch_bundle_needs_no_arch_again(tmp_path, cli, monkeypat
             "--trust-remote-code", "--json")  # fmt: skip
     assert r.code == 0, r.err
     assert json.loads(r.out)["conditions"]["original"]["episodes"] == 2
+
+
+def test_a_key_enrolled_in_nothing_is_labelled_for_what_ran(pendulum, cli):
+    """A wrong key runs the bundle's base: its row says so (not user_key), and it is the no-key row."""
+    (pendulum / "wrong.bin").write_bytes(bytes(16))
+    r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK, "--json")
+    assert r.code == 0, r.err
+    cond = json.loads(r.out)["conditions"]
+    assert "user_key" not in cond and cond["key_not_enrolled"] == cond["no_key"]
+    r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK)
+    assert r.code == 0 and "key_not_enrolled" in r.out and "user_key" not in r.out
+
+
+# The user's own environment for --env FILE.py:factory and module:factory (no gymnasium registration).
+TINY_ENV = '''
+import gymnasium as gym
+import numpy as np
+
+
+class Tiny(gym.Env):
+    """3 observations, 1 action, 4 steps an episode."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, render_mode=None):
+        self.observation_space = gym.spaces.Box(-1, 1, (3,), np.float32)
+        self.action_space = gym.spaces.Box(-2, 2, (1,), np.float32)
+        self.render_mode = render_mode
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.obs = 0, self.np_random.uniform(-1, 1, 3).astype(np.float32)
+        return self.obs, {}
+
+    def step(self, action):
+        self.t += 1
+        reward = -abs(float(action[0]) - float(self.obs[0]))
+        self.obs = self.np_random.uniform(-1, 1, 3).astype(np.float32)
+        return self.obs, reward, False, self.t >= 4, {"is_success": reward > -0.5}
+
+    def render(self):
+        return np.full((8, 8, 3), 10 * self.t, np.uint8)
+
+
+def make(render_mode=None):
+    return Tiny(render_mode)
+
+
+def make_plain():
+    return Tiny()
+
+
+def broken():
+    raise ValueError("no simulator here")
+
+
+def not_env():
+    return {"reset": 1}
+
+
+if "TinyRegistered-v0" not in gym.registry:
+    gym.register(id="TinyRegistered-v0", entry_point=Tiny, max_episode_steps=3)
+'''
+
+
+@pytest.fixture
+def tiny_env(pendulum, monkeypatch):
+    """The environment as a file under the bundle's folder and as a module elsewhere on sys.path."""
+    (pendulum / "envs").mkdir()
+    (pendulum / "envs" / "tiny.py").write_text(TINY_ENV)
+    (pendulum / "site").mkdir()
+    (pendulum / "site" / "tiny_env_mod.py").write_text(TINY_ENV)
+    monkeypatch.syspath_prepend(str(pendulum / "site"))
+    return pendulum
+
+
+def test_eval_env_as_the_users_factory_from_a_file_or_a_module(tiny_env, cli):
+    args = ["--key-file", "k.bin", *QUICK, "--json"]
+    r = cli("eval", "b", "--env", "envs/tiny.py:make", *args)
+    assert r.code == 0, r.err
+    by_file = json.loads(r.out)
+    cond = by_file["conditions"]
+    assert set(cond) == {"no_key", "user_key", "random_keys", "neighbour1_keys"}
+    assert cond["no_key"]["steps"]["mean"] == 4 and "success" in cond["no_key"]  # the tiny env, not Pendulum
+    r = cli("eval", "b", "--env", "tiny_env_mod:make", *args)
+    assert r.code == 0, r.err
+    by_module = json.loads(r.out)
+    assert by_module["env"] == "tiny_env_mod:make" and by_module["conditions"] == cond
+    # package:Id still means the id the module registers (with its time limit), not an attribute.
+    r = cli("eval", "b", "--env", "tiny_env_mod:TinyRegistered-v0", *args)
+    assert r.code == 0, r.err
+    assert json.loads(r.out)["conditions"]["no_key"]["steps"]["mean"] == 3
+
+
+@pytest.mark.parametrize(
+    "env, message",
+    [
+        ("no_such_env_module:make", "--env 'no_such_env_module:make': cannot import 'no_such_env_module'"),
+        ("envs/none.py:make", "envs/none.py does not exist"),
+        ("envs/tiny.py:nope", "envs/tiny.py has no attribute 'nope'"),
+        ("envs/tiny.py:broken", "broken() raised ValueError: no simulator here"),
+        ("envs/tiny.py:not_env", "not_env() returned a dict, not an environment (no reset/step)"),
+        ("envs/tiny.py", "names a file but no factory"),
+    ],
+)
+def test_a_bad_env_factory_is_one_line_before_any_rollout(tiny_env, cli, env, message):
+    r = cli("eval", "b", "--env", env, *QUICK)
+    assert r.code == 2 and message in r.err, r.err
+    assert len(r.err.strip().splitlines()) == 1 and "eval:" not in r.err
+
+
+@pytest.fixture
+def fake_writer(monkeypatch):
+    """imageio's mp4 writer, simulated (the test environment has no ffmpeg): it records the frames."""
+    import sys
+    import types
+
+    written: dict[str, int] = {}
+    v2 = types.ModuleType("imageio.v2")
+    v2.mimsave = lambda path, frames, fps, macro_block_size: written.setdefault(path.name, len(frames)) and (
+        path.write_bytes(b"mp4")
+    )
+    imageio = types.ModuleType("imageio")
+    imageio.v2 = v2
+    for name, module in (("imageio", imageio), ("imageio.v2", v2), ("imageio_ffmpeg", types.ModuleType("f"))):
+        monkeypatch.setitem(sys.modules, name, module)
+    return written
+
+
+def test_video_of_a_factory_env_passes_render_mode(tiny_env, cli, fake_writer):
+    r = cli("eval", "b", "--env", "envs/tiny.py:make", *QUICK, "--video", "v", "--json")
+    assert r.code == 0, r.err
+    assert fake_writer == {"no_key.mp4": 5, "random_keys.mp4": 5}  # reset + 4 steps
+    r = cli("eval", "b", "--env", "envs/tiny.py:make_plain", *QUICK, "--video", "v2")
+    assert r.code == 2 and "make_plain takes no render_mode" in r.err and "eval:" not in r.err, r.err
+
+
+def test_video_without_pygame_names_it_before_any_rollout(pendulum, cli, fake_writer, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pygame", None)  # `import pygame` fails, as where it is not installed
+    r = cli("eval", "b", "--env", "Pendulum-v1", *QUICK, "--video", "v")
+    assert r.code == 2 and len(r.err.strip().splitlines()) == 1, r.err
+    assert "--video: Pendulum-v1 renders with pygame, which is not installed; pip install pygame" in r.err
+    assert "eval:" not in r.err and "Traceback" not in r.err and not (pendulum / "v").exists()
+
+
+def test_arch_given_again_builds_the_bundle_and_the_original(tmp_path, cli, monkeypatch):
+    """From another folder, --arch names the user's module for the bundle and for --original alike, with
+    no --trust-remote-code (the recorded arch is never imported)."""
+    import torch
+    from safetensors.torch import save_file
+
+    (tmp_path / "pend_net.py").write_text(
+        "from torch import nn\n\n\ndef build():\n"
+        "    return nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1))\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    torch.manual_seed(0)
+    from torch import nn
+
+    save_file(nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1)).state_dict(), "pi.safetensors")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (100, 3)).astype(np.float32)
+    np.savez("mine.npz", x=x, y=np.clip(-x[:, :1], -1, 1))
+    (tmp_path / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
+    r = cli("personalize", "pi.safetensors", "--arch", "pend_net.py:build", "--data", "mine.npz",
+            "--key-file", "k.bin", "--out", "b", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    args = ["eval", "../b", "--env", "Pendulum-v1", *QUICK, "--original", "../pi.safetensors", "--json"]
+    r = cli(*args, "--trust-remote-code")
+    assert r.code == 2 and "pass --arch naming the file's path from here" in r.err, r.err
+    r = cli(*args, "--arch", "../pend_net.py:build")
+    assert r.code == 0, r.err
+    assert json.loads(r.out)["conditions"]["original"]["episodes"] == 2
