@@ -56,19 +56,24 @@ def _options(
     """Add private keys to existing neural-network checkpoints (PRoP)."""
 
 
-app.command("keygen")(keygen_cmd.keygen)
-app.command("inspect")(inspect_cmd.inspect)
-app.command("personalize")(personalize_cmd.personalize)
-app.command("run")(run_cmd.run)
-app.command("add-user")(users_cmd.add_user)
-app.command("remove-user")(users_cmd.remove_user)
-app.command("attack")(attack_cmd.attack)
-app.command("eval")(eval_cmd.eval_)
-app.command("export")(export_cmd.export)
-app.command("push")(push_cmd.push)
-app.command("verify")(verify_cmd.verify)
-app.command("enrol")(verify_cmd.enrol)
-app.command("formats")(formats_cmd.formats)
+# The commands, in the order `prop --help` lists them: one file each (users_cmd and verify_cmd hold two).
+COMMANDS = {
+    "keygen": keygen_cmd.keygen,
+    "inspect": inspect_cmd.inspect,
+    "personalize": personalize_cmd.personalize,
+    "run": run_cmd.run,
+    "add-user": users_cmd.add_user,
+    "remove-user": users_cmd.remove_user,
+    "attack": attack_cmd.attack,
+    "eval": eval_cmd.eval_,
+    "export": export_cmd.export,
+    "push": push_cmd.push,
+    "verify": verify_cmd.verify,
+    "enrol": verify_cmd.enrol,
+    "formats": formats_cmd.formats,
+}
+for _name, _command in COMMANDS.items():
+    app.command(_name)(_command)
 
 # Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage, 130 interrupted.
 EXIT_BAD_INPUT = 2
