@@ -31,11 +31,6 @@ out = _Stream()  # results
 err = _Stream(stderr=True)  # progress and diagnostics
 
 
-def plural(n: int, noun: str, nouns: str | None = None) -> str:
-    """``n`` and the noun it counts: "1 user", "2 users" ("0 users")."""
-    return f"{n} {noun if n == 1 else nouns or noun + 's'}"
-
-
 def fail(what: str, fix: str | None = None):
     """Raise the one expected-failure type from CLI code."""
     from prop_cli.errors import PropError

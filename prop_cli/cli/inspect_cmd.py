@@ -2,7 +2,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import checkpoint_options, out, plural, print_json
+from prop_cli.errors import plural
+
+from .common import checkpoint_options, out, print_json
 from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers, TrustRemoteCode
 
 

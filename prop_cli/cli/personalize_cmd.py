@@ -11,6 +11,7 @@ from prop_cli.constants import (
     KEY_BITS_DEFAULT,
     KEY_ENCODINGS,
 )
+from prop_cli.errors import plural
 
 from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
 from .options import (
@@ -103,7 +104,7 @@ def personalize(
         fail("no key given", "pass --key-file (make one with prop keygen) or --passphrase")
     if len(key_file) + passphrase != len(data):
         fail(
-            f"{len(data)} --data but {len(key_file) + passphrase} keys",
+            f"{len(data)} --data but {plural(len(key_file) + passphrase, 'key')}",
             "give one key per --data: key files first, then passphrases, in the same order",
         )
     cfg = config

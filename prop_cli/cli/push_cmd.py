@@ -5,6 +5,8 @@ from typing import Annotated
 
 import typer
 
+from prop_cli.errors import plural
+
 from .common import err, fail, out, print_json
 from .options import BundleArg, Json, OnnxDir
 
@@ -43,6 +45,6 @@ def push(
         )
         return
     out.print(
-        f"pushed {len(result.files)} files to {result.url}"
+        f"pushed {plural(len(result.files), 'file')} to {result.url}"
         + (f" ({result.revision})" if result.revision else "")
     )

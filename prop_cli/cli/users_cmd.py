@@ -9,8 +9,9 @@ import typer
 
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import DEFAULT_DEVICE
+from prop_cli.errors import plural
 
-from .common import err, fail, out, plural, print_json, read_passphrase, step_progress, warn
+from .common import err, fail, out, print_json, read_passphrase, step_progress, warn
 from .options import (
     BundleArg,
     Device,

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from prop_cli.errors import plural
+
 from .common import fail, out, print_json, read_passphrase
 from .options import BundleArg, Json, KeyFile, Passphrase, opt
 
@@ -29,7 +31,7 @@ def verify(
         return
     out.print(
         f"verified {result['folder']}: every file is as signed by {result['signer']} ({result['mode']} "
-        f"bundle, format {result['format']}, {result['users']} users)"
+        f"bundle, format {result['format']}, {plural(result['users'], 'user')})"
     )
 
 

@@ -16,7 +16,7 @@ from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.modes import mode_of
 from prop_cli.config import ExportSettings
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 from prop_cli.files import check_output
 
 from . import sealed, unsealed
@@ -138,6 +138,6 @@ def describe_export(folder: Path, manifest: dict) -> dict | None:
         state["records"] = len(have & want)
     if have != want:
         extra = f" and {len(have - want)} the bundle no longer has" if have - want else ""
-        why = f"it holds {len(have & want)} of the bundle's {len(want)} user records{extra}"
+        why = f"it holds {len(have & want)} of the bundle's {plural(len(want), 'user record')}{extra}"
         state.update(current=False, why=why, fix=REEXPORT)
     return state
