@@ -68,7 +68,8 @@ SETTINGS = {
 Data = Annotated[list[Path], opt("--data", "Your data (x, y); repeat per user (`prop formats`).")]
 KeyFiles = Annotated[list[Path] | None, opt("--key-file", "A user's key file; repeat.")]
 Passphrases = Annotated[
-    int, opt("--passphrase", "Derive a key from a passphrase; repeat per user.", count=True)
+    int,  # a count: no "[default: 0]" in --help
+    opt("--passphrase", "Derive a key from a passphrase; repeat per user.", count=True, show_default=False),
 ]
 Out = Annotated[Path, opt("--out", "Bundle directory to write.")]
 General = Annotated[Path | None, opt("--general-data", "Inputs (x) on which the original must be kept.")]

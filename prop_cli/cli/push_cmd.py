@@ -13,7 +13,9 @@ from .options import BundleArg, Json, OnnxDir
 
 def push(
     bundle: BundleArg,
-    repo: Annotated[str, typer.Argument(help="Hub model repo, <org or user>/<name> (created if missing).")],
+    repo: Annotated[
+        str, typer.Argument(metavar="REPO", help="Hub model repo, <org or user>/<name> (created if missing).")
+    ],
     private: Annotated[bool, typer.Option("--private", help="Create the repo as private.")] = False,
     revision: Annotated[
         str | None, typer.Option("--revision", help="Branch to push to (created if missing).")

@@ -19,7 +19,9 @@ Chain = Annotated[
 
 
 def verify(
-    folder: Annotated[Path, typer.Argument(help="A signed bundle folder (e.g. from hf download).")],
+    folder: Annotated[
+        Path, typer.Argument(metavar="FOLDER", help="A signed bundle folder (e.g. from hf download).")
+    ],
     public_key: PublicKey = None, chain: Chain = None, as_json: Json = False,
 ) -> None:  # fmt: skip
     """Check that every file of FOLDER is what the publisher signed (prop push --sign); nothing runs."""
