@@ -132,6 +132,30 @@ def test_the_readme_quick_start_is_two_commands_that_exist():
         assert (ROOT / command.split()[1]).is_file(), command
 
 
+def test_the_readmes_first_block_reads_as_typed():
+    """Issue 28: it wrote --out mine.prop twice (the second with --force). Typed in order, each command
+    uses files made above it (or the user's own inputs), writes each output once, without --force, and
+    add-user takes the sealed bundle."""
+    block = re.search(r"```\n(.*?)```", README, flags=re.S).group(1)
+    lines = [ln.split("#", 1)[0].split() for ln in block.splitlines() if ln.startswith("prop ")]
+    made: dict[str, list[str]] = {}  # path -> the command line that wrote it
+    for words in lines:
+        cmd, args = words[1], words[2:]
+        assert "--force" not in args, words
+        outs = [args[i + 1] for i, w in enumerate(args) if w in ("--out", "--output")]
+        outs += [args[0]] if cmd == "keygen" else []
+        for path in outs:
+            assert path not in made, f"{path} is written twice: {words}"
+            made[path] = words
+        for i, w in enumerate(args):
+            if w == "--key-file":
+                assert args[i + 1] in made, f"{args[i + 1]} is used before prop keygen makes it"
+        if cmd in ("run", "add-user", "attack", "export"):
+            assert args[0] in made and made[args[0]][1] == "personalize", words
+        if cmd == "add-user":
+            assert "--seal" in made[args[0]], "add-user takes a sealed bundle"
+
+
 def test_docs_are_in_the_repository_and_cited():
     expected = (
         "audit.md", "bundle-format.md", "cli.md", "deploy.md", "design.md", "extending.md",
