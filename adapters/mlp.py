@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 
 from . import activations
 from .base import Adapter, CheckpointOptions, LoadedModel, finish
@@ -109,7 +109,7 @@ def _layers_from_tensors(
         b = biases.get(p)
         if b is not None and b.shape[0] != out_f:
             raise PropError(
-                f"{path} is not a plain MLP: '{p}.bias' has {b.shape[0]} entries but "
+                f"{path} is not a plain MLP: '{p}.bias' has {plural(b.shape[0], 'entry', 'entries')} but "
                 f"'{p}.weight' has {out_f} outputs",
                 ARCH_HINT,
             )

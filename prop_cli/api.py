@@ -299,8 +299,11 @@ def describe_bundle(bundle_path: Path) -> dict:
     """`prop inspect BUNDLE`: mode, users, keyed layers, the recorded audit, a signature (from the
     manifest, checked; nothing is imported and no key is needed)."""
     from prop_cli.bundle.describe import describe_bundle as describe
+    from prop_cli.deploy.onnx import describe_export
 
-    return describe(Path(bundle_path))
+    info = describe(Path(bundle_path))
+    info["onnx_export"] = describe_export(Path(bundle_path) / C.EXPORT_DIR, read_manifest(Path(bundle_path)))
+    return info
 
 
 def is_bundle(path: str) -> bool:
@@ -409,6 +412,7 @@ class UserChange:
     record: str  # the record id added or removed
     users: int  # users in the bundle afterwards
     metrics: dict | None = None  # add-user: the new user's report (as personalize prints it)
+    export: dict | None = None  # add-user: the state of the bundle's ONNX export (describe_export)
 
 
 def add_user(
@@ -434,7 +438,13 @@ def add_user(
     configure_threads(bundle.parameters, None)
     rec, new, report = train_added_user(bundle, load_data(data_path), key.bits, cfg, device, progress)
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
-    return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report)
+    folder, export = Path(bundle_path) / C.EXPORT_DIR, None
+    if folder.exists():  # after the bundle: the export never holds more than it
+        from prop_cli.deploy.onnx import add_record, describe_export
+
+        add_record(folder, Path(bundle_path), new, rec.id)
+        export = describe_export(folder, new)
+    return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report, export)
 
 
 @dataclass

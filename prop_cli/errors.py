@@ -19,6 +19,11 @@ class PropError(Exception):
         return f"{self.what}; {self.fix}" if self.fix else self.what
 
 
+def plural(n: int, noun: str, nouns: str | None = None) -> str:
+    """``n`` and the noun it counts, for messages: "1 user", "2 users", "0 users"."""
+    return f"{n} {noun if n == 1 else nouns or noun + 's'}"
+
+
 def brief(e: BaseException, width: int = 120) -> str:
     """``Type: first line of the message``, short enough for a one-line error."""
     first = (str(e).splitlines() or [""])[0][:width]

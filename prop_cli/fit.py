@@ -15,7 +15,7 @@ import torch
 from prop_adapters.base import LoadedModel, PolicyProtocol
 from prop_adapters.lerobot.flat import flatten_features
 from prop_cli.datasources.base import Dataset
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 
 # Targets this far outside a recorded action bound still count as inside (float32 round-off).
 _BOUND_TOL = 1e-5
@@ -105,8 +105,9 @@ def _targets(ds: Dataset, loaded: LoadedModel, width: int, flag: str) -> np.ndar
         if out.any():
             row, col = (int(i) for i in np.argwhere(out)[0])
             raise PropError(
-                f"{where} has {int(out.sum())} values outside the action bounds the checkpoint records "
-                f"(low {low.tolist()}, high {high.tolist()}; row {row}, output {col}: {y2[row, col]:.4g})",
+                f"{where} has {plural(int(out.sum()), 'value')} outside the action bounds the checkpoint "
+                f"records (low {low.tolist()}, high {high.tolist()}; row {row}, output {col}: "
+                f"{y2[row, col]:.4g})",
                 "give actions in the environment's units, within the bounds (the policy cannot act outside)",
             )
     return y

@@ -132,6 +132,30 @@ def test_the_readme_quick_start_is_two_commands_that_exist():
         assert (ROOT / command.split()[1]).is_file(), command
 
 
+def test_the_readmes_first_block_reads_as_typed():
+    """Issue 28: it wrote --out mine.prop twice (the second with --force). Typed in order, each command
+    uses files made above it (or the user's own inputs), writes each output once, without --force, and
+    add-user takes the sealed bundle."""
+    block = re.search(r"```\n(.*?)```", README, flags=re.S).group(1)
+    lines = [ln.split("#", 1)[0].split() for ln in block.splitlines() if ln.startswith("prop ")]
+    made: dict[str, list[str]] = {}  # path -> the command line that wrote it
+    for words in lines:
+        cmd, args = words[1], words[2:]
+        assert "--force" not in args, words
+        outs = [args[i + 1] for i, w in enumerate(args) if w in ("--out", "--output")]
+        outs += [args[0]] if cmd == "keygen" else []
+        for path in outs:
+            assert path not in made, f"{path} is written twice: {words}"
+            made[path] = words
+        for i, w in enumerate(args):
+            if w == "--key-file":
+                assert args[i + 1] in made, f"{args[i + 1]} is used before prop keygen makes it"
+        if cmd in ("run", "add-user", "attack", "export"):
+            assert args[0] in made and made[args[0]][1] == "personalize", words
+        if cmd == "add-user":
+            assert "--seal" in made[args[0]], "add-user takes a sealed bundle"
+
+
 def test_docs_are_in_the_repository_and_cited():
     expected = (
         "audit.md", "bundle-format.md", "cli.md", "deploy.md", "design.md", "extending.md",
@@ -254,6 +278,66 @@ def test_the_audit_docs_probe_table_is_the_registry():
     for p in probes.PROBES:
         row = next(ln for ln in rows if ln.startswith(f"| `{p.name}`"))
         assert f"| {p.threat} | {p.kind} |" in row, p.name
+
+
+def _cli_defaults() -> dict[str, dict[str, object]]:
+    """Each command's options and their defaults, as the CLI parses them."""
+    import typer.main
+
+    from prop_cli.cli.main import app
+
+    group = typer.main.get_command(app)
+    return {
+        name: {flag: p.default for p in cmd.params if p.param_type_name == "option" for flag in p.opts}
+        for name, cmd in group.commands.items()
+    }
+
+
+def _documented_defaults(text: str) -> list[tuple[list[str], str, str]]:
+    """(the section's commands, flag, value) for every default a reference page states: each
+    `--flag VALUE` of a bullet "with the defaults:" (the first of `a|b`; placeholders such as N
+    skipped), and `--flag ...` followed by "(default VALUE" or "(...; default VALUE"."""
+    found = []
+    for section in re.split(r"^## ", text, flags=re.M)[1:]:
+        heading, body = section.split("\n", 1)
+        commands = re.findall(r"prop ([a-z-]+)", heading)
+        for bullet in re.findall(r"^- [^\n]*with the defaults:.*?(?=^- |^$)", body, flags=re.S | re.M):
+            for flag, value in re.findall(r"`(--[\w-]+) ([^`\s]+)`", bullet):
+                if not value.isupper():
+                    found.append((commands, flag, value.split("|")[0]))
+        for flag, value in re.findall(r"`(--[\w-]+)[^`]*` \((?:[^()]*?; )?default:? ([^\s,;)]+)", body):
+            found.append((commands, flag, value))
+    return found
+
+
+def _same(documented: str, default: object) -> bool:
+    try:
+        return float(documented) == float(default)  # 1e-3 and 0.001, 1 and 1.0
+    except (TypeError, ValueError):
+        return documented == str(default)
+
+
+def test_the_cli_reference_states_the_clis_defaults():
+    """docs/cli.md said --fallback-noise defaults to 0.5 when it was 1.0: every default it states is
+    the one the command parses (personalize's come from PersonalizeConfig)."""
+    defaults = _cli_defaults()
+    stated = _documented_defaults(_doc("cli.md"))
+    flags = {flag for _, flag, _ in stated}
+    assert len(stated) >= 12 and {"--fallback-noise", "--steps", "--precision", "--threads"} <= flags
+    for commands, flag, value in stated:
+        mine = [defaults[c][flag] for c in commands if flag in defaults.get(c, {})]
+        assert mine, f"docs/cli.md states a default for {flag}, an option of none of {commands}"
+        assert _same(value, mine[0]), f"docs/cli.md: {flag} defaults to {mine[0]!r}, not {value}"
+
+
+def test_the_docs_list_every_payload_kind():
+    from prop_cli.config import PAYLOAD_KINDS
+
+    synopsis = re.findall(r"--payload ([\w|-]+)", _section(_doc("cli.md"), "## prop personalize --seal"))
+    assert synopsis and all(sorted(s.split("|")) == sorted(PAYLOAD_KINDS) for s in synopsis), synopsis
+    kinds = _doc("sealed.md").split("A **payload** is", 1)[1].split("\n\n", 1)[0]
+    for kind in PAYLOAD_KINDS:
+        assert f"`{kind}`" in kinds, f"docs/sealed.md's payload paragraph omits {kind}"
 
 
 # ---- Extending (docs/extending.md): one file + one registry line each ---------------------------------

@@ -2,7 +2,8 @@
 no model is built, no key is needed): mode, users, keyed layers, the recorded audit, a signature.
 
 The manifest's schema, format version and digest are checked (``read_manifest``) and every listed file
-against its sha256 (``check_files``), so what this says is what the bundle holds. Key material is never
+against its sha256 (``check_files``, and a sealed bundle's user records: ``load_state``), so what this says
+is what the bundle holds; a bundle missing any of them is a PropError naming how many. Key material is never
 in a bundle, so nothing here can print it.
 """
 
@@ -14,6 +15,7 @@ from prop_cli import constants as C
 
 from .modes import mode_of
 from .read import check_files, read_manifest
+from .records import load_state
 
 
 def _audit(m: dict) -> dict | None:
@@ -35,6 +37,10 @@ def describe_bundle(path: Path) -> dict:
     path = Path(path)
     m = read_manifest(path)
     check_files(path, m)
+    mode = mode_of(m)
+    records = mode.record_files(m)
+    if records:
+        load_state(path, m)  # the users/ records: present, and each against its sha256
     model = m[C.M_MODEL]
     return {
         "bundle": str(path),
@@ -44,11 +50,11 @@ def describe_bundle(path: Path) -> dict:
         "model": {k: v for k, v in model.items() if k in ("adapter", "type", "arch", "family", "builder")},
         "task": m.get(C.M_TASK),
         "key_bits": m[C.M_KEY]["bits"],
-        **mode_of(m).facts(m),
+        **mode.facts(m),
         "keyed_layers": [
             {"name": x["name"], "features": x["features"]} for x in m.get(C.M_KEYED_LAYERS, [])
         ],
-        "files": len(m[C.M_FILES]),
+        "files": len(m[C.M_FILES]) + len(records),  # every one checked
         "audit": _audit(m),
         "signed": (path / C.SIGNATURE_FILE).is_file(),
         "onnx_export": (path / C.EXPORT_DIR).is_dir(),

@@ -126,11 +126,22 @@ def _bad(path: Path, what: str) -> PropError:
 def load_state(path: Path, manifest: dict) -> SealedState:
     """The records of a sealed bundle, each file checked against its sha256 in the manifest."""
     spec = PayloadSpec.from_dict(manifest[C.M_PAYLOAD])
+    entries = manifest[C.M_RECORDS]
+    missing = [
+        e["file"]
+        for e in entries
+        if Path(e["file"]).parent.name != C.RECORDS_DIR or not (path / e["file"]).is_file()
+    ]
+    if missing:  # e.g. the folder was copied without users/: say how much is gone, not only the first
+        shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+        raise PropError(
+            f"bundle {path} is incomplete: {len(missing)} of {len(entries)} user "
+            f"record{'' if len(entries) == 1 else 's'} missing ({shown})",
+            f"copy the whole bundle folder, {C.RECORDS_DIR}/ included, or restore it from a trusted copy",
+        )
     records = []
-    for entry in manifest[C.M_RECORDS]:
+    for entry in entries:
         f = path / entry["file"]
-        if Path(entry["file"]).parent.name != C.RECORDS_DIR or not f.is_file():
-            raise _bad(path, f"user record {entry['file']} is missing")
         if sha256_file(f) != entry["sha256"]:
             raise _bad(
                 path, f"{entry['file']} does not match its sha256 in {C.MANIFEST} (modified or corrupt)"

@@ -8,6 +8,7 @@ import typer
 
 from prop_cli.config import AuditSettings, parse_hamming, parse_list
 from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
+from prop_cli.errors import plural
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
 from .options import BundleArch, BundleArg, Device, Force, Threads, TrustRemoteCode, config_options, opt
@@ -125,7 +126,7 @@ def attack(
         )
         raise typer.Exit(1)
     if failing:
-        more = f" (and {len(failing) - 1} more rows)" if len(failing) > 1 else ""
+        more = f" (and {plural(len(failing) - 1, 'more row')})" if len(failing) > 1 else ""
         print(f"prop: leak check failed at --max-leak {max_leak}: {report['max_leak']['reason']}{more}",
               file=sys.stderr)  # fmt: skip
         raise typer.Exit(1)

@@ -4,6 +4,7 @@ from pathlib import Path
 from typing import Annotated
 
 from prop_cli.config import EvalSettings
+from prop_cli.errors import plural
 
 from .common import err, out, print_json, read_passphrase
 from .options import BundleArch, BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, config_options, opt
@@ -66,4 +67,4 @@ def eval_(
         table.add_row(name, str(r["episodes"]), cell(r, "return"), cell(r, "success"), cell(r, "metric"))
     out.print(table)
     if "video" in report:
-        err.print(f"wrote {len(report['video']['files'])} videos to {report['video']['folder']}")
+        err.print(f"wrote {plural(len(report['video']['files']), 'video')} to {report['video']['folder']}")

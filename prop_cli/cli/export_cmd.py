@@ -7,6 +7,7 @@ import typer
 
 from prop_cli.config import ExportSettings
 from prop_cli.constants import DEFAULT_THREADS
+from prop_cli.errors import plural
 
 from .common import err, fail, out, print_json, read_passphrase
 from .options import (
@@ -88,8 +89,8 @@ def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remot
         print_json({"out": str(result.out), "layers": result.layers, "rank": result.rank,
                     "base": result.base})  # fmt: skip
     else:
-        out.print(f"wrote {result.out} (peft LoRA adapter: {result.layers} layers, rank {result.rank}; "
-                  f"base {result.base})")  # fmt: skip
+        out.print(f"wrote {result.out} (peft LoRA adapter: {plural(result.layers, 'layer')}, "
+                  f"rank {result.rank}; base {result.base})")  # fmt: skip
 
 
 def _print_table(result) -> None:

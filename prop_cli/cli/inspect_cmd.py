@@ -2,6 +2,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from prop_cli.errors import plural
+
 from .common import checkpoint_options, out, print_json
 from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers, TrustRemoteCode
 
@@ -55,7 +57,7 @@ def _bundle_table(info: dict):
 
     model = ", ".join(f"{k} {v}" for k, v in info["model"].items())
     n = info.get("records", info.get("users"))
-    who = f"{n} {'record' if 'records' in info else 'enrolled user'}{'' if n == 1 else 's'}"
+    who = plural(n, "record") if "records" in info else plural(n, "enrolled user")
     table = Table(title=f"{info['bundle']}: {info['mode']} bundle, format {info['format_version']}",
                   title_justify="left", show_header=False)  # fmt: skip
     a = info["audit"]
@@ -75,11 +77,21 @@ def _bundle_table(info: dict):
         ("key", f"{info['key_bits']} bits; {who}"),
         ("keyed layers", f"{len(info['keyed_layers'])}: {layers}"),
         ("payload", ", ".join(f"{k} {v}" for k, v in info["payload"].items()) if "payload" in info else "-"),
-        ("files", f"{info['files']}, every sha256 checked"),
+        ("files", f"{info['files']}, every sha256 checked"),  # a missing one is an error (describe)
         ("audit", audit),
         ("signed", "yes (model.sig: check it with prop verify)" if info["signed"] else "no"),
-        ("onnx export", "yes" if info["onnx_export"] else "no"),
+        ("onnx export", _export(info["onnx_export"], info["bundle"])),
     ]
     for k, v in rows:
         table.add_row(k, v)
     return table
+
+
+def _export(e: dict | None, bundle: str) -> str:
+    """The export's state as a line: whether it matches the bundle as it is, and what it binds."""
+    if e is None:
+        return "no"
+    if not e["current"]:
+        return f"STALE, in {e['folder']}: {e['why']}; {e['fix'].replace('BUNDLE', bundle)}"
+    held = f"{plural(e['records'], 'user record')}, " if "records" in e else ""
+    return f"yes, in {e['folder']} ({held}{plural(e['bound_keys'], 'key')} bound)"

@@ -12,7 +12,7 @@ from .options import Force, Json
 
 
 def keygen(
-    path: Annotated[Path, typer.Argument(help="Key file to create (mode 0600).")],
+    path: Annotated[Path, typer.Argument(metavar="PATH", help="Key file to create (mode 0600).")],
     bits: Annotated[
         int, typer.Option("--bits", help=f"Key size: a multiple of 8 from {KEY_BITS_MIN} to {KEY_BITS_MAX}.")
     ] = KEY_BITS_DEFAULT,

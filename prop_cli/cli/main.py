@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 import warnings
 
 import typer
+import typer.core
 
 from prop_cli.constants import DISTRIBUTION, ENV_DEBUG
 
@@ -56,6 +58,48 @@ def _options(
     """Add private keys to existing neural-network checkpoints (PRoP)."""
 
 
+# A repeatable option's type as typer >= 0.2x prints it ("<list[Path]>"), shown as one value repeated.
+_LIST_TYPE = re.compile(r"<list\[(\w+)\]>")
+
+
+def _argument(param) -> str:
+    """An argument as the commands' help texts name it: CHECKPOINT, [PATH], FILES... (typer >= 0.2x
+    prints a required one as {checkpoint}, a shape no shell or man page uses)."""
+    name = param.metavar or param.name.upper()
+    name = name if param.required else f"[{name}]"
+    return name + ("..." if param.nargs != 1 else "")
+
+
+class Command(typer.core.TyperCommand):
+    """typer's command with the help every typer since 0.12 prints the same way where it matters:
+    arguments by their upper-case names in the usage line and the list, repeatable options as
+    ``<path>...``. The rest (types, defaults, wrapping) is typer's."""
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for param in self.get_params(ctx):
+            argument = param.param_type_name == "argument"
+            pieces += [_argument(param)] if argument else param.get_usage_pieces(ctx)
+        return pieces
+
+    def format_options(self, ctx, formatter) -> None:
+        rows: dict[str, list[tuple[str, str]]] = {"argument": [], "option": []}
+        for param in self.get_params(ctx):
+            record = param.get_help_record(ctx)
+            if record is None or param.param_type_name not in rows:
+                continue
+            name, text = record
+            if param.param_type_name == "argument":
+                name = _argument(param)
+            else:
+                name = _LIST_TYPE.sub(lambda m: f"<{m[1].lower()}>...", name)
+            rows[param.param_type_name].append((name, text))
+        for title, kind in (("Arguments", "argument"), ("Options", "option")):
+            if rows[kind]:
+                with formatter.section(title):
+                    formatter.write_dl(rows[kind])
+
+
 # The commands, in the order `prop --help` lists them: one file each (users_cmd and verify_cmd hold two).
 COMMANDS = {
     "keygen": keygen_cmd.keygen,
@@ -73,7 +117,7 @@ COMMANDS = {
     "formats": formats_cmd.formats,
 }
 for _name, _command in COMMANDS.items():
-    app.command(_name)(_command)
+    app.command(_name, cls=Command)(_command)
 
 # Exit codes: 0 ok, 1 a check failed (e.g. attack --max-leak), 2 bad input or usage, 130 interrupted.
 EXIT_BAD_INPUT = 2

@@ -26,9 +26,13 @@ def opt(flag: str, help: str, **kwargs):
 
 Checkpoint = Annotated[
     str,
-    typer.Argument(help=f"Checkpoint file or folder, or hf://org/name[@rev]/path ({FORMATS})."),
+    typer.Argument(
+        metavar="CHECKPOINT", help=f"Checkpoint file or folder, or hf://org/name[@rev]/path ({FORMATS})."
+    ),
 ]
-BundleArg = Annotated[Path, typer.Argument(help="Bundle directory written by prop personalize.")]
+BundleArg = Annotated[
+    Path, typer.Argument(metavar="BUNDLE", help="Bundle directory written by prop personalize.")
+]
 
 Arch = Annotated[str | None, typer.Option("--arch", help="Your module: package.module:factory.")]
 BundleArch = Annotated[

@@ -11,6 +11,7 @@ from prop_cli.constants import (
     KEY_BITS_DEFAULT,
     KEY_ENCODINGS,
 )
+from prop_cli.errors import plural
 
 from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
 from .options import (
@@ -67,7 +68,8 @@ SETTINGS = {
 Data = Annotated[list[Path], opt("--data", "Your data (x, y); repeat per user (`prop formats`).")]
 KeyFiles = Annotated[list[Path] | None, opt("--key-file", "A user's key file; repeat.")]
 Passphrases = Annotated[
-    int, opt("--passphrase", "Derive a key from a passphrase; repeat per user.", count=True)
+    int,  # a count: no "[default: 0]" in --help
+    opt("--passphrase", "Derive a key from a passphrase; repeat per user.", count=True, show_default=False),
 ]
 Out = Annotated[Path, opt("--out", "Bundle directory to write.")]
 General = Annotated[Path | None, opt("--general-data", "Inputs (x) on which the original must be kept.")]
@@ -103,7 +105,7 @@ def personalize(
         fail("no key given", "pass --key-file (make one with prop keygen) or --passphrase")
     if len(key_file) + passphrase != len(data):
         fail(
-            f"{len(data)} --data but {len(key_file) + passphrase} keys",
+            f"{len(data)} --data but {plural(len(key_file) + passphrase, 'key')}",
             "give one key per --data: key files first, then passphrases, in the same order",
         )
     cfg = config

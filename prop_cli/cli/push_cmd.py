@@ -5,13 +5,17 @@ from typing import Annotated
 
 import typer
 
+from prop_cli.errors import plural
+
 from .common import err, fail, out, print_json
 from .options import BundleArg, Json, OnnxDir
 
 
 def push(
     bundle: BundleArg,
-    repo: Annotated[str, typer.Argument(help="Hub model repo, <org or user>/<name> (created if missing).")],
+    repo: Annotated[
+        str, typer.Argument(metavar="REPO", help="Hub model repo, <org or user>/<name> (created if missing).")
+    ],
     private: Annotated[bool, typer.Option("--private", help="Create the repo as private.")] = False,
     revision: Annotated[
         str | None, typer.Option("--revision", help="Branch to push to (created if missing).")
@@ -43,6 +47,6 @@ def push(
         )
         return
     out.print(
-        f"pushed {len(result.files)} files to {result.url}"
+        f"pushed {plural(len(result.files), 'file')} to {result.url}"
         + (f" ({result.revision})" if result.revision else "")
     )

@@ -9,8 +9,9 @@ import typer
 
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import DEFAULT_DEVICE
+from prop_cli.errors import plural
 
-from .common import err, fail, out, print_json, read_passphrase, step_progress
+from .common import err, fail, out, print_json, read_passphrase, step_progress, warn
 from .options import (
     BundleArch,
     BundleArg,
@@ -77,15 +78,32 @@ def add_user(
     )  # fmt: skip
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users,
-                    "metrics": result.metrics})  # fmt: skip
+                    "metrics": result.metrics, "onnx_export": result.export})  # fmt: skip
+        _export_note(result)
         return
     m = result.metrics
     out.print(
-        f"added record {result.record} to {result.bundle} ({result.users} users): personalization "
+        f"added record {result.record} to {result.bundle} ({plural(result.users, 'user')}): personalization "
         f"{m['personalization']:.4f} on {m['samples']} validation samples; wrong keys: null, "
         f"{m['random']['leakage']['n']} random and {m['hamming1']['leakage']['n']} 1-bit keys, worst leakage "
         f"{max(m[g]['leakage']['worst'] for g in ('null', 'random', 'hamming1')):.4f}"
     )
+    _export_note(result)
+
+
+def _export_note(result) -> None:
+    """What became of the bundle's ONNX export (stderr): it holds the new record, or it is out of date."""
+    e = result.export
+    if e is None:
+        return
+    if e["current"]:
+        err.print(
+            f"the ONNX export in {e['folder']} now holds the new record; it runs the new user's behaviour "
+            f"once bound to their key: prop export {result.bundle} --onnx --key-file KEY --force"
+        )
+    else:
+        warn(f"the ONNX export in {e['folder']} no longer matches the bundle ({e['why']}): "
+             f"{e['fix'].replace('BUNDLE', str(result.bundle))}")  # fmt: skip
 
 
 def remove_user(
@@ -108,5 +126,5 @@ def remove_user(
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users})
         return
-    left = f"{result.users} user{'' if result.users == 1 else 's'} left"
+    left = f"{plural(result.users, 'user')} left"
     err.print(f"removed record {result.record} from {result.bundle} ({left})")

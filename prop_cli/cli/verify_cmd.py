@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from prop_cli.errors import plural
+
 from .common import fail, out, print_json, read_passphrase
 from .options import BundleArg, Json, KeyFile, Passphrase, opt
 
@@ -17,7 +19,9 @@ Chain = Annotated[
 
 
 def verify(
-    folder: Annotated[Path, typer.Argument(help="A signed bundle folder (e.g. from hf download).")],
+    folder: Annotated[
+        Path, typer.Argument(metavar="FOLDER", help="A signed bundle folder (e.g. from hf download).")
+    ],
     public_key: PublicKey = None, chain: Chain = None, as_json: Json = False,
 ) -> None:  # fmt: skip
     """Check that every file of FOLDER is what the publisher signed (prop push --sign); nothing runs."""
@@ -29,7 +33,7 @@ def verify(
         return
     out.print(
         f"verified {result['folder']}: every file is as signed by {result['signer']} ({result['mode']} "
-        f"bundle, format {result['format']}, {result['users']} users)"
+        f"bundle, format {result['format']}, {plural(result['users'], 'user')})"
     )
 
 

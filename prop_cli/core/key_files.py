@@ -27,7 +27,7 @@ from prop_cli.constants import (
     SCRYPT_P,
     SCRYPT_R,
 )
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 from prop_cli.files import uninterrupted, wrote
 
 # scrypt needs 128*r*N*p bytes (16 MiB with the defaults); OpenSSL's own cap is 32 MiB, so give
@@ -117,12 +117,13 @@ def read_key_file(path: Path, bits: int | None = None) -> np.ndarray:
         raise PropError(f"key file {path} is empty", "pass the key file written by prop keygen")
     if bits is not None and size * 8 != bits:
         raise PropError(
-            f"key file {path} has {size} bytes but the bundle expects {bits} bits = {bits // 8} bytes",
+            f"key file {path} has {plural(size, 'byte')} but the bundle expects {bits} bits = "
+            f"{bits // 8} bytes",
             "use the key the bundle was personalized with",
         )
     if bits is None and not (KEY_BITS_MIN // 8 <= size <= KEY_BITS_MAX // 8):
         raise PropError(
-            f"key file {path} has {size} bytes; key files hold {KEY_BITS_MIN // 8} to "
+            f"key file {path} has {plural(size, 'byte')}; key files hold {KEY_BITS_MIN // 8} to "
             f"{KEY_BITS_MAX // 8} bytes",
             "check that --key-file points at a key written by prop keygen",
         )

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from prop_cli.constants import TASK
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 
 from .base import Dataset, DataSource
 
@@ -169,7 +169,7 @@ class LeRobotSource(DataSource):
         n = len(x["episode_index"]) if "episode_index" in x else 0
         if n < min_samples:
             raise PropError(
-                f"{where}: {n} frames, fewer than the {min_samples} needed", "record more episodes"
+                f"{where}: {plural(n, 'frame')}, fewer than the {min_samples} needed", "record more episodes"
             )
         for k, v in x.items():
             if v.dtype.kind == "f" and not np.isfinite(v).all():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 
 from .base import Dataset, DataSource
 
@@ -55,7 +55,9 @@ def _numbers(a: np.ndarray, name: str, path: Path) -> None:
         raise PropError(f"{path}: field '{name}' has dtype {a.dtype}, not numbers", SAVE_HINT)
     bad = _nonfinite_rows(a)
     if bad:
-        raise PropError(f"{path}: field '{name}' has NaN or inf in {bad} rows", "drop or fix those rows")
+        raise PropError(
+            f"{path}: field '{name}' has NaN or inf in {plural(bad, 'row')}", "drop or fix those rows"
+        )
 
 
 class NpzSource(DataSource):
@@ -94,9 +96,9 @@ class NpzSource(DataSource):
         if y is not None:
             _numbers(y, "y", path)
             if y.ndim == 0 or len(y) != len(x):
-                n_y = "a scalar" if y.ndim == 0 else f"{len(y)} rows"
+                n_y = "a scalar" if y.ndim == 0 else plural(len(y), "row")
                 raise PropError(
-                    f"{path}: field 'x' has {len(x)} rows but field 'y' has {n_y}",
+                    f"{path}: field 'x' has {plural(len(x), 'row')} but field 'y' has {n_y}",
                     "give one target per input",
                 )
             if y.ndim > 2:
@@ -107,7 +109,7 @@ class NpzSource(DataSource):
             y = y.astype(np.int64) if y.dtype.kind in "biu" else y.astype(np.float32)
         if len(x) < min_samples:
             raise PropError(
-                f"{path}: field 'x' has {len(x)} rows, fewer than the {min_samples} needed",
+                f"{path}: field 'x' has {plural(len(x), 'row')}, fewer than the {min_samples} needed",
                 "collect more samples",
             )
         return Dataset(x=x.astype(np.float32), y=y, path=str(path))

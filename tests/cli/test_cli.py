@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -428,6 +429,31 @@ def test_every_command_has_json(cli):
     for cmd in app.registered_commands:
         res = cli(cmd.name, "--help")
         assert "--json" in res.out, cmd.name
+
+
+def test_every_help_reads_as_a_user_types_it(cli):
+    """No typer artefacts: {checkpoint}, <list[Path]>, a count's "[default: 0]"; arguments by the
+    upper-case names the help texts use (CHECKPOINT, BUNDLE)."""
+    from prop_cli.cli.main import app
+
+    meaningful_zero = {"--threads", "--seed", "--noise-seed", "--max-steps"}  # 0 says something there
+    for cmd in app.registered_commands:
+        res = cli(cmd.name, "--help")
+        assert res.code == 0, cmd.name
+        usage = res.out.splitlines()[0]
+        assert "{" not in res.out and "<list" not in res.out, (cmd.name, res.out)
+        assert "[default: None]" not in res.out and "[default: False]" not in res.out, cmd.name
+        options = re.split(r"\n  (?=-)", res.out.split("\nOptions:\n")[-1])  # one entry per option
+        for entry in options:
+            if "[default: 0]" in " ".join(entry.split()):
+                assert entry.split()[0] in meaningful_zero, (cmd.name, entry)
+        words = usage.split()[3:]  # Usage: prop CMD [OPTIONS] ARGS...
+        assert all(w.isupper() for w in words), usage
+    personalize_help = cli("personalize", "--help").out
+    assert personalize_help.startswith("Usage: prop personalize [OPTIONS] CHECKPOINT\n")
+    assert "--data <path>..." in personalize_help and "--key-file <path>..." in personalize_help
+    assert "Usage: prop push [OPTIONS] BUNDLE REPO" in cli("push", "--help").out
+    assert "Missing argument 'CHECKPOINT'" in cli("inspect").err
 
 
 def test_run_and_keygen_json(cli, workdir):

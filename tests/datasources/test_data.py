@@ -116,7 +116,7 @@ def test_nan_inf_rows(tmp_path):
         load_npz(_npz(tmp_path, x=x, y=y))
     x, yr = _xy(labels=False)
     yr[0, 0] = -np.inf
-    with pytest.raises(PropError, match=r"r\.npz: field 'y' has NaN or inf in 1 rows"):
+    with pytest.raises(PropError, match=r"r\.npz: field 'y' has NaN or inf in 1 row"):
         load_npz(_npz(tmp_path, "r.npz", x=x, y=yr))
 
 
@@ -189,7 +189,7 @@ def test_targets_outside_the_action_bounds_are_refused(tmp_path):
     bad = ok.copy()
     bad[5, 1] = 2.5
     with pytest.raises(
-        PropError, match=r"field 'y' has 1 values outside the action bounds .*row 5, output 1: 2\.5"
+        PropError, match=r"field 'y' has 1 value outside the action bounds .*row 5, output 1: 2\.5"
     ):
         prepare(box, load_npz(_npz(tmp_path, "b.npz", x=x, y=bad)))
 

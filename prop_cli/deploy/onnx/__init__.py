@@ -14,13 +14,14 @@ import numpy as np
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
+from prop_cli.bundle.modes import mode_of
 from prop_cli.config import ExportSettings
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, plural
 from prop_cli.files import check_output
 
 from . import sealed, unsealed
-from .common import ExportResult, bound, read_export, require_onnx, session, verify_inputs
-from .sealed import SealedOnnxRunner, drop_record
+from .common import REEXPORT, ExportResult, bound, read_export, require_onnx, session, verify_inputs
+from .sealed import SealedOnnxRunner, add_record, drop_record
 from .unsealed import DeltaInputView, OnnxRunner, delta_names
 
 __all__ = [
@@ -28,7 +29,9 @@ __all__ = [
     "ExportResult",
     "OnnxRunner",
     "SealedOnnxRunner",
+    "add_record",
     "delta_names",
+    "describe_export",
     "drop_record",
     "export_onnx",
     "read_export",
@@ -111,3 +114,30 @@ def run_onnx(
                 f"export it again with your key: prop export {bundle.path} --onnx --key-file KEY --force",
             )
     return _mode(bundle).run(bundle, folder, x, key, threads)
+
+
+def describe_export(folder: Path, manifest: dict) -> dict | None:
+    """What `prop inspect BUNDLE` says of the export in ``folder`` (``<bundle>/onnx``): None where there
+    is none; else whether it is current (made from the bundle as it is, its graphs unmodified, and for
+    a sealed bundle holding the same records), why not, and how many keys it binds. Read as data: onnx
+    need not be installed."""
+    folder = Path(folder)
+    if not folder.exists():
+        return None
+    state = {"folder": str(folder), "current": True, "why": None, "fix": None, "bound_keys": 0}
+    try:
+        meta = read_export(folder, manifest)
+    except PropError as e:
+        return {**state, "current": False, "why": e.what, "fix": REEXPORT}
+    state["bound_keys"] = len(meta.get(C.M_ENROLMENTS, []))
+    # Sealed exports carry the records (unsealed: none on either side, nothing to compare).
+    want = set(mode_of(manifest).record_files(manifest))
+    public = meta.get("sealed") or {}
+    have = set(mode_of(public).record_files(public))
+    if want or have:
+        state["records"] = len(have & want)
+    if have != want:
+        extra = f" and {len(have - want)} the bundle no longer has" if have - want else ""
+        why = f"it holds {len(have & want)} of the bundle's {plural(len(want), 'user record')}{extra}"
+        state.update(current=False, why=why, fix=REEXPORT)
+    return state

@@ -7,6 +7,7 @@ layers' initializers in this process's memory. No graph holds a payload in the c
 
 from __future__ import annotations
 
+import shutil
 import warnings
 from pathlib import Path
 
@@ -164,6 +165,24 @@ def drop_record(folder: Path, record_id: str) -> None:
     meta[C.M_ENROLMENTS] = [e for e in meta.get(C.M_ENROLMENTS, []) if e.get("record") != record_id]
     write_text(folder / C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)), C.EXPORT_META, "--out")
     (folder / C.RECORDS_DIR / f"{record_id}{C.RECORD_SUFFIX}").unlink(missing_ok=True)
+
+
+def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> None:
+    """Add a new user's record to a sealed export in place (as ``drop_record`` removes one): its graphs
+    hold no record, so the export then serves the bundle as it is. The new key is bound to nothing
+    (`prop export --onnx --key-file` binds it); the keys bound before stay bound (the behaviour they
+    were bound to leaves out the records list). ``manifest``: the bundle's, with the record. An export
+    that is not an unmodified export of this bundle is left as it is (``describe_export`` says why)."""
+    try:
+        meta = common.read_export(folder, manifest)
+    except PropError:
+        return
+    entry = next(e for e in manifest[C.M_RECORDS] if e["id"] == record_id)
+    (folder / C.RECORDS_DIR).mkdir(exist_ok=True)
+    shutil.copyfile(Path(bundle) / entry["file"], folder / entry["file"])  # first: never listed, absent
+    public = meta["sealed"]
+    public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id] + [entry]
+    write_text(folder / C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)), C.EXPORT_META, "--out")
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
