@@ -10,6 +10,7 @@ export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 ruff check .
 lint-imports --no-cache
 # Tests marked slow (the quick run of every reproduction table, every damaged file through a CLI
-# process) run in CI (.ci/run sets PROP_TEST_SLOW=1), not by default.
+# process, the full fuzzing and bit-flip sets, the bench_harden smoke run) run in CI (.ci/run sets
+# PROP_TEST_SLOW=1), not by default.
 if [ "${PROP_TEST_SLOW:-0}" = 1 ]; then marker="slow or not slow"; else marker="not slow"; fi
 python -m pytest -q -p no:cacheprovider -m "$marker" "$@"

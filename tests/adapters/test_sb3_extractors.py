@@ -12,7 +12,10 @@ from safetensors.torch import load_file
 
 from prop_adapters import load_checkpoint
 from prop_adapters.sb3.adapter import observation_array
-from tests.conftest import FAST
+
+# Image inputs make a step ~20x a tiny MLP's (conftest's FAST: 40 steps); these checks need a bundle,
+# not a fit.
+IMAGE_STEPS = ["--steps", "10", "--device", "cpu"]
 
 pytest.importorskip("stable_baselines3")
 gym = pytest.importorskip("gymnasium")
@@ -109,7 +112,7 @@ def test_cnn_policy_equals_predict_and_personalizes(tmp_path, cli):
     np.savez(tmp_path / "mine.npz", x=x, y=rng.integers(0, 3, 24))
     (tmp_path / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
     r = cli("personalize", tmp_path / "cnn.zip", "--data", tmp_path / "mine.npz", "--key-file",
-            tmp_path / "k.bin", "--out", tmp_path / "b", *FAST)  # fmt: skip
+            tmp_path / "k.bin", "--out", tmp_path / "b", *IMAGE_STEPS)  # fmt: skip
     assert r.code == 0, r.err
     manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert [entry["name"] for entry in manifest["keyed_layers"]] == [
@@ -150,7 +153,7 @@ def test_frozen_base_cnn_bundle_without_key_is_the_original(tmp_path, cli):
     np.savez(tmp_path / "mine.npz", x=x, y=rng.uniform(-1, 1, (16, 2)).astype(np.float32))
     (tmp_path / "k.bin").write_bytes(rng.integers(0, 256, 16, dtype=np.uint8).tobytes())
     r = cli("personalize", tmp_path / "cnn.zip", "--data", tmp_path / "mine.npz", "--key-file",
-            tmp_path / "k.bin", "--out", tmp_path / "b", "--freeze-base", *FAST)  # fmt: skip
+            tmp_path / "k.bin", "--out", tmp_path / "b", "--freeze-base", *IMAGE_STEPS)  # fmt: skip
     assert r.code == 0, r.err
     ours = KeyedPolicy(load_bundle(tmp_path / "b"))
     hwc = np.moveaxis(x[:5], 1, -1).astype(np.uint8)

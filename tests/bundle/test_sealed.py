@@ -191,8 +191,8 @@ def test_audit_of_a_sealed_bundle_tries_keys_on_the_records(cli, sealed, workdir
     rep = workdir / "audit.json"
     r = cli("attack", sealed, "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin",
             "--key-file", workdir / "k2.bin", "--blackbox", "3000", "--random", "64", "--per-distance", "8",
-            "--restarts", "4", "--search-steps", "10", "--samples", "64", "--max-leak", "0.01",
-            "--json", rep)  # fmt: skip
+            "--restarts", "4", "--search-steps", "10", "--samples", "64", "--fewshot-restarts", "4",
+            "--fewshot-steps", "20", "--max-leak", "0.01", "--json", rep)  # fmt: skip
     assert r.code == 0, r.err
     report = json.loads(rep.read_text())
     assert report["bundle"]["sealed"] and report["user"]["leakage"] > 0.5  # the user's key opens its record

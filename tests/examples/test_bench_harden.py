@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from benchmarks import bench_harden
 
 
@@ -14,6 +16,7 @@ def _tiny_il(name, out, seed):  # the IL example, with a base trained for second
         write_example(out, seed=seed, base_samples=512, user_samples=200, base_steps=50)
 
 
+@pytest.mark.slow  # every attack on two bundles and their controls: scripts/test.sh skips it, .ci/run runs it
 def test_quick_run_prints_both_modes_with_controls(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(bench_harden, "write_task", _tiny_il)
     out = tmp_path / "rows.json"

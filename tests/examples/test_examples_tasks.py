@@ -14,7 +14,7 @@ from safetensors import safe_open
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from examples import digits_task, il_task  # noqa: E402
 
-IL_SMALL = dict(base_samples=2000, user_samples=300, base_steps=300)
+IL_SMALL = dict(base_samples=2000, user_samples=300, base_steps=30)  # files and determinism, not a fit
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -169,23 +169,24 @@ def test_mnist_quick_run_end_to_end(tmp_path, monkeypatch):
     _idx(d / "t10k-images-idx3-ubyte.gz", rng.integers(0, 256, (60, 28, 28)))
     _idx(d / "t10k-labels-idx1-ubyte.gz", rng.integers(0, 10, 60))
     monkeypatch.setattr(digits, "MNIST_SIZES", (200, 100, 60))
-    (res,) = digits.run(tmp_path / "out", quick=True, seeds=2, mnist=d, log=lambda m: None)
-    assert res["name"] == "mnist" and res["seeds"] == 2
+    # One seed (the quick default is 2): the seeds' aggregate is the slow quick run's to check.
+    (res,) = digits.run(tmp_path / "out", quick=True, seeds=1, mnist=d, log=lambda m: None)
+    assert res["name"] == "mnist" and res["seeds"] == 1
     assert res["params"]["PRoP"] > 100_000  # the 784-wide input makes the base alone ~118k
     assert set(res["methods"]["CVAE"]["general"]) == {"random", "hamming1", "user"}
 
 
-def test_kitchen_table_is_well_formed(quick_run):
+def _check_kitchen_tables(out, s) -> None:
+    """kitchen.json/.md and kitchen_capacity.json, as `kitchen.run` wrote them under settings ``s``."""
     from examples.reproduce import kitchen
 
-    out, _ = quick_run
     res = json.loads((out / "kitchen.json").read_text())
     names = [m.name for m in kitchen.METHODS]
     assert res["methods"] == names and set(res["values"]) == set(names)
     for m in names:
         for proto in kitchen.PROTOCOLS:
             cells = res["values"][m][proto]
-            assert len(cells["score"]) == len(cells["privacy"]) == res["repetitions"] == kitchen.QUICK.reps
+            assert len(cells["score"]) == len(cells["privacy"]) == res["repetitions"] == s.reps
             assert all(0 <= v <= 3 for k in kitchen.METRICS for v in cells[k])
     for m in ("MLP", "CVAE"):  # baselines sized to PRoP's parameter count
         assert abs(res["params"][m] - res["params"]["PRoP"]) <= 0.1 * res["params"]["PRoP"]
@@ -195,8 +196,32 @@ def test_kitchen_table_is_well_formed(quick_run):
             assert f"| {a} vs {b} | " in text  # a p-value row per PRoP variant and baseline
     assert (f"{kitchen.SEALED_NAME}: not run" in text) == (kitchen.SEALED is None)  # no made-up numbers
     cap = json.loads((out / "kitchen_capacity.json").read_text())
-    assert cap["sweep"] == list(kitchen.QUICK.sweep)
+    assert cap["sweep"] == list(s.sweep)
     assert set(cap["values"][str(cap["sweep"][-1])]) == set(names)
+
+
+@pytest.mark.slow  # the quick run of every table: scripts/test.sh skips it, .ci/run runs it
+def test_kitchen_table_is_well_formed(quick_run):
+    from examples.reproduce import kitchen
+
+    _check_kitchen_tables(quick_run[0], kitchen.QUICK)
+
+
+def test_kitchen_tables_of_a_tiny_run_are_well_formed(tmp_path, monkeypatch):
+    """The same checks on a run of its own, a few training steps on two people (not the quick run's
+    fixture, which runs every reproduction)."""
+    from dataclasses import replace
+
+    from examples.reproduce import kitchen
+
+    tiny = replace(kitchen.QUICK, participants=2, main=2, sweep=(2,), prop_steps=5, baseline_steps=5,
+                   base_steps=5)  # fmt: skip
+    monkeypatch.setattr(kitchen, "QUICK", tiny)
+    monkeypatch.setattr(kitchen, "SEALED_STEPS", 5)
+    assert reproduce.main(["kitchen", "--quick", "--out", str(tmp_path)]) == 0
+    _check_kitchen_tables(tmp_path, tiny)
+    assert (tmp_path / "kitchen.png").stat().st_size > 1000
+    assert not (tmp_path / "work").exists()
 
 
 def _oracle(orders):
