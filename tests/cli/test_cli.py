@@ -30,6 +30,10 @@ def personalize(cli, wd, *extra, out="mine.prop"):
     )
 
 
+# The start of a PNG that matplotlib wrote (its signature, then the "Software" text chunk it adds).
+PNG_BY_MATPLOTLIB = b"\x89PNG\r\n\x1a\n\0\0\0\x28tEXtSoftware\0Matplotlib version3.9.0, https://matplotlib.org/"
+
+
 def assert_clean_error(res, *words):
     assert res.code == 2, (res.code, res.err)
     lines = [ln for ln in res.err.strip().splitlines() if ln.startswith("prop: error:")]
@@ -361,8 +365,8 @@ def test_overwrite_hints_name_the_commands_real_flag(cli, workdir):
     np.save(workdir / "y.npy", np.zeros(1))
     res = cli("run", workdir / "mine.prop", "--input", workdir / "x.npy", "--output", workdir / "y.npy")
     assert_clean_error(res, "choose another --output or pass --force")
-    (workdir / "a.json").write_text("{}")
-    (workdir / "a.png").write_bytes(b"")
+    (workdir / "a.json").write_text(json.dumps({"schema": C.AUDIT_SCHEMA}))  # a report, as prop writes
+    (workdir / "a.png").write_bytes(PNG_BY_MATPLOTLIB)
     base = ["attack", workdir / "mine.prop", "--data", workdir / "mine.npz", "--key-file", workdir / "k.bin"]
     assert_clean_error(cli(*base, "--json", workdir / "a.json"), "choose another --json or pass --force")
     assert_clean_error(cli(*base, "--plot", workdir / "a.png"), "choose another --plot or pass --force")

@@ -37,6 +37,13 @@ def offline_hub(tmp_path, monkeypatch) -> Path:
     return home / "hub"
 
 
+@pytest.fixture
+def reachable(monkeypatch) -> None:
+    """For push tests that replace the hub client's upload methods: HF_HUB_OFFLINE (set above for the
+    downloads) would refuse the push before them."""
+    monkeypatch.setattr(publish, "offline", lambda: False)
+
+
 def _cache_file(cache: Path, repo: str, filename: str, src: Path) -> Path:
     """Place a file in huggingface_hub's cache layout, as a download of revision main would."""
     repo_dir = cache / f"models--{repo.replace('/', '--')}"
@@ -153,7 +160,7 @@ def test_model_card_content(bundle):
     assert "No audit recorded" in publish.model_card({}, "me/x")
 
 
-def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch):
+def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch, reachable):
     from prop_cli.bundle import load_bundle
     from prop_cli.deploy.onnx import export_onnx
 
@@ -196,7 +203,7 @@ def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch):
     assert res["url"] == "https://huggingface.co/me/my-policy" and "README.md" in res["files"]
 
 
-def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
+def test_push_without_export_and_without_revision(cli, bundle, monkeypatch, reachable):
     seen = {}
     monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.setdefault("repo", kw))
     monkeypatch.setattr(
@@ -211,7 +218,7 @@ def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
     )
     r = cli("push", bundle, "me/pub")  # unsealed to a public repo: refused, nothing uploaded
     assert r.code == 2 and "unsealed" in r.err and "--allow-unsealed" in r.err and not seen
-    assert len(r.err.strip().splitlines()) == 2  # the "uploading" notice and the one-line error
+    assert r.err.strip().splitlines() == [r.err.strip()]  # the one-line error, no "uploading" before it
     r = cli("push", bundle, "me/pub", "--allow-unsealed")
     assert r.code == 0, r.err
     assert seen["repo"]["private"] is False
@@ -234,7 +241,7 @@ def test_push_offline_fails_cleanly(cli, bundle):
     assert r.err.splitlines()[-1].startswith("prop: error: cannot push") and "HF_HUB_OFFLINE" in r.err
 
 
-def test_push_without_network_is_one_line(cli, bundle, monkeypatch):
+def test_push_without_network_is_one_line(cli, bundle, monkeypatch, reachable):
     """The hub client's transport errors are not OSErrors (httpx's ConnectError): still one line."""
 
     class ConnectError(Exception):
@@ -256,7 +263,7 @@ def test_download_without_network_is_one_line_naming_the_repo(cli, monkeypatch):
     def unreachable(*a, **kw):
         raise ConnectTimeout("timed out")
 
-    monkeypatch.setattr(hub, "_offline", lambda: False)
+    monkeypatch.setattr(hub, "offline", lambda: False)
     monkeypatch.setattr(hf, "hf_hub_download", unreachable)
     r = cli("inspect", "hf://org/policy/model.safetensors")
     assert r.code == 2 and "Traceback" not in r.err and r.err.count("\n") == 1
@@ -269,7 +276,7 @@ def test_missing_extra_names_the_install_command(monkeypatch):
         hub.resolve_checkpoint("hf://org/p/w.safetensors")
 
 
-def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch):
+def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch, reachable):
     tmp = bundle.parent
     sealed = tmp / "sealed.prop"
     r = cli("personalize", tmp / "model.safetensors", "--data", tmp / "mine.npz", "--key-file", tmp / "k.bin",
