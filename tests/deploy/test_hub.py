@@ -312,3 +312,38 @@ def test_push_sign_without_its_extra_fails_before_the_bundle_is_read(cli, bundle
     assert r.code == 2 and "Traceback" not in r.err, r.err
     assert r.err.splitlines()[-1].startswith("prop: error: signatures need the 'sign' extra")
     assert "prop-keys[sign]" in r.err and not read
+
+
+# ---- issue 28: every refusal before the first progress line; the cache-miss error names its cause -----
+
+
+def test_push_refuses_before_it_says_uploading(cli, bundle, monkeypatch, tmp_path):
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda *a, **kw: pytest.fail("refused: no request"))
+    r = cli("push", bundle, "me/x", "--private")  # HF_HUB_OFFLINE is set (the autouse fixture)
+    assert r.err.strip().splitlines() == ["prop: error: cannot push to me/x: HF_HUB_OFFLINE is set; unset "
+                                          "HF_HUB_OFFLINE"]  # fmt: skip
+    monkeypatch.setattr(publish, "offline", lambda: False)
+    for args in (["no-namespace"], ["me/pub"], ["me/x", "--certificate", tmp_path / "c.pem"]):
+        r = cli("push", bundle, *args)
+        assert r.code == 2 and len(r.err.strip().splitlines()) == 1 and "uploading" not in r.err, r.err
+    seen = []
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.append(repo_id))
+    monkeypatch.setattr(hf.HfApi, "upload_folder", lambda self, **kw: None)
+    r = cli("push", bundle, "me/x", "--private")
+    assert r.code == 0 and r.err.startswith(f"uploading {bundle} to me/x (4 files)") and seen == ["me/x"]
+
+
+def test_a_cache_miss_names_its_cause_offline_or_not(cli, monkeypatch):
+    r = cli("inspect", "hf://org/policy/model.safetensors")  # HF_HUB_OFFLINE=1: the cache only
+    assert "HF_HUB_OFFLINE is set; unset HF_HUB_OFFLINE" in r.err
+    monkeypatch.delenv("HF_HUB_OFFLINE")
+    monkeypatch.setattr(hf_constants, "HF_HUB_OFFLINE", False)
+
+    def unreachable(*a, **kw):  # what huggingface_hub raises when the hub cannot be reached
+        raise hf.errors.LocalEntryNotFoundError("cannot find the requested files in the local cache")
+
+    monkeypatch.setattr(hf, "hf_hub_download", unreachable)
+    r = cli("inspect", "hf://org/policy/model.safetensors")
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert "not in the local hub cache and the hub cannot be reached" in r.err
+    assert "HF_HUB_OFFLINE" not in r.err and "check the network" in r.err and "give its path" in r.err
