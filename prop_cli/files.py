@@ -179,8 +179,8 @@ def _is_export(path: Path) -> str | None:
     meta = _read_json(path / C.EXPORT_META)
     if not (isinstance(meta, dict) and isinstance(meta.get("format"), int) and "graphs" in meta):
         return _not_a(path, "a prop ONNX export")
-    sealed = meta.get("sealed")
-    records = _record_files(sealed.get(C.M_RECORDS)) if isinstance(sealed, dict) else []
+    public = meta.get("sealed")  # a sealed bundle's export: its records' public part, with their files
+    records = _record_files(public.get(C.M_RECORDS)) if isinstance(public, dict) else []
     extra = _unlisted(path, {C.EXPORT_META, *_file_names(meta["graphs"]), *records})
     if extra:
         return f"a prop ONNX export that also holds files prop did not write ({_names(extra)})"
