@@ -154,37 +154,45 @@ def _record_files(records: object) -> list[str]:
     return [str(r["file"]) for r in records if isinstance(r, dict) and "file" in r]
 
 
-def _is_bundle(path: Path) -> str | None:
+def _own_folder(
+    path: Path, name: str, meta_file: str, listed: Callable[[dict, Path], set[str] | None],
+    own_folders: dict[str, OutputKind] | None = None,
+) -> str | None:  # fmt: skip
+    """A folder prop wrote: empty, or its ``meta_file`` is prop's (``listed(meta, folder)``: the other
+    files it names; None: not prop's) and nothing else is in it."""
     if not path.is_dir():
-        return _not_a(path, "a prop bundle")
+        return _not_a(path, name)
     if not _entries(path):
         return None
-    m = _read_json(path / C.MANIFEST)
-    if not (isinstance(m, dict) and isinstance(m.get(C.M_FORMAT), int) and C.M_PROP_VERSION in m):
-        return _not_a(path, "a prop bundle")
-    known = {C.MANIFEST, C.SIGNATURE_FILE, *_file_names(m.get(C.M_FILES)), *_record_files(m.get(C.M_RECORDS))}
-    if CARD_MARK in _head(path / CARD_FILE, 4096):
-        known.add(CARD_FILE)
-    extra = _unlisted(path, known, {C.EXPORT_DIR: EXPORT})
-    if extra:
-        return f"a prop bundle that also holds files prop did not write ({_names(extra)})"
-    return None
+    meta = _read_json(path / meta_file)
+    known = listed(meta, path) if isinstance(meta, dict) else None
+    if known is None:
+        return _not_a(path, name)
+    extra = _unlisted(path, {meta_file, *known}, own_folders)
+    return f"{name} that also holds files prop did not write ({_names(extra)})" if extra else None
+
+
+def _bundle_files(m: dict, folder: Path) -> set[str] | None:
+    if not (isinstance(m.get(C.M_FORMAT), int) and C.M_PROP_VERSION in m):
+        return None
+    known = {C.SIGNATURE_FILE, *_file_names(m.get(C.M_FILES)), *_record_files(m.get(C.M_RECORDS))}
+    return known | ({CARD_FILE} if CARD_MARK in _head(folder / CARD_FILE, 4096) else set())
+
+
+def _export_files(meta: dict, folder: Path) -> set[str] | None:
+    if not (isinstance(meta.get("format"), int) and "graphs" in meta):
+        return None
+    public = meta.get("sealed")  # a sealed bundle's export: its records' public part, with their files
+    records = _record_files(public.get(C.M_RECORDS)) if isinstance(public, dict) else []
+    return {*_file_names(meta["graphs"]), *records}
+
+
+def _is_bundle(path: Path) -> str | None:
+    return _own_folder(path, "a prop bundle", C.MANIFEST, _bundle_files, {C.EXPORT_DIR: EXPORT})
 
 
 def _is_export(path: Path) -> str | None:
-    if not path.is_dir():
-        return _not_a(path, "a prop ONNX export")
-    if not _entries(path):
-        return None
-    meta = _read_json(path / C.EXPORT_META)
-    if not (isinstance(meta, dict) and isinstance(meta.get("format"), int) and "graphs" in meta):
-        return _not_a(path, "a prop ONNX export")
-    public = meta.get("sealed")  # a sealed bundle's export: its records' public part, with their files
-    records = _record_files(public.get(C.M_RECORDS)) if isinstance(public, dict) else []
-    extra = _unlisted(path, {C.EXPORT_META, *_file_names(meta["graphs"]), *records})
-    if extra:
-        return f"a prop ONNX export that also holds files prop did not write ({_names(extra)})"
-    return None
+    return _own_folder(path, "a prop ONNX export", C.EXPORT_META, _export_files)
 
 
 def _is_peft(path: Path) -> str | None:
