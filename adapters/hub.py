@@ -85,7 +85,8 @@ def hub_module():
     return huggingface_hub
 
 
-def _offline() -> bool:
+def offline() -> bool:
+    """Whether HF_HUB_OFFLINE is set (the hub client then uses only its cache, and refuses uploads)."""
     # huggingface_hub reads HF_HUB_OFFLINE once, at import; read it again so a change is honoured.
     env = os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in {"1", "true", "yes", "on"}
     return env or bool(hub_module().constants.HF_HUB_OFFLINE)
@@ -97,8 +98,8 @@ def resolve_checkpoint(path: str | Path) -> str | Path:
         return path
     hp = parse_hub_path(str(path))
     hf = hub_module()
-    offline = _offline()
-    common = {"revision": hp.revision, "repo_type": hp.repo_type, "local_files_only": offline}
+    cache_only = offline()
+    common = {"revision": hp.revision, "repo_type": hp.repo_type, "local_files_only": cache_only}
     try:
         if hp.filename == "" or hp.filename.endswith("/"):
             # A model folder: fetch its configs and weights, not everything in the repo.
@@ -109,20 +110,22 @@ def resolve_checkpoint(path: str | Path) -> str | Path:
             return str(Path(root) / hp.filename)
         return hf.hf_hub_download(hp.repo_id, hp.filename, library_name="prop-keys", **common)
     except Exception as e:  # noqa: BLE001 - mapped to one line below, anything else re-raised
-        raise _download_error(e, path, hp, offline) from e
+        raise _download_error(e, path, hp, cache_only) from e
 
 
-def _download_error(e: Exception, path: str | Path, hp: HubPath, offline: bool) -> PropError:
+def _download_error(e: Exception, path: str | Path, hp: HubPath, cache_only: bool) -> PropError:
     """The one-line error for a failed download (most specific huggingface_hub error first)."""
     errors = hub_module().errors
-    why = "HF_HUB_OFFLINE is set" if offline else "the hub cannot be reached"
     first_line = str(e).splitlines()[0] if str(e).strip() else type(e).__name__
+    # Not in the cache: the fix depends on why the hub was not asked (issue 28: "unset HF_HUB_OFFLINE"
+    # was the fix given when it was not set, and the network was the cause).
+    if cache_only:
+        why, fix = "HF_HUB_OFFLINE is set", "unset HF_HUB_OFFLINE to download it"
+    else:
+        why = "the hub cannot be reached"
+        fix = "check the network, or download the checkpoint where the hub is reachable and give its path"
     cases = [
-        (
-            errors.LocalEntryNotFoundError,
-            f"{path} is not in the local hub cache and {why}",
-            "connect to the network (unset HF_HUB_OFFLINE), or download it once while online",
-        ),
+        (errors.LocalEntryNotFoundError, f"{path} is not in the local hub cache and {why}", fix),
         (
             errors.GatedRepoError,
             f"{path}: repo {hp.repo_id} is gated",

@@ -48,7 +48,7 @@ from prop_cli.core.passphrase import strength
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
-from prop_cli.files import check_not_input, check_output, write_file
+from prop_cli.files import ARRAY, EXPORT, PEFT, check_not_input, check_output, check_writable, write_file
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
@@ -182,8 +182,8 @@ def personalize_checkpoint(
         raise PropError("the users' keys have different sizes", "give every user a key of the same size")
     cfg.validate(key_bits=min(bits) if bits else None)
     check_threads(threads)
-    check_output(out, force)  # before hours of training, not after
     check_not_input(out, "--out", [checkpoint, *(p for p, _ in users), general])
+    check_output(out, force)  # before hours of training, not after
     ranks = ranks_from_env(device)  # one process, or those `accelerate launch` started
     loaded = _load(checkpoint, opts)
     configure_threads(_parameters(loaded.module), threads)
@@ -235,8 +235,8 @@ def run_file(
     bundle's base with a warning; a bundle changed since the key was enrolled is refused.
     ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
-    check_output(output, force, what="output", flag="--output")
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
+    check_output(output, force, what="output", flag="--output", kind=ARRAY)
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
@@ -333,8 +333,8 @@ def export_peft_adapter(
     folder (``deploy.peft``); never written inside the bundle."""
     from prop_cli.deploy.peft import export_peft
 
-    check_output(Path(out), force, what="adapter folder", flag="--peft")
     check_not_input(Path(out), "--peft", [bundle_path, key_file])
+    check_output(Path(out), force, what="adapter folder", flag="--peft", kind=PEFT)
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     if key is None:
@@ -362,6 +362,7 @@ def export_bundle(
     check_threads(threads)
     target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
+    check_output(target_dir, force, what="export folder", kind=EXPORT)  # before the bundle is loaded
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     bundle = require_array_model(bundle, "prop export")
     require_onnx()
@@ -432,6 +433,7 @@ def add_user(
     payload kind, rank and layers must stay the bundle's (every record is enrolled in them). The
     manifest is written once, with the new record (no figure of the user goes in the clear)."""
     bundle = load_sealed(bundle_path, "add-user", trust_remote_code, arch)
+    check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)  # now, not after training
     bundle.check_key(key.bits, "the new user's key")
     cfg = added_user_config(bundle, cfg)
     check_new_key(bundle.records, key.bits)
@@ -497,6 +499,7 @@ def remove_user(
     when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
     add or change one without its key."""
     bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
+    check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)
     if (key is None) == (record is None):
         raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
     ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]

@@ -27,6 +27,11 @@ def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
         raise PropError(f"{flag} {value!r} is invalid", f"{flag} must be {rule}")
 
 
+def _require(ok: bool, what: str, fix: str) -> None:
+    if not ok:
+        raise PropError(what, fix)
+
+
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -136,6 +141,12 @@ class PersonalizeConfig(_Settings):
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         self.need(self.task is None or self.task in TASKS, "task", "classification, regression or auto")
         self.need(self.payload in PAYLOAD_KINDS, "payload", " or ".join(PAYLOAD_KINDS))
+        for name in ("payload", "payload_rank", "payload_lr"):  # an unsealed bundle has no payload:
+            value = getattr(self, name)  # a payload setting without --seal would be silently ignored
+            _require(
+                self.seal or value == getattr(PersonalizeConfig, name),
+                f"{_flag(name)} {value} applies to sealed bundles only", f"add --seal, or drop {_flag(name)}",
+            )  # fmt: skip
         for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
             if getattr(self, name) is None:
                 setattr(self, name, value)

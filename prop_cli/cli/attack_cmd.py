@@ -74,7 +74,15 @@ def attack(
         record_audit,
     )
     from prop_cli.api import select_probes as select
-    from prop_cli.files import check_not_input, check_output, dump_json, write_text
+    from prop_cli.files import (
+        AUDIT_REPORT,
+        PLOT,
+        check_not_input,
+        check_output,
+        check_writable,
+        dump_json,
+        write_text,
+    )
 
     key_file = key_file or []
     if probes is not None or search is not None:
@@ -88,10 +96,17 @@ def attack(
     if plot_path is not None:
         check_plot()  # before the probes: an extra missing is known now, not after minutes of work
     json_file = output_path(json_path)
-    for path, what, flag in ((json_file, "--json file", "--json"), (plot_path, "--plot file", "--plot")):
-        if path is not None:
-            check_output(path, force, what=what, flag=flag)
-            check_not_input(path, flag, [bundle, data, *key_file, original])
+    outputs = [(json_file, "--json file", "--json", AUDIT_REPORT), (plot_path, "--plot file", "--plot", PLOT)]
+
+    def check_outputs() -> None:  # before the probes, and again before writing (they take minutes)
+        for path, what, flag, kind in outputs:
+            if path is not None:
+                check_not_input(path, flag, [bundle, data, *key_file, original])
+                check_output(path, force, what=what, flag=flag, kind=kind)
+        if record and Path(bundle).is_dir():  # the manifest is rewritten in place
+            check_writable(bundle, "bundle", "--record", as_folder=False)
+
+    check_outputs()
     phrase = read_passphrase() if passphrase else None
     report = stage_progress(
         lambda cb: audit_bundle(
@@ -102,6 +117,7 @@ def attack(
     for w in report["warnings"]:
         warn(w)
     failing = apply_max_leak(report, max_leak) if max_leak is not None else []
+    check_outputs()
     if json_file is not None:
         write_text(json_file, dump_json(report), what="--json file", flag="--json")
         err.print(f"wrote {json_file}")

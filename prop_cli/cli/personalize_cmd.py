@@ -98,7 +98,7 @@ def personalize(
 ) -> None:
     """Fine-tune CHECKPOINT so it behaves the users' way with their key, and like the original without."""
     from prop_cli.api import personalize_checkpoint, user_keys
-    from prop_cli.files import check_not_input
+    from prop_cli.files import check_not_input, check_output
 
     key_file = key_file or []
     if not key_file and not passphrase:
@@ -111,8 +111,10 @@ def personalize(
     cfg = config
     cfg.layers, cfg.exclude = cfg.layers or None, cfg.exclude or None
     cfg.validate(key_bits=bits if not key_file else None)
+    # Before the passphrases are asked for and stretched, and before any training (the API checks again).
+    check_not_input(out_path, "--out", [checkpoint, *data, general, *key_file])
+    check_output(out_path, force)
     phrases = [read_passphrase(f"Passphrase for user {len(key_file) + i + 1}") for i in range(passphrase)]
-    check_not_input(out_path, "--out", key_file)  # the other inputs: personalize_checkpoint
     keys, salt = user_keys(key_file, phrases, bits, allow_weak=weak_passphrase)
     opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
     result = step_progress(

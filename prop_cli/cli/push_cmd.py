@@ -34,12 +34,11 @@ def push(
     """Upload a bundle (and its ONNX export) to the Hugging Face hub with a generated model card."""
     from prop_cli.api import push_bundle
 
-    err.print(f"uploading {bundle} to {repo} ...")
     if (certificate is not None or chain) and sign is None:
         fail("--certificate and --certificate-chain sign with --sign's key", "pass --sign KEY.pem")
     result = push_bundle(
         bundle, repo, private=private, revision=revision, onnx_dir=onnx_dir, allow_unsealed=allow_unsealed,
-        sign=sign, certificate=certificate, chain=chain or (),
+        sign=sign, certificate=certificate, chain=chain or (), progress=lambda line: err.print(line),
     )  # fmt: skip
     if as_json:
         print_json(

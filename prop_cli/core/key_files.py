@@ -28,7 +28,7 @@ from prop_cli.constants import (
     SCRYPT_R,
 )
 from prop_cli.errors import PropError, plural
-from prop_cli.files import uninterrupted, wrote
+from prop_cli.files import KEY, check_replaceable, check_writable, uninterrupted, wrote
 
 # scrypt needs 128*r*N*p bytes (16 MiB with the defaults); OpenSSL's own cap is 32 MiB, so give
 # it explicit headroom instead of relying on that default.
@@ -58,9 +58,8 @@ def generate_key_file(path: Path, bits: int = 128, force: bool = False) -> None:
     """Write ``bits/8`` random bytes to ``path`` with mode 0600; never overwrite without force."""
     check_bits(bits)
     path = Path(path)
-    if path.is_dir():
-        raise PropError(f"key file {path} is a directory", "give a file name for the key")
-    if path.exists() and not force:
+    # --force replaces a key file only (files.KEY: a file of a key's size), never a folder or another file.
+    if check_replaceable(path, KEY, "PATH") and not force:
         raise PropError(
             f"key file {path} already exists",
             "choose another path, or pass --force to replace it (the old key is then lost)",
@@ -68,6 +67,7 @@ def generate_key_file(path: Path, bits: int = 128, force: bool = False) -> None:
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
         raise PropError(f"directory {parent} for key file {path} does not exist", "create it first")
+    check_writable(parent, "key file", "PATH", path, as_folder=False)
     data = os.urandom(bits // 8)
     if not force:
         # O_EXCL: even a file appearing since the check above is never clobbered.

@@ -12,10 +12,11 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from prop_adapters.hub import hub_module, is_hub_path, parse_hub_path, public_name
+from prop_adapters.hub import hub_module, is_hub_path, offline, parse_hub_path, public_name
 from prop_cli import constants as C
 from prop_cli.bundle import check_files, read_manifest
 from prop_cli.bundle.modes import Mode, mode_of
@@ -194,6 +195,7 @@ def push_bundle(
     sign: Path | None = None,
     certificate: Path | None = None,
     chain: list[Path] | tuple = (),
+    progress: Callable[[str], None] | None = None,
 ) -> PushResult:
     """Upload a verified bundle (+ its ONNX export, + a model card) to a hub model repo. Nothing the
     bundle names is imported: it is checked and copied as data.
@@ -201,7 +203,8 @@ def push_bundle(
     An unsealed bundle goes to a public repo only with ``allow_unsealed``: its encoder gives whoever
     downloads it the owner's behaviour (docs/threat-model.md). ``sign``: the publisher's private key
     (PEM; ``certificate`` and ``chain`` for certificate signing): every uploaded file is signed
-    (``deploy.sign``), the card included, and ``model.sig`` is uploaded with them."""
+    (``deploy.sign``), the card included, and ``model.sig`` is uploaded with them. ``progress(line)`` is
+    told when the upload starts: after every check that can refuse (issue 28: "uploading", then a refusal)."""
     if repo_id.count("/") != 1 or not all(repo_id.split("/")):
         raise PropError(f"repo {repo_id!r} is not a hub repo id", "write <org or user>/<name>")
     hf = hub_module()
@@ -214,6 +217,8 @@ def push_bundle(
             f"{bundle} is unsealed: {exposed}",
             "personalize with --seal, push with --private, or pass --allow-unsealed to publish it anyway",
         )
+    if offline():  # the client refuses at its first request: say so before staging and "uploading"
+        raise PropError(f"cannot push to {repo_id}: HF_HUB_OFFLINE is set", "unset HF_HUB_OFFLINE")
     if onnx_dir is None and (Path(bundle) / C.EXPORT_DIR / C.EXPORT_META).is_file():
         onnx_dir = Path(bundle) / C.EXPORT_DIR
     onnx_files: list[str] = []
@@ -235,6 +240,8 @@ def push_bundle(
         if sign is not None:
             sign_folder(stage, sign, certificate, chain)
         files = sorted(str(p.relative_to(stage)) for p in stage.rglob("*") if p.is_file())
+        if progress is not None:
+            progress(f"uploading {bundle} to {repo_id} ({len(files)} files) ...")
         api = hf.HfApi(token=token)
         try:
             url = api.create_repo(repo_id, private=private, exist_ok=True, repo_type="model")

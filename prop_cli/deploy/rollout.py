@@ -31,7 +31,7 @@ from prop_cli.bundle.runtime import module_for_key
 from prop_cli.config import EvalSettings
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
-from prop_cli.files import staged_dir
+from prop_cli.files import check_writable, staged_dir
 
 from .envs import frame, make_env
 
@@ -202,8 +202,12 @@ def check_video(video: Path | None) -> None:
         raise PropError(
             "--video needs imageio and imageio-ffmpeg", "pip install 'prop-keys[video]'"
         ) from None
-    if Path(video).exists():
+    if Path(video).exists() or Path(video).is_symlink():
         raise PropError(f"--video {video} exists", "give a new folder (videos are never overwritten)")
+    parent = Path(video).resolve().parent
+    if not parent.is_dir():
+        raise PropError(f"--video {video}: folder {parent} does not exist", "create it first")
+    check_writable(parent, "video folder", "--video", Path(video))  # before the rollouts, not after
 
 
 def write_videos(video: Path, films: dict[str, list[np.ndarray]], fps: float) -> None:

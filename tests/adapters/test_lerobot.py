@@ -372,3 +372,11 @@ def test_scaled_processor_statistics_in_a_sealed_bundle_are_refused_with_the_key
     with pytest.raises(PropError, match="changed since this key was enrolled"):
         run_policy(b, data, key())
     run_policy(b, data, None)  # without a key: the bundle's base, as it now is
+
+
+def test_force_replaces_policy_bundles_they_are_prop_s_own(bundle, sealed):
+    """Issue 28: --force replaces only prop's bundles; a LeRobot bundle's config, processors and records
+    are all files its manifest lists."""
+    from prop_cli.files import BUNDLE
+
+    assert BUNDLE.recognise(bundle) is None and BUNDLE.recognise(sealed) is None

@@ -315,3 +315,10 @@ def test_a_vlm_file_naming_code_is_never_imported_and_the_key_refuses(name, seal
         assert not marker.exists() and "pwn_vlm" not in sys.modules
     finally:
         sys.path.remove(str(tmp_path))
+
+
+def test_force_replaces_smolvla_bundles_the_vlm_files_are_listed(bundle, sealed):
+    """Issue 28: --force replaces only prop's bundles; a SmolVLA bundle's lerobot/vlm/ files are listed."""
+    from prop_cli.files import BUNDLE
+
+    assert BUNDLE.recognise(bundle) is None and BUNDLE.recognise(sealed) is None

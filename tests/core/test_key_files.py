@@ -142,3 +142,20 @@ def test_hamming_distance():
     assert hamming_distance(torch.from_numpy(a), a) == 0
     with pytest.raises(ValueError):
         hamming_distance(a, b[:3])
+
+
+def test_force_replaces_a_key_file_only(tmp_path):
+    """Issue 28: keygen --force replaced any file; it replaces a key file (4..128 bytes, mode 0600)."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    notes.chmod(0o644)
+    if os.name == "posix":  # elsewhere a small file passes for a key: no mode to tell them apart
+        with pytest.raises(PropError, match=r"notes\.txt is a file others may read .*not a key file"):
+            generate_key_file(notes, force=True)
+    (tmp_path / "big").write_bytes(b"\0" * 4096)
+    with pytest.raises(PropError, match=r"a file of 4096 bytes, not a key file"):
+        generate_key_file(tmp_path / "big", force=True)
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(PropError, match=r"sub is an empty folder"):
+        generate_key_file(tmp_path / "sub", force=True)
+    assert notes.read_text() == "my notes\n" and (tmp_path / "big").stat().st_size == 4096

@@ -290,3 +290,22 @@ def test_arch_given_again_builds_the_bundle_and_the_original(tmp_path, cli, monk
     r = cli(*args, "--arch", "../pend_net.py:build")
     assert r.code == 0, r.err
     assert json.loads(r.out)["conditions"]["original"]["episodes"] == 2
+
+
+def test_a_video_folder_that_cannot_be_made_fails_before_any_rollout(tmp_path, monkeypatch):
+    """Issue 28: outputs are checked before the work; the videos are written after every rollout."""
+    import tempfile
+
+    from prop_cli.deploy.rollout import check_video
+    from prop_cli.errors import PropError
+
+    pytest.importorskip("imageio_ffmpeg")
+
+    def refuse(*a, **kw):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    with pytest.raises(PropError, match=r"cannot write video folder .*v: no file can be created .*--video"):
+        check_video(tmp_path / "v")
+    with pytest.raises(PropError, match="does not exist"):
+        check_video(tmp_path / "missing" / "v")

@@ -37,6 +37,13 @@ def offline_hub(tmp_path, monkeypatch) -> Path:
     return home / "hub"
 
 
+@pytest.fixture
+def reachable(monkeypatch) -> None:
+    """For push tests that replace the hub client's upload methods: HF_HUB_OFFLINE (set above for the
+    downloads) would refuse the push before them."""
+    monkeypatch.setattr(publish, "offline", lambda: False)
+
+
 def _cache_file(cache: Path, repo: str, filename: str, src: Path) -> Path:
     """Place a file in huggingface_hub's cache layout, as a download of revision main would."""
     repo_dir = cache / f"models--{repo.replace('/', '--')}"
@@ -153,7 +160,7 @@ def test_model_card_content(bundle):
     assert "No audit recorded" in publish.model_card({}, "me/x")
 
 
-def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch):
+def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch, reachable):
     from prop_cli.bundle import load_bundle
     from prop_cli.deploy.onnx import export_onnx
 
@@ -196,7 +203,7 @@ def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch):
     assert res["url"] == "https://huggingface.co/me/my-policy" and "README.md" in res["files"]
 
 
-def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
+def test_push_without_export_and_without_revision(cli, bundle, monkeypatch, reachable):
     seen = {}
     monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.setdefault("repo", kw))
     monkeypatch.setattr(
@@ -211,7 +218,7 @@ def test_push_without_export_and_without_revision(cli, bundle, monkeypatch):
     )
     r = cli("push", bundle, "me/pub")  # unsealed to a public repo: refused, nothing uploaded
     assert r.code == 2 and "unsealed" in r.err and "--allow-unsealed" in r.err and not seen
-    assert len(r.err.strip().splitlines()) == 2  # the "uploading" notice and the one-line error
+    assert r.err.strip().splitlines() == [r.err.strip()]  # the one-line error, no "uploading" before it
     r = cli("push", bundle, "me/pub", "--allow-unsealed")
     assert r.code == 0, r.err
     assert seen["repo"]["private"] is False
@@ -234,7 +241,7 @@ def test_push_offline_fails_cleanly(cli, bundle):
     assert r.err.splitlines()[-1].startswith("prop: error: cannot push") and "HF_HUB_OFFLINE" in r.err
 
 
-def test_push_without_network_is_one_line(cli, bundle, monkeypatch):
+def test_push_without_network_is_one_line(cli, bundle, monkeypatch, reachable):
     """The hub client's transport errors are not OSErrors (httpx's ConnectError): still one line."""
 
     class ConnectError(Exception):
@@ -256,7 +263,7 @@ def test_download_without_network_is_one_line_naming_the_repo(cli, monkeypatch):
     def unreachable(*a, **kw):
         raise ConnectTimeout("timed out")
 
-    monkeypatch.setattr(hub, "_offline", lambda: False)
+    monkeypatch.setattr(hub, "offline", lambda: False)
     monkeypatch.setattr(hf, "hf_hub_download", unreachable)
     r = cli("inspect", "hf://org/policy/model.safetensors")
     assert r.code == 2 and "Traceback" not in r.err and r.err.count("\n") == 1
@@ -269,7 +276,7 @@ def test_missing_extra_names_the_install_command(monkeypatch):
         hub.resolve_checkpoint("hf://org/p/w.safetensors")
 
 
-def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch):
+def test_push_sealed_bundle_to_a_public_repo(cli, bundle, monkeypatch, reachable):
     tmp = bundle.parent
     sealed = tmp / "sealed.prop"
     r = cli("personalize", tmp / "model.safetensors", "--data", tmp / "mine.npz", "--key-file", tmp / "k.bin",
@@ -305,3 +312,38 @@ def test_push_sign_without_its_extra_fails_before_the_bundle_is_read(cli, bundle
     assert r.code == 2 and "Traceback" not in r.err, r.err
     assert r.err.splitlines()[-1].startswith("prop: error: signatures need the 'sign' extra")
     assert "prop-keys[sign]" in r.err and not read
+
+
+# ---- issue 28: every refusal before the first progress line; the cache-miss error names its cause -----
+
+
+def test_push_refuses_before_it_says_uploading(cli, bundle, monkeypatch, tmp_path):
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda *a, **kw: pytest.fail("refused: no request"))
+    r = cli("push", bundle, "me/x", "--private")  # HF_HUB_OFFLINE is set (the autouse fixture)
+    assert r.err.strip().splitlines() == ["prop: error: cannot push to me/x: HF_HUB_OFFLINE is set; unset "
+                                          "HF_HUB_OFFLINE"]  # fmt: skip
+    monkeypatch.setattr(publish, "offline", lambda: False)
+    for args in (["no-namespace"], ["me/pub"], ["me/x", "--certificate", tmp_path / "c.pem"]):
+        r = cli("push", bundle, *args)
+        assert r.code == 2 and len(r.err.strip().splitlines()) == 1 and "uploading" not in r.err, r.err
+    seen = []
+    monkeypatch.setattr(hf.HfApi, "create_repo", lambda self, repo_id, **kw: seen.append(repo_id))
+    monkeypatch.setattr(hf.HfApi, "upload_folder", lambda self, **kw: None)
+    r = cli("push", bundle, "me/x", "--private")
+    assert r.code == 0 and r.err.startswith(f"uploading {bundle} to me/x (4 files)") and seen == ["me/x"]
+
+
+def test_a_cache_miss_names_its_cause_offline_or_not(cli, monkeypatch):
+    r = cli("inspect", "hf://org/policy/model.safetensors")  # HF_HUB_OFFLINE=1: the cache only
+    assert "HF_HUB_OFFLINE is set; unset HF_HUB_OFFLINE" in r.err
+    monkeypatch.delenv("HF_HUB_OFFLINE")
+    monkeypatch.setattr(hf_constants, "HF_HUB_OFFLINE", False)
+
+    def unreachable(*a, **kw):  # what huggingface_hub raises when the hub cannot be reached
+        raise hf.errors.LocalEntryNotFoundError("cannot find the requested files in the local cache")
+
+    monkeypatch.setattr(hf, "hf_hub_download", unreachable)
+    r = cli("inspect", "hf://org/policy/model.safetensors")
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert "not in the local hub cache and the hub cannot be reached" in r.err
+    assert "HF_HUB_OFFLINE" not in r.err and "check the network" in r.err and "give its path" in r.err

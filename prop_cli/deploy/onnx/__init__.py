@@ -17,7 +17,7 @@ from prop_cli.bundle import Bundle
 from prop_cli.bundle.modes import mode_of
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
-from prop_cli.files import check_output
+from prop_cli.files import EXPORT, check_output
 
 from . import sealed, unsealed
 from .common import REEXPORT, ExportResult, bound, read_export, require_onnx, session, verify_inputs
@@ -67,7 +67,7 @@ def export_onnx(
     if key is not None:
         bundle.check_key(key)
     out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
-    check_output(out, force, what="export folder")
+    check_output(out, force, what="export folder", kind=EXPORT)
 
     def verify(folder: Path) -> list[dict]:
         return verify_graphs(bundle, folder, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
