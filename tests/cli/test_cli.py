@@ -715,7 +715,7 @@ def test_add_user_checks_the_bundle_is_writable_before_training(cli, workdir, mo
     out = workdir / "sealed.prop"
     assert personalize(cli, workdir, "--seal", "--steps", "5", out="sealed.prop").code == 0
     calls: list = []
-    monkeypatch.setattr(api, "sealed_recipe", lambda *a, **kw: calls.append("train"))
+    monkeypatch.setattr(api, "train_added_user", lambda *a, **kw: calls.append("train"))
 
     def refuse(*a, **kw):
         raise PermissionError(13, "Permission denied")
