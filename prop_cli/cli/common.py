@@ -145,3 +145,8 @@ def stage_progress(fn: Callable):
 def output_path(value: Path | None) -> Path | None:
     """``-`` means stdout: no file."""
     return None if value is None or str(value) == "-" else value
+
+
+def training_progress(fn: Callable, steps: int, label: str):
+    """``step_progress`` for a training run: the step's latest losses beside the bar."""
+    return step_progress(fn, steps, label, lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()))

@@ -13,7 +13,7 @@ from prop_cli.constants import (
 )
 from prop_cli.errors import plural
 
-from .common import checkpoint_options, fail, out, print_json, read_passphrase, step_progress
+from .common import checkpoint_options, fail, out, print_json, read_passphrase, training_progress
 from .options import (
     Activation,
     Arch,
@@ -117,12 +117,12 @@ def personalize(
     phrases = [read_passphrase(f"Passphrase for user {len(key_file) + i + 1}") for i in range(passphrase)]
     keys, salt = user_keys(key_file, phrases, bits, allow_weak=weak_passphrase)
     opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
-    result = step_progress(
+    result = training_progress(
         lambda cb: personalize_checkpoint(
             checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
             device=device, force=force, progress=cb, threads=threads,
         ),
-        cfg.steps, "personalize", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
+        cfg.steps, "personalize",
     )  # fmt: skip
     if not result.written:  # another process of `accelerate launch` writes and reports
         return

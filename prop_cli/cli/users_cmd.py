@@ -11,7 +11,7 @@ from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import DEFAULT_DEVICE
 from prop_cli.errors import plural
 
-from .common import err, fail, out, print_json, read_passphrase, step_progress, warn
+from .common import err, fail, out, print_json, read_passphrase, training_progress, warn
 from .options import (
     BundleArch,
     BundleArg,
@@ -69,12 +69,12 @@ def add_user(
     for name in SETTINGS:  # the bundle's settings, except the flags given on this command line
         if getattr(config, name) != getattr(PersonalizeConfig(), name):
             setattr(base, name, getattr(config, name))
-    result = step_progress(
+    result = training_progress(
         lambda cb: api_add_user(
             bundle, data, KeySource(bits, "passphrase" if passphrase else "file"), cfg=base, device=device,
             progress=cb, trust_remote_code=trust_remote_code, arch=arch,
         ),
-        base.steps, "add-user", lambda losses: " ".join(f"{k} {v:.4f}" for k, v in losses.items()),
+        base.steps, "add-user",
     )  # fmt: skip
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users,
