@@ -416,6 +416,24 @@ def test_a_processor_step_lerobot_does_not_register_is_never_imported(which, bun
         sys.path.remove(str(tmp_path))
 
 
+def test_a_tokenizer_step_is_accepted_only_where_the_policy_points_it_at_its_own_files(work, tmp_path):
+    """A tokenizer step loads a tokenizer by the name its config gives. SmolVLA's class points it at the
+    folder's own VLM files (``own_steps``); in an ACT folder it names a download: refused, one line."""
+    from prop_adapters.lerobot.adapter import processor_code
+
+    folder = tmp_path / "act"
+    shutil.copytree(work / "act", folder)
+    f = folder / "policy_preprocessor.json"
+    doc = json.loads(f.read_text())
+    doc["steps"].append({"registry_name": "tokenizer_processor", "config": {"tokenizer_name": "some/hub-id"}})
+    f.write_text(json.dumps(doc))
+    with pytest.raises(PropError, match=r"step \d+: 'tokenizer_processor'.*--trust-remote-code"):
+        load_checkpoint(folder)
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config | {"type": "smolvla"}))
+    assert processor_code(folder) == [] and processor_code(work / "act") == []
+
+
 def test_scaled_processor_statistics_in_a_sealed_bundle_are_refused_with_the_key(sealed, work, tmp_path):
     """The normaliser's statistics x5 (a file beside the config, hashes recomputed): the user's record
     opens, but the bundle changed since the key was enrolled: nothing runs."""
