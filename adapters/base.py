@@ -148,7 +148,8 @@ class PolicyProtocol(ABC):
 
     @abstractmethod
     def controller(self, module: torch.nn.Module):
-        """An object with ``reset()`` and ``act(obs: dict[str, np.ndarray]) -> np.ndarray`` for ``module``."""
+        """An object with ``reset(seed=None)`` and ``select_action(obs: dict) -> np.ndarray`` that drives
+        ``module`` in closed loop (``KeyedPolicy`` and ``prop eval`` use it)."""
 
     @property
     @abstractmethod

@@ -217,13 +217,13 @@ def train_base(
     ``camera``: the camera frame is an input too (Diffusion)."""
     import time
 
-    from prop_adapters.lerobot.adapter import PROTOCOLS
+    from prop_adapters.lerobot import POLICIES
     from prop_cli.datasources import load_data
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     policy, pre, post = built or BUILDERS[kind](dataset_stats(root), **({"camera": True} if camera else {}))
-    data = PROTOCOLS[policy.config.type](policy, pre, post).batches(load_data(root), "--data")
+    data = POLICIES[policy.config.type](policy, pre, post).batches(load_data(root), "--data")
     data.pop("episode_index")
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=1e-4)
     policy.train()

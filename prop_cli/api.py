@@ -24,14 +24,14 @@ from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
 from prop_cli.bundle import KeyedPolicy, load_bundle, read_manifest, run_bundle
-from prop_cli.bundle.inputs import load_inputs, require_array_model, run_array, seed_noise
+from prop_cli.bundle.inputs import load_inputs, run_array
 from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
     check_new_key,
     rewrite_records,
     with_records,
 )
-from prop_cli.bundle.runtime import run_policy
+from prop_cli.bundle.runtime import require_array_model, run_policy, seed_noise
 from prop_cli.bundle.write import common_fields
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (

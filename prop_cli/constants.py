@@ -7,7 +7,6 @@ BASE_WEIGHTS = "base.safetensors"
 ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
 LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
-LEROBOT_TYPES = ("act", "diffusion", "smolvla")  # LeRobot policy types prop trains (manifest model.type)
 LEROBOT_VLM_DIR = "vlm"  # in a SmolVLA bundle's LeRobot folder: its VLM's config, tokenizer, processor
 TASK = "task"  # a LeRobot Dataset's x[TASK]: each frame's task text (SmolVLA's instruction)
 RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed

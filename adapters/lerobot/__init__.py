@@ -1,19 +1,24 @@
-"""LeRobot policy folders: loading (``adapter``), the policy protocol prop trains and runs them through
-(``policy``), and the flat array view the audit takes (``flat``). lerobot itself is imported only inside
-functions of ``adapter``: it is an optional environment (scripts/setup-lerobot.sh)."""
+"""LeRobot policy folders: loading (``adapter``), the policies prop drives (``registry.POLICIES``: one
+file each, ``act``, ``diffusion``, ``smolvla``, over the shared ``policy.LeRobotProtocol`` and its
+closed-loop ``Controller``), and the flat array view the audit takes (``flat``). lerobot itself is
+imported only inside functions: it is an optional environment (scripts/setup-lerobot.sh)."""
 
+from .act import ACT_LAYERS, ACTProtocol
 from .adapter import LeRobotAdapter
-from .diffusion import DIFFUSION_LAYERS, DiffusionPolicy
-from .policy import ACT_LAYERS, Controller, LeRobotPolicy
-from .smolvla import SMOLVLA_LAYERS, SmolVLAPolicy
+from .diffusion import DIFFUSION_LAYERS, DiffusionProtocol
+from .policy import Controller, LeRobotProtocol
+from .registry import POLICIES
+from .smolvla import SMOLVLA_LAYERS, SmolVLAProtocol
 
 __all__ = [
     "ACT_LAYERS",
-    "DIFFUSION_LAYERS",
+    "ACTProtocol",
     "Controller",
-    "DiffusionPolicy",
+    "DIFFUSION_LAYERS",
+    "DiffusionProtocol",
     "LeRobotAdapter",
-    "LeRobotPolicy",
+    "LeRobotProtocol",
+    "POLICIES",
     "SMOLVLA_LAYERS",
-    "SmolVLAPolicy",
+    "SmolVLAProtocol",
 ]

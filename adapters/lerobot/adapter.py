@@ -5,19 +5,10 @@ The folder holds ``config.json`` (with ``type``), ``model.safetensors`` and the 
 LeRobot's; the bundle carries the folder's config and processor files byte for byte plus the trained
 weights, so its ``lerobot/`` folder loads back with ``from_pretrained``.
 
-lerobot is optional (scripts/setup-lerobot.sh builds its environment) and imported only here, inside
-functions. Supported: ACT (``policy.LeRobotPolicy`` is how prop trains and runs it), Diffusion
-(``diffusion.DiffusionPolicy``: its denoiser is the fallback term's output, its chunks are sampled from
-a seeded noise) and SmolVLA (``smolvla.SmolVLAPolicy``: the same for its flow-matching expert). Other
-types (pi0, ...) are refused in one line.
-
-SmolVLA names its VLM (``vlm_model_name``: a hub id or a folder) and LeRobot would read its config,
-tokenizer and processor from there, downloading them or its weights. prop never lets it: the VLM is
-built from its config alone (``load_vlm_weights=False``; model.safetensors holds every weight), the
-config/tokenizer/processor files are read from a local folder (the name as a folder, or the hub cache,
-offline), and the bundle carries those files in ``lerobot/vlm/`` so whoever receives it needs nothing
-else. The tokenizer step of the processors is pointed at that folder: it reads a tokenizer file, never
-code (transformers' Auto classes run code only with trust_remote_code, which LeRobot does not pass).
+lerobot is optional (scripts/setup-lerobot.sh builds its environment) and imported only inside
+functions. Supported: the types of ``registry.POLICIES`` (ACT, Diffusion, SmolVLA), each built by its
+class's ``build`` (SmolVLA: its VLM's files from a local folder, never a download); other types (pi0,
+...) are refused in one line.
 """
 
 from __future__ import annotations
@@ -33,32 +24,20 @@ import torch
 from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
 from prop_adapters.folder import CONFIG, WEIGHTS, read_config
 from prop_adapters.weights import read_weights
-from prop_cli.constants import LEROBOT_DIR, LEROBOT_TYPES, LEROBOT_VLM_DIR
+from prop_cli.constants import LEROBOT_DIR
 from prop_cli.errors import PropError
 
-from .diffusion import DiffusionPolicy
-from .policy import LeRobotPolicy
-from .smolvla import SmolVLAPolicy
+from .policy import LeRobotProtocol
+from .registry import POLICIES
 
 PREPROCESSOR = "policy_preprocessor.json"
 PROCESSORS = "policy_*processor*.json"  # the pipelines LeRobot reads: pre- and postprocessor
 # Registered steps that load further models or tokenizers by a name their config gives: code and
-# downloads a file would choose, so they need --trust-remote-code like an import path does.
+# downloads a file would choose, so they need --trust-remote-code like an import path does (unless
+# the folder's policy points them at its own files: ``LeRobotProtocol.own_steps``).
 LOADS_BY_NAME = ("tokenizer", "classifier", "groot", "xvla", "pi0")
-# Steps accepted although they load by name: prop overrides the name with the folder's own VLM folder.
-LOADS_FROM_OWN_FOLDER = {"tokenizer_processor"}
-TOKENIZER_STEP = "tokenizer_processor"
-# The VLM files SmolVLA reads by name (no weights): config, tokenizer, image/video processor, template.
-VLM_FILES = (
-    "config.json", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json", "added_tokens.json",
-    "vocab.json", "merges.txt", "preprocessor_config.json", "processor_config.json",
-    "video_preprocessor_config.json", "chat_template.json", "chat_template.jinja",
-)  # fmt: skip
 FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
-# policy type -> how prop trains it
-PROTOCOLS = {"act": LeRobotPolicy, "diffusion": DiffusionPolicy, "smolvla": SmolVLAPolicy}
-SUPPORTED = LEROBOT_TYPES
-assert set(PROTOCOLS) == set(SUPPORTED)
+_TYPES = " or ".join([", ".join(list(POLICIES)[:-1]), list(POLICIES)[-1]])  # "act, diffusion or smolvla"
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
 
 
@@ -81,7 +60,7 @@ def processor_code(folder: Path) -> list[str]:
     from lerobot.processor import ProcessorStepRegistry
 
     known = {n for n in ProcessorStepRegistry.list() if not any(w in n for w in LOADS_BY_NAME)}
-    known |= LOADS_FROM_OWN_FOLDER
+    known |= _protocol_of(folder).own_steps
     named = []
     for f in sorted(folder.glob(PROCESSORS)):
         try:
@@ -102,75 +81,40 @@ def processor_code(folder: Path) -> list[str]:
     return named
 
 
-def _folder_files(folder: Path, vlm: Path | None = None) -> dict[str, bytes]:
-    """The folder's config and processor files, by their path in the bundle; a SmolVLA's VLM files too."""
+def _protocol_of(folder: Path) -> type[LeRobotProtocol]:
+    """The class of ``folder``'s policy type; the base (no steps of its own) where the type is unknown
+    or config.json unreadable (loading it then says why)."""
+    try:
+        kind = read_config(folder).get("type")
+    except PropError:
+        kind = None
+    return POLICIES.get(kind, LeRobotProtocol) if isinstance(kind, str) else LeRobotProtocol
+
+
+def _folder_files(folder: Path, extra: dict[str, bytes]) -> dict[str, bytes]:
+    """The folder's config and processor files, and the policy's ``extra`` files, by their bundle path."""
     names = [CONFIG] + sorted(p.name for p in folder.glob("policy_*processor*") if p.is_file())
-    files = {f"{FOLDER_IN_BUNDLE}/{n}": (folder / n).read_bytes() for n in names}
-    if vlm is not None:
-        files |= {
-            f"{FOLDER_IN_BUNDLE}/{LEROBOT_VLM_DIR}/{n}": (vlm / n).read_bytes()
-            for n in VLM_FILES if (vlm / n).is_file()
-        }  # fmt: skip
-    return files
+    files = {n: (folder / n).read_bytes() for n in names} | extra
+    return {f"{FOLDER_IN_BUNDLE}/{n}": b for n, b in files.items()}
 
 
 def _check_type(config: dict, where: str) -> str:
     kind = config.get("type")
-    if kind not in SUPPORTED:
+    if not isinstance(kind, str) or kind not in POLICIES:
         raise PropError(
-            f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(SUPPORTED)}"
+            f"{where}: policy type {kind!r} is not supported", f"prop supports {', '.join(POLICIES)}"
         )
     return kind
-
-
-def vlm_folder(folder: Path, name: object, where: str) -> Path:
-    """The local folder of a SmolVLA's VLM files: the bundle's own ``vlm/``, the name as a folder, or the
-    name's snapshot in the hub cache (offline: never a download)."""
-    own = folder / LEROBOT_VLM_DIR
-    if (own / CONFIG).is_file():
-        return own
-    if isinstance(name, str) and name:
-        if (Path(name) / CONFIG).is_file():
-            return Path(name)
-        try:
-            from huggingface_hub import snapshot_download
-
-            cached = Path(snapshot_download(name, local_files_only=True, allow_patterns=list(VLM_FILES)))
-            if (cached / CONFIG).is_file():
-                return cached
-        except Exception:  # noqa: BLE001, S110 - not in the cache (or not a hub id): the error below
-            pass
-    raise PropError(
-        f"{where}: SmolVLA's VLM {name!r} (config.json vlm_model_name) is not on this machine",
-        "download it once (hf download NAME), or set vlm_model_name to a folder with its config and "
-        "tokenizer",
-    )
 
 
 def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
     version, get_policy_class, make_pre_post_processors = _lerobot()
     kind = _check_type(read_config(folder), where)
-    vlm = None
     try:
-        from lerobot.configs.policies import PreTrainedConfig
-
-        cls = get_policy_class(kind)
         with contextlib.redirect_stdout(sys.stderr):  # LeRobot prints progress: stdout is for results
-            overrides = {}
-            if kind == "smolvla":  # built from its config and our weights; VLM files from a local folder
-                config = PreTrainedConfig.from_pretrained(str(folder))
-                vlm = vlm_folder(folder, config.vlm_model_name, where)
-                config.vlm_model_name, config.load_vlm_weights = str(vlm), False
-                policy = cls(config)
-                policy.load_state_dict(read_weights(folder / WEIGHTS)[0] if weights is None else weights)
-                overrides = {TOKENIZER_STEP: {"tokenizer_name": str(vlm)}}
-            elif weights is None:
-                policy = cls.from_pretrained(str(folder))
-            else:
-                policy = cls(PreTrainedConfig.from_pretrained(str(folder)))
-                policy.load_state_dict(weights, strict=True)
+            built = POLICIES[kind].build(get_policy_class(kind), folder, weights, where)
             pre, post = make_pre_post_processors(
-                policy.config, pretrained_path=str(folder), preprocessor_overrides=overrides
+                built.policy.config, pretrained_path=str(folder), preprocessor_overrides=built.overrides
             )
     except PropError:
         raise
@@ -180,13 +124,13 @@ def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
             f"({type(e).__name__}: {str(e).splitlines()[0][:160]})",
             "check that config.json, model.safetensors and the processor files belong together",
         ) from None
-    return version, policy, pre, post, vlm
+    return version, built.policy, pre, post, _folder_files(folder, built.files)
 
 
 class LeRobotAdapter(Adapter):
     name = "lerobot"
     summary = (
-        "a LeRobot policy folder: config.json (type act, diffusion or smolvla) + model.safetensors + "
+        f"a LeRobot policy folder: config.json (type {_TYPES}) + model.safetensors + "
         "policy_preprocessor.json and the other processor files, loaded by LeRobot (scripts/setup-lerobot.sh)"
     )
 
@@ -201,8 +145,8 @@ class LeRobotAdapter(Adapter):
                 f"{path}: the normalisation statistics are inside model.safetensors (LeRobot < 0.4 layout)",
                 "migrate it with lerobot's processor/migrate_policy_normalization.py",
             )
-        version, policy, pre, post, vlm = _load(path, None, str(path))
-        return self._loaded(policy, pre, post, version, str(path), _folder_files(path, vlm))
+        version, policy, pre, post, files = _load(path, None, str(path))
+        return self._loaded(policy, pre, post, version, str(path), files)
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         folder = Path(source) / FOLDER_IN_BUNDLE
@@ -210,8 +154,8 @@ class LeRobotAdapter(Adapter):
             folder = Path(source)  # the original LeRobot folder itself (prop attack --original)
         if not (folder / CONFIG).is_file():
             raise PropError(f"bundle {source} has no {FOLDER_IN_BUNDLE}/{CONFIG}", "write the bundle again")
-        version, policy, pre, post, vlm = _load(folder, weights, source)
-        return self._loaded(policy, pre, post, version, source, _folder_files(folder, vlm))
+        version, policy, pre, post, files = _load(folder, weights, source)
+        return self._loaded(policy, pre, post, version, source, files)
 
     def _loaded(self, policy, pre, post, version: str, source: str, files: dict[str, bytes]) -> LoadedModel:
         module = finish(policy)
@@ -223,7 +167,7 @@ class LeRobotAdapter(Adapter):
             input_shape=None,
             source=source,
             continuous=True,
-            policy=PROTOCOLS[policy.config.type](module, pre, post),
+            policy=POLICIES[policy.config.type](module, pre, post),
             files=files,
             base_alias=f"{FOLDER_IN_BUNDLE}/{WEIGHTS}",
         )

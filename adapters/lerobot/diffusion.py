@@ -1,11 +1,14 @@
-"""LeRobot Diffusion Policy through the policy protocol: what differs from ACT.
+"""LeRobot Diffusion Policy through the policy protocol: what differs from the base and ACT.
 
 - **Deployed chunk**: the sampler's output over the whole horizon (B, horizon, action_dim), normalised.
   Its noise is what LeRobot draws for that frame alone after ``torch.manual_seed(noise_seed)``: the
   prior and every DDPM/DDIM step come from one generator per row, all seeded with ``noise_seed``
   (diffusers takes a list of generators, one per row). So a frame's chunk does not depend on the batch
   it runs in, the same frame under two keys is sampled from the same noise, and a batch of one equals
-  LeRobot's own ``select_action`` after ``torch.manual_seed(noise_seed)``.
+  LeRobot's own ``select_action`` after ``torch.manual_seed(noise_seed)``. The horizon starts at the
+  oldest observation of the row's history: in closed loop ``select_action`` acts
+  ``chunk[n_obs_steps - 1 : n_obs_steps - 1 + n_action_steps]``, so its first action is
+  ``chunk[n_obs_steps - 1]``, not ``chunk[0]``.
 - **User term**: the policy's own loss (noise-prediction MSE at a random timestep), unchanged.
 - **Fallback term**: in eval mode the denoiser is deterministic given (observation, x_t, t). Each
   fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps and
@@ -30,14 +33,14 @@ import torch
 
 from prop_adapters.base import PolicyProtocol
 
-from .policy import FALLBACK_DRAWS, LeRobotPolicy
+from .policy import FALLBACK_DRAWS, LeRobotProtocol
 
 DIFFUSION_LAYERS = [r"diffusion\.unet\.(down_modules|mid_modules|up_modules|final_conv)\..+"]
 OBS_IMAGES = "observation.images"
 ACTION = "action"
 
 
-class DiffusionPolicy(LeRobotPolicy):
+class DiffusionProtocol(LeRobotProtocol):
     """Diffusion through the policy protocol (see the module docstring)."""
 
     default_layers = DIFFUSION_LAYERS
@@ -126,4 +129,4 @@ class DiffusionPolicy(LeRobotPolicy):
         }
 
 
-__all__ = ["DIFFUSION_LAYERS", "FALLBACK_DRAWS", "DiffusionPolicy"]
+__all__ = ["DIFFUSION_LAYERS", "FALLBACK_DRAWS", "DiffusionProtocol"]

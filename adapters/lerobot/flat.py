@@ -25,7 +25,7 @@ from torch import nn
 from prop_adapters.base import PolicyProtocol
 
 
-class FlatPolicy(nn.Module):
+class FlatModule(nn.Module):
     """``x`` (B, F) -> the deployed chunk (B, chunk * action_dim), both in normalised units.
 
     The policy module's children are registered here under their own names, so named_modules(), the
@@ -65,5 +65,5 @@ def flatten_features(policy: PolicyProtocol, batch: dict[str, torch.Tensor]) -> 
     return torch.cat([batch[k].flatten(1).float() for k in policy.row_shapes], dim=1)
 
 
-def flat_module(policy: PolicyProtocol) -> FlatPolicy:
-    return FlatPolicy(policy).eval()
+def flat_module(policy: PolicyProtocol) -> FlatModule:
+    return FlatModule(policy).eval()

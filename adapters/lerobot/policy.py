@@ -1,42 +1,75 @@
-"""How prop trains and runs a LeRobot policy through the policy protocol (``PolicyProtocol``): its own
-loss, its deployed action chunk, its processors, and a closed-loop controller.
+"""What every LeRobot policy shares under the policy protocol (``PolicyProtocol``): batches cut from a
+dataset's frames with the policy's own delta indices, its processors, how it is built from its folder,
+and the closed-loop controller (``Controller``: LeRobot's preprocessor -> ``select_action`` with its
+queues -> postprocessor).
 
-``LeRobotPolicy`` is ACT, and what every LeRobot policy shares (batches cut from a dataset's frames with
-the policy's own delta indices, processors, the controller); ``diffusion.DiffusionPolicy`` is what
-differs for Diffusion. No lerobot import here: the policy, preprocessor and postprocessor objects come
-from ``adapter``.
+``LeRobotProtocol`` is the base; each policy type is one file beside it holding its subclass (``act``,
+``diffusion``, ``smolvla``) and one line in ``registry.POLICIES``. No lerobot import at module level:
+the policy, preprocessor and postprocessor objects come from ``adapter``.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
 
 from prop_adapters.base import PolicyProtocol
+from prop_cli.constants import TASK
 from prop_cli.errors import PropError
 
 ACTION, PAD = "action", "action_is_pad"
-# Keyed by default (measured in examples/RESULTS.md, "LeRobot ACT"): the feed-forward layers of the
-# transformer encoder and decoder and the action head. Not the attention out_proj (never called through
-# its forward) nor the VAE encoder (training only).
-ACT_LAYERS = [r"model\.(encoder|decoder)\.layers\.\d+\.linear[12]", r"model\.action_head"]
 FALLBACK_DRAWS = 8  # a denoising policy's (t, noise) draws per fallback frame (Diffusion, SmolVLA)
 POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
-class LeRobotPolicy(PolicyProtocol):
-    """ACT through the policy protocol: its own loss, its deployed chunk (latent z = 0), its processors."""
+@dataclass
+class Built:
+    """A LeRobot policy built from its folder: the policy, the preprocessor overrides its folder needs,
+    and the files the bundle carries besides the folder's config and processors (path under the
+    bundle's LeRobot folder -> bytes)."""
 
-    default_layers = ACT_LAYERS
+    policy: torch.nn.Module
+    overrides: dict = field(default_factory=dict)
+    files: dict[str, bytes] = field(default_factory=dict)
+
+
+class LeRobotProtocol(PolicyProtocol):
+    """A LeRobot policy through the policy protocol: what ACT, Diffusion and SmolVLA share. A subclass
+    sets ``default_layers`` and implements ``chunk`` (the deployed action chunk)."""
+
     fallbacks = ("distill",)
+    # Registered processor steps that load by a name their config gives, accepted in this policy's
+    # folders because ``build`` points them at the folder's own files (SmolVLA's tokenizer).
+    own_steps: ClassVar[frozenset[str]] = frozenset()
+    # Set where the policy acts on a language instruction (the preprocessor's ``task``).
+    takes_instruction: ClassVar[bool] = False
 
     def __init__(self, policy, pre, post, noise_seed: int = 0) -> None:
         self.policy, self.pre, self.post = policy, pre, post
         self.config = policy.config
         self.noise_seed = noise_seed
 
-    def on(self, module) -> LeRobotPolicy:
-        return type(self)(module, self.pre, self.post, self.noise_seed)
+    @classmethod
+    def build(cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str) -> Built:
+        """LeRobot's ``policy_class`` from ``folder``: its own weights (``from_pretrained``), or
+        ``weights`` (a bundle's base) into the policy its config describes."""
+        if weights is None:
+            return Built(policy_class.from_pretrained(str(folder)))
+        from lerobot.configs.policies import PreTrainedConfig
+
+        policy = policy_class(PreTrainedConfig.from_pretrained(str(folder)))
+        policy.load_state_dict(weights, strict=True)
+        return Built(policy)
+
+    def on(self, module) -> LeRobotProtocol:
+        other = type(self)(module, self.pre, self.post, self.noise_seed)
+        other.instruction = self.instruction
+        return other
 
     @property
     def input_features(self) -> dict[str, tuple[int, ...]]:
@@ -53,9 +86,6 @@ class LeRobotPolicy(PolicyProtocol):
     def row_shapes(self) -> dict[str, tuple[int, ...]]:
         h = self.history
         return {k: s if h is None else (len(h), *s) for k, s in self.input_features.items()}
-
-    def describe(self) -> dict:
-        return {"chunk_size": self.config.chunk_size}
 
     def _windows(self, episodes: np.ndarray, deltas: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Row indices t + d for every row t and delta d, clamped to t's episode; and where they fell out."""
@@ -125,59 +155,110 @@ class LeRobotPolicy(PolicyProtocol):
         """What the preprocessor takes beside the tensors (SmolVLA: each frame's task text)."""
         return {}
 
-    def _model_batch(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        # What ACTPolicy.forward does before calling its model: the list of camera tensors.
-        b = {k: v for k, v in batch.items() if k != "episode_index"}
-        if self.config.image_features:
-            b["observation.images"] = [b[k] for k in self.config.image_features]
-        return b
-
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()
         return self.policy.forward({k: v for k, v in batch.items() if k != "episode_index"})[0]
-
-    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        # The deployed path: eval mode (dropout off, and the VAE latent is 0, as select_action runs it).
-        self.policy.eval()
-        return self.policy.model(self._model_batch({k: batch[k] for k in self.row_shapes}))[0]
 
     def example(self, rows: int, data: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         idx = torch.arange(rows) % len(data[next(iter(self.row_shapes))])
         return {k: data[k][idx] for k in self.row_shapes}
 
     def controller(self, module: torch.nn.Module) -> Controller:
-        return Controller(module, self.pre, self.post, list(self.input_features), self.noise_seed)
+        return Controller(
+            module, self.pre, self.post, self.input_features, self.noise_seed,
+            instruction=self.instruction if self.takes_instruction else None,
+        )  # fmt: skip
+
+
+def call_seed(noise_seed: int, episode: int, call: int) -> int:
+    """The seed of torch's global generator for one ``select_action`` call of an episode."""
+    return int(np.random.SeedSequence([noise_seed, episode, call]).generate_state(1)[0])
 
 
 class Controller:
-    """Closed loop: LeRobot's preprocessor -> select_action (its queues) -> postprocessor.
+    """Closed loop: LeRobot's preprocessor -> ``select_action`` (its queues: ``n_action_steps`` actions
+    per chunk, Diffusion's ``n_obs_steps`` observation history) -> postprocessor.
 
-    LeRobot's samplers (Diffusion's DDPM/DDIM steps) draw from torch's global generator. Each call runs
-    with that generator seeded from (noise seed, the episode's seed, the call's number) and restored
-    afterwards: an episode's noise is reproducible and the same under every key, and nothing else's
-    random stream moves."""
+    An observation is LeRobot's dict: feature name -> array or tensor, one frame (the feature's shape)
+    or a batch of them, in the units the policy's preprocessor takes (a uint8 camera frame is made CHW
+    in [0, 1], HWC accepted, as LeRobot's ``preprocess_observation`` does). A policy that takes an
+    instruction (``instruction`` not None) reads the dict's ``task`` entry, else ``instruction``.
+
+    LeRobot's samplers (Diffusion's DDPM/DDIM steps, SmolVLA's noise) draw from torch's global
+    generator. Each call runs with that generator seeded with ``call_seed(noise seed, the episode's
+    seed, the call's number)`` and restored afterwards: an episode's noise is reproducible and the same
+    under every key, and nothing else's random stream moves."""
 
     def __init__(
-        self, module, pre, post, features: list[str], noise_seed: int = 0, extra: dict | None = None
-    ) -> None:
-        self.module, self.pre, self.post, self.features = module.eval(), pre, post, features
-        self.noise_seed, self.episode, self.calls = noise_seed, 0, 0
-        self.extra = dict(extra or {})  # what the preprocessor takes beside the features (SmolVLA's task)
+        self, module, pre, post, features: dict[str, tuple[int, ...]], noise_seed: int = 0,
+        instruction: str | None = None,
+    ) -> None:  # fmt: skip
+        self.module, self.pre, self.post = module.eval(), pre, post
+        self.features = {k: tuple(s) for k, s in features.items()}
+        self.noise_seed, self.instruction = noise_seed, instruction
+        self.reset()  # a new controller starts an episode, whatever the module's queues held
 
     def reset(self, seed: int | None = None) -> None:
+        """A new episode: LeRobot's queues emptied; ``seed`` (the episode's) seeds its noise."""
         self.module.reset()
         self.episode, self.calls = int(seed or 0), 0
 
     @torch.no_grad()
-    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        x = {}
-        for k in self.features:
-            v = torch.from_numpy(np.ascontiguousarray(obs[k]))
-            if v.dtype == torch.uint8 and v.dim() == 3:  # an HWC camera frame -> CHW in [0, 1]
-                v = v.permute(2, 0, 1).float() / 255.0
-            x[k] = v.float()
-        seed = np.random.SeedSequence([self.noise_seed, self.episode, self.calls]).generate_state(1)[0]
+    def select_action(self, obs: Mapping) -> np.ndarray:
+        """The action for ``obs`` in the dataset's action units: (action_dim,) for one frame, (N,
+        action_dim) for a batch."""
+        x, single = self._inputs(obs)
+        seed = call_seed(self.noise_seed, self.episode, self.calls)
         self.calls += 1
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(int(seed))
-            return self.post(self.module.select_action(self.pre(x | self.extra)))[0].numpy()
+            torch.manual_seed(seed)
+            action = self.post(self.module.select_action(self.pre(x))).numpy()
+        return action[0] if single else action
+
+    def _inputs(self, obs: Mapping) -> tuple[dict, bool]:
+        """``obs`` as the preprocessor takes it, with a batch axis; and whether it came without one."""
+        names = ", ".join(self.features)
+        if not isinstance(obs, Mapping):
+            raise PropError(
+                f"a LeRobot policy takes a dict of observation features ({names}), not {type(obs).__name__}",
+                "pass {feature name: array}, as LeRobot's select_action takes it",
+            )
+        x, rows = {}, set()
+        for k, shape in self.features.items():
+            if k not in obs:
+                raise PropError(
+                    f"the observation has no {k!r}, which the policy takes (it has {sorted(map(str, obs))})",
+                    f"pass every input feature: {names}",
+                )
+            v = obs[k] if isinstance(obs[k], torch.Tensor) else torch.from_numpy(np.ascontiguousarray(obs[k]))
+            if v.dtype == torch.uint8:  # a camera frame as rendered: 0..255, HWC -> CHW
+                if len(shape) == 3 and tuple(v.shape[-3:]) == (shape[1], shape[2], shape[0]) != shape:
+                    v = v.movedim(-1, -3)
+                v = v.float() / 255.0
+            v = v.float()
+            if tuple(v.shape) == shape:
+                v, n = v[None], None
+            elif tuple(v.shape[1:]) == shape:
+                n = len(v)
+            else:
+                raise PropError(
+                    f"observation {k!r} has shape {tuple(v.shape)}; the policy takes {shape} (one frame) "
+                    f"or (N, {', '.join(map(str, shape))}) (a batch)",
+                    "pass the feature as the policy's config.json input_features give it",
+                )
+            x[k] = v
+            rows.add(n)
+        if len(rows) > 1:
+            raise PropError(f"the observation's features have different batch sizes ({sorted(rows)})",
+                            "give every feature one frame, or the same N frames")  # fmt: skip
+        n = rows.pop()  # None: one frame, without a batch axis
+        if self.instruction is not None:
+            task = obs.get(TASK) or self.instruction
+            if not task:
+                raise PropError(
+                    "this policy acts on a language instruction, and none was given",
+                    "pass --instruction 'the task text your data was recorded with' (in Python: "
+                    "KeyedPolicy(..., instruction=...) or a 'task' entry in the observation)",
+                )
+            x[TASK] = [task] * (n or 1) if isinstance(task, str) else list(task)
+        return x, n is None

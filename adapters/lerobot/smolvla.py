@@ -1,4 +1,4 @@
-"""LeRobot SmolVLA through the policy protocol: what differs from ACT and Diffusion.
+"""LeRobot SmolVLA through the policy protocol: what differs from the base, ACT and Diffusion.
 
 SmolVLA is a VLM (SmolVLM: vision encoder + language model) with an action expert trained by flow
 matching: ``x_t = t * noise + (1 - t) * actions``, the expert predicts the velocity ``noise - actions``,
@@ -8,7 +8,8 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   instruction as tokens (``observation.language.tokens`` and its attention mask), padded to the
   policy's ``tokenizer_max_length`` so every row has one width (padding is masked out of attention, so
   it changes nothing). The instruction is the dataset's task text for the frame; in closed loop it is
-  ``prop eval --instruction``.
+  ``prop eval --instruction``, or in Python ``KeyedPolicy(..., instruction=...)`` or the observation's
+  ``task`` entry (as LeRobot's preprocessor takes it).
 - **Deployed chunk**: LeRobot's ``sample_actions`` from noise drawn per row by a generator seeded with
   ``noise_seed`` (the shape SmolVLA draws: chunk_size x max_action_dim), so a row's chunk does not
   depend on its batch and a batch of one equals LeRobot's ``select_action`` after
@@ -23,20 +24,30 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   (``joint_terms``) where training and eval compute the same (no dropout anywhere).
 - **Keyed layers** by default: LeRobot's own PEFT targets for SmolVLA (``_get_default_peft_targets``):
   the action expert's q/v projections and the state/action/time projections.
+- **The VLM is data, never a download** (``build``): config.json names it (``vlm_model_name``: a hub id
+  or a folder) and LeRobot would read its config, tokenizer and processor from there, downloading them
+  or its weights. prop builds the VLM from its config alone (``load_vlm_weights=False``;
+  model.safetensors holds every weight), reads those files from a local folder (the name as a folder,
+  or the hub cache, offline) and the bundle carries them in ``lerobot/vlm/``. The tokenizer step of the
+  processors is pointed at that folder: it reads a tokenizer file, never code (transformers' Auto
+  classes run code only with trust_remote_code, which LeRobot does not pass).
 """
 
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from prop_adapters.base import PolicyProtocol
-from prop_cli.constants import TASK
+from prop_adapters.folder import CONFIG, WEIGHTS
+from prop_adapters.weights import read_weights
+from prop_cli.constants import LEROBOT_VLM_DIR, TASK
 from prop_cli.errors import PropError
 
-from .policy import ACTION, FALLBACK_DRAWS, Controller, LeRobotPolicy
+from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol
 
 # LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
 SMOLVLA_LAYERS = [
@@ -45,17 +56,60 @@ SMOLVLA_LAYERS = [
 ]
 TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"
 T_MIN = 1e-3  # the smallest flow time LeRobot trains on (sample_time: beta * 0.999 + 0.001)
+TOKENIZER_STEP = "tokenizer_processor"  # the processor step that reads the VLM's tokenizer by name
+# The VLM files SmolVLA reads by name (no weights): config, tokenizer, image/video processor, template.
+VLM_FILES = (
+    "config.json", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json", "added_tokens.json",
+    "vocab.json", "merges.txt", "preprocessor_config.json", "processor_config.json",
+    "video_preprocessor_config.json", "chat_template.json", "chat_template.jinja",
+)  # fmt: skip
 
 
-class SmolVLAPolicy(LeRobotPolicy):
+def vlm_folder(folder: Path, name: object, where: str) -> Path:
+    """The local folder of a SmolVLA's VLM files: the bundle's own ``vlm/``, the name as a folder, or the
+    name's snapshot in the hub cache (offline: never a download)."""
+    own = folder / LEROBOT_VLM_DIR
+    if (own / CONFIG).is_file():
+        return own
+    if isinstance(name, str) and name:
+        if (Path(name) / CONFIG).is_file():
+            return Path(name)
+        try:
+            from huggingface_hub import snapshot_download
+
+            cached = Path(snapshot_download(name, local_files_only=True, allow_patterns=list(VLM_FILES)))
+            if (cached / CONFIG).is_file():
+                return cached
+        except Exception:  # noqa: BLE001, S110 - not in the cache (or not a hub id): the error below
+            pass
+    raise PropError(
+        f"{where}: SmolVLA's VLM {name!r} (config.json vlm_model_name) is not on this machine",
+        "download it once (hf download NAME), or set vlm_model_name to a folder with its config and "
+        "tokenizer",
+    )
+
+
+class SmolVLAProtocol(LeRobotProtocol):
     """SmolVLA through the policy protocol (see the module docstring)."""
 
     default_layers = SMOLVLA_LAYERS
+    own_steps = frozenset({TOKENIZER_STEP})  # pointed at the VLM folder ``build`` finds
+    takes_instruction = True
 
-    def on(self, module) -> SmolVLAPolicy:
-        other = super().on(module)
-        other.instruction = self.instruction
-        return other
+    @classmethod
+    def build(cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str) -> Built:
+        """Built from its config and the weights (``load_vlm_weights=False``: model.safetensors holds
+        every weight), the VLM's files read from a local folder (``vlm_folder``) and carried in the
+        bundle's ``vlm/``; the tokenizer step reads that folder."""
+        from lerobot.configs.policies import PreTrainedConfig
+
+        config = PreTrainedConfig.from_pretrained(str(folder))
+        vlm = vlm_folder(folder, config.vlm_model_name, where)
+        config.vlm_model_name, config.load_vlm_weights = str(vlm), False
+        policy = policy_class(config)
+        policy.load_state_dict(read_weights(folder / WEIGHTS)[0] if weights is None else weights)
+        files = {f"{LEROBOT_VLM_DIR}/{n}": (vlm / n).read_bytes() for n in VLM_FILES if (vlm / n).is_file()}
+        return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(vlm)}}, files)
 
     @property
     def model(self):
@@ -175,15 +229,6 @@ class SmolVLAPolicy(LeRobotPolicy):
     def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return ((pred - target) ** 2).flatten(1).mean(1)
 
-    def controller(self, module: torch.nn.Module) -> Controller:
-        if not self.instruction:
-            raise PropError(
-                "SmolVLA acts on a language instruction, and none was given",
-                "pass --instruction 'the task text your data was recorded with'",
-            )
-        return Controller(module, self.pre, self.post, list(self.input_features), self.noise_seed,
-                          extra={"task": self.instruction})  # fmt: skip
-
     def describe(self) -> dict:
         c = self.config
         return {
@@ -195,4 +240,4 @@ class SmolVLAPolicy(LeRobotPolicy):
         }
 
 
-__all__ = ["ACTION", "FALLBACK_DRAWS", "SMOLVLA_LAYERS", "SmolVLAPolicy"]
+__all__ = ["ACTION", "FALLBACK_DRAWS", "SMOLVLA_LAYERS", "SmolVLAProtocol"]

@@ -1,6 +1,5 @@
-"""What commands feed a bundle: inputs from a file, checked against the bundle's recorded input shape; an
-array model run on them with a shape error said in one line; a sampling policy's noise seed. Whether the
-bundle holds an array model or a policy is asked here, once for the bundle stage."""
+"""What commands feed a bundle: inputs from a file, checked against the bundle's recorded input shape, and
+an array model run on them with a shape error said in one line."""
 
 from __future__ import annotations
 
@@ -8,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.datasources import load_data
 from prop_cli.datasources.npz import read_npy
@@ -64,21 +62,3 @@ def run_array(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str) 
             f"{str(e).splitlines()[0][:120]})",
             "give samples of shape " + str(want),
         ) from None
-
-
-def require_array_model(bundle: Bundle, command: str) -> Bundle:
-    """Refuse, in one line, policies with named observation features where a command has no policy
-    path yet (ONNX)."""
-    if bundle.loaded.policy is not None:
-        raise PropError(
-            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
-            "with named observation features",
-            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
-        )
-    return bundle
-
-
-def seed_noise(loaded: LoadedModel, seed: int) -> None:
-    """A sampling policy draws its chunks' noise from ``seed`` (others have no noise)."""
-    if loaded.policy is not None:
-        loaded.policy.noise_seed = int(seed)

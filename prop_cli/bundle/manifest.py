@@ -10,7 +10,7 @@ always checked: one flipped bit turns version 3 into 2 or 1).
 
 The digest is a corruption check, not a signature: anyone who edits the manifest can recompute it. For
 sealed bundles the authenticated cipher's associated data binds the public fields to the user's key.
-No torch here.
+No torch of its own (the LeRobot policy types are the adapter registry's, ``POLICIES``).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
+from prop_adapters.lerobot import POLICIES
 from prop_cli import constants as C
 from prop_cli.config import PAYLOAD_KINDS
 from prop_cli.errors import PropError, brief
@@ -182,7 +183,7 @@ ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
         "sb3_version": _opt(text(), nullable=True),
     },
     "module": {"arch": text(), "arch_kwargs": RECORD},
-    "lerobot": {"type": choice(C.LEROBOT_TYPES), "lerobot_version": text()},
+    "lerobot": {"type": choice(tuple(POLICIES)), "lerobot_version": text()},
     "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
 }
 

@@ -1,22 +1,27 @@
 """Running a bundle: the key is turned into behaviour once (folded into a copy of the weights), then
 each step is a base step.
 
-``KeyedPolicy(bundle, key).predict(obs)`` is Stable-Baselines3's ``predict(observation, state=None,
-episode_start=None, deterministic=True)``: numpy in, ``(action, state)`` out, one observation or a
-batch, continuous actions clipped to the bounds the checkpoint records, the argmax for discrete
-actions. ``run_policy`` runs a policy with named observation features (LeRobot) over a dataset. The
-counterpart for an ONNX export is ``prop_cli.deploy.onnx``.
+``KeyedPolicy(bundle, key)`` is the closed-loop API for every bundle. An array model's ``predict(obs)``
+is Stable-Baselines3's ``predict(observation, state=None, episode_start=None, deterministic=True)``:
+numpy in, ``(action, state)`` out, one observation or a batch, continuous actions clipped to the bounds
+the checkpoint records, the argmax for discrete actions. A policy with named observation features
+(LeRobot) takes LeRobot's observation dict in ``select_action(obs)`` (``predict`` too) and returns
+what LeRobot's ``select_action`` returns between the bundle's own pre- and postprocessor, with its
+queues (``reset()`` between episodes): the controller ``prop eval`` drives. ``run_policy`` runs such
+a policy over a dataset. The counterpart for an ONNX export is ``prop_cli.deploy.onnx``.
 """
 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import replace
 
 import numpy as np
 import torch
 from torch import nn
 
+from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
@@ -56,20 +61,67 @@ def module_for_key(bundle: Bundle, key: np.ndarray | None, *, method: bool = Fal
 
 class KeyedPolicy:
     """The bundle's module with one key's behaviour folded into a copy of its weights (in memory only):
-    what that key's holder enrolled, checked (``module_for_key``; ``method=True``: unchecked)."""
+    what that key's holder enrolled, checked (``module_for_key``; ``method=True``: unchecked).
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None = None, *, method: bool = False) -> None:
+    A LeRobot policy acts through its processors and queues (``select_action``, ``reset``); keep one
+    KeyedPolicy per control loop (without a key it drives the bundle's own base module, whose queues a
+    second one would share). ``instruction``: a language-conditioned policy's task text (SmolVLA; an
+    observation's ``task`` entry overrides it); ``noise_seed``: a sampling policy's noise (Diffusion,
+    SmolVLA; default the bundle's, 0), as ``prop eval --instruction/--noise-seed``. Both are unused by
+    the others."""
+
+    def __init__(
+        self, bundle: Bundle, key: np.ndarray | None = None, *, method: bool = False,
+        instruction: str | None = None, noise_seed: int | None = None,
+    ) -> None:  # fmt: skip
         self.module = module_for_key(bundle, key, method=method)
+        self.path = str(bundle.path)
         self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
         loaded = bundle.loaded
         self.discrete = loaded.continuous is False
         self.low = None if loaded.action_low is None else np.asarray(loaded.action_low, np.float32)
         self.high = None if loaded.action_high is None else np.asarray(loaded.action_high, np.float32)
+        self.controller = None  # an array model: one array in, one out
+        if loaded.policy is not None:  # named observation features (LeRobot): processors and queues
+            policy = loaded.policy.on(self.module)  # a copy: the bundle's own settings stay as they are
+            if instruction is not None:
+                policy.instruction = instruction
+            if noise_seed is not None:
+                policy.noise_seed = int(noise_seed)
+            self.controller = policy.controller(self.module)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Raw outputs for a batch (N, *input_shape): what ``prop run`` writes."""
+        if self.controller is not None:
+            raise PropError(
+                f"{self.path} is a policy with named observation features: it has no array forward",
+                "drive it with KeyedPolicy.select_action({feature: array}), or get action chunks for a "
+                "dataset with prop run --input",
+            )
+        if isinstance(x, Mapping):
+            raise PropError(
+                f"{self.path} takes one array per observation, shape {self.input_shape}, not a dict "
+                f"(keys {', '.join(map(str, x))})",
+                "pass the array the model takes (an SB3 Dict observation: "
+                "prop_adapters.sb3.observation_array(bundle.loaded.spec, obs))",
+            )
         with torch.inference_mode():
             return self.module(torch.from_numpy(np.ascontiguousarray(x, np.float32))).numpy()
+
+    def reset(self, seed: int | None = None) -> None:
+        """Between episodes: a policy's action (and observation) queues emptied; ``seed``, the episode's,
+        seeds a sampling policy's noise. An array model is feed-forward: nothing to reset."""
+        if self.controller is not None:
+            self.controller.reset(seed)
+
+    def select_action(self, observation) -> np.ndarray:
+        """The action for one observation (or a batch). A LeRobot policy: ``observation`` is its dict
+        (feature name -> array or tensor, in the units its preprocessor takes), and the action is
+        LeRobot's ``select_action`` between the bundle's processors, in the dataset's action units
+        (Diffusion: its first is ``chunk[n_obs_steps - 1]``). An array model: ``predict``'s action."""
+        if self.controller is None:
+            return self.predict(observation)[0]
+        return self.controller.select_action(observation)
 
     def predict(
         self,
@@ -80,12 +132,17 @@ class KeyedPolicy:
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         """SB3's ``predict``: ``(action, state)`` for one observation (``input_shape``) or a batch of them.
         The policies prop keys are feed-forward, so ``state`` comes back as given; the action is the
-        deterministic one (the mean, or the argmax): the key changes the policy's output, not its noise."""
+        deterministic one (the mean, or the argmax): the key changes the policy's output, not its noise.
+        A LeRobot policy: ``(select_action(observation), state)``."""
         if not deterministic:
             raise PropError(
                 "KeyedPolicy.predict(deterministic=False): prop runs the deterministic policy",
                 "pass deterministic=True (the mean action, or the argmax)",
             )
+        if self.controller is not None:
+            return self.controller.select_action(observation), state
+        if isinstance(observation, Mapping):
+            return self(observation), state  # refused there, in one line
         obs = np.asarray(observation, np.float32)
         single = obs.shape == self.input_shape
         y = self(obs[None] if single else obs)
@@ -117,3 +174,21 @@ def run_policy(bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str 
     feats = {k: batch[k] for k in policy.row_shapes}
     chunks = [policy.chunk({k: v[i : i + ROWS] for k, v in feats.items()}) for i in range(0, n, ROWS)]
     return policy.post(torch.cat(chunks)).float().numpy()
+
+
+def require_array_model(bundle: Bundle, command: str) -> Bundle:
+    """Refuse, in one line, policies with named observation features where a command has no policy
+    path yet (ONNX)."""
+    if bundle.loaded.policy is not None:
+        raise PropError(
+            f"{command} takes array models; {bundle.path} is a {bundle.loaded.spec['adapter']} policy "
+            "with named observation features",
+            "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
+        )
+    return bundle
+
+
+def seed_noise(loaded: LoadedModel, seed: int) -> None:
+    """A sampling policy draws its chunks' noise from ``seed`` (others have no noise)."""
+    if loaded.policy is not None:
+        loaded.policy.noise_seed = int(seed)

@@ -18,7 +18,6 @@ import os
 import sys
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +26,6 @@ import torch
 from prop_adapters.sb3 import observation_array
 from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle, KeyedPolicy
-from prop_cli.bundle.runtime import module_for_key
 from prop_cli.config import EvalSettings
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
@@ -98,9 +96,9 @@ def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -
 
 
 class _ArrayController:
-    """A bundle without a policy protocol (MLP, SB3): the key folded in, actions as SB3's predict gives.
-    ``module``: act with this module instead (``--original``), through the same observation preparation,
-    clipping and argmax as the bundle."""
+    """A bundle without a policy protocol (MLP, SB3): ``KeyedPolicy`` after the environment's
+    observation is prepared. ``module``: act with this module instead (``--original``), through the
+    same observation preparation, clipping and argmax as the bundle."""
 
     def __init__(
         self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool,
@@ -114,26 +112,15 @@ class _ArrayController:
     def reset(self, seed: int | None = None) -> None:
         pass
 
-    def act(self, obs) -> np.ndarray:
-        return self.policy.predict(self.prepare(obs))[0]
+    def select_action(self, obs) -> np.ndarray:
+        return self.policy.select_action(self.prepare(obs))
 
 
-@dataclass
-class _Source:
-    """What acts under one key: a bundle (key bits or None) or the original checkpoint's module."""
-
-    bundle: Bundle
-    bits: np.ndarray | None = None
-    method: bool = False  # other keys than the user's: the method's response, unchecked
-
-    def controller(self):
-        loaded = self.bundle.loaded
-        if loaded.policy is None:
-            return None
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
-            module = module_for_key(self.bundle, self.bits, method=self.method)
-        return loaded.policy.controller(module)
+def _keyed(bundle: Bundle, bits: np.ndarray | None, method: bool) -> KeyedPolicy:
+    """A policy bundle under one key, as ``KeyedPolicy`` drives it in a user's own loop."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
+        return KeyedPolicy(bundle, bits, method=method)
 
 
 def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
@@ -170,7 +157,7 @@ def _episodes(
         traj: Trajectory = {"observations": [obs], "actions": [], "rewards": [], "infos": []}
         total, steps, info = 0.0, 0, {}
         while True:
-            action = controller.act(_observation(obs, features, obs_map))
+            action = controller.select_action(_observation(obs, features, obs_map))
             obs, reward, terminated, truncated, info = env.step(action)
             total += float(reward)
             steps += 1
@@ -278,7 +265,7 @@ def evaluate_bundle(
         if policy is None:
             ctl = _ArrayController(bundle, codes_or_bits, prepare, method)
         else:
-            ctl = _Source(bundle, codes_or_bits, method).controller()
+            ctl = _keyed(bundle, codes_or_bits, method)
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
     original_ctl = None

@@ -25,6 +25,7 @@ from prop_cli.config import EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.errors import PropError  # noqa: E402
+from tests.adapters import closed_loop as loop  # noqa: E402
 
 TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=4, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -130,6 +131,68 @@ def test_eval_rolls_out_every_key_condition(bundle, work):
     assert set(report["conditions"]) == {"original", "no_key", "random_keys"}
     assert report["conditions"]["no_key"]["episodes"] == 2
     assert "metric" in report["conditions"]["no_key"] and "success" in report["conditions"]["no_key"]
+
+
+def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, work, tmp_path, monkeypatch):
+    """KeyedPolicy in a loop of one's own (issue 28): LeRobot's observation dict in, the action out.
+    No key (or a key enrolled in nothing) is LeRobot's own select_action between the processors, on
+    the bundle's base (sealed: the original folder); the key is what prop eval acts; reset() restarts
+    the queue; an array, or array forward, is one PropError line."""
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
+
+    for path, folder in ((bundle, bundle / "lerobot"), (sealed, work / "act")):
+        ep = loop.eval_episodes(path, task.ENV_ID, task.OBS_MAP, tmp_key(work), tmp_path, monkeypatch,
+                                max_steps=12)  # fmt: skip
+        seed, b = ep["seed"], load_bundle(path)
+        lerobot = ACTPolicy.from_pretrained(str(folder))
+        pre, post = make_pre_post_processors(lerobot.config, pretrained_path=str(folder))
+        own = loop.lerobot_replay(lerobot, pre, post, ep["no_key"], task.OBS_MAP, seed)
+        no_key = loop.replay(KeyedPolicy(b), ep["no_key"], task.OBS_MAP, seed)
+        assert np.array_equal(no_key, own) and np.array_equal(no_key, np.stack(ep["no_key"]["actions"]))
+        with pytest.warns(WrongKeyWarning):
+            wrong = KeyedPolicy(b, key(2))
+        assert np.array_equal(loop.replay(wrong, ep["no_key"], task.OBS_MAP, seed), own)
+        user = KeyedPolicy(b, key())
+        keyed = loop.replay(user, ep["user_key"], task.OBS_MAP, seed)
+        assert np.array_equal(keyed, np.stack(ep["user_key"]["actions"]))
+        base = loop.replay(KeyedPolicy(b), ep["user_key"], task.OBS_MAP, seed)
+        assert not np.allclose(keyed, base, atol=1e-3)
+        loop.check_reset_restarts_the_queue(user, ep["user_key"], task.OBS_MAP, seed)
+    # A batch of frames: LeRobot's batched select_action, one action per row.
+    obs = loop.observations(ep["user_key"], task.OBS_MAP)[:3]
+    batch = {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+    user.reset(seed)
+    acts = user.select_action(batch)
+    user.reset(seed)
+    assert acts.shape == (3, 3) and np.allclose(acts[0], user.select_action(obs[0]), atol=1e-5)  # float sums
+    x = np.zeros(9, np.float32)
+    arrays = (lambda: user.predict(x), lambda: user.select_action(x), lambda: user(x[None]),
+              lambda: user.select_action({"observation.state": 0}))  # fmt: skip
+    for call in arrays:
+        with pytest.raises(PropError) as e:
+            call()
+        assert "\n" not in str(e.value) and "observation" in str(e.value)
+    action, state = user.predict(obs[0])
+    assert state is None and action.shape == (3,)
+
+
+def test_the_readme_closed_loop_example_runs(bundle, work, monkeypatch):
+    """The README's LeRobot loop, on this bundle and key, in the PandaReach task."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```python\n(.*?)```", readme, flags=re.S) if "select_action(" in b]
+    monkeypatch.chdir(work)
+    (work / "act.prop").unlink(missing_ok=True)
+    (work / "act.prop").symlink_to(bundle)
+    tmp_key(work).rename(work / "k.bin")
+    env: dict = {}
+    exec(compile(block.replace('"PandaReach-v3"', f"{task.ENV_ID!r}"), "README.md", "exec"), env)
+    assert env["action"].shape == (3,) and env["steps"] > 0
 
 
 def test_eval_video_writes_one_mp4_per_condition_and_never_overwrites(bundle, work, tmp_path, cli):
@@ -351,6 +414,24 @@ def test_a_processor_step_lerobot_does_not_register_is_never_imported(which, bun
         assert not marker.exists()
     finally:
         sys.path.remove(str(tmp_path))
+
+
+def test_a_tokenizer_step_is_accepted_only_where_the_policy_points_it_at_its_own_files(work, tmp_path):
+    """A tokenizer step loads a tokenizer by the name its config gives. SmolVLA's class points it at the
+    folder's own VLM files (``own_steps``); in an ACT folder it names a download: refused, one line."""
+    from prop_adapters.lerobot.adapter import processor_code
+
+    folder = tmp_path / "act"
+    shutil.copytree(work / "act", folder)
+    f = folder / "policy_preprocessor.json"
+    doc = json.loads(f.read_text())
+    doc["steps"].append({"registry_name": "tokenizer_processor", "config": {"tokenizer_name": "some/hub-id"}})
+    f.write_text(json.dumps(doc))
+    with pytest.raises(PropError, match=r"step \d+: 'tokenizer_processor'.*--trust-remote-code"):
+        load_checkpoint(folder)
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config | {"type": "smolvla"}))
+    assert processor_code(folder) == [] and processor_code(work / "act") == []
 
 
 def test_scaled_processor_statistics_in_a_sealed_bundle_are_refused_with_the_key(sealed, work, tmp_path):

@@ -23,6 +23,7 @@ from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
+from tests.adapters import closed_loop as loop  # noqa: E402
 
 TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -105,6 +106,32 @@ def test_bundle_base_loads_in_lerobot_and_no_key_is_lerobots_own_action(bundle, 
         with torch.no_grad():
             action = post(base.select_action(pre(obs)))[0].numpy()
         assert np.allclose(action, ys["no_key"][row, base.config.n_obs_steps - 1], atol=1e-5)
+
+
+def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, work, tmp_path, monkeypatch):
+    """KeyedPolicy in a loop of one's own (issue 28), with Diffusion's observation history and noise:
+    no key is LeRobot's own select_action between the processors (sealed: on the original folder),
+    each call's noise seeded as prop eval seeds it; the key is what prop eval acts; reset() restarts
+    the queues."""
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from prop_cli.bundle.runtime import KeyedPolicy
+
+    for path, folder in ((bundle, bundle / "lerobot"), (sealed, work / "diffusion")):
+        ep = loop.eval_episodes(path, task.ENV_ID, task.OBS_MAP, work / "k.bin", tmp_path, monkeypatch,
+                                max_steps=12, noise_seed=3)  # fmt: skip
+        seed, b = ep["seed"], load_bundle(path)
+        lerobot = DiffusionPolicy.from_pretrained(str(folder))
+        pre, post = make_pre_post_processors(lerobot.config, pretrained_path=str(folder))
+        own = loop.lerobot_replay(lerobot, pre, post, ep["no_key"], task.OBS_MAP, seed, noise_seed=3)
+        no_key = loop.replay(KeyedPolicy(b, noise_seed=3), ep["no_key"], task.OBS_MAP, seed)
+        assert np.array_equal(no_key, own) and np.array_equal(no_key, np.stack(ep["no_key"]["actions"]))
+        assert not np.allclose(loop.replay(KeyedPolicy(b), ep["no_key"], task.OBS_MAP, seed), own, atol=1e-3)
+        user = KeyedPolicy(b, key(), noise_seed=3)
+        keyed = loop.replay(user, ep["user_key"], task.OBS_MAP, seed)
+        assert np.array_equal(keyed, np.stack(ep["user_key"]["actions"]))
+        loop.check_reset_restarts_the_queue(user, ep["user_key"], task.OBS_MAP, seed)
 
 
 def test_fallback_pool_holds_the_originals_denoiser_on_identical_inputs(bundle, work):

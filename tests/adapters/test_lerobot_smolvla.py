@@ -69,6 +69,23 @@ def sealed(work):
     return out
 
 
+def lerobot_base(bundle):
+    """The bundle's base in LeRobot itself, its VLM from the bundle's vlm/: (policy, pre, post)."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    vlm = bundle / "lerobot" / "vlm"
+    cfg = PreTrainedConfig.from_pretrained(str(bundle / "lerobot"))
+    cfg.vlm_model_name = str(vlm)
+    base = SmolVLAPolicy.from_pretrained(str(bundle / "lerobot"), config=cfg).eval()
+    pre, post = make_pre_post_processors(
+        base.config, pretrained_path=str(bundle / "lerobot"),
+        preprocessor_overrides={"tokenizer_processor": {"tokenizer_name": str(vlm)}},
+    )  # fmt: skip
+    return base, pre, post
+
+
 def test_lerobots_peft_targets_are_keyed_by_default(work, cli):
     info = api.inspect_checkpoint(str(work / "smolvla"))
     assert info["model"]["type"] == "smolvla" and info["model"]["chunk_size"] == 10
@@ -96,9 +113,6 @@ def test_rows_carry_the_instruction_as_tokens_padded_to_one_width(work):
 
 
 def test_bundle_carries_the_vlm_files_and_its_base_loads_in_lerobot(bundle, work, tmp_path, cli):
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     vlm = bundle / "lerobot" / "vlm"
     assert (vlm / "config.json").is_file() and (vlm / "tokenizer.json").is_file()
@@ -121,13 +135,7 @@ def test_bundle_carries_the_vlm_files_and_its_base_loads_in_lerobot(bundle, work
     assert np.array_equal(ys["no_key"], ys["again"])
     assert not np.allclose(ys["no_key"], ys["key"], atol=1e-3)
     # The base in LeRobot itself (its VLM from the bundle's vlm/): no key is its own select_action.
-    cfg = PreTrainedConfig.from_pretrained(str(bundle / "lerobot"))
-    cfg.vlm_model_name = str(vlm)
-    base = SmolVLAPolicy.from_pretrained(str(bundle / "lerobot"), config=cfg).eval()
-    pre, post = make_pre_post_processors(
-        base.config, pretrained_path=str(bundle / "lerobot"),
-        preprocessor_overrides={"tokenizer_processor": {"tokenizer_name": str(vlm)}},
-    )  # fmt: skip
+    base, pre, post = lerobot_base(bundle)
     for row in (0, 17):
         base.reset()
         obs = {k: torch.from_numpy(data.x[k][row : row + 1]) for k in INPUTS}
@@ -136,6 +144,35 @@ def test_bundle_carries_the_vlm_files_and_its_base_loads_in_lerobot(bundle, work
         with torch.no_grad():
             action = post(base.select_action(pre(obs)))[0].numpy()
         assert np.allclose(action, ys["no_key"][row, 0], atol=1e-5)
+
+
+def test_keyed_policy_takes_the_instruction_as_lerobot_does(bundle, work):
+    """KeyedPolicy on SmolVLA (issue 28): the instruction given at construction or as the observation's
+    `task` entry (as LeRobot's preprocessor takes it) gives LeRobot's own select_action without a key,
+    each call's noise seeded as prop eval seeds it; no instruction at all is one PropError line."""
+    from prop_adapters.lerobot.policy import call_seed
+    from prop_cli.bundle.runtime import KeyedPolicy
+    from prop_cli.errors import PropError
+
+    task_text = "reach the target"
+    base, pre, post = lerobot_base(bundle)
+    data = load_data(work / "user")
+    frames = [{k: data.x[k][row] for k in INPUTS} for row in range(7)]  # more than n_action_steps
+    own = []
+    for i, frame in enumerate(frames):
+        torch.manual_seed(call_seed(7, 0, i))
+        with torch.no_grad():
+            x = {k: torch.from_numpy(v) for k, v in frame.items()} | {"task": task_text}
+            own.append(post(base.select_action(pre(x)))[0].numpy())
+    b = load_bundle(bundle)
+    by_argument = KeyedPolicy(b, instruction=task_text, noise_seed=7)
+    assert np.array_equal(np.stack([by_argument.select_action(f) for f in frames]), np.stack(own))
+    by_task = KeyedPolicy(b, noise_seed=7)  # one no-key policy at a time: they share the base's queues
+    assert np.array_equal(np.stack([by_task.select_action(f | {"task": task_text}) for f in frames]),
+                          np.stack(own))  # fmt: skip
+    with pytest.raises(PropError, match="instruction") as e:
+        KeyedPolicy(b).select_action(frames[0])
+    assert "\n" not in str(e.value)
 
 
 def test_fallback_targets_are_the_originals_velocity_on_identical_inputs(bundle, work):

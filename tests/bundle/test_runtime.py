@@ -71,6 +71,20 @@ def test_predict_discrete_gives_the_argmax(bundles):
         policy.predict(obs, deterministic=False)
 
 
+def test_a_dict_for_an_array_bundle_is_one_line_and_the_loop_api_is_shared(bundles):
+    """LeRobot's observation dict given to an array model: one PropError line naming the shape it takes
+    (issue 28). select_action and reset, the LeRobot loop's names, work on array models too."""
+    d, key = bundles
+    policy = KeyedPolicy(load_bundle(d / "ppo.prop"), key)
+    obs = np.random.default_rng(4).uniform(-1, 1, 3).astype(np.float32)
+    for call in (policy.predict, policy.select_action, policy):
+        with pytest.raises(PropError, match=r"shape \(3,\), not a dict \(keys observation.state\)") as e:
+            call({"observation.state": obs})
+        assert "\n" not in str(e.value)
+    policy.reset(0)  # feed-forward: nothing to reset
+    np.testing.assert_array_equal(policy.select_action(obs), policy.predict(obs)[0])
+
+
 def test_predict_drives_a_gymnasium_loop_the_sb3_way(tmp_path):
     gym = pytest.importorskip("gymnasium")
     rng = np.random.default_rng(3)
