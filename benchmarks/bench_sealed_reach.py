@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> None:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", WrongKeyWarning)
                     wrong = [
-                        KeyedPolicy(bundle, k) for k in rng.integers(0, 2, (5, len(key)), dtype=np.uint8)
+                        KeyedPolicy(bundle, k, allow_unenrolled=True)
+                        for k in rng.integers(0, 2, (5, len(key)), dtype=np.uint8)
                     ]
                 obs = pool[:256].astype(np.float32)
                 identical = all(np.array_equal(w(obs), KeyedPolicy(bundle, None)(obs)) for w in wrong)

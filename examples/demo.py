@@ -5,7 +5,9 @@
 
 1. Write the example: a base MLP behaviour-cloned from an expert that moves a robot towards its goal
    (saved as safetensors), the user's demonstrations (the negated action), and test states.
-2. `prop keygen`, `prop inspect`, `prop personalize` (defaults), `prop run` with and without the key.
+2. `prop keygen`, `prop inspect`, `prop personalize` (defaults), `prop run` with and without the key;
+   a key one bit off is enrolled in nothing, so `prop run` refuses it, and runs the bundle's base with
+   `--allow-unenrolled-key` (what the rows "key 1 bit off" show).
 3. Print base vs personalized behaviour on a few states, and the errors on 2000 held-out states.
 4. The same with a sealed bundle (`--seal`: the base is the original, the user's part is encrypted),
    where a wrong key runs the original exactly.
@@ -26,10 +28,13 @@ import numpy as np
 from examples.il_task import write_example
 
 
-def prop(*args: object) -> None:
+def prop(*args: object, refused: bool = False) -> None:
+    """Run `prop ARGS`; ``refused``: the command must fail with a usage error (exit 2)."""
     cmd = [sys.executable, "-m", "prop_cli.cli.main", *map(str, args)]
     print("$ prop " + " ".join(map(str, args)), flush=True)
-    subprocess.run(cmd, check=True)
+    rc = subprocess.run(cmd, check=not refused).returncode
+    if refused and rc != 2:
+        raise SystemExit(f"expected prop {args[0]} to refuse (exit 2), got exit {rc}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -64,8 +69,12 @@ def main(argv: list[str] | None = None) -> None:
         wrong[0] ^= 1  # the user's key with one bit flipped
         (work / "k_wrong.bin").write_bytes(bytes(wrong))
         (work / "k_wrong.bin").chmod(0o600)
-        for name, key_args in (("key", ["--key-file", key]), ("nokey", []),
-                               ("wrong", ["--key-file", work / "k_wrong.bin"])):  # fmt: skip
+        # A key enrolled in nothing is refused (the bundle may have been replaced); to measure it, as
+        # here, --allow-unenrolled-key runs the bundle's base for it.
+        prop("run", bundle, "--input", work / "x.npy", "--key-file", work / "k_wrong.bin", "--output",
+             work / "y_refused.npy", "--force", refused=True)  # fmt: skip
+        wrong = ["--key-file", work / "k_wrong.bin", "--allow-unenrolled-key"]
+        for name, key_args in (("key", ["--key-file", key]), ("nokey", []), ("wrong", wrong)):
             prop("run", bundle, "--input", work / "x.npy", *key_args, "--output", work / f"y_{name}.npy",
                  "--force")  # fmt: skip
 
@@ -91,8 +100,7 @@ def main(argv: list[str] | None = None) -> None:
         print("\nthe same user, sealed (private against whoever holds the bundle's files):", flush=True)
         prop("personalize", paths["base"], "--data", paths["mine"], "--key-file", key, "--out", sealed,
              "--seal", "--force")  # fmt: skip
-        for name, key_args in (("key", ["--key-file", key]), ("nokey", []),
-                               ("wrong", ["--key-file", work / "k_wrong.bin"])):  # fmt: skip
+        for name, key_args in (("key", ["--key-file", key]), ("nokey", []), ("wrong", wrong)):
             prop("run", sealed, "--input", work / "x.npy", *key_args, "--output", work / f"s_{name}.npy",
                  "--force")  # fmt: skip
         souts = {name: np.load(work / f"s_{name}.npy") for name in ("key", "nokey", "wrong")}

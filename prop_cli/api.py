@@ -31,7 +31,7 @@ from prop_cli.bundle.records import (
     rewrite_records,
     with_records,
 )
-from prop_cli.bundle.runtime import require_array_model, run_policy, seed_noise
+from prop_cli.bundle.runtime import require_array_model, require_enrolled, run_policy, seed_noise
 from prop_cli.bundle.write import common_fields
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
@@ -229,10 +229,12 @@ def run_file(
     trust_remote_code: bool = False,
     noise_seed: int = 0,
     arch: str | None = None,
+    allow_unenrolled_key: bool = False,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
-    With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing runs the
-    bundle's base with a warning; a bundle changed since the key was enrolled is refused.
+    With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing is
+    refused (``allow_unenrolled_key``: the bundle's base runs, with a warning), and so is a bundle
+    changed since the key was enrolled.
     ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
@@ -241,26 +243,27 @@ def run_file(
     seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    # Before any input is read: a key enrolled in nothing is refused unless allowed (the run warns).
+    keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
     use_onnx = onnx or onnx_dir is not None
     if bundle.loaded.policy is not None:
         if use_onnx:
             raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
         data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
-        y = run_policy(bundle, data, key)
+        y = run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled_key)
     elif use_onnx:
         from prop_cli.deploy.onnx import run_onnx
 
-        y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads)
+        y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads,
+                     allow_unenrolled=allow_unenrolled_key)  # fmt: skip
     else:
-        y = run_array(bundle, load_inputs(input_path, bundle), key, "--input")
+        y = run_array(bundle, load_inputs(input_path, bundle), key, "--input", allow_unenrolled_key)
 
     def save(tmp: Path) -> None:
         with open(tmp, "wb") as f:
             np.save(f, y)
 
     write_file(output, save, what="output", flag="--output")
-    # A key enrolled in nothing ran the base: not keyed (a changed bundle raised before anything ran).
-    keyed = key is not None and bundle.mode.enrolled(key)
     return RunResult(Path(output), tuple(y.shape), keyed, use_onnx)
 
 
@@ -277,15 +280,20 @@ def audit_bundle(
     threads: int | None = None,
     trust_remote_code: bool = False,
     arch: str | None = None,
+    allow_unenrolled_key: bool = False,
 ) -> dict:
     """`prop attack`: the audit report for a bundle (``attack.audit``) from files. The audited user's key
-    is the passphrase's if given, else the first key file; further key files are other users'."""
+    is the passphrase's if given, else the first key file; further key files are other users'. The
+    audited key must be enrolled in the bundle (``allow_unenrolled_key``: audit it anyway); the audit's
+    key rows measure the method for any key, enrolled or not."""
     check_threads(threads)
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
     configure_threads(bundle.parameters, threads)
     seed_noise(bundle.loaded, settings.noise_seed)
     keys = [] if passphrase is None else [key_for_bundle(bundle.manifest, passphrase=passphrase)]
     keys += [read_key_file(p, bundle.key_bits) for p in key_files]
+    if keys:
+        require_enrolled(bundle, keys[0], allow_unenrolled_key)
     bundle, data, settings = target.as_array(bundle, load_data(data_path, require_y=bool(keys)), settings)
     ref = target.load_original(bundle, original, trust_remote_code, settings.noise_seed) if original else None
     report = audit(bundle, data, keys, settings, original=ref, device=device, progress=progress)
@@ -296,12 +304,17 @@ def audit_bundle(
 
 
 def describe_bundle(bundle_path: Path) -> dict:
-    """`prop inspect BUNDLE`: mode, users, keyed layers, the recorded audit, a signature (from the
-    manifest, checked; nothing is imported and no key is needed)."""
+    """`prop inspect BUNDLE`: mode, users, keyed layers, the recorded audit (which probes ran, and whether
+    its --max-leak decision is a pass: ``attack.report.recorded_coverage``), whether a signature is
+    present (not verified: `prop verify`), from the manifest, checked; nothing is imported and no key
+    is needed."""
+    from prop_cli.attack.report import recorded_coverage
     from prop_cli.bundle.describe import describe_bundle as describe
     from prop_cli.deploy.onnx import describe_export
 
     info = describe(Path(bundle_path))
+    if info["audit"] is not None:
+        info["audit"].update(recorded_coverage(info["audit"]))
     info["onnx_export"] = describe_export(Path(bundle_path) / C.EXPORT_DIR, read_manifest(Path(bundle_path)))
     return info
 
@@ -354,9 +367,11 @@ def export_bundle(
     threads: int | None = None,
     trust_remote_code: bool = False,
     arch: str | None = None,
+    allow_unenrolled_key: bool = False,
 ):
     """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
-    The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these."""
+    The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these.
+    A key enrolled in nothing is refused (``allow_unenrolled_key``: verified with, bound to nothing)."""
     from prop_cli.deploy.onnx import export_onnx, require_onnx
 
     check_threads(threads)
@@ -369,7 +384,9 @@ def export_bundle(
     configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     x = load_inputs(input_path, bundle) if input_path is not None else None
-    return export_onnx(bundle, out, settings, key=key, inputs=x, force=force)
+    return export_onnx(
+        bundle, out, settings, key=key, inputs=x, force=force, allow_unenrolled=allow_unenrolled_key
+    )
 
 
 def eval_bundle(
@@ -377,9 +394,10 @@ def eval_bundle(
     key_file: Path | None = None, passphrase: str | None = None, obs_map: str | None = None,
     metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
     vecnormalize: Path | None = None, video: Path | None = None, trust_remote_code: bool = False,
-    arch: str | None = None,
+    arch: str | None = None, allow_unenrolled_key: bool = False,
 ) -> dict:  # fmt: skip
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``); a key
+    enrolled in nothing is refused (``allow_unenrolled_key``: its row, ``key_not_enrolled``, runs the base);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""
     from prop_adapters.sb3.vecnormalize import read_vecnormalize
@@ -403,7 +421,7 @@ def eval_bundle(
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
-        normalizer=normalizer, video=video,
+        normalizer=normalizer, video=video, allow_unenrolled=allow_unenrolled_key,
     )  # fmt: skip
 
 
@@ -456,16 +474,20 @@ class Enrolled:
     format_version: int
 
 
-def enrol(bundle_path: Path, key: np.ndarray) -> Enrolled:
+def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False) -> Enrolled:
     """`prop enrol`: enrol your key in an unsealed bundle as it is now. Your consent that its current
     behaviour is yours: for a format 1-3 bundle you trust (from before enrolment, whose keys run its
-    base), or to accept a change. Reads the bundle as data: nothing it names is imported. Sealed
-    bundles enrol each user in their own record (prop add-user)."""
+    base), or to accept a change. Reads the bundle as data: nothing it names is imported. A bundle whose
+    files name code (model.arch, a folder's factory, LeRobot processor steps) is refused as run refuses
+    it, unless ``trust_remote_code``: enrolling is consent to run what it runs. Sealed bundles enrol
+    each user in their own record (prop add-user)."""
     from prop_cli.bundle import check_files, enrol_key
     from prop_cli.bundle.modes import mode_of
 
     manifest = read_manifest(Path(bundle_path))
     check_files(Path(bundle_path), manifest)
+    named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
+    adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
     if mode_of(manifest).is_sealed:
         raise PropError(
             f"{bundle_path} is sealed: each user is enrolled in their own record",
@@ -507,7 +529,7 @@ def remove_user(
         opened = bundle.records.open(bundle.check_key(key))
         if opened is None:
             raise PropError(
-                f"the key opens no user of {bundle_path}",
+                f"the key is enrolled in nothing in {bundle_path} (it opens no user's record)",
                 "pass the key of the user to remove, or --record ID",
             )
         record = opened.record_id

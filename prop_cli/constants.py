@@ -16,7 +16,7 @@ RECORD_SUFFIX = ".sealed"
 # records); 3: the manifest carries its own digest (M_DIGEST); 4: keys are enrolled (M_ENROLMENTS for
 # unsealed bundles; sealed records carry what they were enrolled in, inside their plaintext) and
 # io.checkpoint is a file name. Versions 1 and 2 (no digest) still load, with only their listed files
-# checked; a key enrolled in nothing of a version 1-3 bundle runs its base (docs/bundle-format.md).
+# checked; in a version 1-3 unsealed bundle every key is enrolled in nothing (docs/bundle-format.md).
 FORMAT_VERSION = 4
 FORMAT_VERSIONS = (1, 2, 3, 4)  # what this prop reads
 DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
@@ -61,7 +61,7 @@ SIGNATURE_FILE = "model.sig"  # `prop push --sign`: the publisher's signature (a
 EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
 # 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.
 # 3: export.json binds the keys given at export to its graphs (M_ENROLMENTS); a key an export does not
-# bind runs its base.onnx.
+# bind is refused (allowed: its base.onnx runs).
 EXPORT_FORMAT = 3
 EXPORT_FORMATS = (1, 2, 3)
 EXPORT_DIGEST = "export_sha256"

@@ -367,7 +367,8 @@ def fit_sealed(c: Cohort) -> Fitted:
         xs = x.numpy()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", WrongKeyWarning)  # wrong keys run the base, by design
-            return torch.stack([torch.from_numpy(KeyedPolicy(bundle, k)(xs)) for k in np.atleast_2d(bits)])
+            return torch.stack([torch.from_numpy(KeyedPolicy(bundle, k, allow_unenrolled=True)(xs))
+                                for k in np.atleast_2d(bits)])  # fmt: skip
 
     payload = baselines.n_params(Payload(bundle.records.spec))
     return Fitted(run, baselines.n_params(bundle.loaded.module) + payload * len(c.users), path)

@@ -274,6 +274,7 @@ def audit(
         "reference": "original" if original is not None else "bundle-no-key",
         "control_model": control_from if control_km is not None else None,
         "key_control_model": models["key"],
+        "key_rows": target.key_rows(bundle),
         "remedy": target.remedy(bundle),
         "settings": {**asdict(s), "other_users": max(0, len(keys) - 1), "device": str(dev)},
         "user": user,
@@ -294,7 +295,10 @@ def _enrolment(bundle: Bundle, key: np.ndarray) -> list[str]:
     try:
         if bundle.mode.enrolled(key):
             return []
-        return [f"{bundle.mode.not_enrolled(str(bundle.path))}: prop run gives the base for it"]
+        return [
+            f"{bundle.mode.not_enrolled(str(bundle.path))}: prop run refuses this key "
+            "(--allow-unenrolled-key runs the bundle's base for it)"
+        ]
     except PropError as e:
         return [e.what]
 

@@ -131,6 +131,8 @@ def table(report: dict):
         "beyond: worst - control; gated: what --max-leak compares (beyond, or the row's own figure when "
         "there is no control or a search's control is at the ceiling)",
     ]
+    if report.get("key_rows"):
+        notes.append(report["key_rows"])
     if report.get("control_model"):
         notes.append(f"search control model: {report['control_model']}")
     if any(not g["is_key"] and g["kind"] == "key" for g in report["groups"]):
@@ -205,6 +207,28 @@ def sealed_summary(report: dict) -> dict:
         "max_leak": gate,
         "passphrase": None if row is None else {k: row[k] for k in ("passed", "min_core_years")},
     }
+
+
+def default_probes(mode: str | None) -> list[str]:
+    """The probes a default audit runs: every default probe, without those that need the user's key in
+    a no-key audit (``audit._settings`` chooses the same)."""
+    from . import probes
+
+    chosen = probes.select(None)
+    if mode == "no-key":
+        chosen = [p for p in chosen if probes.probe_named(p).needs != "key"]
+    return chosen
+
+
+def recorded_coverage(audit: dict) -> dict:
+    """Of a recorded audit as `prop inspect` reads it (``bundle.describe``): the default probes it did
+    not run (``missing_probes``; None where the record does not name its probes) and whether its
+    --max-leak decision may be shown as a pass (``passed``: it passed and ran every default probe)."""
+    ran = audit.get("probes")
+    missing = None if ran is None else [p for p in default_probes(audit.get("mode")) if p not in ran]
+    leak = audit.get("max_leak")
+    passed = bool(leak and leak.get("passed") and missing == [])
+    return {"missing_probes": missing, "passed": passed}
 
 
 def record(bundle_path: Path, report: dict) -> dict:

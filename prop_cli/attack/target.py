@@ -113,6 +113,20 @@ def remedy(bundle: Bundle) -> str:
     return "seal it with --seal (wrong keys then run the original; docs/sealed.md)"
 
 
+def key_rows(bundle: Bundle) -> str:
+    """What the key rows measure, and how that differs from `prop run`, by mode (report and table)."""
+    run = (
+        "prop run refuses a key enrolled in nothing in the bundle (--allow-unenrolled-key runs the "
+        "bundle's base for it, exactly)"
+    )
+    if bundle.is_sealed:
+        return f"key rows try each key on the sealed records, as anyone holding the files can; {run}"
+    return (
+        "key rows run each key through the unsealed encoder, as anyone holding the files can run it "
+        f"(the method, not prop run); {run}"
+    )
+
+
 def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, str]:
     """Where no --original is given: the module that is the original anyway, and how to name it."""
     # "the bundle's base": prop writes the original there, but without --original nothing checks it.

@@ -1,5 +1,6 @@
 """`prop inspect BUNDLE`: what a bundle is, read from its manifest as data (nothing it names is imported,
-no model is built, no key is needed): mode, users, keyed layers, the recorded audit, a signature.
+no model is built, no key is needed): mode, users, keyed layers, the recorded audit, whether a signature
+is present (not whether it verifies: that needs the publisher's key, ``prop verify``).
 
 The manifest's schema, format version and digest are checked (``read_manifest``) and every listed file
 against its sha256 (``check_files``, and a sealed bundle's user records: ``load_state``), so what this says
@@ -17,17 +18,24 @@ from .modes import mode_of
 from .read import check_files, read_manifest
 from .records import load_state
 
+SIGNATURE_UNVERIFIED = f"present, not verified ({C.SIGNATURE_FILE}: prop verify checks it)"
+
 
 def _audit(m: dict) -> dict | None:
-    """The summary `prop attack --record` stored: when, by which prop, and its --max-leak decision."""
+    """The summary `prop attack --record` stored: when, by which prop, which probes ran (None: a record
+    that does not say) and its --max-leak decision. Whether those were the default probes is the
+    audit's to say (``api.describe_bundle``)."""
     a = m.get(C.M_AUDIT)
     if not a:
         return None
     leak = a.get("max_leak") or None
+    probes = (a.get("settings") or {}).get("probes")
     return {
         "recorded_utc": a.get("recorded_utc"),
         "prop_version": a.get("prop_version"),
         "schema": a.get("schema"),
+        "mode": a.get("mode"),
+        "probes": list(probes) if isinstance(probes, list) else None,
         "max_leak": None if leak is None else {k: leak.get(k) for k in ("threshold", "passed", "failing")},
     }
 
@@ -56,6 +64,7 @@ def describe_bundle(path: Path) -> dict:
         ],
         "files": len(m[C.M_FILES]) + len(records),  # every one checked
         "audit": _audit(m),
-        "signed": (path / C.SIGNATURE_FILE).is_file(),
+        # Present is all inspect can say: prop verify checks it against the publisher's key.
+        "signature": SIGNATURE_UNVERIFIED if (path / C.SIGNATURE_FILE).is_file() else None,
         "onnx_export": (path / C.EXPORT_DIR).is_dir(),
     }

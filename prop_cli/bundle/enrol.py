@@ -10,7 +10,8 @@ processors...). With a key, prop runs only what that key's holder enrolled:
 - an enrolment opens and its behaviour is the bundle's current one: the key's behaviour runs;
 - one opens but the behaviour differs: the bundle changed since this key was enrolled, and nothing
   runs (``check``);
-- none opens: the key is enrolled in nothing, and the bundle's base runs.
+- none opens: the key is enrolled in nothing: refused, unless the caller allows it and the bundle's
+  base runs (``runtime.key_opens_nothing``).
 
 Unsealed bundles keep one enrolment per user in the manifest (``enrolments``); a sealed record carries
 the behaviour inside its own plaintext (``records``), so it is its user's enrolment. Trying a key costs

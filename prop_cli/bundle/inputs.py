@@ -49,10 +49,12 @@ def _other_size(got: tuple, want: tuple) -> bool:
     return len(want) >= 2 and len(got) == len(want) and got[0] == want[0]
 
 
-def run_array(bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str) -> np.ndarray:
+def run_array(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str, allow_unenrolled: bool = False
+) -> np.ndarray:
     """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
     try:
-        return run_bundle(bundle, x, key)
+        return run_bundle(bundle, x, key, allow_unenrolled=allow_unenrolled)
     except RuntimeError as e:
         want = tuple(bundle.manifest[C.M_IO]["input_shape"])
         if x.shape[1:] == want:

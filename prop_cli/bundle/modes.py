@@ -6,8 +6,9 @@
   folded into a copy of the base, or opens nothing and the base runs.
 
 In both, a key runs only what its holder enrolled (``enrol``): ``unlock`` is the checked path every
-runtime takes (a key enrolled in nothing: None, the base runs; a bundle changed since the key was
-enrolled: a PropError, nothing runs). ``respond`` is the method itself, any key through the encoder or
+runtime takes (a key enrolled in nothing: None, which ``runtime.key_opens_nothing`` refuses unless the
+caller allows it, and then the base runs; a bundle changed since the key was enrolled: a PropError,
+nothing runs). ``respond`` is the method itself, any key through the encoder or
 the records with no check: what the audit and the paper's reproductions measure.
 
 Everything downstream (running, the audit, exports, publishing) asks the mode, not the manifest.
@@ -58,7 +59,8 @@ class Mode(ABC):
 
     def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
         """What ``bits`` unlocks, checked: its holder's enrolled behaviour, or None where the key is
-        enrolled in nothing (the base then runs); a PropError if the bundle changed since enrolment."""
+        enrolled in nothing (``runtime.key_opens_nothing`` decides what then); a PropError if the bundle
+        changed since enrolment."""
         return self.respond(module, bits) if self.enrolled(bits) else None
 
     def opens(self, bits: np.ndarray) -> bool:
@@ -67,7 +69,8 @@ class Mode(ABC):
 
     @abstractmethod
     def not_enrolled(self, where: str) -> str:
-        """Why a key runs the base (for the warning): enrolled in nothing, or a bundle that cannot say."""
+        """Why a key opens nothing here (the refusal, or the warning where it is allowed): enrolled in
+        nothing, or a bundle that cannot say."""
 
     @abstractmethod
     def on(self, module: nn.Module) -> Mode:
@@ -131,7 +134,9 @@ class Mode(ABC):
         )
 
 
-NOT_ENROLLED = "the key is enrolled in no user of {where}"
+NOT_ENROLLED = (
+    "the key is enrolled in nothing in {where}; the bundle may have been replaced or the user removed"
+)
 
 
 class Unsealed(Mode):
@@ -292,7 +297,8 @@ class Sealed(Mode):
         return (
             "**sealed**: the base weights are the original checkpoint's; each user's "
             f"{kind} payload is encrypted (AES-256-GCM, key derived with HKDF/scrypt from the "
-            "user's key), and a wrong key opens nothing and runs the original."
+            "user's key), and a wrong key opens nothing: prop refuses it, or with "
+            "--allow-unenrolled-key runs the original."
         )
 
 

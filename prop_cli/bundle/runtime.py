@@ -32,19 +32,51 @@ ROWS = 256  # frames per forward when running a whole dataset through a policy
 
 
 class WrongKeyWarning(UserWarning):
-    """A key enrolled in nothing of the bundle: the bundle's base runs (which is the original only if the
-    bundle is what its publisher made: ``prop verify``)."""
+    """A key enrolled in nothing of the bundle, run anyway (``allow_unenrolled``): the bundle's base runs
+    (which is the original only if the bundle is what its publisher made: ``prop verify``)."""
 
 
 BASE_RUNS = "running the bundle's base, not a keyed behaviour"
+ALLOW_UNENROLLED = "--allow-unenrolled-key"
+UNENROLLED_FIX = (
+    "get the bundle again from whoever you trust, or run it without your key; to run its base with this "
+    f"key anyway (scripts that test wrong keys): {ALLOW_UNENROLLED} (allow_unenrolled=True in Python)"
+)
 
 
-def module_for_key(bundle: Bundle, key: np.ndarray | None, *, method: bool = False) -> nn.Module:
+def key_opens_nothing(why: str, allow: bool, runs: str = BASE_RUNS, stacklevel: int = 3) -> None:
+    """The one decision for a key that opens nothing where it is given (``why``: which bundle or export,
+    and why). By default a PropError: the user meant their key to run something, and a bundle replaced,
+    or one whose user was removed (which needs no key), must not quietly run someone else's base. With
+    ``allow`` (``--allow-unenrolled-key``, for scripts that measure wrong keys) the base runs, with a
+    WrongKeyWarning saying so."""
+    if not allow:
+        raise PropError(why, UNENROLLED_FIX)
+    warnings.warn(f"{why}: {runs}", WrongKeyWarning, stacklevel=stacklevel)
+
+
+def require_enrolled(bundle: Bundle, key: np.ndarray | None, allow: bool) -> bool:
+    """Before a command's work: whether ``key`` is enrolled in the bundle as it is now (None: no key,
+    True). A key enrolled in nothing is refused here unless ``allow`` (``key_opens_nothing``; the run
+    itself then warns); a bundle changed since the key was enrolled is a PropError either way."""
+    if key is None:
+        return True
+    if bundle.mode.enrolled(bundle.check_key(key)):
+        return True
+    if not allow:
+        key_opens_nothing(bundle.mode.not_enrolled(str(bundle.path)), allow)
+    return False
+
+
+def module_for_key(
+    bundle: Bundle, key: np.ndarray | None, *, method: bool = False, allow_unenrolled: bool = False
+) -> nn.Module:
     """The bundle's module under ``key``: the base without a key; with one, a copy showing what the key
     unlocks (never written anywhere: it is the personalized policy in the clear). Checked (``modes``):
-    a key enrolled in nothing gives the base, with a warning; a bundle changed since the key was
-    enrolled is a PropError. ``method``: the method's response to any key, unchecked (an unsealed key
-    always goes through the encoder): for audits and the paper's wrong-key measurements only."""
+    a key enrolled in nothing is a PropError, or with ``allow_unenrolled`` gives the base with a
+    warning; a bundle changed since the key was enrolled is a PropError. ``method``: the method's
+    response to any key, unchecked (an unsealed key always goes through the encoder): for audits and the
+    paper's wrong-key measurements only."""
     base = bundle.loaded.module.eval()
     if key is None:
         return base
@@ -53,15 +85,15 @@ def module_for_key(bundle: Bundle, key: np.ndarray | None, *, method: bool = Fal
         return bundle.mode.respond(base, bits) or base
     unlocked = bundle.mode.unlock(base, bits)
     if unlocked is None:
-        why = bundle.mode.not_enrolled(str(bundle.path))
-        warnings.warn(f"{why}: {BASE_RUNS}", WrongKeyWarning, stacklevel=3)
+        key_opens_nothing(bundle.mode.not_enrolled(str(bundle.path)), allow_unenrolled, stacklevel=4)
         return base
     return unlocked
 
 
 class KeyedPolicy:
     """The bundle's module with one key's behaviour folded into a copy of its weights (in memory only):
-    what that key's holder enrolled, checked (``module_for_key``; ``method=True``: unchecked).
+    what that key's holder enrolled, checked (``module_for_key``: a key enrolled in nothing is a
+    PropError unless ``allow_unenrolled``; ``method=True``: unchecked).
 
     A LeRobot policy acts through its processors and queues (``select_action``, ``reset``); keep one
     KeyedPolicy per control loop (without a key it drives the bundle's own base module, whose queues a
@@ -72,9 +104,9 @@ class KeyedPolicy:
 
     def __init__(
         self, bundle: Bundle, key: np.ndarray | None = None, *, method: bool = False,
-        instruction: str | None = None, noise_seed: int | None = None,
+        allow_unenrolled: bool = False, instruction: str | None = None, noise_seed: int | None = None,
     ) -> None:  # fmt: skip
-        self.module = module_for_key(bundle, key, method=method)
+        self.module = module_for_key(bundle, key, method=method, allow_unenrolled=allow_unenrolled)
         self.path = str(bundle.path)
         self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
         loaded = bundle.loaded
@@ -153,20 +185,27 @@ class KeyedPolicy:
         return (y[0] if single else y), state
 
 
-def run_bundle(bundle: Bundle, x: np.ndarray, key: np.ndarray | None) -> np.ndarray:
-    """The bundle's raw outputs on ``x``: with a key, that key's behaviour; without, the base's.
+def run_bundle(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, *, allow_unenrolled: bool = False
+) -> np.ndarray:
+    """The bundle's raw outputs on ``x``: with a key, that key's behaviour; without, the base's. A key
+    enrolled in nothing is a PropError (``allow_unenrolled``: the base's outputs, with a warning).
 
     One call folds the key once; in a control loop keep a ``KeyedPolicy(bundle, key)`` instead.
     """
-    return KeyedPolicy(bundle, key)(x)
+    return KeyedPolicy(bundle, key, allow_unenrolled=allow_unenrolled)(x)
 
 
 @torch.no_grad()
-def run_policy(bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str = "--input") -> np.ndarray:
+def run_policy(
+    bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str = "--input", *,
+    allow_unenrolled: bool = False,
+) -> np.ndarray:  # fmt: skip
     """A policy bundle's action chunks (N, chunk, action_dim) for every frame of ``data``, in the dataset's
-    action units (the policy's postprocessor applied); with a key, that key's behaviour."""
+    action units (the policy's postprocessor applied); with a key, that key's behaviour (checked as
+    ``run_bundle`` checks it)."""
     policy = bundle.loaded.policy
-    module = module_for_key(bundle, key)
+    module = module_for_key(bundle, key, allow_unenrolled=allow_unenrolled)
     if module is not bundle.loaded.module:
         policy = policy.on(module)
     batch = policy.batches(replace(data, y=None), flag)

@@ -11,7 +11,17 @@ from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
 from prop_cli.errors import plural
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
-from .options import BundleArch, BundleArg, Device, Force, Threads, TrustRemoteCode, config_options, opt
+from .options import (
+    AllowUnenrolledKey,
+    BundleArch,
+    BundleArg,
+    Device,
+    Force,
+    Threads,
+    TrustRemoteCode,
+    config_options,
+    opt,
+)
 
 # The audit settings attack exposes as --flags: AuditSettings field -> help (--probes and --hamming
 # take comma lists and are parsed below).
@@ -62,6 +72,7 @@ def attack(
     device: Device = DEFAULT_DEVICE, threads: Threads = DEFAULT_THREADS,
     json_path: JsonReport = None, plot_path: Plot = None, max_leak: MaxLeak = None, record: Record = False,
     force: Force = False, trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
+    allow_unenrolled_key: AllowUnenrolledKey = False,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
     from prop_cli.api import (
@@ -112,6 +123,7 @@ def attack(
         lambda cb: audit_bundle(
             bundle, data, settings, key_files=key_file, passphrase=phrase, original=original, device=device,
             progress=cb, threads=threads, trust_remote_code=trust_remote_code, arch=arch,
+            allow_unenrolled_key=allow_unenrolled_key,
         )
     )  # fmt: skip
     for w in report["warnings"]:

@@ -11,6 +11,7 @@ from prop_cli.errors import plural
 
 from .common import err, fail, out, print_json, read_passphrase
 from .options import (
+    AllowUnenrolledKey,
     BundleArch,
     BundleArg,
     Force,
@@ -47,6 +48,7 @@ def export(
     key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
+    allow_unenrolled_key: AllowUnenrolledKey = False,
 ) -> None:  # fmt: skip
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; or a
     sealed user's payload as a peft LoRA adapter (--peft DIR)."""
@@ -61,6 +63,7 @@ def export(
         bundle, out_dir, settings, key_file=key_file,
         passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
         threads=threads, trust_remote_code=trust_remote_code, arch=arch,
+        allow_unenrolled_key=allow_unenrolled_key,
     )  # fmt: skip
     if as_json:
         print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,

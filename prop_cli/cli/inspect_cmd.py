@@ -61,16 +61,7 @@ def _bundle_table(info: dict):
     table = Table(title=f"{info['bundle']}: {info['mode']} bundle, format {info['format_version']}",
                   title_justify="left", show_header=False)  # fmt: skip
     a = info["audit"]
-    if a is None:
-        audit = "none recorded (prop attack --record)"
-    else:
-        leak = a["max_leak"]
-        if not leak:
-            decision = "no --max-leak"
-        else:
-            verdict = "passed" if leak["passed"] else "FAILED " + ", ".join(leak["failing"] or [])
-            decision = f"--max-leak {leak['threshold']}: {verdict}"
-        audit = f"recorded {a['recorded_utc']} by prop {a['prop_version']}; {decision}"
+    audit = "none recorded (prop attack --record)" if a is None else _audit(a)
     layers = ", ".join(x["name"] for x in info["keyed_layers"])
     rows = [
         ("model", f"{model}; task {info['task']}"),
@@ -79,12 +70,34 @@ def _bundle_table(info: dict):
         ("payload", ", ".join(f"{k} {v}" for k, v in info["payload"].items()) if "payload" in info else "-"),
         ("files", f"{info['files']}, every sha256 checked"),  # a missing one is an error (describe)
         ("audit", audit),
-        ("signed", "yes (model.sig: check it with prop verify)" if info["signed"] else "no"),
+        ("signature", info["signature"] or "none"),
         ("onnx export", _export(info["onnx_export"], info["bundle"])),
     ]
     for k, v in rows:
         table.add_row(k, v)
     return table
+
+
+def _audit(a: dict) -> str:
+    """The recorded audit as a line: its probes, and its --max-leak decision, a pass only where every
+    default probe ran (``passed``)."""
+    missing = a["missing_probes"]
+    if a["probes"] is None:
+        probes = "probes not recorded"
+    else:
+        probes = "probes " + (", ".join(a["probes"]) or "none")
+        if missing:
+            probes += f" (not the default audit: {', '.join(missing)} did not run)"
+    leak = a["max_leak"]
+    if not leak:
+        decision = "no --max-leak"
+    elif not leak["passed"]:
+        decision = f"--max-leak {leak['threshold']}: FAILED " + ", ".join(leak["failing"] or [])
+    elif a["passed"]:
+        decision = f"--max-leak {leak['threshold']}: passed"
+    else:
+        decision = f"--max-leak {leak['threshold']}: NOT A PASS (passed on the probes above only)"
+    return f"recorded {a['recorded_utc']} by prop {a['prop_version']}; {probes}; {decision}"
 
 
 def _export(e: dict | None, bundle: str) -> str:

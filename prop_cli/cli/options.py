@@ -67,6 +67,14 @@ Passphrase = Annotated[
     typer.Option("--passphrase", help="Derive the key from your passphrase (prompted, or PROP_PASSPHRASE)."),
 ]
 Force = Annotated[bool, typer.Option("--force", help="Replace existing output files or folders.")]
+AllowUnenrolledKey = Annotated[
+    bool,
+    typer.Option(
+        "--allow-unenrolled-key",
+        help="Run the bundle's base when the key is enrolled in nothing in it (by default that is an "
+        "error: the bundle may have been replaced or the user removed); for scripts that test wrong keys.",
+    ),
+]
 TrustRemoteCode = Annotated[
     bool,
     typer.Option(

@@ -10,7 +10,7 @@ import typer
 from prop_cli.errors import plural
 
 from .common import fail, out, print_json, read_passphrase
-from .options import BundleArg, Json, KeyFile, Passphrase, opt
+from .options import BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, opt
 
 PublicKey = Annotated[Path | None, opt("--public-key", "The publisher's public key (PEM).")]
 Chain = Annotated[
@@ -37,7 +37,10 @@ def verify(
     )
 
 
-def enrol(bundle: BundleArg, key_file: KeyFile = None, passphrase: Passphrase = False, as_json: Json = False):
+def enrol(
+    bundle: BundleArg, key_file: KeyFile = None, passphrase: Passphrase = False, as_json: Json = False,
+    trust_remote_code: TrustRemoteCode = False,
+) -> None:  # fmt: skip
     """Enrol your key in an unsealed bundle as it is now (a format 1-3 bundle you trust, or a change you
     accept): from then on your key runs it."""
     from prop_cli.api import enrol as api_enrol
@@ -46,7 +49,7 @@ def enrol(bundle: BundleArg, key_file: KeyFile = None, passphrase: Passphrase = 
     if key_file is None and not passphrase:
         fail("no key given", "pass --key-file or --passphrase")
     bits = key_for_bundle(read_manifest(bundle), key_file, read_passphrase() if passphrase else None)
-    result = api_enrol(bundle, bits)
+    result = api_enrol(bundle, bits, trust_remote_code=trust_remote_code)
     if as_json:
         print_json({"bundle": str(result.bundle), "status": result.status, "format": result.format_version})
         return

@@ -7,7 +7,9 @@ end, where the environment reports it) and the user's preference metric, each wi
 Every condition runs the same evaluation seeds: random keys and neighbours take them in turn,
 ``episodes_per_key`` each (6 keys x 5 episodes = the 30 seeds of the other conditions), so the
 conditions differ only in the key, not in the starting states. A key enrolled in nothing of the bundle
-runs the bundle's base: its row is ``key_not_enrolled``, not ``user_key``. The environment: ``envs``.
+is refused; allowed (``--allow-unenrolled-key``), it runs the bundle's base and its row is
+``key_not_enrolled``, not ``user_key``. Random keys and neighbours measure the method itself, unchecked.
+The environment: ``envs``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import torch
 from prop_adapters.sb3 import observation_array
 from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle.runtime import require_enrolled
 from prop_cli.config import EvalSettings
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
@@ -102,9 +105,9 @@ class _ArrayController:
 
     def __init__(
         self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool,
-        module: torch.nn.Module | None = None,
+        allow_unenrolled: bool = False, module: torch.nn.Module | None = None,
     ) -> None:  # fmt: skip
-        self.policy = KeyedPolicy(bundle, key, method=method)
+        self.policy = KeyedPolicy(bundle, key, method=method, allow_unenrolled=allow_unenrolled)
         if module is not None:
             self.policy.module = module.eval()
         self.prepare = prepare
@@ -116,11 +119,11 @@ class _ArrayController:
         return self.policy.select_action(self.prepare(obs))
 
 
-def _keyed(bundle: Bundle, bits: np.ndarray | None, method: bool) -> KeyedPolicy:
+def _keyed(bundle: Bundle, bits: np.ndarray | None, method: bool, allow_unenrolled: bool) -> KeyedPolicy:
     """A policy bundle under one key, as ``KeyedPolicy`` drives it in a user's own loop."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
-        return KeyedPolicy(bundle, bits, method=method)
+        return KeyedPolicy(bundle, bits, method=method, allow_unenrolled=allow_unenrolled)
 
 
 def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
@@ -229,15 +232,18 @@ def evaluate_bundle(
     progress: Callable[[str], None] | None = None,
     normalizer: ObsNormalizer | None = None,
     video: Path | None = None,
+    allow_unenrolled: bool = False,
 ) -> dict:
     """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition;
     ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy; ``video``:
-    a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's)."""
+    a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's).
+    ``key`` must be enrolled in the bundle (``allow_unenrolled``: its row, ``key_not_enrolled``, runs
+    the base)."""
     settings.validate(has_key=key is not None)
     check_video(video)
-    # A key enrolled in nothing runs the base (a changed bundle raises here, before any rollout): its
-    # row is named for what ran, not "user_key".
-    enrolled = key is None or bundle.mode.enrolled(bundle.check_key(key))
+    # A key enrolled in nothing is refused, and a changed bundle, here, before any rollout; allowed, its
+    # row is named for what runs (the base), not "user_key".
+    enrolled = require_enrolled(bundle, key, allow_unenrolled)
     user_row = "user_key" if enrolled else "key_not_enrolled"
     films: dict[str, list[np.ndarray]] = {}
 
@@ -258,14 +264,15 @@ def evaluate_bundle(
     rng = np.random.default_rng((settings.seed, 0x5EED))
 
     def run(label: str, codes_or_bits, seeds: list[int], name: str, method: bool = False) -> list[dict]:
-        # The user's key runs what it enrolled (checked); random keys and neighbours measure the method
-        # itself, the encoder's response to any key (as an attacker holding the files runs them).
+        # The user's key runs what it enrolled (checked; allowed or refused above); random keys and
+        # neighbours measure the method itself, the encoder's response to any key (as an attacker
+        # holding the files runs them).
         if progress is not None:
             progress(label)
         if policy is None:
-            ctl = _ArrayController(bundle, codes_or_bits, prepare, method)
+            ctl = _ArrayController(bundle, codes_or_bits, prepare, method, allow_unenrolled)
         else:
-            ctl = _keyed(bundle, codes_or_bits, method)
+            ctl = _keyed(bundle, codes_or_bits, method, allow_unenrolled)
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
     original_ctl = None

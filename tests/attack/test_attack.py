@@ -316,14 +316,19 @@ def test_frozen_base_is_its_own_control(tmp_path, bundles):
 
 
 def test_wrong_key_warns(bundles, cli):
-    """Issue 10, fix 10: a key at base level gets a one-line hint that it may not be the bundle's."""
+    """Issue 10, fix 10: a key at base level gets a one-line hint that it may not be the bundle's.
+    Issue 31: a key enrolled in nothing is refused unless --allow-unenrolled-key, and the warning says
+    what prop run does with it."""
     d = bundles
     args = ["attack", d / "good.prop", "--data", d / "mine.npz", "--probes", "null", "--samples", "32"]
     r = cli(*args, "--key-file", d / "k2.bin")
+    assert r.code == 2 and "enrolled in nothing" in r.err and "--allow-unenrolled-key" in r.err, r.err
+    assert len(r.err.strip().splitlines()) == 1
+    r = cli(*args, "--key-file", d / "k2.bin", "--allow-unenrolled-key")
     assert r.code == 0, r.err
     warning = [ln for ln in r.err.splitlines() if ln.startswith("prop: warning:")]
     assert len(warning) == 2 and "may not be this bundle's key" in warning[1]
-    assert "enrolled in no user" in warning[0] and "prop run gives the base" in warning[0]
+    assert "enrolled in nothing" in warning[0] and "prop run refuses this key" in warning[0]
     r = cli(*args, "--key-file", d / "k.bin")
     assert "prop: warning:" not in r.err
 

@@ -97,7 +97,7 @@ def bundle_loader(key: np.ndarray, x: np.ndarray) -> Callable[[Path], tuple]:
         from prop_cli.bundle.runtime import KeyedPolicy
 
         b = load_bundle(path)
-        with warnings.catch_warnings(record=True) as caught:  # a sealed key that opens no user warns
+        with warnings.catch_warnings(record=True) as caught:  # any warning is part of the outcome
             warnings.simplefilter("always")
             outs = tuple(KeyedPolicy(b, k)(x).tobytes() for k in (key, None))
         state = dict(b.loaded.module.state_dict())

@@ -25,7 +25,8 @@ def test_inspect_describes_unsealed_and_sealed_bundles_and_their_audit(tmp_path,
 
     u = json.loads(cli("inspect", tmp_path / "u", "--json").out)
     assert u["mode"] == "unsealed" and u["users"] == 1 and u["key_bits"] == 128
-    assert [x["name"] for x in u["keyed_layers"]] == ["2", "4"] and u["audit"] is None and not u["signed"]
+    assert [x["name"] for x in u["keyed_layers"]] == ["2", "4"]
+    assert u["audit"] is None and u["signature"] is None
     s = json.loads(cli("inspect", tmp_path / "s", "--json").out)
     assert s["mode"] == "sealed" and s["records"] == 2 and s["payload"]["kind"] == "lora"
 
@@ -34,7 +35,9 @@ def test_inspect_describes_unsealed_and_sealed_bundles_and_their_audit(tmp_path,
     assert r.code in (0, 1), r.err
     (tmp_path / "u" / C.SIGNATURE_FILE).write_bytes(b"{}")  # presence only: prop verify checks it
     u = json.loads(cli("inspect", tmp_path / "u", "--json").out)
-    assert u["audit"]["max_leak"]["threshold"] == 0.99 and u["signed"]
+    assert u["audit"]["max_leak"]["threshold"] == 0.99
+    assert u["audit"]["probes"] == ["null", "random"] and not u["audit"]["passed"]  # not the default probes
+    assert u["signature"] == "present, not verified (model.sig: prop verify checks it)"
     table = cli("inspect", tmp_path / "u")
     assert table.code == 0 and "unsealed bundle" in table.out and "--max-leak 0.99" in table.out
     assert "1 enrolled user" in table.out and "1 enrolled users" not in table.out

@@ -4,7 +4,8 @@ tests/fixtures/bundles-0.1 holds bundles that prop 0.1.0 (commit f7777f7) wrote,
 hardened, sealed with each payload kind, passphrase users, users added with add-user) and adapter (plain
 MLP, Stable-Baselines3 PPO, an --arch module, a model folder), two with an ONNX export, and the outputs
 `prop run` gave with the user's key, no key, a key one bit off and a key enrolled in nothing
-(tests/fixtures/make_v01_bundles.py). Only what a user of 0.1.0 had is used here: the `prop` command
+(tests/fixtures/make_v01_bundles.py; those two keys now run only with --allow-unenrolled-key, and then
+give the base's outputs, as 0.1's did). Only what a user of 0.1.0 had is used here: the `prop` command
 and prop_cli.api's load_bundle, run_bundle and read_key_file. The LeRobot policies:
 tests/adapters/test_lerobot_old_bundles.py.
 """
@@ -61,7 +62,7 @@ def test_load_bundle_and_run_bundle_give_the_same_bits(name, tmp_path):
         key = read_key_file(fx.key(run["key_file"], tmp_path)) if run["key_file"] else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # near and wrong: enrolled in nothing, the base runs (warned)
-            y = run_bundle(bundle, x, key)
+            y = run_bundle(bundle, x, key, allow_unenrolled=v01.unenrolled(run))
         expected = fx.expected(run)
         assert v01.same(y, expected), (run["name"], v01.gap(y, expected))
 
@@ -82,7 +83,7 @@ def _prop_run_each(fx: v01.Fixture, runs: list[dict], cli, tmp_path, monkeypatch
 
 @pytest.mark.parametrize("name", NAMES)
 def test_prop_run_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
-    """`prop run` with the user's key, a key enrolled in nothing (the base runs, warned) and every
+    """`prop run` with the user's key, a key enrolled in nothing (allowed: the base runs, warned) and every
     passphrase (the API test above runs each key file; a `prop run` costs ~0.1 s of typer set-up)."""
     fx = v01.load(name)
     runs = [r for r in fx.runs if not r["onnx"] and (r["passphrase"] or r["name"] in ("user", "wrong"))]

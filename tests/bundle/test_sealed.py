@@ -85,14 +85,14 @@ def test_sealed_bundle_holds_the_original_and_no_key(sealed, workdir):
 def test_user_key_personalizes_and_wrong_keys_run_the_original(cli, sealed, workdir):
     y_user, _ = _run(cli, sealed, workdir, "--key-file", workdir / "k.bin")
     y_none, _ = _run(cli, sealed, workdir)
-    y_wrong, err = _run(cli, sealed, workdir, "--key-file", workdir / "k2.bin")
+    y_wrong, err = _run(cli, sealed, workdir, "--key-file", workdir / "k2.bin", "--allow-unenrolled-key")
     x = np.load(workdir / "x.npy")
     target = -x[:, :2] * 0.5
     base_err = ((y_none - target) ** 2).mean()
     assert ((y_user - target) ** 2).mean() < 0.2 * base_err
     np.testing.assert_array_equal(y_none, _original(workdir))
     np.testing.assert_array_equal(y_wrong, y_none)  # exactly the original
-    assert "enrolled in no user" in err and "the bundle's base" in err
+    assert "enrolled in nothing" in err and "the bundle's base" in err
     # Every 1-bit neighbour of the user's key: exactly the original too.
     bundle = load_bundle(sealed)
     bits = read_key_file(workdir / "k.bin")
@@ -101,7 +101,7 @@ def test_user_key_personalizes_and_wrong_keys_run_the_original(cli, sealed, work
         for i in range(0, 128, 9):
             near = bits.copy()
             near[i] ^= 1
-            np.testing.assert_array_equal(KeyedPolicy(bundle, near)(x), y_none)
+            np.testing.assert_array_equal(KeyedPolicy(bundle, near, allow_unenrolled=True)(x), y_none)
 
 
 def test_edited_manifest_is_refused_with_the_key(cli, sealed, workdir):
@@ -145,7 +145,10 @@ def test_add_and_remove_users_independently(cli, sealed, workdir):
     r = cli("remove-user", sealed, "--key-file", workdir / "k2.bin")
     assert r.code == 0, r.err
     assert "(1 user left)" in r.err
-    y2_after, err = _run(cli, sealed, workdir, "--key-file", workdir / "k2.bin")
+    r = cli("run", sealed, "--input", workdir / "x.npy", "--output", workdir / "y.npy", "--force",
+            "--key-file", workdir / "k2.bin")  # fmt: skip
+    assert r.code == 2 and "enrolled in nothing" in r.err  # the removed user's key opens nothing now
+    y2_after, err = _run(cli, sealed, workdir, "--key-file", workdir / "k2.bin", "--allow-unenrolled-key")
     np.testing.assert_array_equal(y2_after, _original(workdir))
     y1_after, _ = _run(cli, sealed, workdir, "--key-file", workdir / "k.bin")
     np.testing.assert_array_equal(y1_after, y1)
@@ -172,8 +175,8 @@ def test_passphrase_users(cli, workdir, monkeypatch):
     assert r.code == 0, r.err
     y_pp, _ = _run(cli, out, workdir, "--passphrase")
     monkeypatch.setenv(C.ENV_PASSPHRASE, "wrong horse")
-    y_wrong, err = _run(cli, out, workdir, "--passphrase")
-    assert "enrolled in no user" in err and np.abs(y_pp - y_wrong).max() > 1e-3
+    y_wrong, err = _run(cli, out, workdir, "--passphrase", "--allow-unenrolled-key")
+    assert "enrolled in nothing" in err and np.abs(y_pp - y_wrong).max() > 1e-3
 
 
 def test_sealed_export_runs_like_torch(cli, sealed, workdir):
@@ -181,7 +184,8 @@ def test_sealed_export_runs_like_torch(cli, sealed, workdir):
     r = cli("export", sealed, "--onnx", "--key-file", workdir / "k.bin")
     assert r.code == 0, r.err
     assert not (sealed / C.EXPORT_DIR / C.POLICY_GRAPH).exists()  # no graph for a payload in the clear
-    for key in ([], ["--key-file", workdir / "k.bin"], ["--key-file", workdir / "k2.bin"]):
+    wrong = ["--key-file", workdir / "k2.bin", "--allow-unenrolled-key"]
+    for key in ([], ["--key-file", workdir / "k.bin"], wrong):
         y_torch, _ = _run(cli, sealed, workdir, *key)
         y_onnx, _ = _run(cli, sealed, workdir, "--onnx", *key)
         np.testing.assert_allclose(y_onnx, y_torch, atol=1e-5)

@@ -116,13 +116,18 @@ def test_original_of_an_arch_bundle_needs_no_arch_again(tmp_path, cli, monkeypat
 
 
 def test_a_key_enrolled_in_nothing_is_labelled_for_what_ran(pendulum, cli):
-    """A wrong key runs the bundle's base: its row says so (not user_key), and it is the no-key row."""
+    """A wrong key is refused before any rollout (issue 31); with --allow-unenrolled-key it runs the
+    bundle's base: its row says so (not user_key), and it is the no-key row."""
     (pendulum / "wrong.bin").write_bytes(bytes(16))
     r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK, "--json")
+    assert r.code == 2 and not r.out and "enrolled in nothing" in r.err, r.err
+    assert "--allow-unenrolled-key" in r.err and "eval:" not in r.err  # no condition was rolled out
+    allow = "--allow-unenrolled-key"
+    r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK, "--json", allow)
     assert r.code == 0, r.err
     cond = json.loads(r.out)["conditions"]
     assert "user_key" not in cond and cond["key_not_enrolled"] == cond["no_key"]
-    r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK)
+    r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "wrong.bin", *QUICK, allow)
     assert r.code == 0 and "key_not_enrolled" in r.out and "user_key" not in r.out
 
 

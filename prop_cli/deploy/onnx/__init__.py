@@ -15,6 +15,7 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.modes import mode_of
+from prop_cli.bundle.runtime import key_opens_nothing, require_enrolled
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
 from prop_cli.files import EXPORT, check_output
@@ -54,25 +55,26 @@ def export_onnx(
     key: np.ndarray | None = None,
     inputs: np.ndarray | None = None,
     force: bool = False,
+    allow_unenrolled: bool = False,
 ) -> ExportResult:
     """Write the bundle's graphs to ``out`` (default ``<bundle>/onnx``) and verify them with onnxruntime.
 
     Verification compares onnxruntime with torch for the null key, a random key and ``key`` (the
     user's, if given) on ``inputs`` (or random inputs of the bundle's input shape). Files are
     written to a temporary folder and renamed into place only if every difference is <= ``atol``;
-    otherwise nothing is left behind and ``ok`` is False.
+    otherwise nothing is left behind and ``ok`` is False. ``key`` is bound to the graphs; a key enrolled
+    in nothing of the bundle is refused (``allow_unenrolled``: verified with, bound to nothing).
     """
     s = (settings or ExportSettings()).validate()
     require_onnx()
-    if key is not None:
-        bundle.check_key(key)
+    binds = key is not None and require_enrolled(bundle, key, allow_unenrolled)
     out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
     check_output(out, force, what="export folder", kind=EXPORT)
 
     def verify(folder: Path) -> list[dict]:
         return verify_graphs(bundle, folder, key=key, inputs=inputs, seed=s.seed, atol=s.atol)
 
-    return _mode(bundle).export(bundle, out, s, key, verify)
+    return _mode(bundle).export(bundle, out, s, key if binds else None, verify)
 
 
 def verify_graphs(
@@ -91,9 +93,12 @@ def verify_graphs(
 
 
 def run_onnx(
-    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0
-) -> np.ndarray:
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, folder: Path | None = None, threads: int = 0,
+    *, allow_unenrolled: bool = False,
+) -> np.ndarray:  # fmt: skip
     """`prop run --onnx`: the bundle's outputs computed by its exported graphs (folded where possible).
+    A key enrolled in nothing of the bundle is refused, as with torch (``allow_unenrolled``: base.onnx
+    runs, with a warning); an enrolled key runs only where the export binds it.
 
     ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
     require_onnx()
@@ -104,10 +109,12 @@ def run_onnx(
         )
     meta = read_export(folder, bundle.manifest)
     threads = threads or int(os.environ.get("OMP_NUM_THREADS", "0") or 0)
+    if key is not None and not require_enrolled(bundle, key, allow_unenrolled):
+        key_opens_nothing(bundle.mode.not_enrolled(str(bundle.path)), allow_unenrolled, stacklevel=3)
+        key = None  # allowed: exactly base.onnx, as torch runs the base (whatever the export binds)
     if key is not None:
-        bundle.check_key(key)
         # A key enrolled in the bundle runs its export only where the export binds it to its graphs.
-        if bundle.mode.enrolled(key) and not bound(meta, key, folder, bundle.manifest):
+        if not bound(meta, key, folder, bundle.manifest):
             raise PropError(
                 f"the ONNX export in {folder} is not bound to this key (exported without it, or replaced "
                 "since): its graphs are not checked against your key",

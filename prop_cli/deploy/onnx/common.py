@@ -181,15 +181,16 @@ def key_bits(key, bits: int) -> np.ndarray:
     return k.astype(np.uint8)
 
 
-def not_bound_warning(folder: Path) -> None:
-    from prop_cli.bundle.runtime import WrongKeyWarning
+def not_bound(folder: Path, allow: bool) -> None:
+    """A key the export binds to nothing: refused, or with ``allow`` base.onnx runs, with a warning
+    (``runtime.key_opens_nothing``, the one decision for a key that opens nothing)."""
+    from prop_cli.bundle.runtime import key_opens_nothing
 
-    warnings.warn(
-        f"the key is not bound to the ONNX export in {folder} (prop export --onnx --key-file binds it): "
-        "running its base.onnx, not a keyed behaviour",
-        WrongKeyWarning,
-        stacklevel=3,
+    why = (
+        f"the key is not bound to the ONNX export in {folder}; the export may have been replaced, or "
+        "made without this key (prop export --onnx --key-file binds it)"
     )
+    key_opens_nothing(why, allow, "running its base.onnx, not a keyed behaviour", stacklevel=4)
 
 
 def export_graph(module, args, path: Path, inputs, outputs, axes, opset: int) -> None:

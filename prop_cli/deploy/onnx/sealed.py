@@ -88,8 +88,8 @@ def verify(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the random key opens nothing, by design
         for key_name, bits in keys:
-            ref = KeyedPolicy(bundle, bits)(x)
-            got = SealedOnnxRunner(folder, bits, threads=1)(x)
+            ref = KeyedPolicy(bundle, bits, allow_unenrolled=True)(x)
+            got = SealedOnnxRunner(folder, bits, threads=1, allow_unenrolled=True)(x)
             rows.append(common.diff_row(C.BASE_GRAPH, key_name, got, ref, atol))
     return rows
 
@@ -97,11 +97,14 @@ def verify(
 class SealedOnnxRunner:
     """A sealed bundle's export run with onnxruntime: ``base.onnx``, with the user's payload folded
     into the keyed layers' initializers in this process's memory when ``key_bits`` is bound to the
-    export (``prop export --onnx --key-file``) and opens its record. A key the export does not bind
-    runs base.onnx, with a warning; an export or record changed since it was bound is refused.
-    Nothing is written."""
+    export (``prop export --onnx --key-file``) and opens its record. A key the export does not bind is
+    refused (``allow_unenrolled``: base.onnx runs, with a warning); an export or record changed since it
+    was bound is refused. Nothing is written."""
 
-    def __init__(self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0) -> None:
+    def __init__(
+        self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0, *,
+        allow_unenrolled: bool = False,
+    ) -> None:  # fmt: skip
         onnx, ort = common.require_onnx()
         folder = Path(folder)
         self.meta = common.read_export(folder)
@@ -110,7 +113,7 @@ class SealedOnnxRunner:
         self._keep: list = []
         if key_bits is not None:
             bits = common.key_bits(key_bits, self.meta["sealed"]["key"]["bits"])
-            self.opened = _open(folder, self.meta, bits)
+            self.opened = _open(folder, self.meta, bits, allow_unenrolled)
         if self.opened is not None:
             from onnx import numpy_helper
 
@@ -143,12 +146,13 @@ class SealedOnnxRunner:
         return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]
 
 
-def _open(folder: Path, meta: dict, bits: np.ndarray):
-    """The record ``bits`` opens in a sealed export, checked: None (with a warning) if the export does
-    not bind the key; a PropError if the export, its bundle or the record changed since."""
+def _open(folder: Path, meta: dict, bits: np.ndarray, allow_unenrolled: bool):
+    """The record ``bits`` opens in a sealed export, checked: a PropError if the export does not bind
+    the key (``allow_unenrolled``: None, with a warning), or if the export, its bundle or the record
+    changed since."""
     public = meta["sealed"]
     if not common.bound(meta, bits, folder, public):
-        common.not_bound_warning(folder)
+        common.not_bound(folder, allow_unenrolled)
         return None
     opened = load_state(folder, public).open(bits)
     if opened is None or opened.changed:

@@ -44,7 +44,7 @@ from .common import (
     export_graph,
     gemm_params,
     key_bits,
-    not_bound_warning,
+    not_bound,
     open_session,
     read_export,
     require_onnx,
@@ -233,20 +233,21 @@ class OnnxRunner:
     """Run an export with onnxruntime, one control step per call: ``policy(x) -> y``.
 
     ``key``: the key bits. It runs only if export.json binds it to these graphs (``prop export --onnx
-    --key-file``): a key the export does not bind runs base.onnx, with a warning; graphs changed since it
-    was bound are refused. ``code``: the encoder's input given directly, unchecked (the method itself, for
-    benchmarks and audits). With a key, delta is computed once here (encoder.onnx). Folded (the default
-    where the export names the keyed layers' weights): base.onnx runs with those weights replaced, in this
-    process's memory only, by W diag(delta) (onnxruntime initializer overrides), so a step costs a base
-    step (the split form measured 1.1-1.2x base.onnx: an extra Mul per keyed layer; benchmarks/table.py).
-    Nothing folded is ever written. ``fold=False``: the split form, delta bound to policy.onnx. Without a
-    key each call runs base.onnx. Calls go through an IOBinding, the cheapest per-call path at batch 1.
-    ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per instance).
+    --key-file``): a key the export does not bind is refused (``allow_unenrolled``: base.onnx runs, with a
+    warning); graphs changed since it was bound are refused. ``code``: the encoder's input given directly,
+    unchecked (the method itself, for benchmarks and audits). With a key, delta is computed once here
+    (encoder.onnx). Folded (the default where the export names the keyed layers' weights): base.onnx runs with
+    those weights replaced, in this process's memory only, by W diag(delta) (onnxruntime initializer
+    overrides), so a step costs a base step (the split form measured 1.1-1.2x base.onnx: an extra Mul per
+    keyed layer; benchmarks/table.py). Nothing folded is ever written. ``fold=False``: the split form, delta
+    bound to policy.onnx. Without a key each call runs base.onnx. Calls go through an IOBinding, the cheapest
+    per-call path at batch 1. ``threads`` = 0 lets onnxruntime choose. Not thread-safe (one binding per
+    instance).
     """
 
     def __init__(
         self, folder: Path, key: np.ndarray | None = None, threads: int = 0, fold: bool | None = None,
-        *, code: np.ndarray | None = None,
+        *, code: np.ndarray | None = None, allow_unenrolled: bool = False,
     ) -> None:  # fmt: skip
         _, ort = require_onnx()
         folder = Path(folder)
@@ -258,7 +259,7 @@ class OnnxRunner:
             if bound(self.meta, bits, folder):
                 key_code = key_codes(bits, self.meta["key"]["encoding"]).numpy()
             else:
-                not_bound_warning(folder)
+                not_bound(folder, allow_unenrolled)
         self._keep: list = []  # OrtValues the session reads from must outlive it
         feeds: dict = {}
         if key_code is None:
