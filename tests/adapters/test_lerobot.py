@@ -153,7 +153,7 @@ def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, w
         no_key = loop.replay(KeyedPolicy(b), ep["no_key"], task.OBS_MAP, seed)
         assert np.array_equal(no_key, own) and np.array_equal(no_key, np.stack(ep["no_key"]["actions"]))
         with pytest.warns(WrongKeyWarning):
-            wrong = KeyedPolicy(b, key(2))
+            wrong = KeyedPolicy(b, key(2), allow_unenrolled=True)
         assert np.array_equal(loop.replay(wrong, ep["no_key"], task.OBS_MAP, seed), own)
         user = KeyedPolicy(b, key())
         keyed = loop.replay(user, ep["user_key"], task.OBS_MAP, seed)
@@ -347,8 +347,10 @@ def test_sealed_policy_bundle_runs_the_original_without_its_key(sealed, work):
     with torch.no_grad():
         original = orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
     assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.raises(PropError, match="enrolled in nothing"):  # issue 31: refused unless allowed
+        run_policy(b, data, key(2))
     with pytest.warns(WrongKeyWarning):
-        assert np.array_equal(run_policy(b, data, key(2)), original)
+        assert np.array_equal(run_policy(b, data, key(2), allow_unenrolled=True), original)
     assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
     manifest = json.loads((sealed / "manifest.json").read_text())
     axes = {x["name"]: x.get("batch_axis", 0) for x in manifest["keyed_layers"]}
