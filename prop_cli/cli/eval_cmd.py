@@ -7,7 +7,17 @@ from prop_cli.config import EvalSettings
 from prop_cli.errors import plural
 
 from .common import err, out, print_json, read_passphrase
-from .options import BundleArch, BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, config_options, opt
+from .options import (
+    AllowRollback,
+    BundleArch,
+    BundleArg,
+    Json,
+    KeyFile,
+    Passphrase,
+    TrustRemoteCode,
+    config_options,
+    opt,
+)
 
 SETTINGS = {
     "episodes": "Episodes for the user key, no key and --original.",
@@ -42,6 +52,7 @@ def eval_(
     passphrase: Passphrase = False, obs_map: ObsMap = None, metric: Metric = None, original: Original = None,
     vecnormalize: VecNormalize = None, video: Video = None, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
+    allow_rollback: AllowRollback = False,
 ) -> None:  # fmt: skip
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
     from prop_cli.api import eval_bundle
@@ -50,6 +61,7 @@ def eval_(
         bundle, env, settings, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
         vecnormalize=vecnormalize, video=video, trust_remote_code=trust_remote_code, arch=arch,
+        allow_rollback=allow_rollback,
     )  # fmt: skip
     if as_json:
         print_json(report)
