@@ -278,6 +278,17 @@ def test_a_format_4_bundle_is_version_0_and_the_new_fields_have_rules(cli, workd
     assert not any(_own_state_dir.rglob("*.json"))
     r = cli("inspect", fx.bundle, "--json")
     assert r.code == 0 and json.loads(r.out)["bundle_version"] == 0, r.err
+    # prop enrol makes a format 4 bundle format 5; the enrolments already there stay valid.
+    fx = v01.load("mlp-unsealed")
+    copy = workdir / "v01.prop"
+    shutil.copytree(fx.bundle, copy)
+    r = cli("enrol", copy, "--key-file", fx.key("wrong.bin", workdir))
+    assert r.code == 0 and "format 5" in r.out, r.err
+    assert _manifest(copy)[VERSION] == 1 and len(_manifest(copy)[C.M_ENROLMENTS]) == 2
+    user = next(r for r in fx.runs if r["name"] == "user" and not r["onnx"])
+    out = workdir / "y.npy"
+    r = cli("run", copy, "--input", fx.input, "--output", out, "--key-file", fx.key("k.bin", workdir))
+    assert r.code == 0 and "(keyed)" in r.err and v01.same(np.load(out), fx.expected(user)), r.err
     b = workdir / "u.prop"
     r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
             "--key-file", workdir / "k.bin", "--out", b, *FAST)  # fmt: skip
