@@ -53,7 +53,8 @@ def _sha(value) -> str:
 def behaviour(manifest: dict) -> dict[str, str]:
     """What shapes the behaviour a key runs, as named digests (the enrolled plaintext). Not in it: what
     running does not read (config, metrics, the audit summary, io.checkpoint, the records list, the
-    format version), so add-user, remove-user and attack --record leave enrolments valid."""
+    format version, the bundle version: each enrolment carries its own), so add-user, remove-user and attack
+    --record leave enrolments valid. In it since format 5: the bundle id."""
     key = manifest[C.M_KEY]
     parts = {
         "mode": manifest.get(C.M_MODE, C.MODE_UNSEALED),
