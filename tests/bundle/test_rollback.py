@@ -81,6 +81,10 @@ def test_every_write_increases_the_version_and_keeps_the_id(cli, workdir):
     assert _manifest(u)[VERSION] == 2
     assert cli("enrol", u, "--key-file", workdir / "k2.bin").code == 0  # already enrolled: nothing written
     assert _manifest(u)[VERSION] == 2
+    from prop_cli.bundle import update_manifest  # what prop attack --record writes with
+
+    update_manifest(u, C.M_AUDIT, {"schema": "test"})
+    assert _manifest(u)[VERSION] == 3 and _manifest(u)[C.M_AUDIT] == {"schema": "test"}
 
 
 def test_an_older_copy_gives_a_removed_user_nothing(cli, workdir, monkeypatch, tmp_path_factory):
