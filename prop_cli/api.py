@@ -230,16 +230,20 @@ def run_file(
     noise_seed: int = 0,
     arch: str | None = None,
     allow_unenrolled_key: bool = False,
+    allow_rollback: bool = False,
 ) -> RunResult:
     """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
     With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing is
     refused (``allow_unenrolled_key``: the bundle's base runs, with a warning), and so is a bundle
-    changed since the key was enrolled.
+    changed since the key was enrolled, and a copy older than one this machine has seen (unless
+    ``allow_rollback``).
     ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
     check_threads(threads)
     check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
     check_output(output, force, what="output", flag="--output", kind=ARRAY)
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
+    bundle = load_bundle(
+        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
+    )
     seed_noise(bundle.loaded, noise_seed)
     n_threads = configure_threads(bundle.parameters, threads)
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
@@ -341,6 +345,7 @@ def export_peft_adapter(
     force: bool = False,
     trust_remote_code: bool = False,
     arch: str | None = None,
+    allow_rollback: bool = False,
 ):
     """`prop export --peft`: the payload a key opens in a sealed bundle, as a standard peft LoRA adapter
     folder (``deploy.peft``); never written inside the bundle."""
@@ -348,7 +353,9 @@ def export_peft_adapter(
 
     check_not_input(Path(out), "--peft", [bundle_path, key_file])
     check_output(Path(out), force, what="adapter folder", flag="--peft", kind=PEFT)
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
+    bundle = load_bundle(
+        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
+    )
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     if key is None:
         raise PropError("--peft exports the payload your key opens", "pass --key-file or --passphrase")
@@ -368,6 +375,7 @@ def export_bundle(
     trust_remote_code: bool = False,
     arch: str | None = None,
     allow_unenrolled_key: bool = False,
+    allow_rollback: bool = False,
 ):
     """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
     The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these.
@@ -378,7 +386,9 @@ def export_bundle(
     target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
     check_output(target_dir, force, what="export folder", kind=EXPORT)  # before the bundle is loaded
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
+    bundle = load_bundle(
+        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
+    )
     bundle = require_array_model(bundle, "prop export")
     require_onnx()
     configure_threads(bundle.parameters, threads)
@@ -394,7 +404,7 @@ def eval_bundle(
     key_file: Path | None = None, passphrase: str | None = None, obs_map: str | None = None,
     metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
     vecnormalize: Path | None = None, video: Path | None = None, trust_remote_code: bool = False,
-    arch: str | None = None, allow_unenrolled_key: bool = False,
+    arch: str | None = None, allow_unenrolled_key: bool = False, allow_rollback: bool = False,
 ) -> dict:  # fmt: skip
     """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``); a key
     enrolled in nothing is refused (``allow_unenrolled_key``: its row, ``key_not_enrolled``, runs the base);
@@ -407,7 +417,9 @@ def eval_bundle(
     check_video(video)
     if video is not None:
         check_not_input(video, "--video", [bundle_path, key_file, vecnormalize])
-    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch)
+    bundle = load_bundle(
+        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
+    )
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
@@ -500,15 +512,23 @@ def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False
     return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
 
 
-def verify_bundle(folder: Path, *, public_key: Path | None = None, chain: list[Path] | tuple = ()) -> dict:
+def verify_bundle(
+    folder: Path, *, public_key: Path | None = None, chain: list[Path] | tuple = (),
+    allow_rollback: bool = False,
+) -> dict:  # fmt: skip
     """`prop verify`: the publisher's signature over every file of a downloaded bundle (``deploy.sign``),
-    then the bundle's own checks, as data (nothing it names is imported)."""
+    then the bundle's own checks, as data (nothing it names is imported), then its version against the
+    newest verified here from the same publisher (an older revision is refused unless
+    ``allow_rollback``)."""
+    from prop_cli.bundle.manifest import bundle_version
     from prop_cli.deploy.publish import verified_files
-    from prop_cli.deploy.sign import verify_folder
+    from prop_cli.deploy.sign import check_revision, verify_folder
 
     result = verify_folder(Path(folder), public_key, chain)
     manifest, mode = verified_files(Path(folder))
-    return {**result, "mode": mode.name, "users": mode.users(manifest), "format": manifest[C.M_FORMAT]}
+    checked = check_revision(Path(folder), manifest, result.pop("signer_id"), allow_rollback)
+    return {**result, "mode": mode.name, "users": mode.users(manifest), "format": manifest[C.M_FORMAT],
+            "bundle_version": bundle_version(manifest), "rollback_checked": checked}  # fmt: skip
 
 
 def remove_user(

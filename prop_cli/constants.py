@@ -15,12 +15,16 @@ RECORD_SUFFIX = ".sealed"
 # Bump on any change a reader of an older version would misread. 2: sealed bundles (mode, payload,
 # records); 3: the manifest carries its own digest (M_DIGEST); 4: keys are enrolled (M_ENROLMENTS for
 # unsealed bundles; sealed records carry what they were enrolled in, inside their plaintext) and
-# io.checkpoint is a file name. Versions 1 and 2 (no digest) still load, with only their listed files
-# checked; in a version 1-3 unsealed bundle every key is enrolled in nothing (docs/bundle-format.md).
-FORMAT_VERSION = 4
-FORMAT_VERSIONS = (1, 2, 3, 4)  # what this prop reads
+# io.checkpoint is a file name; 5: a bundle id and a version every write increases (M_BUNDLE_ID,
+# M_BUNDLE_VERSION), bound into each enrolment and record (rollback protection, bundle/rollback.py).
+# Versions 1 and 2 (no digest) still load, with only their listed files checked; in a version 1-3
+# unsealed bundle every key is enrolled in nothing; a version 1-4 bundle is bundle version 0, unprotected
+# against rollback (docs/bundle-format.md).
+FORMAT_VERSION = 5
+FORMAT_VERSIONS = (1, 2, 3, 4, 5)  # what this prop reads
 DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
 ENROL_SINCE = 4  # the first version whose keys are enrolled
+VERSIONED_SINCE = 5  # the first version with a bundle id and a bundle version
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -43,6 +47,8 @@ MODE_UNSEALED = "unsealed"
 MODE_SEALED = "sealed"
 MODES = (MODE_UNSEALED, MODE_SEALED)
 M_ENROLMENTS = "enrolments"  # unsealed: [{"salt", "nonce", "box"}], one sealed enrolment per user
+M_BUNDLE_ID = "bundle_id"  # format 5: 16 random bytes (hex) written by personalize, kept by every write
+M_BUNDLE_VERSION = "bundle_version"  # format 5: 1 at personalize, +1 on every write of the manifest
 M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.bundle.manifest)
 M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
@@ -83,6 +89,7 @@ DEFAULT_THREADS = 0  # --threads: 0 = chosen by prop_cli.threads
 ENV_PASSPHRASE = "PROP_PASSPHRASE"
 ENV_DEBUG = "PROP_DEBUG"
 ENV_OMP_THREADS = "OMP_NUM_THREADS"  # the user's thread count, respected by prop_cli.threads
+ENV_STATE_DIR = "PROP_STATE_DIR"  # where prop keeps the bundle versions seen here (bundle/rollback.py)
 
 # Key sizes accepted by keygen.
 KEY_BITS_DEFAULT = 128

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
 import signal
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +19,19 @@ from prop_cli.cli.main import main
 
 # One thread: on a 2-core machine shared with other jobs, torch's 2-thread pool stalls badly.
 torch.set_num_threads(1)
+
+# The bundle versions prop remembers (prop_cli.bundle.rollback) never go to the user's own state folder:
+# one folder for the session (fixtures shared between tests), and a fresh one for each test.
+_SESSION_STATE = tempfile.mkdtemp(prefix="prop-test-state-")
+os.environ["PROP_STATE_DIR"] = _SESSION_STATE
+atexit.register(shutil.rmtree, _SESSION_STATE, True)
+
+
+@pytest.fixture(autouse=True)
+def _own_state_dir(tmp_path_factory, monkeypatch) -> Path:
+    state = tmp_path_factory.mktemp("prop-state")
+    monkeypatch.setenv("PROP_STATE_DIR", str(state))
+    return state
 
 # Small enough that a personalize run takes a second or two in tests.
 FAST = ["--steps", "40", "--device", "cpu"]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from prop_cli import constants as C
 
+from .manifest import bundle_version
 from .modes import mode_of
 from .read import check_files, read_manifest
 from .records import load_state
@@ -53,6 +54,8 @@ def describe_bundle(path: Path) -> dict:
     return {
         "bundle": str(path),
         "format_version": m[C.M_FORMAT],
+        "bundle_id": m.get(C.M_BUNDLE_ID),  # format 5 on; None before
+        "bundle_version": bundle_version(m),  # 0: written before versions (no rollback protection)
         "prop_version": m.get(C.M_PROP_VERSION),
         "mode": m.get(C.M_MODE, C.MODE_UNSEALED),
         "model": {k: v for k, v in model.items() if k in ("adapter", "type", "arch", "family", "builder")},

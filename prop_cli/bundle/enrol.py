@@ -17,12 +17,18 @@ Unsealed bundles keep one enrolment per user in the manifest (``enrolments``); a
 the behaviour inside its own plaintext (``records``), so it is its user's enrolment. Trying a key costs
 one HKDF and one GCM open per enrolment, the cost of the sealed records' trial decryption; an unsealed
 bundle's encoder already answers any key, so an enrolment reveals no more than it does.
+
+Format 5 binds the bundle's identity and version too: the bundle id is part of the behaviour (a
+record or enrolment moved from another bundle is "changed"), and each enrolment carries the bundle
+version it was written in and a random enrolment id that re-enrolling the same key keeps (``ID``,
+``VERSION``): what ``rollback`` compares with the versions this machine has seen.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 
 import numpy as np
 
@@ -35,6 +41,10 @@ from .manifest import canonical_json
 ENROL_AD = b"prop/enrol/v1"
 ENROL_BUCKET = 1024  # enrolment plaintexts are padded to a multiple of this
 FILE = "file "  # behaviour entries of listed files: "file base.safetensors"
+ID = "id"  # format 5 enrolments: a random id of the user's enrolment, kept when the key re-enrols
+VERSION = "version"  # format 5 enrolments and records: the bundle version they were written in
+ID_BYTES = 8
+BUNDLE_ID = "bundle id"  # the behaviour entry of a format 5 bundle's id
 
 
 def _sha(value) -> str:
@@ -44,7 +54,8 @@ def _sha(value) -> str:
 def behaviour(manifest: dict) -> dict[str, str]:
     """What shapes the behaviour a key runs, as named digests (the enrolled plaintext). Not in it: what
     running does not read (config, metrics, the audit summary, io.checkpoint, the records list, the
-    format version), so add-user, remove-user and attack --record leave enrolments valid."""
+    format version, the bundle version: each enrolment carries its own), so add-user, remove-user and attack
+    --record leave enrolments valid. In it since format 5: the bundle id."""
     key = manifest[C.M_KEY]
     parts = {
         "mode": manifest.get(C.M_MODE, C.MODE_UNSEALED),
@@ -56,14 +67,22 @@ def behaviour(manifest: dict) -> dict[str, str]:
         "encoder": manifest.get(C.M_ENCODER),
         "payload": manifest.get(C.M_PAYLOAD),
     }
+    if C.M_BUNDLE_ID in manifest:  # format 5: enrolled in this bundle, not a copy of its files elsewhere
+        parts[BUNDLE_ID] = manifest[C.M_BUNDLE_ID]
     out = {name: _sha(value) for name, value in parts.items()}
     out.update({FILE + name: digest for name, digest in manifest[C.M_FILES].items()})
     return out
 
 
 def changed(enrolled: dict, current: dict) -> list[str]:
-    """The parts that differ between an enrolled behaviour and the current one (file names plain)."""
-    names = sorted(n for n in set(enrolled) | set(current) if enrolled.get(n) != current.get(n))
+    """The parts that differ between an enrolled behaviour and the current one (file names plain). A
+    format 4 enrolment, which `prop enrol` keeps when it makes the bundle format 5, predates bundle ids:
+    it is not "changed" for want of one (a format 5 enrolment in a bundle without its id is)."""
+    names = sorted(
+        n
+        for n in set(enrolled) | set(current)
+        if enrolled.get(n) != current.get(n) and (n != BUNDLE_ID or n in enrolled)
+    )
     return [n[len(FILE) :] if n.startswith(FILE) else n for n in names]
 
 
@@ -105,19 +124,31 @@ def split(entries: list[dict], bits: np.ndarray) -> tuple[list[dict], dict | Non
     return kept, opened
 
 
-def enrol(manifest: dict, keys: list[np.ndarray]) -> list[dict]:
-    """Enrolments of ``keys`` in the bundle ``manifest`` describes (its files already hashed)."""
+def new_id() -> str:
+    """A fresh enrolment id: random, not derived from the key."""
+    return os.urandom(ID_BYTES).hex()
+
+
+def enrol(manifest: dict, keys: list[np.ndarray], ids: list[str | None] | None = None) -> list[dict]:
+    """Enrolments of ``keys`` in the bundle ``manifest`` describes (its files already hashed). Format 5:
+    each with the manifest's bundle version and an enrolment id (``ids``: an id to keep per key, None:
+    a new one)."""
     now = behaviour(manifest)
-    return [enrolment(k, {"behaviour": now}) for k in keys]
+    if C.M_BUNDLE_VERSION not in manifest:
+        return [enrolment(k, {"behaviour": now}) for k in keys]
+    ids = ids or [None] * len(keys)
+    version = manifest[C.M_BUNDLE_VERSION]
+    return [enrolment(k, {"behaviour": now, ID: i or new_id(), VERSION: version}) for k, i in zip(keys, ids)]
 
 
-def check(entries: list[dict], bits: np.ndarray, current: dict, where: str) -> bool:
-    """True if ``bits`` is enrolled in the bundle as it is now; False if enrolled in nothing; a PropError
-    ("changed since this key was enrolled") if it was enrolled in something else."""
+def check(entries: list[dict], bits: np.ndarray, current: dict, where: str) -> dict | None:
+    """What ``bits`` opens if it is enrolled in the bundle as it is now (its enrolment's plaintext); None
+    if enrolled in nothing; a PropError ("changed since this key was enrolled") if it was enrolled in
+    something else."""
     opened = open_enrolment(entries, bits)
     if opened is None:
-        return False
+        return None
     diff = changed(opened.get("behaviour", {}), current)
     if diff:
         raise changed_error(where, diff)
-    return True
+    return opened

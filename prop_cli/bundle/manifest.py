@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -34,6 +35,8 @@ _HEX = re.compile(r"[0-9a-f]*")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 MAX_TEXT = 4096  # longest string the schema accepts where it gives no other bound
 MAX_DIM = 1 << 24  # largest layer width or input dimension a manifest may claim
+MAX_BUNDLE_VERSION = 1 << 53  # a bundle version stays an exact number in any JSON reader
+BUNDLE_ID_BYTES = 16
 
 
 @dataclass(frozen=True)
@@ -209,6 +212,9 @@ PAYLOAD_LAYER = obj(
 SCHEMA: dict[str, Rule] = {
     C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
     C.M_PROP_VERSION: text(),
+    # Format 5 on (``_cross_check``): which bundle this is, and how many writes it has had.
+    C.M_BUNDLE_ID: _opt(hex_string(BUNDLE_ID_BYTES, BUNDLE_ID_BYTES)),
+    C.M_BUNDLE_VERSION: _opt(integer(1, MAX_BUNDLE_VERSION)),
     C.M_MODE: _opt(choice(C.MODES)),
     C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", ADAPTER_SPECS)),
     C.M_KEYED_LAYERS: _opt(
@@ -309,6 +315,28 @@ def restamp(manifest: dict) -> dict:
     return stamp(manifest) if C.M_DIGEST in manifest else manifest
 
 
+# ---- the bundle's identity and version (rollback protection: ``rollback``) ------------------------
+
+
+def new_identity() -> dict:
+    """What personalize writes: a random bundle id (not derived from any key or file) and version 1."""
+    return {C.M_BUNDLE_ID: os.urandom(BUNDLE_ID_BYTES).hex(), C.M_BUNDLE_VERSION: 1}
+
+
+def bundle_version(manifest: dict) -> int:
+    """The manifest's bundle version; 0 for a format 1-4 bundle, which has none."""
+    return int(manifest.get(C.M_BUNDLE_VERSION, 0))
+
+
+def next_version(manifest: dict) -> dict:
+    """The manifest of the bundle's next write: its version one higher (a format 1-4 manifest, which has
+    none, as it is). Every rewrite of a manifest goes through here; what it seals or enrols for the new
+    version (an added record) is sealed against this manifest."""
+    if C.M_BUNDLE_VERSION not in manifest:
+        return dict(manifest)
+    return {**manifest, C.M_BUNDLE_VERSION: bundle_version(manifest) + 1}
+
+
 # ---- reading --------------------------------------------------------------------------------------
 
 
@@ -407,6 +435,11 @@ def _cross_check(m: dict, doc: Doc) -> None:
     spec = m[C.M_MODEL]
     if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
         raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+    for field in (C.M_BUNDLE_ID, C.M_BUNDLE_VERSION):
+        if m[C.M_FORMAT] >= C.VERSIONED_SINCE and field not in m:
+            raise doc.bad(field, "is missing")
+        if m[C.M_FORMAT] < C.VERSIONED_SINCE and field in m:
+            raise doc.bad(field, f"is not a field of format {m[C.M_FORMAT]} bundles (format 5 on)")
     if m[C.M_FORMAT] >= C.ENROL_SINCE:
         own = ENROLLED_IN[doc.mode]
         if own not in m:

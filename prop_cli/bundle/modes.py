@@ -7,9 +7,10 @@
 
 In both, a key runs only what its holder enrolled (``enrol``): ``unlock`` is the checked path every
 runtime takes (a key enrolled in nothing: None, which ``runtime.key_opens_nothing`` refuses unless the
-caller allows it, and then the base runs; a bundle changed since the key was enrolled: a PropError,
-nothing runs). ``respond`` is the method itself, any key through the encoder or
-the records with no check: what the audit and the paper's reproductions measure.
+caller allows it, and then the base runs; a bundle changed since the key was enrolled, or older than one
+this machine has seen (``rollback``): a PropError, nothing runs). ``respond`` is the method itself, any
+key through the encoder or the records with no check: what the audit and the paper's reproductions
+measure.
 
 Everything downstream (running, the audit, exports, publishing) asks the mode, not the manifest.
 """
@@ -29,7 +30,7 @@ from prop_cli import constants as C
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.errors import PropError
 
-from . import enrol
+from . import enrol, rollback
 from . import manifest as schema
 from .records import SealedState, load_state
 
@@ -41,7 +42,18 @@ class Mode(ABC):
     name: ClassVar[str]
     keyed: KeyedModel | None = None
     state: SealedState | None = None
+    manifest: dict
     where: str = "the bundle"  # how messages name the bundle ("bundle PATH")
+    allow_rollback: bool = False  # --allow-rollback: an older copy than one seen here runs, warned
+
+    def seen(self, uid: str | None, version: int) -> None:
+        """A key opened enrolment or record ``uid``, written at bundle ``version``, in the bundle as it
+        is now: refused if this machine has seen a newer one (``rollback``), else remembered. Once per
+        enrolment and command: a command asks its mode several times."""
+        done = self.__dict__.setdefault("_seen", set())
+        if (uid, version) not in done:
+            rollback.opened(self.manifest, uid, version, self.where, self.allow_rollback)
+            done.add((uid, version))
 
     @property
     @abstractmethod
@@ -155,7 +167,13 @@ class Unsealed(Mode):
     def enrolled(self, bits: np.ndarray) -> bool:
         # Before format 4 nothing was enrolled: whoever wrote the files chose the encoder, so no key runs
         # through it unchecked (an attacker can write an old format too). `prop enrol` opts in.
-        return self.version >= C.ENROL_SINCE and enrol.check(self.entries, bits, self.current, self.where)
+        if self.version < C.ENROL_SINCE:
+            return False
+        opened = enrol.check(self.entries, bits, self.current, self.where)
+        if opened is None:
+            return False
+        self.seen(opened.get(enrol.ID), int(opened.get(enrol.VERSION, 0)))
+        return True
 
     def respond(self, module: nn.Module, bits: np.ndarray) -> nn.Module:
         return self.keyed.fold(key_codes(bits, self.encoding), module)
@@ -172,7 +190,7 @@ class Unsealed(Mode):
     def on(self, module: nn.Module) -> Unsealed:
         self.keyed.remove_hooks()  # each layer is scaled once: by the view's hooks from now on
         view = Unsealed(self.keyed.on(module).eval(), self.encoding, self.manifest)
-        view.where = self.where
+        view.where, view.allow_rollback = self.where, self.allow_rollback
         return view
 
     @classmethod
@@ -214,6 +232,7 @@ class Sealed(Mode):
 
     def __init__(self, state: SealedState) -> None:
         self.state = state
+        self.manifest = state.manifest
 
     @property
     def layer_names(self) -> list[str]:
@@ -224,34 +243,30 @@ class Sealed(Mode):
         # Format 2-3 records bound the base weights but not an adapter's own files (LeRobot processors).
         return [] if self.state.enrolled else sorted(set(self.state.manifest[C.M_FILES]) - {C.BASE_WEIGHTS})
 
-    def enrolled(self, bits: np.ndarray) -> bool:
+    def _checked(self, bits: np.ndarray):
+        """The record ``bits`` opens, checked (enrolment, then rollback); None: it runs nothing."""
         opened = self.state.open(bits)
         if opened is None or self._unbound_files:
-            return False
+            return None
         if opened.changed:
             raise enrol.changed_error(self.where, opened.changed)
-        return True
+        self.seen(opened.record_id, opened.version)
+        return opened
+
+    def enrolled(self, bits: np.ndarray) -> bool:
+        return self._checked(bits) is not None
 
     def respond(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
         opened = self.state.open(bits)
         return None if opened is None else opened.payload.fold(module)
 
     def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
-        # One trial decryption for both the check and the payload.
-        opened = self.state.open(bits)
-        if opened is None or self._unbound_files:
-            return None
-        if opened.changed:
-            raise enrol.changed_error(self.where, opened.changed)
-        return opened.payload.fold(module)
+        opened = self._checked(bits)  # one trial decryption for both the check and the payload
+        return None if opened is None else opened.payload.fold(module)
 
     def payload_for(self, bits: np.ndarray):
-        opened = self.state.open(bits)
-        if opened is None or self._unbound_files:
-            return None
-        if opened.changed:
-            raise enrol.changed_error(self.where, opened.changed)
-        return opened.payload
+        opened = self._checked(bits)
+        return None if opened is None else opened.payload
 
     def not_enrolled(self, where: str) -> str:
         if self._unbound_files:
@@ -307,14 +322,14 @@ def mode_of(manifest: dict) -> type[Mode]:
     return Sealed if manifest.get(C.M_MODE) == C.MODE_SEALED else Unsealed
 
 
-def load_mode(path: Path, manifest: dict, loaded: LoadedModel) -> Mode:
+def load_mode(path: Path, manifest: dict, loaded: LoadedModel, allow_rollback: bool = False) -> Mode:
     """The bundle's mode, from its manifest (the one place a bundle's mode is decided)."""
     if mode_of(manifest) is Sealed:
         mode: Mode = Sealed(load_state(path, manifest))
     else:
         encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
         mode = Unsealed(_encoder(path, manifest, loaded), encoding, manifest)
-    mode.where = f"bundle {path}"
+    mode.where, mode.allow_rollback = f"bundle {path}", allow_rollback
     return mode
 
 

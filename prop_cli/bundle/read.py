@@ -97,14 +97,18 @@ class Bundle:
         return key
 
 
-def load_bundle(path: Path, *, trust_remote_code: bool = False, arch: str | None = None) -> Bundle:
+def load_bundle(
+    path: Path, *, trust_remote_code: bool = False, arch: str | None = None, allow_rollback: bool = False
+) -> Bundle:
     """Load and verify (format version, manifest schema and digest, sha256 of every file) a bundle.
 
     A bundle is data: code its manifest or files name (a module adapter's ``model.arch``, a folder's
     factory, LeRobot processor steps LeRobot does not register) is imported only with
     ``trust_remote_code``; without it such a bundle is refused before anything is imported. ``arch``
     (``--arch``): the user's own factory for a module or folder bundle, called instead of the recorded
-    one (their consent, as on personalize; relative paths are from the folder prop runs in)."""
+    one (their consent, as on personalize; relative paths are from the folder prop runs in).
+    ``allow_rollback`` (``--allow-rollback``): a key runs this copy even where it is older than one this
+    machine has seen (``rollback``), with a warning; without it, such a key is refused."""
     path = Path(path)
     manifest = read_manifest(path)
     check_files(path, manifest)
@@ -114,7 +118,7 @@ def load_bundle(path: Path, *, trust_remote_code: bool = False, arch: str | None
         adapters.require_trust(adapters.remote_code(spec, str(path)), f"bundle {path}", trust_remote_code)
     weights = adapters.read_weights(path / C.BASE_WEIGHTS)[0]
     loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code, arch=arch)
-    return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded), arch)
+    return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded, allow_rollback), arch)
 
 
 def check_files(path: Path, manifest: dict) -> None:

@@ -8,6 +8,10 @@ with the user's key a changed bundle is reported ("changed since this key was en
 runs; the associated data binds the record's id. Format 2-3 records bound the public fields in their
 associated data instead (``binding``): an edit made every record fail to open, and the base ran.
 
+Format 5 records also carry, in the same plaintext, the bundle version they were written in
+(``enrol.VERSION``; the bundle id is part of the behaviour): the record's id and version are what
+``rollback`` compares with the versions this machine has seen.
+
 This module reads, opens, writes and rewrites records; training a payload is ``prop_cli.train``.
 """
 
@@ -26,9 +30,10 @@ from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file, write_text
 
+from . import rollback
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
-from .enrol import behaviour, changed
-from .manifest import restamp
+from .enrol import VERSION, behaviour, changed
+from .manifest import bundle_version, next_version, restamp
 
 # Format 2-3 records: the manifest fields that decide how a payload is applied, authenticated with
 # every record as associated data (``binding``). Format 4 records carry ``enrol.behaviour`` inside.
@@ -47,6 +52,8 @@ def public_part(manifest: dict) -> dict:
     part = {f: manifest.get(f) for f in _BOUND}
     for f in (C.M_IO, C.M_KEY, C.M_FILES, C.M_RECORDS, C.M_KEYED_LAYERS):
         part[f] = manifest.get(f)
+    if C.M_BUNDLE_ID in manifest:  # part of the records' behaviour (format 5)
+        part[C.M_BUNDLE_ID] = manifest[C.M_BUNDLE_ID]
     return part
 
 
@@ -75,6 +82,7 @@ class Opened:
     payload: Payload
     meta: dict  # what was sealed beside the tensors: the user's metrics and training settings
     changed: list[str]  # what differs from what the record was enrolled in ([]: nothing, or format 2-3)
+    version: int = 0  # the bundle version the record was written in (format 5; 0 before)
 
 
 @dataclass
@@ -99,8 +107,9 @@ class SealedState:
             if data is not None:
                 tensors, meta = decode_payload(unpad(data) if self.enrolled else data)
                 enrolled = meta.pop(BEHAVIOUR, None)
+                version = int(meta.pop(VERSION, 0))
                 diff = changed(enrolled or {}, self.behaviour) if self.enrolled else []
-                return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff)
+                return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff, version)
         return None
 
 
@@ -156,10 +165,14 @@ def load_state(path: Path, manifest: dict) -> SealedState:
 
 def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarray) -> SealedRecord:
     """Encrypt one user's payload (and ``private``: their metrics and settings, sealed too) for their key.
-    Format 4: with the bundle's behaviour (the user's enrolment), padded to a fixed bucket of sizes."""
+    Format 4: with the bundle's behaviour (the user's enrolment), padded to a fixed bucket of sizes;
+    format 5: and the bundle version of ``manifest``, the manifest the record is written in."""
     if not enrolled_records(manifest):
         return seal(encode_payload(payload.tensors(), private), bits, lambda rid: binding(manifest, rid))
-    plaintext = pad(encode_payload(payload.tensors(), {**private, BEHAVIOUR: behaviour(manifest)}))
+    sealed_meta = {**private, BEHAVIOUR: behaviour(manifest)}
+    if C.M_BUNDLE_VERSION in manifest:
+        sealed_meta[VERSION] = manifest[C.M_BUNDLE_VERSION]
+    plaintext = pad(encode_payload(payload.tensors(), sealed_meta))
     return seal(plaintext, bits, lambda rid: record_ad(manifest, rid))
 
 
@@ -184,17 +197,22 @@ def with_records(manifest: dict, add: list[SealedRecord], drop: list[str]) -> di
 
 
 def rewrite_records(bundle: Path, old: dict, new: dict, add: list[SealedRecord]) -> dict:
-    """Commit ``new`` (from ``with_records``) to a sealed bundle in place: the added records' files first,
-    then the manifest, swapped atomically, then the dropped records' files are deleted. An interruption
-    leaves a bundle that loads."""
+    """Commit ``new`` (from ``with_records``) to a sealed bundle in place, as the bundle's next version
+    (records in ``add`` sealed against ``next_version(old)``): the added records' files first, then the
+    manifest, swapped atomically, then the dropped records' files are deleted; this machine remembers
+    the version and the records removed (``rollback``). An interruption leaves a bundle that loads."""
     for rec in add:
         write_record(bundle, rec)
+    if C.M_BUNDLE_VERSION in old:
+        new = {**new, C.M_BUNDLE_VERSION: next_version(old)[C.M_BUNDLE_VERSION]}
     new = restamp(new)
     write_text(bundle / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
     kept = {e["id"] for e in new[C.M_RECORDS]}
-    for e in old[C.M_RECORDS]:
-        if e["id"] not in kept:
-            (bundle / e["file"]).unlink(missing_ok=True)
+    dropped = [e for e in old[C.M_RECORDS] if e["id"] not in kept]
+    added = {rec.id: bundle_version(new) for rec in add}
+    rollback.wrote(new, users=added, removed=[e["id"] for e in dropped])
+    for e in dropped:
+        (bundle / e["file"]).unlink(missing_ok=True)
     return new
 
 

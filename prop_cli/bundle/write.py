@@ -27,7 +27,8 @@ from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
-from .enrol import enrol
+from . import rollback
+from .enrol import enrol, new_id
 from .read import read_manifest
 from .records import SealedState, record_entry, seal_payload, write_record
 
@@ -63,6 +64,7 @@ def _stamp(manifest: dict, tmp: Path, files: tuple[str, ...]) -> dict:
     full[C.M_IO] = {**io, **({"checkpoint": name} if name else {})}
     full[C.M_FORMAT] = C.FORMAT_VERSION
     full[C.M_PROP_VERSION] = __version__
+    full.update(schema.new_identity())  # a new bundle: a new id, version 1
     full[C.M_FILES] = {n: sha256_file(tmp / n) for n in files}
     return full
 
@@ -109,6 +111,7 @@ def write_unsealed(
         full = _stamp({**manifest, C.M_MODE: C.MODE_UNSEALED}, tmp, names)
         full = schema.stamp({**full, C.M_ENROLMENTS: enrol(full, keys)})
         (tmp / C.MANIFEST).write_text(dump_json(full))
+    rollback.wrote(full)
     return full
 
 
@@ -144,35 +147,46 @@ def write_sealed(
                 full[C.M_METRICS] = public
         full = schema.stamp(full)
         (tmp / C.MANIFEST).write_text(dump_json(full))
+    rollback.wrote(full, users={rec.id: full[C.M_BUNDLE_VERSION] for rec in records})
     return full
 
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
-    """Set one manifest entry (e.g. the audit summary), atomically; weights are untouched."""
+    """Set one manifest entry (e.g. the audit summary), atomically, as the bundle's next version; weights
+    are untouched."""
     bundle = Path(path)
-    manifest = read_manifest(bundle)
+    manifest = schema.next_version(read_manifest(bundle))
     manifest[key] = value
-    write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
+    manifest = schema.restamp(manifest)
+    write_text(bundle / C.MANIFEST, dump_json(manifest), what="manifest", flag="BUNDLE")
+    rollback.wrote(manifest)
 
 
 def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     """Enrol ``bits`` in the unsealed bundle at ``path`` as it is now (the key holder's consent to its
-    current behaviour), replacing that key's earlier enrolment; a format 1-3 bundle becomes format 4.
-    Returns the manifest written and what happened: "enrolled", "re-enrolled: <changes>" or
-    "already enrolled" (nothing written)."""
-    from .enrol import behaviour, changed, split
+    current behaviour), replacing that key's earlier enrolment (whose id it keeps, at the new version:
+    the older one is refused here from now on); a format 1-4 bundle becomes format 5 (a new bundle id,
+    version 1; the other users' enrolments stay as they were). Returns the manifest written and what
+    happened: "enrolled", "re-enrolled: <changes>" or "already enrolled" (nothing written)."""
+    from .enrol import ID, behaviour, changed, split
 
     kept, opened = split(manifest.get(C.M_ENROLMENTS, []), bits)
     diff = changed(opened.get("behaviour", {}), behaviour(manifest)) if opened is not None else None
     if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:
         return manifest, "already enrolled"
-    new = {**manifest, C.M_FORMAT: C.FORMAT_VERSION, C.M_MODE: C.MODE_UNSEALED}
+    if C.M_BUNDLE_ID in manifest:
+        new = schema.next_version(manifest)
+    else:  # from before bundle ids: this write names the bundle
+        new = {**manifest, **schema.new_identity()}
+    new.update({C.M_FORMAT: C.FORMAT_VERSION, C.M_MODE: C.MODE_UNSEALED})
     name = public_name(manifest[C.M_IO].get("checkpoint"))
     new[C.M_IO] = {k: v for k, v in manifest[C.M_IO].items() if k != "checkpoint"}
     new[C.M_IO].update({"checkpoint": name} if name else {})
-    new[C.M_ENROLMENTS] = kept + enrol(new, [bits])
+    uid = (opened or {}).get(ID) or new_id()
+    new[C.M_ENROLMENTS] = kept + enrol(new, [bits], [uid])
     new = schema.validate(schema.stamp(new), str(path))
     write_text(Path(path) / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    rollback.wrote(new, users={uid: new[C.M_BUNDLE_VERSION]})
     return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 
 

@@ -8,6 +8,7 @@ from prop_cli.errors import plural
 
 from .common import err, out, print_json, read_passphrase
 from .options import (
+    AllowRollback,
     AllowUnenrolledKey,
     BundleArch,
     BundleArg,
@@ -53,6 +54,7 @@ def eval_(
     vecnormalize: VecNormalize = None, video: Video = None, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
     allow_unenrolled_key: AllowUnenrolledKey = False,
+    allow_rollback: AllowRollback = False,
 ) -> None:  # fmt: skip
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
     from prop_cli.api import eval_bundle
@@ -62,6 +64,7 @@ def eval_(
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
         vecnormalize=vecnormalize, video=video, trust_remote_code=trust_remote_code, arch=arch,
         allow_unenrolled_key=allow_unenrolled_key,
+        allow_rollback=allow_rollback,
     )  # fmt: skip
     if as_json:
         print_json(report)

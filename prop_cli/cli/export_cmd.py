@@ -11,6 +11,7 @@ from prop_cli.errors import plural
 
 from .common import err, fail, out, print_json, read_passphrase
 from .options import (
+    AllowRollback,
     AllowUnenrolledKey,
     BundleArch,
     BundleArg,
@@ -49,13 +50,16 @@ def export(
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
     allow_unenrolled_key: AllowUnenrolledKey = False,
+    allow_rollback: AllowRollback = False,
 ) -> None:  # fmt: skip
     """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; or a
     sealed user's payload as a peft LoRA adapter (--peft DIR)."""
     if onnx == (peft is not None):
         fail("choose one export format", "pass --onnx or --peft DIR")
     if peft is not None:
-        _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch)
+        _export_peft(
+            bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch, allow_rollback
+        )
         return
     from prop_cli.api import export_bundle
 
@@ -63,7 +67,7 @@ def export(
         bundle, out_dir, settings, key_file=key_file,
         passphrase=read_passphrase() if passphrase else None, input_path=input_path, force=force,
         threads=threads, trust_remote_code=trust_remote_code, arch=arch,
-        allow_unenrolled_key=allow_unenrolled_key,
+        allow_unenrolled_key=allow_unenrolled_key, allow_rollback=allow_rollback,
     )  # fmt: skip
     if as_json:
         print_json({"out": str(result.out), "ok": result.ok, "opset": result.opset, "atol": result.atol,
@@ -80,12 +84,13 @@ def export(
         out.print(f"wrote {result.out} ({', '.join(result.files)})")
 
 
-def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch) -> None:
+def _export_peft(bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch,
+                 allow_rollback) -> None:  # fmt: skip
     from prop_cli.api import export_peft_adapter
 
     result = export_peft_adapter(
         bundle, peft, key_file=key_file, passphrase=read_passphrase() if passphrase else None, force=force,
-        trust_remote_code=trust_remote_code, arch=arch,
+        trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback,
     )  # fmt: skip
     err.print(f"prop: note: {result.out} holds your behaviour unencrypted: keep it as you keep your key")
     if as_json:

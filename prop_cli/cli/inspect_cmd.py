@@ -64,6 +64,8 @@ def _bundle_table(info: dict):
     audit = "none recorded (prop attack --record)" if a is None else _audit(a)
     layers = ", ".join(x["name"] for x in info["keyed_layers"])
     rows = [
+        ("version", f"{info['bundle_version']} of bundle {info['bundle_id']}" if info["bundle_id"]
+                    else "none (format 1-4: an older copy is not detected)"),  # fmt: skip
         ("model", f"{model}; task {info['task']}"),
         ("key", f"{info['key_bits']} bits; {who}"),
         ("keyed layers", f"{len(info['keyed_layers'])}: {layers}"),

@@ -83,6 +83,14 @@ TrustRemoteCode = Annotated[
         "processor steps): only for files from someone you trust.",
     ),
 ]
+AllowRollback = Annotated[
+    bool,
+    typer.Option(
+        "--allow-rollback",
+        help="Accept a copy of the bundle older than one this machine has seen (with a warning); without "
+        "it, a key is refused there (docs/threat-model.md).",
+    ),
+]
 WeakPassphrase = Annotated[
     bool, typer.Option("--weak-passphrase", help="Accept a passphrase that is quick to guess (not advised).")
 ]

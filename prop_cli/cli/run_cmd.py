@@ -9,6 +9,7 @@ from prop_cli.constants import DEFAULT_THREADS
 
 from .common import err, print_json, read_passphrase
 from .options import (
+    AllowRollback,
     AllowUnenrolledKey,
     BundleArch,
     BundleArg,
@@ -45,6 +46,7 @@ def run(
     trust_remote_code: TrustRemoteCode = False,
     arch: BundleArch = None,
     allow_unenrolled_key: AllowUnenrolledKey = False,
+    allow_rollback: AllowRollback = False,
 ) -> None:
     """Run a bundle on inputs: with your key your behaviour, without a key the original's."""
     from prop_cli.api import run_file
@@ -53,6 +55,7 @@ def run(
         bundle, input_path, output, key_file=key_file, passphrase=read_passphrase() if passphrase else None,
         onnx=onnx, onnx_dir=onnx_dir, force=force, threads=threads, trust_remote_code=trust_remote_code,
         noise_seed=noise_seed, arch=arch, allow_unenrolled_key=allow_unenrolled_key,
+        allow_rollback=allow_rollback,
     )  # fmt: skip
     if as_json:
         print_json({"output": str(result.output), "shape": list(result.shape), "keyed": result.keyed,

@@ -13,6 +13,11 @@ from .common import fail, out, print_json, read_passphrase
 from .options import BundleArg, Json, KeyFile, Passphrase, TrustRemoteCode, opt
 
 PublicKey = Annotated[Path | None, opt("--public-key", "The publisher's public key (PEM).")]
+AllowRevision = Annotated[
+    bool,
+    opt("--allow-rollback", "Accept a revision older than one this machine verified from the same "
+                            "publisher (with a warning)."),
+]  # fmt: skip
 Chain = Annotated[
     list[Path] | None, opt("--certificate-chain", "Certificates up to a root you trust (PEM); repeat.")
 ]
@@ -23,17 +28,20 @@ def verify(
         Path, typer.Argument(metavar="FOLDER", help="A signed bundle folder (e.g. from hf download).")
     ],
     public_key: PublicKey = None, chain: Chain = None, as_json: Json = False,
+    allow_rollback: AllowRevision = False,
 ) -> None:  # fmt: skip
-    """Check that every file of FOLDER is what the publisher signed (prop push --sign); nothing runs."""
+    """Check that every file of FOLDER is what the publisher signed (prop push --sign), and that it is not
+    older than a revision verified here before; nothing runs."""
     from prop_cli.api import verify_bundle
 
-    result = verify_bundle(folder, public_key=public_key, chain=chain or ())
+    result = verify_bundle(folder, public_key=public_key, chain=chain or (), allow_rollback=allow_rollback)
     if as_json:
         print_json(result)
         return
+    version = f"version {result['bundle_version']}" if result["rollback_checked"] else "no bundle version"
     out.print(
         f"verified {result['folder']}: every file is as signed by {result['signer']} ({result['mode']} "
-        f"bundle, format {result['format']}, {plural(result['users'], 'user')})"
+        f"bundle, format {result['format']}, {version}, {plural(result['users'], 'user')})"
     )
 
 

@@ -10,6 +10,9 @@ What a signature proves: the files are the ones the holder of that private key p
 does not: that the publisher is who you think (compare the key's fingerprint or the certificate with
 one you got from them another way), that the bundle behaves well, or anything about a user's key:
 a user's key authenticates their own behaviour (``prop_cli.bundle.enrol``), the signature the rest.
+Nor, alone, that it is the publisher's latest revision: the signature covers the manifest and so its
+bundle version, and ``prop verify`` refuses a version older than one it verified here from the same
+publisher (``check_revision``; ``prop_cli.bundle.rollback``).
 """
 
 from __future__ import annotations
@@ -125,4 +128,25 @@ def verify_folder(folder: Path, public_key: Path | None = None, chain: list[Path
             "do not use these files: they are not what the key's holder signed (or the wrong key was given)",
         ) from None
     signer = fingerprint(public_key, "--public-key") if public_key is not None else "certificate chain"
-    return {"folder": str(folder), "signature": SIGNATURE, "signer": signer}
+    who = signer_id(public_key, chain)
+    return {"folder": str(folder), "signature": SIGNATURE, "signer": signer, "signer_id": who}
+
+
+def signer_id(public_key: Path | None, chain: list[Path] | tuple = ()) -> str:
+    """Whom versions are remembered for: the public key's fingerprint, or the digest of the certificate
+    chain given (the roots trusted), so that one publisher's revisions are compared with each other."""
+    if public_key is not None:
+        return fingerprint(public_key, "--public-key")
+    h = hashlib.sha256()
+    for c in chain:
+        h.update(hashlib.sha256(_read(c, "--certificate-chain")).digest())
+    return "chain sha256:" + h.hexdigest()
+
+
+def check_revision(folder: Path, manifest: dict, signer: str, allow_rollback: bool = False) -> bool:
+    """After a signature verified: refuse a bundle version older than one verified on this machine from
+    the same ``signer`` (``allow_rollback``: a warning), and remember this one. False: a format 1-4
+    bundle, which has no version to compare."""
+    from prop_cli.bundle.rollback import verified
+
+    return verified(manifest, signer, f"{folder}", allow_rollback)

@@ -7,6 +7,7 @@ import numpy as np
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
+from prop_cli.bundle.manifest import next_version
 from prop_cli.bundle.records import SealedRecord, SealedState, seal_payload, with_records
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.payload import payload_kind
@@ -47,7 +48,7 @@ def train_added_user(
     recipe = sealed_recipe(bundle.loaded)
     job = Job(bundle.loaded, cfg, device, progress)
     [user], _, _ = recipe.train_users(job, [data], [bits], cfg.task or bundle.task, index)
-    rec = seal_payload(m, user.private, user.payload, bits)
+    rec = seal_payload(next_version(m), user.private, user.payload, bits)  # the version it is written in
     new = with_records(m, [rec], [])
     state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
     report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)

@@ -273,7 +273,7 @@ def test_sealed_to_unsealed_downgrade_is_refused(cli, d):
     assert code == 0 and "enrolled in nothing" in err
     np.testing.assert_array_equal(y, _base(bundle, x))
     m[C.M_FORMAT] = 3
-    del m[C.M_ENROLMENTS]
+    del m[C.M_ENROLMENTS], m[C.M_BUNDLE_ID], m[C.M_BUNDLE_VERSION]
     _write(bundle, m)
     code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
     _one_line_refusal(code, y, err, "format 3 bundle, from before keys were enrolled", "prop enrol", ALLOW)
@@ -345,7 +345,7 @@ def test_old_format_bundle_is_refused_until_enrolled(cli, d):
     m = _manifest(bundle)
     keyed_before = _run(cli, bundle, d, "--key-file", d / "k.bin")[1]
     m[C.M_FORMAT] = 3
-    del m[C.M_ENROLMENTS]
+    del m[C.M_ENROLMENTS], m[C.M_BUNDLE_ID], m[C.M_BUNDLE_VERSION]
     _write(bundle, m)
     code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
     _one_line_refusal(code, y, err, "format 3", "prop enrol", ALLOW)
@@ -353,7 +353,7 @@ def test_old_format_bundle_is_refused_until_enrolled(cli, d):
     assert code == 0 and "format 3" in err
     np.testing.assert_array_equal(y, _base(bundle, np.load(d / "x.npy")))
     r = cli("enrol", bundle, "--key-file", d / "k.bin")
-    assert r.code == 0 and "enrolled" in r.out and "format 4" in r.out, r.err
+    assert r.code == 0 and "enrolled" in r.out and "format 5" in r.out, r.err
     code, y, err = _run(cli, bundle, d, "--key-file", d / "k.bin")
     assert code == 0 and "warning" not in err
     np.testing.assert_array_equal(y, keyed_before)
@@ -517,7 +517,7 @@ def test_push_sign_and_verify_round_trip_and_any_flipped_byte_fails(cli, d, monk
     assert "Publisher signature: yes" in (got / "README.md").read_text()
     r = cli("verify", got, "--public-key", d / "pub.pem")
     assert r.code == 0 and "verified" in r.out, r.err
-    assert len(_manifest(got)[C.M_RECORDS]) == 1 and "format 4, 1 user)" in r.out  # not "1 users"
+    assert len(_manifest(got)[C.M_RECORDS]) == 1 and "format 5, version 1, 1 user)" in r.out  # not "1 users"
     files = sorted(p for p in got.rglob("*") if p.is_file() and p.name != "model.sig")
     assert len(files) >= 6
     for f in files:

@@ -157,7 +157,9 @@ def test_same_seed_same_bytes(cli, workdir):
         assert (workdir / "a.prop" / name).read_bytes() == (workdir / "b.prop" / name).read_bytes()
     ma = json.loads((workdir / "a.prop" / C.MANIFEST).read_text())
     mb = json.loads((workdir / "b.prop" / C.MANIFEST).read_text())
-    # Everything but the enrolments (each under a fresh random salt and nonce) and the digest over them.
+    # Everything but the enrolments (each under a fresh random salt and nonce), the bundle id (random:
+    # two bundles) and the digest over them.
+    assert ma.pop(C.M_BUNDLE_ID) != mb.pop(C.M_BUNDLE_ID)
     for m in (ma, mb):
         m.pop(C.M_ENROLMENTS), m.pop(C.M_DIGEST)
     assert ma == mb
