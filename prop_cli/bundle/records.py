@@ -24,7 +24,7 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
-from prop_cli.files import dump_json, sha256_file, write_text
+from prop_cli.files import dump_json, no_links, remove_inside, sha256_file, write_inside, write_text
 
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
 from .enrol import behaviour, changed
@@ -164,10 +164,8 @@ def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarr
 
 
 def write_record(folder: Path, rec: SealedRecord) -> None:
-    """Write a record's ciphertext under ``folder``."""
-    f = folder / record_file(rec.id)
-    f.parent.mkdir(exist_ok=True)
-    f.write_bytes(rec.ciphertext)
+    """Write a record's ciphertext under ``folder``, never through a link (``users/`` linked elsewhere)."""
+    write_inside(folder, record_file(rec.id), rec.ciphertext)
 
 
 def with_records(manifest: dict, add: list[SealedRecord], drop: list[str]) -> dict:
@@ -186,15 +184,19 @@ def with_records(manifest: dict, add: list[SealedRecord], drop: list[str]) -> di
 def rewrite_records(bundle: Path, old: dict, new: dict, add: list[SealedRecord]) -> dict:
     """Commit ``new`` (from ``with_records``) to a sealed bundle in place: the added records' files first,
     then the manifest, swapped atomically, then the dropped records' files are deleted. An interruption
-    leaves a bundle that loads."""
-    for rec in add:
-        write_record(bundle, rec)
-    new = restamp(new)
-    write_text(bundle / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    leaves a bundle that loads. Nothing is written or deleted through a link (checked at each step:
+    the bundle may have changed since it was read)."""
     kept = {e["id"] for e in new[C.M_RECORDS]}
     for e in old[C.M_RECORDS]:
         if e["id"] not in kept:
-            (bundle / e["file"]).unlink(missing_ok=True)
+            no_links(bundle, e["file"])  # before anything is written
+    for rec in add:
+        write_record(bundle, rec)
+    new = restamp(new)
+    write_text(no_links(bundle, C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
+    for e in old[C.M_RECORDS]:
+        if e["id"] not in kept:
+            remove_inside(bundle, e["file"])
     return new
 
 
@@ -202,7 +204,7 @@ def copy_records(src: Path, dst: Path, manifest: dict) -> None:
     """Copy a sealed bundle's record files (for exports: the ONNX runtime opens them too)."""
     (dst / C.RECORDS_DIR).mkdir(parents=True, exist_ok=True)
     for e in manifest[C.M_RECORDS]:
-        shutil.copyfile(src / e["file"], dst / e["file"])
+        shutil.copyfile(no_links(src, e["file"]), dst / e["file"])
 
 
 def check_new_key(state: SealedState, bits: np.ndarray) -> None:

@@ -24,7 +24,7 @@ from prop_cli import constants as C
 from prop_cli.core.key_files import KeySource, kdf_record
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
-from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
+from prop_cli.files import check_output, dump_json, no_links, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
 from .enrol import enrol
@@ -152,7 +152,8 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     bundle = Path(path)
     manifest = read_manifest(bundle)
     manifest[key] = value
-    write_text(bundle / C.MANIFEST, dump_json(schema.restamp(manifest)), what="manifest", flag="BUNDLE")
+    text = dump_json(schema.restamp(manifest))
+    write_text(no_links(bundle, C.MANIFEST), text, what="manifest", flag="BUNDLE")
 
 
 def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
@@ -172,7 +173,7 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     new[C.M_IO].update({"checkpoint": name} if name else {})
     new[C.M_ENROLMENTS] = kept + enrol(new, [bits])
     new = schema.validate(schema.stamp(new), str(path))
-    write_text(Path(path) / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    write_text(no_links(Path(path), C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
     return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 
 
