@@ -48,9 +48,7 @@ def read_manifest(path: Path) -> dict:
     return manifest
 
 
-# transformers imports the code an ``auto_map`` names (or asks at the terminal whether to).
-CODE_SUFFIXES = (".py", ".pyc", ".pyo", ".pyw", ".pyd", ".so")
-CODE_FIELD = "auto_map"
+CODE_SUFFIXES = (".py", ".pyc", ".pyo", ".pyw", ".pyd", ".so")  # files Python would import
 
 
 def check_tree(path: Path, manifest: dict) -> None:
@@ -91,9 +89,8 @@ def _check_carried(path: Path, name: str, listed: set[str]) -> None:
             doc = json.loads((path / name).read_bytes())
         except (OSError, ValueError, RecursionError):
             return  # its sha256 is checked next; a library that reads it reports what is wrong
-        inner = list(doc.values()) if isinstance(doc, dict) else []
-        if any(isinstance(d, dict) and CODE_FIELD in d for d in [doc, *inner]):
-            raise _tampered(path, name, f"has an {CODE_FIELD} (code for transformers to import)")
+        if adapters.names_code(doc):
+            raise _tampered(path, name, f"has an {adapters.CODE_FIELD} (code for transformers to import)")
 
 
 def _tampered(path: Path, name: str, what: str) -> PropError:
