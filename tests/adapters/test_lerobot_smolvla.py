@@ -503,3 +503,26 @@ def test_a_bundle_reads_its_vlm_from_itself_only(bundle, work, tmp_path, cli):
     r = cli("run", planted, "--input", work / "user", "--output", tmp_path / "y.npy")
     assert r.code == 2 and r.err.count("\n") == 1 and "vlm/config.json" in r.err, r.err
     assert str(work / "vlm") in r.err and not (tmp_path / "y.npy").exists()
+
+
+def test_no_prompt_makes_transformers_refuse_without_asking(tmp_path, capsys):
+    """The guard behind the checks (``no_prompt``, around every LeRobot load): a folder naming code
+    reaching transformers anyway gets its refusal, with no question printed and nothing imported."""
+    import builtins
+
+    from transformers import AutoConfig
+
+    from prop_adapters.base import no_prompt
+
+    before = builtins.input
+    marker = tmp_path / "pwned"
+    folder = tmp_path / "vlm"
+    folder.mkdir()
+    config = {"model_type": "pwn_vlm", "auto_map": {"AutoConfig": "pwn_vlm.PwnConfig"}}
+    (folder / "config.json").write_text(json.dumps(config))
+    (folder / "pwn_vlm.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    with no_prompt(), pytest.raises(ValueError, match="trust_remote_code"):
+        AutoConfig.from_pretrained(str(folder))
+    out = capsys.readouterr()
+    assert "[y/N]" not in out.out + out.err and not marker.exists()
+    assert builtins.input is before  # restored afterwards
