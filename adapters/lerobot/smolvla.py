@@ -29,8 +29,10 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   or its weights. prop builds the VLM from its config alone (``load_vlm_weights=False``;
   model.safetensors holds every weight), reads those files from a local folder (the name as a folder,
   or the hub cache, offline) and the bundle carries them in ``lerobot/vlm/``. The tokenizer step of the
-  processors is pointed at that folder: it reads a tokenizer file, never code (transformers' Auto
-  classes run code only with trust_remote_code, which LeRobot does not pass).
+  processors is pointed at that folder: it reads a tokenizer file, never code. transformers' Auto classes
+  import code a file names (``auto_map``) or, as LeRobot gives no trust_remote_code, ask at the terminal:
+  such a VLM file is refused (``check_vlm``; in a bundle also ``bundle.read.check_tree``), and a bundle
+  reads its own ``vlm/`` only, never a folder its config.json names.
 """
 
 from __future__ import annotations
