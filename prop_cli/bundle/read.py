@@ -49,6 +49,7 @@ def read_manifest(path: Path) -> dict:
 
 
 CODE_SUFFIXES = (".py", ".pyc", ".pyo", ".pyw", ".pyd", ".so")  # files Python would import
+MAX_JSON = 256 << 20  # a carried JSON file read whole (a large model's tokenizer.json: tens of MiB)
 
 
 def check_tree(path: Path, manifest: dict) -> None:
@@ -65,7 +66,10 @@ def check_tree(path: Path, manifest: dict) -> None:
         rel = Path(here).relative_to(path)
         for name in sorted(dirs + files):
             entry = Path(here) / name
-            mode = os.lstat(entry).st_mode
+            try:
+                mode = os.lstat(entry).st_mode
+            except FileNotFoundError:  # gone since the folder was listed: nothing to read there
+                continue
             if stat.S_ISLNK(mode):
                 raise link_error(path, entry)
             if not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
@@ -85,6 +89,8 @@ def _check_carried(path: Path, name: str, listed: set[str]) -> None:
     if name.lower().endswith(CODE_SUFFIXES):
         raise _tampered(path, name, "is code (a bundle never carries code)")
     if name.lower().endswith(".json"):
+        if (path / name).stat().st_size > MAX_JSON:
+            raise _tampered(path, name, f"is over {MAX_JSON >> 20} MiB, more than any JSON file prop carries")
         try:
             doc = json.loads((path / name).read_bytes())
         except (OSError, ValueError, RecursionError):
