@@ -16,7 +16,16 @@ import torch
 from prop_cli.core.layers import keyable_layers
 from prop_cli.errors import PropError, brief
 
-from .base import TRUST_FLAG, Adapter, CheckpointOptions, LoadedModel, check_exists, require_trust
+from .base import (
+    CODE_FIELD,
+    TRUST_FLAG,
+    Adapter,
+    CheckpointOptions,
+    LoadedModel,
+    check_exists,
+    names_code,
+    require_trust,
+)
 from .folder import CONFIG, WEIGHTS, FolderAdapter
 from .lerobot import LeRobotAdapter
 from .mlp import MLPAdapter
@@ -34,6 +43,7 @@ ADAPTERS: list[Adapter] = [
 
 __all__ = [
     "ADAPTERS",
+    "CODE_FIELD",
     "Adapter",
     "CheckpointOptions",
     "LoadedModel",
@@ -42,6 +52,7 @@ __all__ = [
     "check_arch_applies",
     "describe",
     "load_checkpoint",
+    "names_code",
     "read_weights",
     "rebuild",
     "remote_code",

@@ -8,7 +8,10 @@ from the registry.
 
 from __future__ import annotations
 
+import builtins
+import contextlib
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -227,3 +230,39 @@ def require_trust(named: list[str], source: str, trusted: bool) -> None:
 def check_exists(path: Path) -> None:
     if not path.exists():
         raise PropError(f"checkpoint {path} does not exist", "check the path")
+
+
+CODE_FIELD = "auto_map"  # transformers imports the code it names from the folder (or asks whether to)
+
+
+def names_code(doc: object) -> bool:
+    """Whether a parsed JSON file names code for transformers: an ``auto_map`` at its top or one level
+    down (a processor config's sub-configs); deeper is data (a tokenizer's vocabulary may hold any
+    word)."""
+    inner = list(doc.values()) if isinstance(doc, dict) else []
+    return any(isinstance(d, dict) and CODE_FIELD in d for d in [doc, *inner])
+
+
+class PromptRefused(EOFError):
+    """What a library gets if it asks a question at the terminal while prop loads a checkpoint."""
+
+
+@contextlib.contextmanager
+def no_prompt() -> Iterator[None]:
+    """While a library (LeRobot, transformers) reads a checkpoint's files, nothing asks at the terminal.
+
+    transformers asks "Do you wish to run the custom code? [y/N]" when a file names code (``auto_map``)
+    and no ``trust_remote_code`` was given, which LeRobot never gives: a "y" ran a bundle's code (issue
+    31). prop refuses such files before a library sees them (``bundle.read.check_tree``, the adapters'
+    own checks); this is the guard behind that: ``input()`` fails at once, printing nothing, so no
+    question reaches the terminal and no answer can come from it (transformers then refuses the code).
+    ``input()`` is the process's: a thread reading the terminal meanwhile gets the same refusal."""
+
+    def refuse(prompt: object = "") -> str:
+        raise PromptRefused("prop answers no prompt while it loads a checkpoint")
+
+    original, builtins.input = builtins.input, refuse
+    try:
+        yield
+    finally:
+        builtins.input = original

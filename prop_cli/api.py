@@ -48,7 +48,16 @@ from prop_cli.core.passphrase import strength
 from prop_cli.datasources import SOURCES, load_data
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
-from prop_cli.files import ARRAY, EXPORT, PEFT, check_not_input, check_output, check_writable, write_file
+from prop_cli.files import (
+    ARRAY,
+    EXPORT,
+    PEFT,
+    check_not_input,
+    check_output,
+    check_writable,
+    no_links,
+    write_file,
+)
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
@@ -383,7 +392,7 @@ def export_bundle(
     from prop_cli.deploy.onnx import export_onnx, require_onnx
 
     check_threads(threads)
-    target_dir = Path(out) if out is not None else Path(bundle_path) / C.EXPORT_DIR
+    target_dir = Path(out) if out is not None else no_links(Path(bundle_path), C.EXPORT_DIR)
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
     check_output(target_dir, force, what="export folder", kind=EXPORT)  # before the bundle is loaded
     bundle = load_bundle(
@@ -470,7 +479,7 @@ def add_user(
     configure_threads(bundle.parameters, None)
     rec, new, report = train_added_user(bundle, load_data(data_path), key.bits, cfg, device, progress)
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
-    folder, export = Path(bundle_path) / C.EXPORT_DIR, None
+    folder, export = no_links(Path(bundle_path), C.EXPORT_DIR), None
     if folder.exists():  # after the bundle: the export never holds more than it
         from prop_cli.deploy.onnx import add_record, describe_export
 
@@ -563,7 +572,7 @@ def remove_user(
             "delete the bundle folder instead",
         )
     new = with_records(bundle.manifest, [], [record])
-    export = Path(bundle_path) / C.EXPORT_DIR
+    export = no_links(Path(bundle_path), C.EXPORT_DIR)
     if (export / C.EXPORT_META).is_file():
         from prop_cli.deploy.onnx import drop_record
 

@@ -21,11 +21,12 @@ from pathlib import Path
 
 import torch
 
-from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
+from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish, no_prompt
 from prop_adapters.folder import CONFIG, WEIGHTS, read_config
 from prop_adapters.weights import read_weights
 from prop_cli.constants import LEROBOT_DIR
 from prop_cli.errors import PropError
+from prop_cli.files import RESTORE, TAMPERED, shown
 
 from .policy import LeRobotProtocol
 from .registry import POLICIES
@@ -92,10 +93,53 @@ def _protocol_of(folder: Path) -> type[LeRobotProtocol]:
 
 
 def _folder_files(folder: Path, extra: dict[str, bytes]) -> dict[str, bytes]:
-    """The folder's config and processor files, and the policy's ``extra`` files, by their bundle path."""
-    names = [CONFIG] + sorted(p.name for p in folder.glob("policy_*processor*") if p.is_file())
-    files = {n: (folder / n).read_bytes() for n in names} | extra
+    """The folder's config and processor files (with every state file they name), and the policy's
+    ``extra`` files, by their bundle path."""
+    names = {CONFIG, *(p.name for p in folder.glob("policy_*processor*") if p.is_file())}
+    names |= set(state_files(folder, str(folder)))
+    files = {n: (folder / n).read_bytes() for n in sorted(names)} | extra
     return {f"{FOLDER_IN_BUNDLE}/{n}": b for n, b in files.items()}
+
+
+def state_files(folder: Path, where: str) -> list[str]:
+    """The files ``folder``'s processor steps load their state from (``state_file``: the normaliser's
+    statistics, which decide what the policy does with no key), each a plain file inside ``folder``.
+    LeRobot would read a path outside it, or download a name it does not find: refused in one line,
+    before LeRobot sees the folder. In a bundle, every file in its LeRobot folder is listed with its
+    sha256 (``bundle.read.check_tree``), so each state file is one the manifest covers."""
+    found = []
+    for f in sorted(folder.glob(PROCESSORS)):
+        try:
+            doc = json.loads(f.read_text())
+        except (OSError, ValueError, RecursionError):
+            continue  # processor_code names it; LeRobot would refuse it too
+        steps = doc.get("steps") if isinstance(doc, dict) else None
+        for i, step in enumerate(steps if isinstance(steps, list) else []):
+            if not isinstance(step, dict) or "state_file" not in step:
+                continue
+            name = step["state_file"]
+            parts = name.split("/") if isinstance(name, str) else []
+            inside = bool(parts) and all(p and p not in (".", "..") and "\\" not in p for p in parts)
+            if not inside or not _plain_file(folder, name):
+                what = "outside the policy folder" if not inside else "not a file in the policy folder"
+                raise PropError(
+                    f"{where}: {f.name} step {i} loads its state from {shown(repr(name))}, {what}: "
+                    f"{TAMPERED}",
+                    "a processor's state is a file beside it, as LeRobot's save_pretrained writes it; "
+                    + RESTORE,
+                )
+            found.append(name)
+    return found
+
+
+def _plain_file(folder: Path, name: str) -> bool:
+    """``folder / name`` is a regular file reached through no symbolic link."""
+    here = folder
+    for part in name.split("/"):
+        here = here / part
+        if here.is_symlink():
+            return False
+    return here.is_file()
 
 
 def _check_type(config: dict, where: str) -> str:
@@ -107,12 +151,16 @@ def _check_type(config: dict, where: str) -> str:
     return kind
 
 
-def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str):
+def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str, contained: bool = False):
+    """LeRobot's policy and processors from ``folder``. ``contained``: the folder is a bundle's, and
+    nothing outside it is read (SmolVLA's VLM files included)."""
     version, get_policy_class, make_pre_post_processors = _lerobot()
     kind = _check_type(read_config(folder), where)
+    state_files(folder, where)
     try:
-        with contextlib.redirect_stdout(sys.stderr):  # LeRobot prints progress: stdout is for results
-            built = POLICIES[kind].build(get_policy_class(kind), folder, weights, where)
+        # LeRobot prints progress (stdout is for results); nothing it calls may ask at the terminal.
+        with contextlib.redirect_stdout(sys.stderr), no_prompt():
+            built = POLICIES[kind].build(get_policy_class(kind), folder, weights, where, contained=contained)
             pre, post = make_pre_post_processors(
                 built.policy.config, pretrained_path=str(folder), preprocessor_overrides=built.overrides
             )
@@ -149,12 +197,12 @@ class LeRobotAdapter(Adapter):
         return self._loaded(policy, pre, post, version, str(path), files)
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
-        folder = Path(source) / FOLDER_IN_BUNDLE
+        folder, contained = Path(source) / FOLDER_IN_BUNDLE, True
         if not (folder / CONFIG).is_file() and (Path(source) / PREPROCESSOR).is_file():
-            folder = Path(source)  # the original LeRobot folder itself (prop attack --original)
+            folder, contained = Path(source), False  # the original LeRobot folder itself (--original)
         if not (folder / CONFIG).is_file():
             raise PropError(f"bundle {source} has no {FOLDER_IN_BUNDLE}/{CONFIG}", "write the bundle again")
-        version, policy, pre, post, files = _load(folder, weights, source)
+        version, policy, pre, post, files = _load(folder, weights, source, contained)
         return self._loaded(policy, pre, post, version, source, files)
 
     def _loaded(self, policy, pre, post, version: str, source: str, files: dict[str, bytes]) -> LoadedModel:

@@ -55,14 +55,23 @@ class LeRobotProtocol(PolicyProtocol):
         self.noise_seed = noise_seed
 
     @classmethod
-    def build(cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str) -> Built:
+    def build(
+        cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
+        contained: bool = False,
+    ) -> Built:  # fmt: skip
         """LeRobot's ``policy_class`` from ``folder``: its own weights (``from_pretrained``), or
-        ``weights`` (a bundle's base) into the policy its config describes."""
+        ``weights`` (a bundle's base) into the policy its config describes. ``contained``: the folder
+        is a bundle's, and the policy reads nothing outside it."""
         if weights is None:
             return Built(policy_class.from_pretrained(str(folder)))
         from lerobot.configs.policies import PreTrainedConfig
 
-        policy = policy_class(PreTrainedConfig.from_pretrained(str(folder)))
+        config = PreTrainedConfig.from_pretrained(str(folder))
+        if getattr(config, "pretrained_backbone_weights", None):
+            # ACT's image backbone would load torchvision's weights (a download, or the torch cache)
+            # only for ``weights`` to replace every one of them.
+            config.pretrained_backbone_weights = None
+        policy = policy_class(config)
         policy.load_state_dict(weights, strict=True)
         return Built(policy)
 

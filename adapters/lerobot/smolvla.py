@@ -29,23 +29,27 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   or its weights. prop builds the VLM from its config alone (``load_vlm_weights=False``;
   model.safetensors holds every weight), reads those files from a local folder (the name as a folder,
   or the hub cache, offline) and the bundle carries them in ``lerobot/vlm/``. The tokenizer step of the
-  processors is pointed at that folder: it reads a tokenizer file, never code (transformers' Auto
-  classes run code only with trust_remote_code, which LeRobot does not pass).
+  processors is pointed at that folder: it reads a tokenizer file, never code. transformers' Auto classes
+  import code a file names (``auto_map``) or, as LeRobot gives no trust_remote_code, ask at the terminal:
+  such a VLM file is refused (``check_vlm``; in a bundle also ``bundle.read.check_tree``), and a bundle
+  reads its own ``vlm/`` only, never a folder its config.json names.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from prop_adapters.base import PolicyProtocol
+from prop_adapters.base import PolicyProtocol, names_code
 from prop_adapters.folder import CONFIG, WEIGHTS
 from prop_adapters.weights import read_weights
 from prop_cli.constants import LEROBOT_VLM_DIR, TASK
 from prop_cli.errors import PropError
+from prop_cli.files import RESTORE, TAMPERED, shown
 
 from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol
 
@@ -65,28 +69,56 @@ VLM_FILES = (
 )  # fmt: skip
 
 
-def vlm_folder(folder: Path, name: object, where: str) -> Path:
+def vlm_folder(folder: Path, name: object, where: str, contained: bool = False) -> Path:
     """The local folder of a SmolVLA's VLM files: the bundle's own ``vlm/``, the name as a folder, or the
-    name's snapshot in the hub cache (offline: never a download)."""
+    name's snapshot in the hub cache (offline: never a download). ``contained`` (a bundle's folder):
+    its own ``vlm/`` only, never a folder or cache entry its config.json names."""
     own = folder / LEROBOT_VLM_DIR
     if (own / CONFIG).is_file():
-        return own
+        return check_vlm(own, where)
+    if contained:
+        raise PropError(
+            f"{where}: the bundle has no {LEROBOT_VLM_DIR}/{CONFIG} for SmolVLA's VLM, and reads none from "
+            f"outside it (config.json names {shown(repr(name))}): {TAMPERED}",
+            RESTORE,
+        )
     if isinstance(name, str) and name:
         if (Path(name) / CONFIG).is_file():
-            return Path(name)
+            return check_vlm(Path(name), where)
         try:
             from huggingface_hub import snapshot_download
 
             cached = Path(snapshot_download(name, local_files_only=True, allow_patterns=list(VLM_FILES)))
-            if (cached / CONFIG).is_file():
-                return cached
-        except Exception:  # noqa: BLE001, S110 - not in the cache (or not a hub id): the error below
-            pass
+        except Exception:  # noqa: BLE001 - not in the cache (or not a hub id): the error below
+            cached = None
+        if cached is not None and (cached / CONFIG).is_file():
+            return check_vlm(cached, where)
     raise PropError(
         f"{where}: SmolVLA's VLM {name!r} (config.json vlm_model_name) is not on this machine",
         "download it once (hf download NAME), or set vlm_model_name to a folder with its config and "
         "tokenizer",
     )
+
+
+def check_vlm(vlm: Path, where: str) -> Path:
+    """``vlm`` once none of the files SmolVLA reads from it names code: an ``auto_map`` makes
+    transformers import a module from the folder (or ask at the terminal whether to). SmolVLM is
+    transformers' own; prop runs no VLM code, --trust-remote-code or not, and carries none."""
+    for n in VLM_FILES:
+        if not n.endswith(".json") or not (vlm / n).is_file():
+            continue
+        try:
+            doc = json.loads((vlm / n).read_bytes())
+        except (OSError, ValueError, RecursionError):
+            continue  # transformers reports it
+        if names_code(doc):
+            raise PropError(
+                f"{where}: SmolVLA's VLM file {vlm / n} has an auto_map (code for transformers to import); "
+                "prop runs no VLM code",
+                "use SmolVLM's own files (transformers ships its code); if this is a bundle, "
+                f"{TAMPERED}: {RESTORE}",
+            )
+    return vlm
 
 
 class SmolVLAProtocol(LeRobotProtocol):
@@ -97,14 +129,18 @@ class SmolVLAProtocol(LeRobotProtocol):
     takes_instruction = True
 
     @classmethod
-    def build(cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str) -> Built:
+    def build(
+        cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
+        contained: bool = False,
+    ) -> Built:  # fmt: skip
         """Built from its config and the weights (``load_vlm_weights=False``: model.safetensors holds
-        every weight), the VLM's files read from a local folder (``vlm_folder``) and carried in the
-        bundle's ``vlm/``; the tokenizer step reads that folder."""
+        every weight), the VLM's files read from a local folder (``vlm_folder``; a bundle's own
+        ``vlm/`` where ``contained``) and carried in the bundle's ``vlm/``; the tokenizer step reads
+        that folder."""
         from lerobot.configs.policies import PreTrainedConfig
 
         config = PreTrainedConfig.from_pretrained(str(folder))
-        vlm = vlm_folder(folder, config.vlm_model_name, where)
+        vlm = vlm_folder(folder, config.vlm_model_name, where, contained)
         config.vlm_model_name, config.load_vlm_weights = str(vlm), False
         policy = policy_class(config)
         policy.load_state_dict(read_weights(folder / WEIGHTS)[0] if weights is None else weights)

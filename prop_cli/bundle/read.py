@@ -3,6 +3,9 @@ its mode (``modes``). Nothing is loaded before its bytes are checked against the
 
 from __future__ import annotations
 
+import json
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,7 +16,7 @@ from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.errors import PropError
-from prop_cli.files import sha256_file
+from prop_cli.files import RESTORE, TAMPERED, link_error, sha256_file, shown
 
 from . import manifest as schema
 from .modes import Mode, load_mode
@@ -27,6 +30,8 @@ def read_manifest(path: Path) -> dict:
             f"bundle {path} does not exist", "check the path (a directory made by prop personalize)"
         )
     mpath = path / C.MANIFEST
+    if mpath.is_symlink():
+        raise link_error(path, mpath)
     if not path.is_dir() or not mpath.is_file():
         raise PropError(
             f"{path} is not a prop bundle (no {C.MANIFEST})",
@@ -38,7 +43,64 @@ def read_manifest(path: Path) -> dict:
         raise PropError(
             f"bundle {path}: {C.MANIFEST} cannot be read ({e.strerror})", "check its permissions"
         ) from None
-    return schema.parse(raw, str(path))
+    manifest = schema.parse(raw, str(path))
+    check_tree(path, manifest)
+    return manifest
+
+
+CODE_SUFFIXES = (".py", ".pyc", ".pyo", ".pyw", ".pyd", ".so")  # files Python would import
+MAX_JSON = 256 << 20  # a carried JSON file read whole (a large model's tokenizer.json: tens of MiB)
+
+
+def check_tree(path: Path, manifest: dict) -> None:
+    """What a bundle folder holds, before anything in it is read: plain files and folders only, no
+    symbolic link anywhere (prop would read, write or delete through it, outside the bundle); and in
+    each folder the manifest lists files in (a LeRobot policy's ``lerobot/`` with its VLM's ``vlm/``,
+    which LeRobot and transformers read by name, whatever is there) only listed files, none of them
+    code: no Python file, no JSON with an ``auto_map``. Prop never writes any of these, so each is
+    refused in one line naming it, ``--trust-remote-code`` or not (that flag trusts the import paths a
+    manifest names, never code carried in a bundle's files)."""
+    listed = set(manifest[C.M_FILES])
+    carried = {n.split("/", 1)[0] for n in listed if "/" in n}
+    for here, dirs, files in os.walk(path):
+        rel = Path(here).relative_to(path)
+        for name in sorted(dirs + files):
+            entry = Path(here) / name
+            try:
+                mode = os.lstat(entry).st_mode
+            except FileNotFoundError:  # gone since the folder was listed: nothing to read there
+                continue
+            if stat.S_ISLNK(mode):
+                raise link_error(path, entry)
+            if not (stat.S_ISDIR(mode) or stat.S_ISREG(mode)):
+                raise _tampered(path, (rel / name).as_posix(), "is neither a file nor a folder")
+        if rel.parts and rel.parts[0] in carried:
+            for name in sorted(files):
+                _check_carried(path, (rel / name).as_posix(), listed)
+    for name in sorted(listed):
+        if name.lower().endswith(CODE_SUFFIXES):
+            raise _tampered(path, name, "is code (a bundle never carries code)")
+
+
+def _check_carried(path: Path, name: str, listed: set[str]) -> None:
+    """One file of a folder a library reads by name: listed, and not code."""
+    if name not in listed:
+        raise _tampered(path, name, f"is not listed in {C.MANIFEST}, and its folder is read by name")
+    if name.lower().endswith(CODE_SUFFIXES):
+        raise _tampered(path, name, "is code (a bundle never carries code)")
+    if name.lower().endswith(".json"):
+        if (path / name).stat().st_size > MAX_JSON:
+            raise _tampered(path, name, f"is over {MAX_JSON >> 20} MiB, more than any JSON file prop carries")
+        try:
+            doc = json.loads((path / name).read_bytes())
+        except (OSError, ValueError, RecursionError):
+            return  # its sha256 is checked next; a library that reads it reports what is wrong
+        if adapters.names_code(doc):
+            raise _tampered(path, name, f"has an {adapters.CODE_FIELD} (code for transformers to import)")
+
+
+def _tampered(path: Path, name: str, what: str) -> PropError:
+    return PropError(f"bundle {path}: {shown(name)} {what}: {TAMPERED}", RESTORE)
 
 
 @dataclass

@@ -28,7 +28,7 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
-from prop_cli.files import dump_json, sha256_file, write_text
+from prop_cli.files import dump_json, no_links, remove_inside, sha256_file, write_inside, write_text
 
 from . import rollback
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
@@ -177,10 +177,8 @@ def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarr
 
 
 def write_record(folder: Path, rec: SealedRecord) -> None:
-    """Write a record's ciphertext under ``folder``."""
-    f = folder / record_file(rec.id)
-    f.parent.mkdir(exist_ok=True)
-    f.write_bytes(rec.ciphertext)
+    """Write a record's ciphertext under ``folder``, never through a link (``users/`` linked elsewhere)."""
+    write_inside(folder, record_file(rec.id), rec.ciphertext)
 
 
 def with_records(manifest: dict, add: list[SealedRecord], drop: list[str]) -> dict:
@@ -200,19 +198,23 @@ def rewrite_records(bundle: Path, old: dict, new: dict, add: list[SealedRecord])
     """Commit ``new`` (from ``with_records``) to a sealed bundle in place, as the bundle's next version
     (records in ``add`` sealed against ``next_version(old)``): the added records' files first, then the
     manifest, swapped atomically, then the dropped records' files are deleted; this machine remembers
-    the version and the records removed (``rollback``). An interruption leaves a bundle that loads."""
+    the version and the records removed (``rollback``). An interruption leaves a bundle that loads.
+    Nothing is written or deleted through a link (checked at each step: the bundle may have changed
+    since it was read)."""
+    kept = {e["id"] for e in new[C.M_RECORDS]}
+    dropped = [e for e in old[C.M_RECORDS] if e["id"] not in kept]
+    for e in dropped:
+        no_links(bundle, e["file"])  # before anything is written
     for rec in add:
         write_record(bundle, rec)
     if C.M_BUNDLE_VERSION in old:
         new = {**new, C.M_BUNDLE_VERSION: next_version(old)[C.M_BUNDLE_VERSION]}
     new = restamp(new)
-    write_text(bundle / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
-    kept = {e["id"] for e in new[C.M_RECORDS]}
-    dropped = [e for e in old[C.M_RECORDS] if e["id"] not in kept]
+    write_text(no_links(bundle, C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
     added = {rec.id: bundle_version(new) for rec in add}
     rollback.wrote(new, users=added, removed=[e["id"] for e in dropped])
     for e in dropped:
-        (bundle / e["file"]).unlink(missing_ok=True)
+        remove_inside(bundle, e["file"])
     return new
 
 
@@ -220,7 +222,7 @@ def copy_records(src: Path, dst: Path, manifest: dict) -> None:
     """Copy a sealed bundle's record files (for exports: the ONNX runtime opens them too)."""
     (dst / C.RECORDS_DIR).mkdir(parents=True, exist_ok=True)
     for e in manifest[C.M_RECORDS]:
-        shutil.copyfile(src / e["file"], dst / e["file"])
+        shutil.copyfile(no_links(src, e["file"]), dst / e["file"])
 
 
 def check_new_key(state: SealedState, bits: np.ndarray) -> None:

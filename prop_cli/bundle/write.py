@@ -24,7 +24,7 @@ from prop_cli import constants as C
 from prop_cli.core.key_files import KeySource, kdf_record
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
-from prop_cli.files import check_output, dump_json, sha256_file, staged_dir, write_text
+from prop_cli.files import check_output, dump_json, no_links, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
 from . import rollback
@@ -158,7 +158,7 @@ def update_manifest(path: Path, key: str, value: dict) -> None:
     manifest = schema.next_version(read_manifest(bundle))
     manifest[key] = value
     manifest = schema.restamp(manifest)
-    write_text(bundle / C.MANIFEST, dump_json(manifest), what="manifest", flag="BUNDLE")
+    write_text(no_links(bundle, C.MANIFEST), dump_json(manifest), what="manifest", flag="BUNDLE")
     rollback.wrote(manifest)
 
 
@@ -185,7 +185,7 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     uid = (opened or {}).get(ID) or new_id()
     new[C.M_ENROLMENTS] = kept + enrol(new, [bits], [uid])
     new = schema.validate(schema.stamp(new), str(path))
-    write_text(Path(path) / C.MANIFEST, dump_json(new), what="manifest", flag="BUNDLE")
+    write_text(no_links(Path(path), C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
     rollback.wrote(new, users={uid: new[C.M_BUNDLE_VERSION]})
     return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 

@@ -463,3 +463,51 @@ def test_force_replaces_policy_bundles_they_are_prop_s_own(bundle, sealed):
     from prop_cli.files import BUNDLE
 
     assert BUNDLE.recognise(bundle) is None and BUNDLE.recognise(sealed) is None
+
+
+# ---- issue 31, finding 4: a processor reads only the bundle's own listed files -------------------
+
+
+@pytest.mark.parametrize("where", ["absolute", "relative"])
+@pytest.mark.parametrize("which", ["bundle", "sealed"])
+def test_processor_statistics_from_outside_are_refused(where, which, bundle, sealed, work, tmp_path, cli):
+    """The normaliser's state_file pointing outside the bundle (statistics no hash or signature covers,
+    which decide what the policy does with no key): refused in one line naming the step, before LeRobot
+    reads anything; nothing runs."""
+    from safetensors.torch import load_file, save_file
+
+    planted = tmp_path / "b"
+    shutil.copytree(bundle if which == "bundle" else sealed, planted)
+    f = planted / "lerobot" / "policy_preprocessor.json"
+    doc = json.loads(f.read_text())
+    i, step = next((i, s) for i, s in enumerate(doc["steps"]) if "state_file" in s)
+    t = load_file(str(planted / "lerobot" / step["state_file"]))
+    outside = tmp_path / "stats.safetensors"
+    save_file({k: v * 5 if v.is_floating_point() else v for k, v in t.items()}, str(outside))
+    step["state_file"] = str(outside) if where == "absolute" else "../../stats.safetensors"
+    f.write_text(json.dumps(doc))
+    _restamp(planted)
+    with pytest.raises(PropError, match=rf"policy_preprocessor.json step {i} .*outside the policy folder"):
+        load_bundle(planted)
+    for extra in ([], ["--key-file", tmp_key(work)]):
+        r = cli("run", planted, "--input", work / "user", "--output", tmp_path / "y.npy", *extra)
+        assert r.code == 2 and r.err.count("\n") == 1 and f"step {i}" in r.err, r.err
+        assert not (tmp_path / "y.npy").exists()
+
+
+def test_processor_state_files_are_carried_and_listed_whatever_their_name(work, tmp_path):
+    """A processor's state file is carried in the bundle (and so listed with its sha256) by the name its
+    step gives, not only by LeRobot's default names; one through a link is refused."""
+    folder = tmp_path / "act"
+    shutil.copytree(work / "act", folder)
+    f = folder / "policy_preprocessor.json"
+    doc = json.loads(f.read_text())
+    step = next(s for s in doc["steps"] if "state_file" in s)
+    (folder / step["state_file"]).rename(folder / "stats.safetensors")
+    step["state_file"] = "stats.safetensors"
+    f.write_text(json.dumps(doc))
+    assert "lerobot/stats.safetensors" in load_checkpoint(folder).files
+    (folder / "stats.safetensors").rename(tmp_path / "elsewhere.safetensors")
+    (folder / "stats.safetensors").symlink_to(tmp_path / "elsewhere.safetensors")
+    with pytest.raises(PropError, match="stats.safetensors.*not a file in the policy folder"):
+        load_checkpoint(folder)

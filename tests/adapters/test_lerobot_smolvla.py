@@ -359,3 +359,170 @@ def test_force_replaces_smolvla_bundles_the_vlm_files_are_listed(bundle, sealed)
     from prop_cli.files import BUNDLE
 
     assert BUNDLE.recognise(bundle) is None and BUNDLE.recognise(sealed) is None
+
+
+# ---- issue 31: no prompt that runs code; nothing read from outside the bundle -------------------
+
+
+def _planted(src, tmp_path, edit) -> object:
+    """A copy of bundle ``src`` with ``edit(copy, manifest)`` applied, finished as an attacker would:
+    every listed file's sha256 and the manifest digest recomputed with prop's own functions."""
+    import shutil
+
+    from prop_cli import constants as C
+    from prop_cli.bundle.manifest import stamp
+    from prop_cli.files import dump_json, sha256_file
+
+    planted = tmp_path / "planted"
+    shutil.copytree(src, planted)
+    m = json.loads((planted / C.MANIFEST).read_text())
+    edit(planted, m)
+    m[C.M_FILES] = {n: sha256_file(planted / n) for n in m[C.M_FILES]}
+    (planted / C.MANIFEST).write_text(dump_json(stamp(m)))
+    return planted
+
+
+def _vlm_naming_code(marker, listed: bool):
+    """The carried VLM config names a module of the folder through transformers' auto_map (and a model
+    type transformers does not know, so it does not fall back on its own class: it asks), and the module
+    is dropped beside it, writing ``marker`` when imported; ``listed``: the attacker lists it too."""
+
+    def edit(bundle, m):
+        vlm = bundle / "lerobot" / "vlm"
+        config = json.loads((vlm / "config.json").read_text())
+        config["model_type"] = "pwn_vlm"
+        config["auto_map"] = {"AutoConfig": "pwn_vlm.PwnConfig", "AutoProcessor": "pwn_vlm.PwnConfig"}
+        (vlm / "config.json").write_text(json.dumps(config))
+        (vlm / "pwn_vlm.py").write_text(
+            f"open({str(marker)!r}, 'w').close()\n"
+            "from transformers import PretrainedConfig\n"
+            "class PwnConfig(PretrainedConfig):\n    model_type = 'pwn_vlm'\n"
+        )
+        if listed:
+            m["files"]["lerobot/vlm/pwn_vlm.py"] = ""
+
+    return edit
+
+
+def _on_a_terminal(args: list, cwd, answer: bytes = b"y\n", timeout: float = 420) -> tuple[int, str]:
+    """`prop ARGS` with a pseudo-terminal as its stdin, stdout and stderr, as a user at a terminal runs
+    it; a question ending in "[y/N]" is answered ``answer`` (what the attacker hopes the user types).
+    Returns the exit code and everything the terminal showed."""
+    import os
+    import pty
+    import select
+    import subprocess
+    import sys
+    import time
+
+    master, slave = pty.openpty()
+    env = os.environ | {"HF_HUB_OFFLINE": "1", "HF_MODULES_CACHE": str(cwd / "hf-modules")}
+    cmd = [sys.executable, "-c", "from prop_cli.cli.main import main; main()", *map(str, args)]
+    proc = subprocess.Popen(cmd, stdin=slave, stdout=slave, stderr=slave, cwd=cwd, env=env,
+                            start_new_session=True)  # fmt: skip
+    os.close(slave)
+    shown, answered, deadline = b"", False, time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([master], [], [], 1.0)
+            if ready:
+                try:
+                    chunk = os.read(master, 4096)
+                except OSError:  # EIO: the child closed the terminal
+                    chunk = b""
+                if not chunk and proc.poll() is not None:
+                    break
+                shown += chunk
+                if b"[y/N]" in shown and not answered:
+                    os.write(master, answer)
+                    answered = True
+            elif proc.poll() is not None:
+                break
+        else:
+            proc.kill()
+        return proc.wait(), shown.decode(errors="replace").replace("\r\n", "\n")
+    finally:
+        os.close(master)
+
+
+@pytest.mark.parametrize("listed", [False, True], ids=["dropped", "listed"])
+def test_a_vlm_naming_code_asks_nothing_on_a_terminal_and_runs_nothing(listed, sealed, work, tmp_path):
+    """Issue 31, finding 1: on a terminal, transformers asked "Do you wish to run the custom code? [y/N]"
+    and a "y" ran the attacker's module. Now the bundle is refused in one line before anything reads
+    its VLM files: no question, no code, exit 2."""
+    marker = tmp_path / "pwned"
+    planted = _planted(sealed, tmp_path, _vlm_naming_code(marker, listed))
+    code, shown = _on_a_terminal(["run", planted, "--input", work / "user", "--output", tmp_path / "y.npy"],
+                                 tmp_path)  # fmt: skip
+    assert "[y/N]" not in shown and "custom code" not in shown, shown
+    assert not marker.exists() and not (tmp_path / "y.npy").exists(), shown
+    lines = shown.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("prop: error:"), shown
+    assert "lerobot/vlm/" in lines[0] and "tampered" in lines[0], shown
+
+
+def test_vlm_code_is_refused_with_trust_remote_code_too(sealed, work, tmp_path, cli):
+    """--trust-remote-code trusts import paths a manifest names, never code carried in a bundle's
+    files: prop never writes any, so a bundle holding some was changed."""
+    marker = tmp_path / "pwned"
+    planted = _planted(sealed, tmp_path, _vlm_naming_code(marker, listed=True))
+    for extra in ([], ["--trust-remote-code"]):
+        r = cli("run", planted, "--input", work / "user", "--output", tmp_path / "y.npy", *extra)
+        assert r.code == 2 and r.err.count("\n") == 1 and "lerobot/vlm/" in r.err, r.err
+    assert not marker.exists() and not (tmp_path / "y.npy").exists()
+
+
+@pytest.mark.parametrize("name", ["tokenizer.model", "generation_config.json", "sub/config.json"])
+def test_a_file_the_manifest_does_not_list_beside_the_vlm_is_refused(name, bundle, work, tmp_path, cli):
+    """transformers reads whatever files a model folder holds by name: one the manifest does not list
+    is refused, naming it, before anything reads the folder."""
+
+    def edit(b, m):
+        f = b / "lerobot" / "vlm" / name
+        f.parent.mkdir(exist_ok=True)
+        f.write_bytes(b"{}")
+
+    planted = _planted(bundle, tmp_path, edit)
+    r = cli("run", planted, "--input", work / "user", "--output", tmp_path / "y.npy")
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert f"lerobot/vlm/{name} is not listed" in r.err and "tampered" in r.err, r.err
+
+
+def test_a_bundle_reads_its_vlm_from_itself_only(bundle, work, tmp_path, cli):
+    """Without the carried vlm/, the policy's config.json names a VLM folder outside the bundle (the
+    attacker's, here the original's): prop reads nothing there."""
+    import shutil
+
+    def edit(b, m):
+        shutil.rmtree(b / "lerobot" / "vlm")
+        m["files"] = {n: d for n, d in m["files"].items() if not n.startswith("lerobot/vlm/")}
+        config = json.loads((b / "lerobot" / "config.json").read_text())
+        (b / "lerobot" / "config.json").write_text(json.dumps(config | {"vlm_model_name": str(work / "vlm")}))
+
+    planted = _planted(bundle, tmp_path, edit)
+    r = cli("run", planted, "--input", work / "user", "--output", tmp_path / "y.npy")
+    assert r.code == 2 and r.err.count("\n") == 1 and "vlm/config.json" in r.err, r.err
+    assert str(work / "vlm") in r.err and not (tmp_path / "y.npy").exists()
+
+
+def test_no_prompt_makes_transformers_refuse_without_asking(tmp_path, capsys):
+    """The guard behind the checks (``no_prompt``, around every LeRobot load): a folder naming code
+    reaching transformers anyway gets its refusal, with no question printed and nothing imported."""
+    import builtins
+
+    from transformers import AutoConfig
+
+    from prop_adapters.base import no_prompt
+
+    before = builtins.input
+    marker = tmp_path / "pwned"
+    folder = tmp_path / "vlm"
+    folder.mkdir()
+    config = {"model_type": "pwn_vlm", "auto_map": {"AutoConfig": "pwn_vlm.PwnConfig"}}
+    (folder / "config.json").write_text(json.dumps(config))
+    (folder / "pwn_vlm.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    with no_prompt(), pytest.raises(ValueError, match="trust_remote_code"):
+        AutoConfig.from_pretrained(str(folder))
+    out = capsys.readouterr()
+    assert "[y/N]" not in out.out + out.err and not marker.exists()
+    assert builtins.input is before  # restored afterwards

@@ -545,3 +545,87 @@ def test_push_sign_and_verify_round_trip_and_any_flipped_byte_fails(cli, d, monk
     assert json.loads(cli("inspect", got, "--json").out)["signature"].startswith("present, not verified")
     (got / "model.sig").unlink()
     assert json.loads(cli("inspect", got, "--json").out)["signature"] is None
+
+
+# ---- nothing read or written outside the bundle folder (issue 31, finding 4) --------------------
+
+
+def _outside(d: Path, bundle: Path, name: str) -> Path:
+    """Move ``bundle/name`` out of the bundle and leave a symbolic link to it in its place."""
+    outside = d / f"outside-{name.replace('/', '-')}"
+    shutil.move(bundle / name, outside)
+    (bundle / name).symlink_to(outside.resolve(), target_is_directory=outside.is_dir())
+    return outside
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_add_user_and_remove_user_write_nothing_through_a_linked_users_folder(cli, d):
+    bundle = d / "sealed.prop"
+    outside = _outside(d, bundle, C.RECORDS_DIR)
+    before = _tree(outside)
+    rid = _manifest(bundle)[C.M_RECORDS][0]["id"]
+    r = cli("add-user", bundle, "--data", d / "mine.npz", "--key-file", d / "a.bin", "--steps", "5")
+    _one_line_refusal(r.code, None, r.err, f"{C.RECORDS_DIR} is a symbolic link")
+    r = cli("remove-user", bundle, "--record", rid)
+    _one_line_refusal(r.code, None, r.err, f"{C.RECORDS_DIR} is a symbolic link")
+    assert _tree(outside) == before  # nothing written there, nothing deleted
+
+
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_a_listed_file_that_is_a_link_is_refused(cli, d, mode):
+    """Its bytes match its sha256 (the link's target is the bundle's own file): still refused, naming it."""
+    bundle = d / mode
+    _outside(d, bundle, C.BASE_WEIGHTS)
+    for args in (("--key-file", d / "k.bin"), ()):
+        code, y, err = _run(cli, bundle, d, *args)
+        _one_line_refusal(code, y, err, f"{C.BASE_WEIGHTS} is a symbolic link")
+    r = cli("inspect", bundle)
+    _one_line_refusal(r.code, None, r.err, f"{C.BASE_WEIGHTS} is a symbolic link")
+
+
+def test_a_linked_manifest_is_refused_before_it_is_read(cli, d):
+    bundle = d / "user.prop"
+    _outside(d, bundle, C.MANIFEST)
+    code, y, err = _run(cli, bundle, d)
+    _one_line_refusal(code, y, err, f"{C.MANIFEST} is a symbolic link")
+    r = cli("enrol", bundle, "--key-file", d / "k.bin")
+    _one_line_refusal(r.code, None, r.err, f"{C.MANIFEST} is a symbolic link")
+
+
+def test_export_writes_nothing_through_a_linked_export_folder(cli, d):
+    bundle = d / "user.prop"
+    outside = d / "outside-onnx"
+    outside.mkdir()
+    (bundle / C.EXPORT_DIR).symlink_to(outside.resolve(), target_is_directory=True)
+    before = sorted(p.name for p in d.iterdir())
+    r = cli("export", bundle, "--onnx", "--force")
+    _one_line_refusal(r.code, None, r.err, f"{C.EXPORT_DIR} is a symbolic link")
+    assert sorted(p.name for p in d.iterdir()) == before and not list(outside.iterdir())
+    assert (bundle / C.EXPORT_DIR).is_symlink()
+
+
+def test_records_and_manifests_are_never_written_or_deleted_through_a_link(d):
+    """The checks at the write itself (a link planted after the bundle was loaded, e.g. while add-user
+    trains): a record is not written, nor deleted, through a linked users/ folder, nor the manifest."""
+    from prop_cli.bundle.records import rewrite_records, with_records
+
+    bundle = d / "sealed.prop"
+    old = _manifest(bundle)
+    rid = old[C.M_RECORDS][0]["id"]
+    outside = _outside(d, bundle, C.RECORDS_DIR)
+    before = _tree(outside)
+    with pytest.raises(PropError, match="is a symbolic link"):
+        rewrite_records(bundle, old, with_records(old, [], [rid]), [])
+    assert _tree(outside) == before
+    (bundle / C.RECORDS_DIR).unlink()
+    shutil.move(outside, bundle / C.RECORDS_DIR)
+    target = d / "outside-manifest.json"
+    target.write_text("{}")
+    (bundle / C.MANIFEST).unlink()
+    (bundle / C.MANIFEST).symlink_to(target.resolve())
+    with pytest.raises(PropError, match=f"{C.MANIFEST} is a symbolic link"):
+        rewrite_records(bundle, old, with_records(old, [], [rid]), [])
+    assert target.read_text() == "{}" and (bundle / old[C.M_RECORDS][0]["file"]).exists()

@@ -18,7 +18,7 @@ from prop_cli.bundle.modes import mode_of
 from prop_cli.bundle.runtime import key_opens_nothing, require_enrolled
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
-from prop_cli.files import EXPORT, check_output
+from prop_cli.files import EXPORT, check_output, no_links
 
 from . import sealed, unsealed
 from .common import REEXPORT, ExportResult, bound, read_export, require_onnx, session, verify_inputs
@@ -68,7 +68,7 @@ def export_onnx(
     s = (settings or ExportSettings()).validate()
     require_onnx()
     binds = key is not None and require_enrolled(bundle, key, allow_unenrolled)
-    out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
+    out = Path(out) if out is not None else no_links(Path(bundle.path), C.EXPORT_DIR)
     check_output(out, force, what="export folder", kind=EXPORT)
 
     def verify(folder: Path) -> list[dict]:
@@ -102,7 +102,7 @@ def run_onnx(
 
     ``threads``: onnxruntime's intra-op threads (0: ``OMP_NUM_THREADS`` if set, else onnxruntime's choice)."""
     require_onnx()
-    folder = Path(folder) if folder is not None else Path(bundle.path) / C.EXPORT_DIR
+    folder = Path(folder) if folder is not None else no_links(Path(bundle.path), C.EXPORT_DIR)
     if not folder.is_dir():
         raise PropError(
             f"no ONNX export at {folder}", "run prop export BUNDLE --onnx first, or pass --onnx-dir"

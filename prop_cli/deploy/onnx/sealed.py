@@ -7,7 +7,6 @@ layers' initializers in this process's memory. No graph holds a payload in the c
 
 from __future__ import annotations
 
-import shutil
 import warnings
 from pathlib import Path
 
@@ -21,7 +20,15 @@ from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.records import copy_records, load_state, public_part
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError
-from prop_cli.files import dump_json, sha256_file, staged_dir, write_text
+from prop_cli.files import (
+    dump_json,
+    no_links,
+    remove_inside,
+    sha256_file,
+    staged_dir,
+    write_inside,
+    write_text,
+)
 
 from . import common
 from .common import ExportResult, VerificationFailed
@@ -167,8 +174,11 @@ def drop_record(folder: Path, record_id: str) -> None:
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id]
     meta[C.M_ENROLMENTS] = [e for e in meta.get(C.M_ENROLMENTS, []) if e.get("record") != record_id]
-    write_text(folder / C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)), C.EXPORT_META, "--out")
-    (folder / C.RECORDS_DIR / f"{record_id}{C.RECORD_SUFFIX}").unlink(missing_ok=True)
+    record = f"{C.RECORDS_DIR}/{record_id}{C.RECORD_SUFFIX}"
+    no_links(folder, record, "export")  # before anything is written
+    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
+               C.EXPORT_META, "--out")  # fmt: skip
+    remove_inside(folder, record, "export")
 
 
 def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> None:
@@ -182,11 +192,12 @@ def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> No
     except PropError:
         return
     entry = next(e for e in manifest[C.M_RECORDS] if e["id"] == record_id)
-    (folder / C.RECORDS_DIR).mkdir(exist_ok=True)
-    shutil.copyfile(Path(bundle) / entry["file"], folder / entry["file"])  # first: never listed, absent
+    data = no_links(Path(bundle), entry["file"]).read_bytes()
+    write_inside(folder, entry["file"], data, "export")  # first: never listed, absent
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id] + [entry]
-    write_text(folder / C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)), C.EXPORT_META, "--out")
+    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
+               C.EXPORT_META, "--out")  # fmt: skip
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
