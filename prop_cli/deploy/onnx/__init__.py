@@ -20,7 +20,16 @@ from prop_cli.errors import PropError, plural
 from prop_cli.files import EXPORT, check_output
 
 from . import sealed, unsealed
-from .common import REEXPORT, ExportResult, bound, read_export, require_onnx, session, verify_inputs
+from .common import (
+    REEXPORT,
+    ExportResult,
+    bound,
+    read_export,
+    refuse_link,
+    require_onnx,
+    session,
+    verify_inputs,
+)
 from .sealed import SealedOnnxRunner, add_record, drop_record
 from .unsealed import DeltaInputView, OnnxRunner, delta_names
 
@@ -67,6 +76,7 @@ def export_onnx(
     if key is not None:
         bundle.check_key(key)
     out = Path(out) if out is not None else Path(bundle.path) / C.EXPORT_DIR
+    refuse_link(out, "export folder", "remove the link, or choose another --out")
     check_output(out, force, what="export folder", kind=EXPORT)
 
     def verify(folder: Path) -> list[dict]:
