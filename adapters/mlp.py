@@ -201,7 +201,7 @@ def check_fits(spec: dict, weights: dict[str, torch.Tensor], source: str) -> Non
     name = next(n for n in order + sorted(got, key=natural_key) if got.get(n) != want.get(n))
     shown = {d: str(x[name]) if name in x else "absent" for d, x in (("file", got), ("spec", want))}
     raise PropError(
-        f"weights in {source} do not fit the MLP its model spec describes (tensor '{name}': "
+        f"weights in {source} do not match the MLP its model spec describes (tensor '{name}': "
         f"{shown['file']} in the weights, {shown['spec']} in model.layers and model.sizes); "
         "nothing was built",
         "the file or its manifest was modified, or they belong to another model; re-create it",

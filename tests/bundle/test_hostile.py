@@ -453,7 +453,7 @@ def test_sizes_in_the_manifest_allocate_nothing(d, mode):
     bundle = d / mode
     _edit(bundle, lambda m: m[C.M_MODEL].update(sizes=[4, 20000, 20000, 2]))
     code, err, peak = _measured(_CLI, "run", bundle, "--input", d / "x.npy", "--output", d / "y.npy")
-    _one_line_refusal(code, None, err, "do not fit", "model.sizes", "(16, 4) in the weights")
+    _one_line_refusal(code, None, err, "do not match the MLP", "model.sizes", "(16, 4) in the weights")
     assert peak < _BOUND_MB, peak
     assert not (d / "y.npy").exists()
 
