@@ -24,7 +24,7 @@ from torch import nn
 from prop_cli.errors import PropError
 
 from .base import Adapter, CheckpointOptions, LoadedModel
-from .module import load_strict, recorded_arch, resolve_factory
+from .module import fitted, load_strict, recorded_arch, resolve_factory
 from .weights import read_weights
 
 CONFIG = "config.json"
@@ -112,13 +112,18 @@ def build(
     arch, kwargs = arch or spec["arch"], dict(spec.get("arch_kwargs") or {})
     what = what or arch
     factory = resolve_factory(arch, what=what, fix=fix)
-    try:
-        module = factory(spec["config"], **kwargs)
-    except Exception as e:
-        raise PropError(
-            f"{what}: calling it as factory(config, **arch_kwargs) failed ({type(e).__name__}: {e})",
-            "the factory must take the parsed config.json (a dict) as its first argument",
-        ) from None
+
+    def make() -> object:
+        try:
+            return factory(spec["config"], **kwargs)
+        except Exception as e:
+            raise PropError(
+                f"{what}: calling it as factory(config, **arch_kwargs) failed ({type(e).__name__}: {e})",
+                "the factory must take the parsed config.json (a dict) as its first argument",
+            ) from None
+
+    fix_fit = "check that config.json, --arch and --arch-kwargs belong to these weights"
+    module = fitted(make, weights, source, f"the module {arch} builds", fix_fit)
     if not isinstance(module, nn.Module):
         raise PropError(
             f"{what} returned a {type(module).__name__}, not a torch.nn.Module", "return the model"
@@ -129,7 +134,7 @@ def build(
         spec,
         source,
         what=f"the module {arch} builds",
-        fix="check that config.json, --arch and --arch-kwargs belong to these weights",
+        fix=fix_fit,
     )
 
 

@@ -180,7 +180,36 @@ def infer_chain(dims: dict[str, tuple[int, int]], path: str) -> list[str]:
     )
 
 
+def spec_shapes(spec: dict) -> dict[str, tuple[int, ...]]:
+    """The tensors (name -> shape) of the MLP ``spec`` describes, computed, not allocated."""
+    layers, sizes, shapes = spec["layers"], spec["sizes"], {}
+    for i, path in enumerate(layers):
+        shapes[f"{path}.weight"] = (int(sizes[i + 1]), int(sizes[i]))
+        if spec["bias"][path]:
+            shapes[f"{path}.bias"] = (int(sizes[i + 1]),)
+    return shapes
+
+
+def check_fits(spec: dict, weights: dict[str, torch.Tensor], source: str) -> None:
+    """The spec describes exactly the weights' tensors, checked before the module is built: a spec's
+    sizes (a bundle's manifest) allocate nothing the weights file does not hold."""
+    want = spec_shapes(spec)
+    got = {k: tuple(v.shape) for k, v in weights.items()}
+    if got == want:
+        return
+    order = [n for p in spec["layers"] for n in (f"{p}.weight", f"{p}.bias")]
+    name = next(n for n in order + sorted(got, key=natural_key) if got.get(n) != want.get(n))
+    shown = {d: str(x[name]) if name in x else "absent" for d, x in (("file", got), ("spec", want))}
+    raise PropError(
+        f"weights in {source} do not match the MLP its model spec describes (tensor '{name}': "
+        f"{shown['file']} in the weights, {shown['spec']} in model.layers and model.sizes); "
+        "nothing was built",
+        "the file or its manifest was modified, or they belong to another model; re-create it",
+    )
+
+
 def build(spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
+    check_fits(spec, weights, source)
     module = ChainMLP(spec["layers"], spec["sizes"], spec["bias"], spec["activation"])
     try:
         module.load_state_dict(weights, strict=True)

@@ -13,6 +13,7 @@ import importlib
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -116,9 +117,11 @@ def recorded_arch(spec: dict, source: str, arch: str | None) -> tuple[str, str, 
 
 
 def make_module(
-    arch: str, arch_kwargs: dict | None, what: str | None = None, fix: str | None = None
-) -> nn.Module:
-    """``factory(**arch_kwargs)``, checked; ``what`` and ``fix`` as ``resolve_factory`` takes them."""
+    arch: str, arch_kwargs: dict | None, what: str | None = None, fix: str | None = None,
+    fits: dict[str, torch.Tensor] | None = None, source: str = "",
+) -> nn.Module:  # fmt: skip
+    """``factory(**arch_kwargs)``, checked; ``what`` and ``fix`` as ``resolve_factory`` takes them.
+    ``fits``: the weights the module must hold, checked first on a meta-device build (``fitted``)."""
     what = what or f"--arch '{arch}'"
     kwargs = dict(arch_kwargs or {})
     try:
@@ -126,20 +129,67 @@ def make_module(
     except (TypeError, ValueError) as e:
         raise PropError(f"--arch-kwargs is not JSON-serialisable ({e})", "pass a JSON object") from None
     factory = resolve_factory(arch, what=what, fix=fix)
-    try:
-        module = factory(**kwargs)
-    except Exception as e:
-        raise PropError(
-            f"{what}: calling it with --arch-kwargs {json.dumps(kwargs)} failed "
-            f"({type(e).__name__}: {e})",
-            "check the keyword arguments the factory expects",
-        ) from None
+
+    def make() -> object:
+        try:
+            return factory(**kwargs)
+        except Exception as e:
+            raise PropError(
+                f"{what}: calling it with --arch-kwargs {json.dumps(kwargs)} failed "
+                f"({type(e).__name__}: {e})",
+                "check the keyword arguments the factory expects",
+            ) from None
+
+    module = make() if fits is None else fitted(make, fits, source, what, FIT_FIX)
     if not isinstance(module, nn.Module):
         raise PropError(
             f"{what} returned a {type(module).__name__}, not a torch.nn.Module",
             "point --arch at a class or a function that returns the model",
         )
     return module
+
+
+FIT_FIX = "check --arch and --arch-kwargs match the model that saved the checkpoint"
+
+
+def fitted(
+    make: Callable[[], object], weights: dict[str, torch.Tensor], source: str, what: str, fix: str
+) -> object:
+    """``make()``, called first on the meta device (shapes only: kwargs or a config that claim a huge
+    model allocate nothing) and refused in one line unless that module's state dict has exactly the
+    weights' names and shapes; then called for real. The factory runs twice. One that cannot build on
+    the meta device is built for real and checked after, by ``load_strict``."""
+    try:
+        with torch.device("meta"):
+            probe = make()
+    except Exception:  # noqa: BLE001 - the user's factory, whatever it raises there
+        probe = None
+    if isinstance(probe, nn.Module):
+        _check_fit(probe.state_dict(), weights, source, what, fix)
+    module = make()
+    if isinstance(module, nn.Module) and any(t.is_meta for t in module.state_dict().values()):
+        raise PropError(
+            f"{what} returned a module whose tensors are on the meta device (does it cache the module it "
+            "builds?)",
+            "build a new module on every call",
+        )
+    return module
+
+
+def _check_fit(own: dict[str, torch.Tensor], weights: dict[str, torch.Tensor], source: str, what: str,
+               fix: str) -> None:  # fmt: skip
+    """Missing and unexpected keys and shape mismatches between a module's state dict and ``weights``."""
+    missing, unexpected = sorted(set(own) - set(weights)), sorted(set(weights) - set(own))
+    wrong = [
+        f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in weights and weights[k].shape != v.shape
+    ]
+    if missing or unexpected or wrong:
+        parts = [f"missing keys: {_few(missing)}"] * bool(missing)
+        parts += [f"unexpected keys: {_few(unexpected)}"] * bool(unexpected)
+        parts += [f"shape mismatch (checkpoint vs model): {_few(wrong)}"] * bool(wrong)
+        raise PropError(f"{source} does not fit {what}: " + "; ".join(parts), fix)
 
 
 def _few(names: list[str]) -> str:
@@ -154,18 +204,7 @@ def load_strict(
 
     Shared by every adapter whose module comes from user code (``--arch``, model folders).
     """
-    own = module.state_dict()
-    missing, unexpected = sorted(set(own) - set(weights)), sorted(set(weights) - set(own))
-    wrong = [
-        f"{k} {tuple(weights[k].shape)} vs {tuple(v.shape)}"
-        for k, v in own.items()
-        if k in weights and weights[k].shape != v.shape
-    ]
-    if missing or unexpected or wrong:
-        parts = [f"missing keys: {_few(missing)}"] * bool(missing)
-        parts += [f"unexpected keys: {_few(unexpected)}"] * bool(unexpected)
-        parts += [f"shape mismatch (checkpoint vs model): {_few(wrong)}"] * bool(wrong)
-        raise PropError(f"{source} does not fit {what}: " + "; ".join(parts), fix)
+    _check_fit(module.state_dict(), weights, source, what, fix)
     module.load_state_dict(weights, strict=True)
     shape = getattr(module, "input_shape", None)
     try:
@@ -188,14 +227,8 @@ def build(
     """The module ``arch`` (default: ``spec["arch"]``) builds, with ``weights``; the spec stays as given."""
     arch = arch or spec["arch"]
     what = what or f"--arch '{arch}'"
-    return load_strict(
-        make_module(arch, spec.get("arch_kwargs"), what, fix),
-        weights,
-        spec,
-        source,
-        what=what,
-        fix="check --arch and --arch-kwargs match the model that saved the checkpoint",
-    )
+    module = make_module(arch, spec.get("arch_kwargs"), what, fix, fits=weights, source=source)
+    return load_strict(module, weights, spec, source, what=what, fix=FIT_FIX)
 
 
 class ModuleAdapter(Adapter):

@@ -101,6 +101,18 @@ def verify_zip(z: zipfile.ZipFile) -> None:
                 pass
 
 
+def _check_stored(z: zipfile.ZipFile, name: str) -> None:
+    """A torch file's members are stored as they are (torch.save never compresses them): a compressed
+    one would inflate in memory, a few kilobytes on disk becoming gigabytes when torch.load reads it."""
+    for info in z.infolist():
+        if info.compress_type != zipfile.ZIP_STORED:
+            raise PropError(
+                f"checkpoint {name}: member {info.filename[:80]!r} is compressed, which torch.save never "
+                f"does ({info.compress_size} bytes that would inflate to {info.file_size})",
+                "re-save it with torch.save(model.state_dict(), path), or as .safetensors",
+            )
+
+
 def check_zip_crc(data: Path | str | io.BytesIO, name: str) -> None:
     """``verify_zip`` for a zip-format torch file, which torch.load does not check: without this a
     flipped bit in a tensor loads as a different weight. Legacy (pickle) torch files have no checksum."""
@@ -112,6 +124,7 @@ def check_zip_crc(data: Path | str | io.BytesIO, name: str) -> None:
         return
     try:
         with zipfile.ZipFile(data) as z:
+            _check_stored(z, name)
             verify_zip(z)
     except ZIP_ERRORS as e:
         raise _corrupt(Path(name), e) from None
@@ -162,11 +175,20 @@ def _read_torch(path: Path) -> dict[str, torch.Tensor]:
     return dict(obj)
 
 
-def read_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Tensors by name plus safetensors metadata ({} for torch files). Never unpickles."""
+def read_weights(
+    path: str | Path, *, safetensors_only: bool = False
+) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors by name plus safetensors metadata ({} for torch files). Never unpickles.
+    ``safetensors_only``: a bundle's own weights, which prop always writes as safetensors (read as they
+    lie on disk, so memory stays within the file's size); anything else there is refused."""
     path = Path(path)
     _check_file(path)
     kind = sniff(path)
+    if safetensors_only and kind != "safetensors":
+        raise PropError(
+            f"{path} is not a safetensors file (prop writes a bundle's weights as safetensors only)",
+            "restore the bundle from a trusted copy",
+        )
     suffix = path.suffix.lower()
     if suffix not in WEIGHT_EXTS and kind is None:
         raise PropError(

@@ -38,6 +38,30 @@ class Built:
     files: dict[str, bytes] = field(default_factory=dict)
 
 
+def construct(policy_class, config, weights: dict[str, torch.Tensor], where: str) -> torch.nn.Module:
+    """``policy_class(config)`` for ``weights``, built first on the meta device (shapes only: a
+    config.json claiming a huge model allocates nothing) and refused in one line unless its state dict
+    has exactly the weights' names and shapes (what ``load_state_dict(strict=True)`` then needs). A
+    policy that cannot be built on the meta device is built for real and checked by loading."""
+    try:
+        with torch.device("meta"):
+            probe = policy_class(config)
+    except Exception:  # noqa: BLE001 - LeRobot's or transformers' own, on the meta device only
+        probe = None
+    if probe is not None:
+        want = {k: tuple(v.shape) for k, v in probe.state_dict().items()}
+        got = {k: tuple(v.shape) for k, v in weights.items()}
+        if want != got:
+            name = sorted(set(want) ^ set(got) or {k for k in want if want[k] != got[k]})[0]
+            shown = {d: str(x[name]) if name in x else "absent" for d, x in (("w", got), ("c", want))}
+            raise PropError(
+                f"{where}: the weights do not fit the policy config.json describes (tensor {name[:120]!r}: "
+                f"{shown['w']} in the weights, {shown['c']} in the config); nothing was built",
+                "check that config.json and model.safetensors belong together, or restore the bundle",
+            )
+    return policy_class(config)
+
+
 class LeRobotProtocol(PolicyProtocol):
     """A LeRobot policy through the policy protocol: what ACT, Diffusion and SmolVLA share. A subclass
     sets ``default_layers`` and implements ``chunk`` (the deployed action chunk)."""
@@ -71,7 +95,7 @@ class LeRobotProtocol(PolicyProtocol):
             # ACT's image backbone would load torchvision's weights (a download, or the torch cache)
             # only for ``weights`` to replace every one of them.
             config.pretrained_backbone_weights = None
-        policy = policy_class(config)
+        policy = construct(policy_class, config, weights, where)
         policy.load_state_dict(weights, strict=True)
         return Built(policy)
 

@@ -51,7 +51,7 @@ from prop_cli.constants import LEROBOT_VLM_DIR, TASK
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol
+from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol, construct
 
 # LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
 SMOLVLA_LAYERS = [
@@ -142,8 +142,9 @@ class SmolVLAProtocol(LeRobotProtocol):
         config = PreTrainedConfig.from_pretrained(str(folder))
         vlm = vlm_folder(folder, config.vlm_model_name, where, contained)
         config.vlm_model_name, config.load_vlm_weights = str(vlm), False
-        policy = policy_class(config)
-        policy.load_state_dict(read_weights(folder / WEIGHTS)[0] if weights is None else weights)
+        weights = read_weights(folder / WEIGHTS)[0] if weights is None else weights
+        policy = construct(policy_class, config, weights, where)
+        policy.load_state_dict(weights)
         files = {f"{LEROBOT_VLM_DIR}/{n}": (vlm / n).read_bytes() for n in VLM_FILES if (vlm / n).is_file()}
         return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(vlm)}}, files)
 

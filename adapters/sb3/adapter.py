@@ -277,7 +277,8 @@ def split_state(family: str, state: dict[str, torch.Tensor], path: str):
     return actor, rest
 
 
-def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Module:
+def _assemble(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Module:
+    """The actor's modules, shaped by ``actor``'s tensors, and its weights loaded into them."""
     family, act = spec["family"], spec["activation"]
     features = _features(spec, actor, path)
     if family == "actor_critic":
@@ -297,10 +298,17 @@ def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Mo
             f"{path}: policy.pth does not fit SB3's {spec['policy']} ({str(e).splitlines()[0]})",
             "the file was modified or is not the policy its 'data' names; re-save it with model.save()",
         ) from None
+    return module
+
+
+def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Module:
+    # First on the meta device: the observation and action sizes in the spec (a bundle's manifest) are
+    # checked against the layers with shapes alone, so a claimed huge observation allocates nothing.
     shape = spec["observation_shape"]
-    with torch.no_grad():
+    with torch.device("meta"):
+        probe = _assemble(spec, {k: v.to("meta") for k, v in actor.items()}, path)
         try:
-            out = module(torch.zeros(1, *shape))
+            out = probe(torch.zeros(1, *shape))
         except (RuntimeError, TypeError, OverflowError, ValueError):  # sizes that do not fit
             out = None
     want = spec["action"].get("n") or spec["action"]["shape"][0]
@@ -310,6 +318,7 @@ def build_module(spec: dict, actor: dict[str, torch.Tensor], path: str) -> nn.Mo
             "sizes in 'data'",
             "the zip was modified; re-save it with model.save()",
         )
+    module = _assemble(spec, actor, path)
     module._register_state_dict_hook(_alias_hook(_aliases(spec)))
     if any(isinstance(m, nn.Conv2d) for m in module.modules()):
         # With a CNN, the first linear layer (features_extractor[.extractors.<key>].linear.0) reads image

@@ -102,14 +102,15 @@ def enrolment(bits: np.ndarray, what: dict) -> dict:
 
 
 def open_enrolment(entries: list[dict], bits: np.ndarray) -> dict | None:
-    """What the first entry ``bits`` opens was enrolled with, or None (enrolled in nothing)."""
+    """What the first entry ``bits`` opens was enrolled with, or None (enrolled in nothing). Every entry
+    is tried, whichever opens: the time says nothing of which one does."""
     bits = np.asarray(bits, np.uint8)
+    found = None
     for e in entries:
         data = decrypt(bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), bytes.fromhex(e["box"]), bits,
                        ENROL_AD, ENROL_INFO)  # fmt: skip
-        if data is not None:
-            return json.loads(unpad(data))
-    return None
+        found = data if found is None else found
+    return None if found is None else json.loads(unpad(found))
 
 
 def split(entries: list[dict], bits: np.ndarray) -> tuple[list[dict], dict | None]:

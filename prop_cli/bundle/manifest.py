@@ -456,6 +456,11 @@ def _doc(source: str, mode: object = "unsealed") -> Doc:
     return Doc(f"bundle {source}: {C.MANIFEST}", mode if mode in C.MODES else "unsealed")
 
 
+def field_error(source: str, where: str, problem: str) -> PropError:
+    """A one-line error naming a field of the manifest of bundle ``source`` and what is wrong with it."""
+    return _doc(source).bad(where, problem)
+
+
 def validate(manifest: dict, source: str) -> dict:
     """Check a parsed manifest against ``SCHEMA``; one-line PropError naming the first bad field."""
     doc = _doc(source, manifest.get(C.M_MODE, "unsealed"))
@@ -531,3 +536,36 @@ def check_layers(layers: list[dict], module, source: str) -> None:
                 f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
                 f"{in_width(m)} inputs",
             )  # fmt: skip
+
+
+# A payload layout may hold this many numbers beyond 8 per weight of its layers (a LoRA of any useful
+# rank holds at most 2): room for ranks above a small layer's width, never a layout of gigabytes.
+PAYLOAD_SLACK = 1 << 16
+
+
+def check_payload_layers(layers: list[dict], rank: int, elements: int, module, source: str) -> None:
+    """Each layer of a sealed payload's layout is a linear layer or convolution of ``module``, recorded
+    as it is (widths, kernel, groups), and the layout's size (``elements``, at ``rank``) is bounded by
+    those layers' weights: nothing is allocated for sizes the model does not have."""
+    from prop_cli.core.layers import KEYABLE, describe_layer
+
+    mods = dict(module.named_modules())
+    weights = 0
+    for i, layer in enumerate(layers):
+        m = mods.get(layer["name"])
+        where = f"{C.M_PAYLOAD}.layers[{i}]"
+        if not isinstance(m, KEYABLE):
+            raise _doc(source, C.MODE_SEALED).bad(
+                f"{where}.name", f"names no linear layer or convolution of the model ({layer['name']!r})"
+            )
+        actual = describe_layer(layer["name"], m)
+        if actual != layer:
+            raise _doc(source, C.MODE_SEALED).bad(
+                where, f"is {_shown(layer)} but the model's layer is {actual}"
+            )
+        weights += m.weight.numel()
+    if elements > 8 * weights + PAYLOAD_SLACK:
+        raise _doc(source, C.MODE_SEALED).bad(
+            f"{C.M_PAYLOAD}.rank",
+            f"is {rank}: a payload of {elements} numbers for layers of {weights} weights",
+        )

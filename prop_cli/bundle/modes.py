@@ -28,6 +28,7 @@ from torch import nn
 from prop_adapters import LoadedModel, read_weights
 from prop_cli import constants as C
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.payload import payload_elements
 from prop_cli.errors import PropError
 
 from . import enrol, rollback
@@ -325,7 +326,10 @@ def mode_of(manifest: dict) -> type[Mode]:
 def load_mode(path: Path, manifest: dict, loaded: LoadedModel, allow_rollback: bool = False) -> Mode:
     """The bundle's mode, from its manifest (the one place a bundle's mode is decided)."""
     if mode_of(manifest) is Sealed:
-        mode: Mode = Sealed(load_state(path, manifest))
+        state = load_state(path, manifest)
+        spec = state.spec
+        schema.check_payload_layers(spec.layers, spec.rank, payload_elements(spec), loaded.module, str(path))
+        mode: Mode = Sealed(state)
     else:
         encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
         mode = Unsealed(_encoder(path, manifest, loaded), encoding, manifest)
@@ -344,7 +348,7 @@ def _encoder(path: Path, manifest: dict, loaded: LoadedModel) -> KeyedModel:
         hidden=list(enc_meta["hidden"]),
         scale=float(enc_meta["scale"]),
     )
-    state = read_weights(path / C.ENCODER_WEIGHTS)[0]
+    state = read_weights(path / C.ENCODER_WEIGHTS, safetensors_only=True)[0]
     with torch.device("meta"):  # shapes only: nothing is allocated for what the manifest claims
         want = {k: tuple(v.shape) for k, v in KeyEncoder(**args).state_dict().items()}
     got = {k: tuple(v.shape) for k, v in state.items()}

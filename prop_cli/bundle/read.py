@@ -4,6 +4,7 @@ its mode (``modes``). Nothing is loaded before its bytes are checked against the
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 from dataclasses import dataclass
@@ -178,9 +179,34 @@ def load_bundle(
     adapters.check_arch_applies(spec, str(path), arch)
     if arch is None:
         adapters.require_trust(adapters.remote_code(spec, str(path)), f"bundle {path}", trust_remote_code)
-    weights = adapters.read_weights(path / C.BASE_WEIGHTS)[0]
+    # Memory stays within the files' sizes: the weights are read as they lie on disk (safetensors only)
+    # and every size the manifest claims is checked against them before anything is built from it.
+    weights = adapters.read_weights(path / C.BASE_WEIGHTS, safetensors_only=True)[0]
     loaded = adapters.rebuild(spec, weights, str(path), trust_remote_code=trust_remote_code, arch=arch)
+    check_input_shape(manifest, loaded, path)
     return Bundle(path, manifest, loaded, load_mode(path, manifest, loaded, allow_rollback), arch)
+
+
+# The most numbers one input sample may hold where the model does not fix its input shape (a module or
+# folder built by code): 64 MB in float32, so that a manifest cannot make a command allocate gigabytes.
+MAX_INPUT = 1 << 24
+
+
+def check_input_shape(manifest: dict, loaded: LoadedModel, path: Path) -> None:
+    """The input shape the manifest records is the model's own where the model fixes it, and bounded
+    where it does not (commands allocate inputs of that shape: exports, their verification)."""
+    shape = manifest[C.M_IO]["input_shape"]
+    if not isinstance(shape, list):
+        return  # a policy's features: its own config says their shapes
+    where = f"{C.M_IO}.input_shape"
+    if loaded.input_shape is not None and tuple(shape) != tuple(loaded.input_shape):
+        raise schema.field_error(
+            str(path), where, f"is {shape} but the model takes {list(loaded.input_shape)}"
+        )
+    if math.prod(shape) > MAX_INPUT:
+        raise schema.field_error(
+            str(path), where, f"is {shape}: {math.prod(shape)} numbers a sample (most: {MAX_INPUT})"
+        )
 
 
 def check_files(path: Path, manifest: dict) -> None:

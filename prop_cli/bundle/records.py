@@ -101,16 +101,21 @@ class SealedState:
 
     def open(self, bits: np.ndarray) -> Opened | None:
         """The user's payload if ``bits`` opens one of the records, else None (a wrong key). ``changed``
-        says what differs from what the record was enrolled in: the caller decides (``modes``)."""
+        says what differs from what the record was enrolled in: the caller decides (``modes``).
+        Every record is tried, whichever opens: the time says nothing of which one does."""
+        found = None
         for rec, bound in zip(self.records, self._bound):
             data = open_record(rec, bits, bound)
-            if data is not None:
-                tensors, meta = decode_payload(unpad(data) if self.enrolled else data)
-                enrolled = meta.pop(BEHAVIOUR, None)
-                version = int(meta.pop(VERSION, 0))
-                diff = changed(enrolled or {}, self.behaviour) if self.enrolled else []
-                return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff, version)
-        return None
+            if data is not None and found is None:
+                found = rec, data
+        if found is None:
+            return None
+        rec, data = found
+        tensors, meta = decode_payload(unpad(data) if self.enrolled else data)
+        enrolled = meta.pop(BEHAVIOUR, None)
+        version = int(meta.pop(VERSION, 0))
+        diff = changed(enrolled or {}, self.behaviour) if self.enrolled else []
+        return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff, version)
 
 
 def record_file(record_id: str) -> str:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import math
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from typing import ClassVar
@@ -163,6 +164,11 @@ class PayloadSpec:
     @classmethod
     def from_dict(cls, d: dict) -> PayloadSpec:
         return cls(kind=str(d["kind"]), layers=[dict(x) for x in d["layers"]], rank=int(d.get("rank", 0)))
+
+
+def payload_elements(spec: PayloadSpec) -> int:
+    """How many numbers a payload of ``spec`` holds, computed from the layout (nothing allocated)."""
+    return sum(math.prod(shape) for shape in _tensor_shapes(spec).values())
 
 
 def _tensor_shapes(spec: PayloadSpec) -> dict[str, tuple[int, ...]]:

@@ -511,3 +511,31 @@ def test_processor_state_files_are_carried_and_listed_whatever_their_name(work, 
     (folder / "stats.safetensors").symlink_to(tmp_path / "elsewhere.safetensors")
     with pytest.raises(PropError, match="stats.safetensors.*not a file in the policy folder"):
         load_checkpoint(folder)
+
+
+@pytest.mark.parametrize("which", ["bundle", "sealed"])
+def test_a_config_claiming_a_huge_policy_allocates_nothing(which, bundle, sealed, tmp_path):
+    """lerobot/config.json's dim_feedforward set to 2**19 (1.3 GB of layers; hashes recomputed): the
+    policy is built on the meta device first and refused against base.safetensors in one line; the
+    peak memory of the load grows by under 500 MB (measured in a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    planted = tmp_path / "p"
+    shutil.copytree(bundle if which == "bundle" else sealed, planted)
+    cfg = planted / "lerobot" / "config.json"
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "dim_feedforward": 1 << 19}))
+    _restamp(planted)
+    code = (
+        "import resource, sys\nimport lerobot.policies.act.modeling_act\n"
+        "from prop_cli.bundle import load_bundle\nfrom prop_cli.errors import PropError\n"
+        "start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "try:\n    load_bundle(sys.argv[1])\nexcept PropError as e:\n    print(e.line())\n"
+        "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - start) / 1024)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, str(planted)], capture_output=True, text=True,
+                       timeout=600)  # fmt: skip
+    *lines, peak = r.stdout.strip().splitlines()
+    assert lines and "do not fit the policy config.json describes" in lines[-1], r.stdout + r.stderr
+    assert "(256,) in the weights, (524288,) in the config); nothing was built" in lines[-1], lines[-1]
+    assert float(peak) < 500, peak

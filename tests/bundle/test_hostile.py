@@ -629,3 +629,133 @@ def test_records_and_manifests_are_never_written_or_deleted_through_a_link(d):
     with pytest.raises(PropError, match=f"{C.MANIFEST} is a symbolic link"):
         rewrite_records(bundle, old, with_records(old, [], [rid]), [])
     assert target.read_text() == "{}" and (bundle / old[C.M_RECORDS][0]["file"]).exists()
+
+
+
+
+# ---- 6. sizes the manifest claims: memory stays within the files ------------------------------
+
+# Run in a fresh interpreter: torch and prop are imported before the baseline, and what the command
+# itself adds to the peak resident memory (ru_maxrss) is reported on stderr's last line.
+_MEASURED = """
+import atexit, resource, sys
+import prop_cli.api, prop_adapters
+start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+atexit.register(lambda: sys.stderr.write(
+    f"\\nPEAK_MB {(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - start) / 1024:.0f}\\n"))
+"""
+_CLI = "from prop_cli.cli.main import main\nsys.argv = ['prop', *sys.argv[1:]]\nmain()\n"
+_BOUND_MB = 500  # what a refusal may add: the edits below claim 1 to 2 GB
+
+
+def _measured(code: str, *args) -> tuple[int, str, float]:
+    """Exit code, stderr (without the measurement) and the MB the peak memory grew by."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    root = Path(__file__).resolve().parents[2]  # tests.fixtures_arch imports from there
+    r = subprocess.run([sys.executable, "-c", _MEASURED + code, *map(str, args)], capture_output=True,
+                       text=True, env=env, cwd=root, timeout=600)  # fmt: skip
+    err, _, peak = r.stderr.rstrip().rpartition("\nPEAK_MB ")
+    return r.returncode, err.strip() + "\n", float(peak)
+
+
+def _edit(bundle: Path, edit) -> None:
+    m = _manifest(bundle)
+    edit(m)
+    _write(bundle, m)
+
+
+@pytest.mark.parametrize("mode", ["user.prop", "sealed.prop"])
+def test_sizes_in_the_manifest_allocate_nothing(d, mode):
+    """model.sizes claiming 20000-wide layers (1.6 GB): refused against base.safetensors before the
+    module is built."""
+    bundle = d / mode
+    _edit(bundle, lambda m: m[C.M_MODEL].update(sizes=[4, 20000, 20000, 2]))
+    code, err, peak = _measured(_CLI, "run", bundle, "--input", d / "x.npy", "--output", d / "y.npy")
+    _one_line_refusal(code, None, err, "do not match the MLP", "model.sizes", "(16, 4) in the weights")
+    assert peak < _BOUND_MB, peak
+    assert not (d / "y.npy").exists()
+
+
+def test_input_shape_in_the_manifest_allocates_nothing(d):
+    """io.input_shape claiming 2**28 numbers a sample: export would build inputs of that shape."""
+    bundle = d / "sealed.prop"
+    _edit(bundle, lambda m: m[C.M_IO].update(input_shape=[16, 4096, 4096]))
+    code, err, peak = _measured(_CLI, "export", bundle, "--onnx")
+    _one_line_refusal(code, None, err, "io.input_shape", "the model takes [4]")
+    assert peak < _BOUND_MB, peak
+
+
+def test_spec_sizes_of_other_adapters_allocate_nothing(tmp_path):
+    """A module adapter's arch_kwargs (hidden=2**22: 1 GB of weights) and an SB3 spec's observation
+    shape (2**28 numbers): checked on the meta device against the weights, refused in one line."""
+    from tests.adapters.test_sb3 import make_zip
+    from tests.fixtures_arch import make_cnn
+
+    torch.save(make_cnn().state_dict(), tmp_path / "cnn.pt")
+    make_zip(tmp_path / "sb3.zip")
+    code = (
+        "from prop_adapters import load_checkpoint, rebuild\nfrom prop_cli.errors import PropError\n"
+        "kind, path = sys.argv[1:]\n"
+        "arch = 'tests.fixtures_arch:make_cnn' if kind == 'module' else None\n"
+        "loaded = load_checkpoint(path, arch=arch)\nweights = loaded.module.state_dict()\n"
+        "if kind == 'module':\n    spec = {**loaded.spec, 'arch_kwargs': {'hidden': 1 << 22}}\n"
+        "else:\n    spec = {**loaded.spec, 'observation_shape': [1 << 20, 256]}\n"
+        "    weights = {**weights, **loaded.extra}\n"
+        "try:\n    rebuild(spec, dict(weights), 'bundle b', arch=arch)\n"
+        "except PropError as e:\n    print('prop: error:', e.line(), file=sys.stderr)\n    sys.exit(2)\n"
+    )
+    code_m, err, peak = _measured(code, "module", tmp_path / "cnn.pt")
+    assert code_m == 2 and "bundle b does not fit" in err and "shape mismatch" in err, err
+    assert peak < _BOUND_MB, peak
+    code_s, err, peak = _measured(code, "sb3", tmp_path / "sb3.zip")
+    assert code_s == 2 and "layer sizes do not match the observation" in err, err
+    assert peak < _BOUND_MB, peak
+
+
+def test_payload_layout_is_bounded_by_the_model(d):
+    """A sealed bundle's payload layout (what add-user allocates and trains) is the model's layers: a
+    widened layer or a rank of 2**20 is refused where the bundle is read."""
+    bundle = d / "sealed.prop"
+    before = _manifest(bundle)
+    _edit(bundle, lambda m: m[C.M_PAYLOAD]["layers"][0].update(out_features=1 << 20))
+    with pytest.raises(PropError, match=r"payload.layers\[0\]' is .* but the model's layer is"):
+        load_bundle(bundle)
+    _write(bundle, before)
+    _edit(bundle, lambda m: m[C.M_PAYLOAD].update(rank=1 << 20))
+    with pytest.raises(PropError, match="payload.rank' is 1048576: a payload of"):
+        load_bundle(bundle)
+
+
+def test_bundle_weights_are_safetensors_only(cli, d):
+    """base.safetensors replaced by a torch file of the same tensors: refused by name, never read (the
+    newest torch also refuses it by its extension; the torch versions prop supports do not all)."""
+    bundle = d / "user.prop"
+    from safetensors.torch import load
+
+    tensors = load((bundle / C.BASE_WEIGHTS).read_bytes())
+    torch.save(tensors, bundle / C.BASE_WEIGHTS)
+    _write(bundle, _manifest(bundle))
+    code, y, err = _run(cli, bundle, d)
+    _one_line_refusal(code, y, err, "base.safetensors is not a safetensors file")
+
+
+
+def test_compressed_torch_members_are_refused(tmp_path):
+    """A torch file with deflated members (torch.save never writes them): 16 KB that torch.load would
+    inflate to 16 MB (or a few MB to gigabytes). Refused before torch reads it."""
+    import zipfile
+
+    from prop_adapters import read_weights
+
+    torch.save({"0.weight": torch.zeros(1 << 22)}, tmp_path / "plain.pt")
+    with zipfile.ZipFile(tmp_path / "plain.pt") as z, zipfile.ZipFile(tmp_path / "bomb.pt", "w") as out:
+        for info in z.infolist():
+            out.writestr(info.filename, z.read(info), compress_type=zipfile.ZIP_DEFLATED)
+    assert (tmp_path / "bomb.pt").stat().st_size < 100_000
+    assert read_weights(tmp_path / "plain.pt")[0]["0.weight"].numel() == 1 << 22
+    with pytest.raises(PropError, match=r"bomb.pt: member .* is compressed, which torch.save never does"):
+        read_weights(tmp_path / "bomb.pt")

@@ -208,3 +208,39 @@ def test_audit_of_a_sealed_bundle_tries_keys_on_the_records(cli, sealed, workdir
         if g["kind"] == "key":  # every wrong key runs the original: nothing moves
             assert g["leakage"]["worst"] == 0.0 and g["fidelity"]["worst"] == 0.0, g["name"]
     assert report["max_leak"]["passed"]
+
+
+def test_every_record_and_enrolment_is_tried_on_every_key(sealed, workdir, monkeypatch):
+    """Which record a key opens, or whether any does, sets no number of trial decryptions: each key
+    tries every record (and every enrolment), so the time does not tell which one opened
+    (benchmarks/bench_open_timing.py measures it)."""
+    from prop_cli.bundle import enrol, records
+    from prop_cli.bundle.records import SealedState, record_ad
+
+    state = load_bundle(sealed).records
+    user = read_key_file(workdir / "k.bin")
+    rng = np.random.default_rng(3)
+    others = [rng.integers(0, 2, 128).astype(np.uint8) for _ in range(2)]
+    rec = state.records[0]
+    plaintext = open_record(rec, user, record_ad(state.manifest, rec.id))
+    copies = [seal(plaintext, k, lambda rid: record_ad(state.manifest, rid)) for k in others]
+    calls = []
+    counted = records.open_record
+    monkeypatch.setattr(records, "open_record", lambda *a: calls.append(1) or counted(*a))
+    wrong = rng.integers(0, 2, 128).astype(np.uint8)
+    for at in range(3):  # the user's record first, in the middle, last
+        recs = copies[:at] + [rec] + copies[at:]
+        three = SealedState(state.manifest, state.spec, recs)
+        for bits, opens in [(user, rec.id), (others[0], recs[at + 1 if at == 0 else 0].id), (wrong, None)]:
+            calls.clear()
+            opened = three.open(bits)
+            assert (opened.record_id if opened else None) == opens
+            assert len(calls) == 3, (at, len(calls))
+    entries = enrol.enrol(state.manifest, [others[0], user, others[1]])
+    tried = []
+    counted_decrypt = enrol.decrypt
+    monkeypatch.setattr(enrol, "decrypt", lambda *a: tried.append(1) or counted_decrypt(*a))
+    for bits, found in [(others[0], True), (others[1], True), (wrong, False)]:
+        tried.clear()
+        assert (enrol.open_enrolment(entries, bits) is not None) == found
+        assert len(tried) == 3

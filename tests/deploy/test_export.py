@@ -272,3 +272,123 @@ def test_one_onnx_policy_serves_changing_batch_sizes(exported):
             got = policy(x[:n])
             assert got.shape[0] == n
             np.testing.assert_allclose(got, run_bundle(b, x[:n], key), atol=1e-5)
+
+
+# ---- what someone who can write the files does to an export ------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sealed_exported(tmp_path_factory) -> Path:
+    """A sealed bundle with an export (no key bound: the no-key path reads base.onnx alone)."""
+    root = tmp_path_factory.mktemp("sealed-export")
+    make_mlp_checkpoint(root / "model.safetensors")
+    x = np.random.default_rng(0).uniform(-1, 1, (200, 4)).astype(np.float32)
+    np.savez(root / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
+    np.save(root / "x.npy", x[:8])
+    bits = np.random.default_rng(1).integers(0, 2, 128).astype(np.uint8)
+    out = root / "sealed.prop"
+    cfg = PersonalizeConfig(steps=40, seal=True)
+    users = [(root / "mine.npz", KeySource(bits, "file"))]
+    personalize_checkpoint(str(root / "model.safetensors"), users, out, cfg)
+    assert ex.export_onnx(load_bundle(out)).ok
+    return out
+
+
+def _rehash(folder: Path) -> None:
+    """export.json's graph hashes and digest recomputed with prop's own functions, as an attacker would."""
+    from prop_cli.bundle.manifest import stamp
+    from prop_cli.files import dump_json, sha256_file
+
+    meta = json.loads((folder / C.EXPORT_META).read_text())
+    meta["graphs"] = {g: sha256_file(folder / g) for g in meta["graphs"]}
+    (folder / C.EXPORT_META).write_text(dump_json(stamp(meta, C.EXPORT_DIGEST)))
+
+
+def _external(folder: Path, location: str, length: int) -> None:
+    """base.onnx's first initializer emptied and pointed at ``location`` (external data)."""
+    import onnx
+    from onnx import TensorProto
+
+    model = onnx.load(str(folder / C.BASE_GRAPH))
+    init = model.graph.initializer[0]
+    init.ClearField("raw_data")
+    del init.float_data[:]
+    init.data_location = TensorProto.EXTERNAL
+    for k, v in (("location", location), ("offset", "0"), ("length", str(length))):
+        entry = init.external_data.add()
+        entry.key, entry.value = k, v
+    onnx.save(model, str(folder / C.BASE_GRAPH))
+    (folder / "w.bin").write_bytes(bytes(256))  # the exact size of the tensor it replaces: it would load
+    _rehash(folder)
+
+
+@pytest.mark.parametrize(
+    "location,length",
+    [("../../../../../../../../etc/passwd", 64), ("/etc/passwd", 64), ("w.bin", 256), ("w.bin", 1 << 40)],
+)
+@pytest.mark.parametrize("mode", ["unsealed", "sealed"])
+def test_graph_with_external_data_is_refused(
+    cli, tmp_path, exported, sealed_exported, mode, location, length
+):
+    """A tensor kept in another file (outside the folder, absolute, in the folder but not hashed, of any
+    length): refused in one line before onnx or onnxruntime reads it, by the CLI and the runners."""
+    src = exported if mode == "unsealed" else sealed_exported
+    bundle = tmp_path / src.name
+    shutil.copytree(src, bundle)
+    folder = bundle / C.EXPORT_DIR
+    _external(folder, location, length)
+    out = tmp_path / "y.npy"
+    r = cli("run", bundle, "--onnx", "--input", src.parent / "x.npy", "--output", out)
+    assert r.code == 2 and not out.exists(), r.err
+    assert r.err.count("\n") == 1 and r.err.startswith("prop: error:"), r.err
+    assert "keeps its data in another file" in r.err and repr(location) in r.err, r.err
+    runner = rt.SealedOnnxRunner if mode == "sealed" else rt.OnnxRunner
+    with pytest.raises(PropError, match="keeps its data in another file"):
+        runner(folder)
+
+
+def test_external_data_anywhere_in_a_graph_is_found(tmp_path):
+    """Not only initializers: a Constant node's tensor and an initializer inside an If's subgraph."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from prop_cli.deploy.onnx.common import check_no_external_data
+
+    def external(name: str) -> onnx.TensorProto:
+        t = helper.make_tensor(name, TensorProto.FLOAT, [1], [0.0])
+        t.ClearField("float_data")
+        t.data_location = TensorProto.EXTERNAL
+        entry = t.external_data.add()
+        entry.key, entry.value = "location", "../outside.bin"
+        return t
+
+    out = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])
+    const = helper.make_node("Constant", [], ["y"], value=external("c"))
+    check_no_external_data(helper.make_model(helper.make_graph([], "g", [], [out])), tmp_path)
+    with pytest.raises(PropError, match="tensor 'c' keeps its data"):
+        check_no_external_data(helper.make_model(helper.make_graph([const], "g", [], [out])), tmp_path)
+    branch = helper.make_graph([helper.make_node("Identity", ["s"], ["y"])], "b", [], [out], [external("s")])
+    cond = helper.make_tensor_value_info("c", TensorProto.BOOL, [])
+    node = helper.make_node("If", ["c"], ["y"], then_branch=branch, else_branch=branch)
+    with pytest.raises(PropError, match="tensor 's' keeps its data"):
+        check_no_external_data(helper.make_model(helper.make_graph([node], "g", [cond], [out])), tmp_path)
+
+
+def test_export_never_writes_through_a_linked_onnx_folder(cli, tmp_path, sealed_exported):
+    """BUNDLE/onnx a symbolic link to a prop export elsewhere: `export --force` and remove-user's update
+    of the export refuse it in one line; the link and what it names stay as they were."""
+    bundle = tmp_path / "b.prop"
+    shutil.copytree(sealed_exported, bundle)
+    elsewhere = tmp_path / "elsewhere" / "onnx"
+    elsewhere.parent.mkdir()
+    shutil.move(bundle / C.EXPORT_DIR, elsewhere)
+    (bundle / C.EXPORT_DIR).symlink_to(elsewhere)
+    before = {p.relative_to(elsewhere): p.read_bytes() for p in elsewhere.rglob("*") if p.is_file()}
+    r = cli("export", bundle, "--onnx", "--force")
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert "is a symbolic link" in r.err and "never writes or deletes through one" in r.err, r.err
+    rid = json.loads((bundle / C.MANIFEST).read_text())[C.M_RECORDS][0]["id"]
+    with pytest.raises(PropError, match="is a symbolic link"):
+        rt.drop_record(bundle / C.EXPORT_DIR, rid)
+    assert (bundle / C.EXPORT_DIR).is_symlink() and list(elsewhere.parent.iterdir()) == [elsewhere]
+    assert {p.relative_to(elsewhere): p.read_bytes() for p in elsewhere.rglob("*") if p.is_file()} == before

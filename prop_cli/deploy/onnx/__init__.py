@@ -21,7 +21,16 @@ from prop_cli.errors import PropError, plural
 from prop_cli.files import EXPORT, check_output, no_links
 
 from . import sealed, unsealed
-from .common import REEXPORT, ExportResult, bound, read_export, require_onnx, session, verify_inputs
+from .common import (
+    REEXPORT,
+    ExportResult,
+    bound,
+    read_export,
+    refuse_link,
+    require_onnx,
+    session,
+    verify_inputs,
+)
 from .sealed import SealedOnnxRunner, add_record, drop_record
 from .unsealed import DeltaInputView, OnnxRunner, delta_names
 
@@ -69,6 +78,7 @@ def export_onnx(
     require_onnx()
     binds = key is not None and require_enrolled(bundle, key, allow_unenrolled)
     out = Path(out) if out is not None else no_links(Path(bundle.path), C.EXPORT_DIR)
+    refuse_link(out, "export folder", "remove the link, or choose another --out")
     check_output(out, force, what="export folder", kind=EXPORT)
 
     def verify(folder: Path) -> list[dict]:

@@ -4,8 +4,11 @@ export's ``export.json``, and comparing onnxruntime with torch."""
 from __future__ import annotations
 
 import inspect
+import itertools
+import os
 import re
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -99,12 +102,76 @@ def session(path: Path, threads: int = 0):
     return open_session(ort, path, session_options(ort, threads))
 
 
+def load_graph(path: Path):
+    """``path``'s ONNX model, parsed without reading anything beside it, and refused in one line if any
+    of its tensors keeps its data in another file (``check_no_external_data``)."""
+    onnx, _ = require_onnx()
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception as e:  # noqa: BLE001 - protobuf's DecodeError, OSError, onnx's own checks
+        raise PropError(f"{path} is not a readable ONNX graph ({brief(e)})", REEXPORT) from None
+    check_no_external_data(model, path)
+    return model
+
+
+def _tensors(graph) -> Iterator:
+    """Every tensor a graph holds: initializers, sparse ones, and node attributes, subgraphs included."""
+    yield from graph.initializer
+    for sparse in graph.sparse_initializer:
+        yield from (sparse.values, sparse.indices)
+    for node in graph.node:
+        yield from _attribute_tensors(node)
+
+
+def _attribute_tensors(node) -> Iterator:
+    for a in node.attribute:
+        if a.HasField("t"):
+            yield a.t
+        yield from a.tensors
+        if a.HasField("sparse_tensor"):
+            yield from (a.sparse_tensor.values, a.sparse_tensor.indices)
+        for sub in [a.g] * a.HasField("g") + list(a.graphs):
+            yield from _tensors(sub)
+
+
+def check_no_external_data(model, path: Path) -> None:
+    """prop writes every tensor inside its graph file, hashed in export.json: a tensor whose data lives
+    in another file (``external_data``: a location that may be outside the folder, absolute, or of any
+    length) is refused before onnx or onnxruntime would read that file."""
+    from onnx import TensorProto
+
+    functions = [n for f in model.functions for n in f.node]
+    tensors = itertools.chain(_tensors(model.graph), *(_attribute_tensors(n) for n in functions))
+    for t in tensors:
+        if t.data_location == TensorProto.EXTERNAL or len(t.external_data):
+            where = next((e.value for e in t.external_data if e.key == "location"), "?")
+            raise PropError(
+                f"{path}: tensor {t.name[:80]!r} keeps its data in another file ({where[:120]!r}); prop "
+                "writes every tensor inside the graph and reads nothing beside it",
+                REEXPORT,
+            )
+
+
 def open_session(ort, path: Path, so):
-    """An onnxruntime session; a graph it cannot load (damaged, edited, too new) is a PropError."""
+    """An onnxruntime session; a graph it cannot load (damaged, edited, too new, or keeping data in
+    another file: ``load_graph``) is a PropError."""
+    load_graph(path)
     try:
         return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
     except Exception as e:  # noqa: BLE001 - onnxruntime's own exception types (Fail, InvalidGraph, ...)
         raise PropError(f"onnxruntime cannot load {path} ({brief(e)})", REEXPORT) from None
+
+
+def refuse_link(folder: Path, what: str, fix: str) -> None:
+    """prop never writes or deletes through a symbolic link: an export folder that is one (a bundle's
+    onnx/ pointing somewhere else) is refused, not followed."""
+    folder = Path(folder)
+    if folder.is_symlink():
+        raise PropError(
+            f"{what} {folder} is a symbolic link (to {os.readlink(folder)}): prop never writes or deletes "
+            "through one",
+            fix,
+        )
 
 
 def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
@@ -244,8 +311,7 @@ def gemm_params(path: Path, layers: list[str]) -> dict[str, tuple[str, str | Non
     Conv) whose initializers nothing else uses: only then is W diag(delta) a scaling of that weight's
     input columns (channels), and the layer's weights can be replaced in memory (a weight used
     elsewhere, shared or tied, cannot be scaled for this layer alone)."""
-    onnx, _ = require_onnx()
-    graph = onnx.load(str(path)).graph
+    graph = load_graph(path).graph
     inits = {i.name for i in graph.initializer}
     uses: dict[str, int] = {}
     for node in graph.node:

@@ -112,7 +112,7 @@ class SealedOnnxRunner:
         self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0, *,
         allow_unenrolled: bool = False,
     ) -> None:  # fmt: skip
-        onnx, ort = common.require_onnx()
+        _, ort = common.require_onnx()
         folder = Path(folder)
         self.meta = common.read_export(folder)
         self.opened = None
@@ -132,7 +132,7 @@ class SealedOnnxRunner:
                     f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
                     "run the bundle with torch (prop run without --onnx)",
                 )
-            inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+            inits = {i.name: i for i in common.load_graph(folder / C.BASE_GRAPH).graph.initializer}
             with torch.no_grad():
                 for x in self.meta["layers"]:
                     w = torch.from_numpy(numpy_helper.to_array(inits[x["weight"]]).copy())
@@ -142,9 +142,7 @@ class SealedOnnxRunner:
                         self._override(
                             so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")
                         )
-        self.session = ort.InferenceSession(
-            str(folder / C.BASE_GRAPH), so, providers=["CPUExecutionProvider"]
-        )
+        self.session = common.open_session(ort, folder / C.BASE_GRAPH, so)
 
     def _override(self, so, ort, name: str, t) -> None:
         common.add_weight(so, ort, name, t.detach().numpy(), self._keep)
@@ -170,6 +168,7 @@ def _open(folder: Path, meta: dict, bits: np.ndarray, allow_unenrolled: bool):
 
 def drop_record(folder: Path, record_id: str) -> None:
     """Remove a user's record, and the key binding that goes with it, from a sealed export in place."""
+    common.refuse_link(folder, "the ONNX export", "remove the link (and export again), then retry")
     meta = common.read_export(folder)
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id]
@@ -187,6 +186,8 @@ def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> No
     (`prop export --onnx --key-file` binds it); the keys bound before stay bound (the behaviour they
     were bound to leaves out the records list). ``manifest``: the bundle's, with the record. An export
     that is not an unmodified export of this bundle is left as it is (``describe_export`` says why)."""
+    if Path(folder).is_symlink():
+        return  # never written through (``refuse_link``); describe_export says it is not current
     try:
         meta = common.read_export(folder, manifest)
     except PropError:

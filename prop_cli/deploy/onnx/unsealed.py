@@ -44,6 +44,7 @@ from .common import (
     export_graph,
     gemm_params,
     key_bits,
+    load_graph,
     not_bound,
     open_session,
     read_export,
@@ -282,7 +283,6 @@ class OnnxRunner:
         self._rows: int | None = None  # the batch size the output binding was last run with
 
     def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
-        onnx, _ = require_onnx()
         from onnx import numpy_helper
 
         weights = [d.get("base_weight") for d in self.meta["deltas"]]
@@ -291,7 +291,7 @@ class OnnxRunner:
                 f"{folder / C.BASE_GRAPH} does not expose the keyed layers' weights by name",
                 "run without fold (the split form, policy.onnx)",
             )
-        inits = {i.name: i for i in onnx.load(str(folder / C.BASE_GRAPH)).graph.initializer}
+        inits = {i.name: i for i in load_graph(folder / C.BASE_GRAPH).graph.initializer}
         so = session_options(ort, threads)
         for name, d in zip(weights, deltas):
             w = numpy_helper.to_array(inits[name])
