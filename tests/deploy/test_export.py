@@ -386,7 +386,7 @@ def test_export_never_writes_through_a_linked_onnx_folder(cli, tmp_path, sealed_
     before = {p.relative_to(elsewhere): p.read_bytes() for p in elsewhere.rglob("*") if p.is_file()}
     r = cli("export", bundle, "--onnx", "--force")
     assert r.code == 2 and r.err.count("\n") == 1, r.err
-    assert "is a symbolic link" in r.err and "never writes or deletes through one" in r.err, r.err
+    assert "onnx is a symbolic link" in r.err, r.err  # the bundle's own check (no link in a bundle)
     rid = json.loads((bundle / C.MANIFEST).read_text())[C.M_RECORDS][0]["id"]
     with pytest.raises(PropError, match="is a symbolic link"):
         rt.drop_record(bundle / C.EXPORT_DIR, rid)
