@@ -414,13 +414,16 @@ def eval_bundle(
     metric: str | None = None, original: str | None = None, progress: Callable[[str], None] | None = None,
     vecnormalize: Path | None = None, video: Path | None = None, trust_remote_code: bool = False,
     arch: str | None = None, allow_unenrolled_key: bool = False, allow_rollback: bool = False,
+    key_bits: str | None = None, flip_bit: int | None = None,
 ) -> dict:  # fmt: skip
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``); a key
-    enrolled in nothing is refused (``allow_unenrolled_key``: its row, ``key_not_enrolled``, runs the base);
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
+    ``key_bits`` (a 0/1 string) or ``flip_bit`` (a bit of the user's key): one wrong key again, as
+    ``--json`` names it; a key enrolled in nothing is refused (``allow_unenrolled_key``: its row,
+    ``key_not_enrolled``, runs the base);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""
     from prop_adapters.sb3.vecnormalize import read_vecnormalize
-    from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map
+    from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map, probe_key
 
     settings = settings or EvalSettings()
     check_video(video)
@@ -431,6 +434,7 @@ def eval_bundle(
     )
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
     settings.validate(has_key=key is not None)
+    probe = probe_key(key, bundle.key_bits, key_bits, flip_bit)
     fn, mapping = load_metric(metric), parse_obs_map(obs_map)
     # The original rebuilt as the bundle's base is (its recorded spec: --arch and the rest need no repeat).
     ref = rebuild_original(bundle, original, trust_remote_code) if original else None
@@ -442,7 +446,7 @@ def eval_bundle(
     normalizer = read_vecnormalize(vecnormalize) if vecnormalize is not None else None
     return evaluate_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
-        normalizer=normalizer, video=video, allow_unenrolled=allow_unenrolled_key,
+        normalizer=normalizer, video=video, allow_unenrolled=allow_unenrolled_key, probe=probe,
     )  # fmt: skip
 
 

@@ -43,6 +43,10 @@ Original = Annotated[str | None, opt("--original", "Also roll out the original c
 VecNormalize = Annotated[Path | None, opt("--vecnormalize", "SB3 VecNormalize.save() file: normalise "
                                           "observations as in training (read without running its "
                                           "code).")]  # fmt: skip
+KeyBits = Annotated[str | None, opt("--key-bits", "Also roll out this wrong key (0/1 string) through the "
+                                                  "encoder, as --json names a random key.")]  # fmt: skip
+FlipBit = Annotated[int | None, opt("--flip-bit", "Also roll out your key with this bit flipped, as --json "
+                                                  "names a neighbour (needs your key).")]  # fmt: skip
 Video = Annotated[Path | None, opt("--video", "New folder: one mp4 per condition, its first episode "
                                               "(prop-keys[video]).")]  # fmt: skip
 
@@ -54,7 +58,7 @@ def eval_(
     vecnormalize: VecNormalize = None, video: Video = None, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
     allow_unenrolled_key: AllowUnenrolledKey = False,
-    allow_rollback: AllowRollback = False,
+    allow_rollback: AllowRollback = False, key_bits: KeyBits = None, flip_bit: FlipBit = None,
 ) -> None:  # fmt: skip
     """Roll a bundle out in an environment: your key, no key, random keys and neighbours, side by side."""
     from prop_cli.api import eval_bundle
@@ -64,7 +68,7 @@ def eval_(
         obs_map=obs_map, metric=metric, original=original, progress=lambda label: err.print(f"eval: {label}"),
         vecnormalize=vecnormalize, video=video, trust_remote_code=trust_remote_code, arch=arch,
         allow_unenrolled_key=allow_unenrolled_key,
-        allow_rollback=allow_rollback,
+        allow_rollback=allow_rollback, key_bits=key_bits, flip_bit=flip_bit,
     )  # fmt: skip
     if as_json:
         print_json(report)
@@ -72,14 +76,23 @@ def eval_(
     from rich.table import Table
 
     table = Table(title=f"{report['env']}, seeds from {report['seeds'][0]}")
-    for col in ("keys", "episodes", "return", "success", "metric"):
+    for col in ("keys", "episodes", "return", "success", "metric", "worst key"):
         table.add_column(col)
 
     def cell(r: dict, field: str) -> str:
         return f"{r[field]['mean']:.3f} ± {r[field]['se']:.3f}" if field in r else "-"
 
+    def worst(r: dict) -> str:
+        # A key group's worst key beside its mean; which key it is: --json (per_key, worst_key).
+        if "worst_key" not in r:
+            return "-"
+        w = r["worst_key"]
+        return f"{w['by']} {w[w['by']]['mean']:.3f} (key {w['index'] + 1} of {r['keys']})"
+
     for name, r in report["conditions"].items():
-        table.add_row(name, str(r["episodes"]), cell(r, "return"), cell(r, "success"), cell(r, "metric"))
+        table.add_row(
+            name, str(r["episodes"]), cell(r, "return"), cell(r, "success"), cell(r, "metric"), worst(r)
+        )
     out.print(table)
     if "video" in report:
         err.print(f"wrote {plural(len(report['video']['files']), 'video')} to {report['video']['folder']}")

@@ -220,6 +220,46 @@ def _summary(results: list[dict]) -> dict:
     return out
 
 
+def bits_string(bits: np.ndarray) -> str:
+    """A key as a 0/1 string, as ``--key-bits`` takes it."""
+    return "".join(str(int(b)) for b in bits)
+
+
+def parse_key_bits(spec: str, n_bits: int) -> np.ndarray:
+    """``--key-bits``: a 0/1 string of the bundle's key length -> the key's bits."""
+    if len(spec) != n_bits or set(spec) - {"0", "1"}:
+        raise PropError(
+            f"--key-bits is not {n_bits} characters of 0 and 1 (got {len(spec)})",
+            "copy a key's bits from `prop eval --json` (conditions.random_keys.per_key[].key.bits)",
+        )
+    return np.frombuffer(spec.encode(), np.uint8) - ord("0")
+
+
+def probe_key(key: np.ndarray | None, n_bits: int, key_bits: str | None, flip_bit: int | None):
+    """``--key-bits`` / ``--flip-bit``: one wrong key to roll out again -> (row name, bits, identity)
+    or None. A neighbour is named by its flipped bit only, never by its bits."""
+    if key_bits is not None and flip_bit is not None:
+        raise PropError("--key-bits and --flip-bit together", "re-run one key at a time")
+    if key_bits is not None:
+        return "key_bits", parse_key_bits(key_bits, n_bits), {"bits": key_bits}
+    if flip_bit is None:
+        return None
+    if key is None:
+        raise PropError("--flip-bit needs your key", "pass --key-file or --passphrase")
+    if not 0 <= flip_bit < len(key):
+        raise PropError(f"--flip-bit {flip_bit} is outside 0..{len(key) - 1}", "give a bit of your key")
+    return "flipped_bit", one_bit_neighbours(key)[flip_bit], {"flipped_bit": flip_bit}
+
+
+def worst_key(per_key: list[dict]) -> dict:
+    """The key of a group that keeps least of the original: lowest success where the environment
+    reports it, else lowest return (the figure ``prop eval`` shows next to the group's mean); ``index``:
+    its place in ``per_key``."""
+    field = "success" if all("success" in r for r in per_key) else "return"
+    i = min(range(len(per_key)), key=lambda j: per_key[j][field]["mean"])
+    return per_key[i] | {"by": field, "index": i}
+
+
 def evaluate_bundle(
     bundle: Bundle,
     env_id: str,
@@ -233,12 +273,14 @@ def evaluate_bundle(
     normalizer: ObsNormalizer | None = None,
     video: Path | None = None,
     allow_unenrolled: bool = False,
+    probe: tuple[str, np.ndarray, dict] | None = None,
 ) -> dict:
     """Roll the bundle out under each key condition; ``original`` (a LoadedModel) adds its condition;
     ``normalizer`` (SB3 VecNormalize statistics) normalises observations before the policy; ``video``:
     a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's).
     ``key`` must be enrolled in the bundle (``allow_unenrolled``: its row, ``key_not_enrolled``, runs
-    the base)."""
+    the base). ``probe`` (``probe_key``): one more wrong key, on the ``--episodes`` seeds; each random
+    key and neighbour also gets its own row in ``per_key``, and the group its ``worst_key``."""
     settings.validate(has_key=key is not None)
     check_video(video)
     # A key enrolled in nothing is refused, and a changed bundle, here, before any rollout; allowed, its
@@ -306,22 +348,30 @@ def evaluate_bundle(
     if key is not None:
         label = "user key" if user_row == "user_key" else "key not enrolled (the bundle's base)"
         cond[user_row] = _summary(run(label, key, first, user_row))
-    groups = [("random_keys", random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key))]
+    if probe is not None:  # one wrong key again (--key-bits, --flip-bit), through the encoder
+        name, bits, ident = probe
+        cond[name] = _summary(run(name.replace("_", " "), bits, first, name, method=True)) | {"key": ident}
+    rand = random_keys(settings.random_keys, bundle.key_bits, rng, exclude=key)
+    # Each key's identity, to re-run it: a random key's bits (a public wrong key); a neighbour's flipped
+    # bit only (its bits with the index would give the user's key away).
+    groups = [("random_keys", rand, [{"bits": bits_string(b)} for b in rand])]
     if key is not None and settings.neighbours:
-        nbrs = one_bit_neighbours(key)
-        groups.append(("neighbour1_keys", nbrs[rng.choice(len(nbrs), settings.neighbours, replace=False)]))
-    for label, keys in groups:
+        flips = rng.choice(len(key), settings.neighbours, replace=False)
+        groups.append(("neighbour1_keys", one_bit_neighbours(key)[flips],
+                       [{"flipped_bit": int(i)} for i in flips]))  # fmt: skip
+    for label, keys, idents in groups:
         results, per_key = [], []
-        for j, bits in enumerate(keys):
+        for j, (bits, ident) in enumerate(zip(keys, idents)):
             # The conditions' seeds, in turn: R keys x m episodes cover the same starting states as
             # the user key, no key and the original (paired, not merely as many).
             m = settings.episodes_per_key
             seeds = [first[(j * m + i) % len(first)] for i in range(m)]
             r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label, method=True)
             results += r
-            per_key.append(_summary(r))
-        if keys is not None and len(keys):
-            cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key}
+            per_key.append({"key": ident, "seeds": seeds} | _summary(r))
+        if len(keys):
+            cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key,
+                                               "worst_key": worst_key(per_key)}  # fmt: skip
     fps = float(env.metadata.get("render_fps") or 25)
     env.close()
     if video is not None:

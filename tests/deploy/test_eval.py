@@ -314,3 +314,52 @@ def test_a_video_folder_that_cannot_be_made_fails_before_any_rollout(tmp_path, m
         check_video(tmp_path / "v")
     with pytest.raises(PropError, match="does not exist"):
         check_video(tmp_path / "missing" / "v")
+
+
+def test_eval_names_each_wrong_key_its_worst_and_reruns_one(pendulum, cli):
+    """Issue 32: per-key figures, the worst key, and one key re-run alone gives its figure again."""
+    args = ["eval", "b", "--env", "Pendulum-v1", "--key-file", "k.bin", "--episodes", "4", "--max-steps",
+            "5", "--random-keys", "3", "--neighbours", "2", "--episodes-per-key", "1"]  # fmt: skip
+    cond = json.loads(cli(*args, "--json").out)["conditions"]
+    user = np.frombuffer((pendulum / "k.bin").read_bytes(), np.uint8)
+    user_bits = "".join(str(b) for b in np.unpackbits(user))
+    for group, n in (("random_keys", 3), ("neighbour1_keys", 2)):
+        rows = cond[group]["per_key"]
+        assert len(rows) == cond[group]["keys"] == n
+        assert np.mean([r["return"]["mean"] for r in rows]) == pytest.approx(cond[group]["return"]["mean"])
+        worst = cond[group]["worst_key"]
+        assert worst["by"] == "return" and worst["key"] == rows[worst["index"]]["key"]
+        assert worst["return"]["mean"] == min(r["return"]["mean"] for r in rows)
+    for row in cond["random_keys"]["per_key"]:
+        assert set(row["key"]) == {"bits"} and len(row["key"]["bits"]) == len(user_bits) != row["key"]["bits"]
+    # A neighbour is named by its flipped bit only: its bits with the index would give the key away.
+    assert all(set(r["key"]) == {"flipped_bit"} for r in cond["neighbour1_keys"]["per_key"])
+    assert user_bits not in json.dumps(cond)
+    for group, flag, value in (("random_keys", "--key-bits", "bits"), ("neighbour1_keys", "--flip-bit",
+                                                                       "flipped_bit")):  # fmt: skip
+        w = cond[group]["worst_key"]
+        rerun = ["--seed", str(w["seeds"][0]), "--episodes", str(len(w["seeds"])), "--random-keys", "0",
+                 "--neighbours", "0", flag, str(w["key"][value])]  # fmt: skip
+        r = cli("eval", "b", "--env", "Pendulum-v1", "--key-file", "k.bin", "--max-steps", "5", *rerun,
+                "--json")  # fmt: skip
+        assert r.code == 0, r.err
+        row = json.loads(r.out)["conditions"]["key_bits" if value == "bits" else "flipped_bit"]
+        assert row["key"] == w["key"] and row["return"] == w["return"]
+    table = cli(*args)
+    assert table.code == 0 and "worst key" in table.out and "(key " in table.out
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--key-bits", "0101"], "--key-bits is not 128 characters"),
+        (["--key-bits", "2" * 128], "--key-bits is not 128 characters"),
+        (["--flip-bit", "128", "--key-file", "k.bin"], "--flip-bit 128 is outside 0..127"),
+        (["--flip-bit", "3"], "--flip-bit needs your key"),
+        (["--flip-bit", "3", "--key-bits", "0" * 128, "--key-file", "k.bin"], "one key at a time"),
+    ],
+)
+def test_a_bad_key_to_rerun_is_one_line(pendulum, cli, extra, message):
+    (pendulum / "k.bin").chmod(0o600)  # no permission warning: the error is stderr's one line
+    r = cli("eval", "b", "--env", "Pendulum-v1", *extra)
+    assert r.code == 2 and message in r.err and len(r.err.strip().splitlines()) == 1, r.err
