@@ -63,6 +63,7 @@ from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
 from prop_cli.train.added_user import added_user_config, train_added_user
 from prop_cli.train.distributed import ranks_from_env
+from prop_cli.train.report import sweep_gate
 
 __all__ = [
     "AuditSettings",
@@ -208,8 +209,10 @@ def personalize_checkpoint(
         common = common_fields(loaded, [k for _, k in users], salt, cfg.to_dict(), checkpoint)
         written = trained.write(out, common, force=force)
         m = written.manifest
+        # Each user's report gated as the audit gates (report.sweep_gate): what the CLI warns of.
+        metrics = [u | {"gate": sweep_gate(u)} for u in written.metrics]
         return PersonalizeResult(
-            out, m[C.M_TASK], m[C.M_KEYED_LAYERS], written.metrics, written.final_losses, m,
+            out, m[C.M_TASK], m[C.M_KEYED_LAYERS], metrics, written.final_losses, m,
             processes=ranks.world,
         )  # fmt: skip
     finally:

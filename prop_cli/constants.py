@@ -77,6 +77,10 @@ ENCODER_GRAPH = "encoder.onnx"
 POLICY_GRAPH = "policy.onnx"
 GRAPHS = (BASE_GRAPH, KEYED_GRAPH, ENCODER_GRAPH, POLICY_GRAPH)
 
+# The leakage beyond its control the docs audit with (`prop attack --max-leak`), and what `prop
+# personalize` gates its own wrong-key sweep on.
+MAX_LEAK = 0.05
+
 # Audit reports (`prop attack --json`).
 AUDIT_SCHEMA = "prop-audit/3"
 

@@ -13,7 +13,7 @@ from prop_cli.constants import (
 )
 from prop_cli.errors import plural
 
-from .common import checkpoint_options, fail, out, print_json, read_passphrase, training_progress
+from .common import checkpoint_options, fail, out, print_json, read_passphrase, training_progress, warn
 from .options import (
     Activation,
     Arch,
@@ -130,8 +130,10 @@ def personalize(
         print_json({"bundle": str(result.out), "task": result.task, "keyed_layers": result.keyed_layers,
                     "metrics": result.metrics, "final_losses": result.final_losses,
                     "processes": result.processes})  # fmt: skip
-        return
-    _print_report(result)
+    else:
+        _print_report(result)
+    for i, m in enumerate(result.metrics, 1):  # after the report, as the audit's decision
+        _warn_gate(i, m["gate"])
 
 
 def _print_report(result) -> None:
@@ -158,3 +160,15 @@ def _print_report(result) -> None:
     sealed = f"; sealed, user records {', '.join(records)}" if records else ""
     together = f"; trained on {result.processes} processes" if result.processes > 1 else ""
     out.print(f"wrote {result.out} (keyed layers: {layers}{sealed}{together})")
+
+
+GROUPS = {"random": "random keys", "hamming1": "one-bit neighbours"}
+
+
+def _warn_gate(user: int, gate: dict) -> None:
+    """One stderr line when a user's own wrong-key sweep leaks beyond the audit's --max-leak default."""
+    if gate["passed"]:
+        return
+    worst = ", ".join(f"{GROUPS[g]} worst {gate['worst'][g]:.3f}" for g in gate["failing"])
+    warn(f"user {user}'s wrong keys leak beyond --max-leak {gate['max_leak']:g} ({worst}); personalize again "
+         "with more --steps or --random-keys, or --seal; prop attack audits it")  # fmt: skip

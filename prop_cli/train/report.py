@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from prop_cli import constants as C
 from prop_cli.core import metrics
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.keyed_model import KeyedModel, key_codes, outputs_for_codes
@@ -70,3 +71,18 @@ def outputs_report(
         "random": key_group(o_rand, p, b, task),
         "hamming1": key_group(o_ham, p, b, task),
     }
+
+
+# The report's wrong-key groups that the gate judges (null is the base's own output).
+GATED = ("random", "hamming1")
+
+
+def sweep_gate(report: dict, threshold: float | None = None) -> dict:
+    """The per-user report judged as ``prop attack --max-leak`` judges a row: failed when the worst
+    leakage of the random keys or the 1-bit neighbours exceeds ``threshold``. A sealed bundle's wrong
+    keys run the original exactly (leakage 0), so it passes on its figures. ``threshold``: the
+    audit's documented default, ``constants.MAX_LEAK``."""
+    threshold = C.MAX_LEAK if threshold is None else threshold
+    worst = {g: report[g]["leakage"]["worst"] for g in GATED}
+    failing = [g for g in GATED if worst[g] > threshold]
+    return {"max_leak": threshold, "passed": not failing, "worst": worst, "failing": failing}

@@ -767,3 +767,35 @@ def test_payload_settings_validate_with_seal():
     PersonalizeConfig(seal=True, payload="peft-lora", payload_rank=2).validate()
     with pytest.raises(PropError, match="--payload peft-lora applies to sealed bundles only"):
         PersonalizeConfig(payload="peft-lora").validate()
+
+
+def _gate_warnings(res) -> list[str]:
+    return [ln for ln in res.err.splitlines() if ln.startswith("prop: warning:") and "--max-leak" in ln]
+
+
+def test_personalize_gates_its_wrong_key_sweep_like_the_audit(cli, workdir, monkeypatch):
+    """Issue 32: a sweep beyond the audit's --max-leak default is one stderr line with the fix, and
+    --json carries the gate; 40 steps leave the unsealed sweep well beyond it (worst ~0.23)."""
+    res = personalize(cli, workdir, "--json")
+    assert res.code == 0, res.err
+    gate = json.loads(res.out)["metrics"][0]["gate"]
+    assert gate["max_leak"] == C.MAX_LEAK and gate["passed"] is False and gate["failing"]
+    assert all(gate["worst"][g] > C.MAX_LEAK for g in gate["failing"])
+    (line,) = _gate_warnings(res)
+    assert f"--max-leak {C.MAX_LEAK:g}" in line and "--seal" in line and "--steps" in line
+    assert f"random keys worst {gate['worst']['random']:.3f}" in line
+    text = personalize(cli, workdir, "--force")  # the table too, not only --json
+    assert len(_gate_warnings(text)) == 1 and "user 1: personalization" in text.out
+    # The same figures under a threshold they stay within: passed, and nothing printed.
+    monkeypatch.setattr(C, "MAX_LEAK", max(gate["worst"].values()) + 0.01)
+    res = personalize(cli, workdir, "--json", "--force")
+    assert json.loads(res.out)["metrics"][0]["gate"]["passed"] is True and not _gate_warnings(res)
+
+
+def test_a_sealed_bundles_exact_sweep_passes_the_gate(cli, workdir):
+    res = personalize(cli, workdir, "--seal", "--steps", "5", "--json", out="sealed.prop")
+    assert res.code == 0, res.err
+    gate = json.loads(res.out)["metrics"][0]["gate"]
+    assert gate == {"max_leak": C.MAX_LEAK, "passed": True, "worst": {"random": 0.0, "hamming1": 0.0},
+                    "failing": []}  # fmt: skip
+    assert not _gate_warnings(res)
