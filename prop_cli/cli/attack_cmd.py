@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 
 from prop_cli.config import AuditSettings, parse_hamming, parse_list
-from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS
+from prop_cli.constants import AUDIT_SCHEMA, DEFAULT_DEVICE, DEFAULT_THREADS, MAX_LEAK
 from prop_cli.errors import plural
 
 from .common import err, fail, out, output_path, print_json, read_passphrase, stage_progress, warn
@@ -59,8 +59,9 @@ Original = Annotated[
 JsonReport = Annotated[Path | None, opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
 Plot = Annotated[Path | None, opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
 MaxLeak = Annotated[
-    float | None, opt("--max-leak", "Exit 1 if a row leaks more than this beyond its control.")
-]
+    float | None, opt("--max-leak", "Exit 1 if a row leaks more than this beyond its control "
+                                    f"(the docs use {MAX_LEAK:g}; personalize warns beyond it).")
+]  # fmt: skip
 Record = Annotated[bool, opt("--record", "Store the audit summary in the bundle manifest.")]
 
 
