@@ -67,27 +67,13 @@ def test_load_bundle_and_run_bundle_give_the_same_bits(name, tmp_path):
         assert v01.same(y, expected), (run["name"], v01.gap(y, expected))
 
 
-def _prop_run_each(fx: v01.Fixture, runs: list[dict], cli, tmp_path, monkeypatch) -> None:
-    assert runs
-    for i, run in enumerate(runs):
-        if run["passphrase"]:
-            monkeypatch.setenv("PROP_PASSPHRASE", run["passphrase"])
-        else:
-            monkeypatch.delenv("PROP_PASSPHRASE", raising=False)
-        out = tmp_path / f"y{i}.npy"
-        r = cli("run", *fx.run_args(run, tmp_path, out))
-        assert r.code == 0, (run["name"], r.err)
-        y, expected = np.load(out), fx.expected(run)
-        assert v01.same(y, expected), (run["name"], v01.gap(y, expected))
-
-
 @pytest.mark.parametrize("name", NAMES)
 def test_prop_run_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
     """`prop run` with the user's key, a key enrolled in nothing (allowed: the base runs, warned) and every
     passphrase (the API test above runs each key file; a `prop run` costs ~0.1 s of typer set-up)."""
     fx = v01.load(name)
     runs = [r for r in fx.runs if not r["onnx"] and (r["passphrase"] or r["name"] in ("user", "wrong"))]
-    _prop_run_each(fx, runs, cli, tmp_path, monkeypatch)
+    v01.check_prop_run(fx, runs, cli, tmp_path, monkeypatch)
 
 
 @pytest.mark.parametrize("name", [n for n in NAMES if v01.load(n).meta.get("onnx")])
@@ -96,7 +82,7 @@ def test_prop_run_onnx_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
     run to run on one machine, and the expected outputs came from these very graphs."""
     pytest.importorskip("onnxruntime")
     fx = v01.load(name)
-    _prop_run_each(fx, [r for r in fx.runs if r["onnx"]], cli, tmp_path, monkeypatch)
+    v01.check_prop_run(fx, [r for r in fx.runs if r["onnx"]], cli, tmp_path, monkeypatch)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -65,6 +65,15 @@ def _sealed_with_second_user(cli, d: Path) -> Path:
     return b
 
 
+def _runs_with_the_option_or_on_a_new_machine(cli, b, workdir, key, monkeypatch, tmp_path_factory) -> None:
+    """What the refusal leaves open: --allow-rollback runs the copy keyed, and so does a machine that has
+    seen nothing of the bundle (the documented limit)."""
+    r, keyed = _run(cli, b, workdir, key, "--allow-rollback")
+    assert r.code == 0 and keyed, r.err
+    monkeypatch.setenv(C.ENV_STATE_DIR, str(tmp_path_factory.mktemp("new-machine")))
+    assert _run(cli, b, workdir, key)[1] is True
+
+
 def test_every_write_increases_the_version_and_keeps_the_id(cli, workdir):
     b = _sealed_with_second_user(cli, workdir)
     m = _manifest(b)
@@ -137,10 +146,7 @@ def test_an_older_record_put_back_after_add_user_again_is_refused(
     _refused(_run(cli, b, workdir, "k2.bin")[0], "older copy")
     _restore(old, b)
     _refused(_run(cli, b, workdir, "k2.bin")[0], "older copy")
-    r, keyed = _run(cli, b, workdir, "k2.bin", "--allow-rollback")
-    assert r.code == 0 and keyed, r.err
-    monkeypatch.setenv(C.ENV_STATE_DIR, str(tmp_path_factory.mktemp("new-machine")))
-    assert _run(cli, b, workdir, "k2.bin")[1] is True
+    _runs_with_the_option_or_on_a_new_machine(cli, b, workdir, "k2.bin", monkeypatch, tmp_path_factory)
 
 
 def _owner_update(bundle: Path) -> None:
@@ -173,10 +179,7 @@ def test_an_older_enrolment_put_back_after_enrol_again_is_refused(
     m[VERSION] = 7  # past the version seen here: the enrolment inside is still version 1
     _write(b, m)
     _refused(_run(cli, b, workdir, "k.bin")[0], "its enrolment of version 2")
-    r, keyed = _run(cli, b, workdir, "k.bin", "--allow-rollback")
-    assert r.code == 0 and keyed, r.err
-    monkeypatch.setenv(C.ENV_STATE_DIR, str(tmp_path_factory.mktemp("new-machine")))
-    assert _run(cli, b, workdir, "k.bin")[1] is True
+    _runs_with_the_option_or_on_a_new_machine(cli, b, workdir, "k.bin", monkeypatch, tmp_path_factory)
 
 
 def test_a_downgraded_or_moved_enrolment_is_changed(cli, workdir):
