@@ -10,8 +10,6 @@ in nothing (tests/fixtures/make_v01_bundles.py --lerobot). Only what a user of 0
 
 from __future__ import annotations
 
-import json
-
 import pytest
 
 pytest.importorskip("lerobot")
@@ -55,10 +53,4 @@ def test_prop_run_gives_the_same_action_chunks(name, cli, tmp_path, monkeypatch)
 
 @pytest.mark.parametrize("name", NAMES)
 def test_prop_inspect_describes_the_bundle_as_0_1_did(name, cli):
-    fx = _fixture(name)
-    r = cli("inspect", fx.bundle)
-    assert r.code == 0 and r.out.strip(), r.err
-    r = cli("inspect", fx.bundle, "--json")
-    assert r.code == 0, r.err
-    info = json.loads(r.out)
-    assert {k: info[k] for k in fx.meta["inspect"]} == fx.meta["inspect"]
+    v01.check_inspect(_fixture(name), cli)

@@ -12,7 +12,6 @@ tests/adapters/test_lerobot_old_bundles.py.
 
 from __future__ import annotations
 
-import json
 import warnings
 
 import numpy as np
@@ -87,10 +86,4 @@ def test_prop_run_onnx_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_prop_inspect_describes_the_bundle_as_0_1_did(name, cli):
-    fx = v01.load(name)
-    r = cli("inspect", fx.bundle)
-    assert r.code == 0 and r.out.strip(), r.err
-    r = cli("inspect", fx.bundle, "--json")
-    assert r.code == 0, r.err
-    info = json.loads(r.out)
-    assert {k: info[k] for k in fx.meta["inspect"]} == fx.meta["inspect"]
+    v01.check_inspect(v01.load(name), cli)

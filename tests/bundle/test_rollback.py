@@ -74,6 +74,13 @@ def _runs_with_the_option_or_on_a_new_machine(cli, b, workdir, key, monkeypatch,
     assert _run(cli, b, workdir, key)[1] is True
 
 
+def _personalize(cli, workdir: Path, out: Path, *extra) -> None:
+    """An unsealed bundle of the user's key (k.bin) at ``out``."""
+    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
+            "--key-file", workdir / "k.bin", "--out", out, *FAST, *extra)  # fmt: skip
+    assert r.code == 0, r.err
+
+
 def test_every_write_increases_the_version_and_keeps_the_id(cli, workdir):
     b = _sealed_with_second_user(cli, workdir)
     m = _manifest(b)
@@ -164,9 +171,7 @@ def test_an_older_enrolment_put_back_after_enrol_again_is_refused(
     """Unsealed: the owner updates the bundle and the user enrols again (prop enrol); the older copy,
     with the user's older enrolment and the older behaviour it matches, is refused with their key."""
     b = workdir / "u.prop"
-    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
-            "--key-file", workdir / "k.bin", "--out", b, *FAST)  # fmt: skip
-    assert r.code == 0, r.err
+    _personalize(cli, workdir, b)
     old = workdir / "copy.prop"
     shutil.copytree(b, old)
     _owner_update(b)
@@ -186,9 +191,7 @@ def test_a_downgraded_or_moved_enrolment_is_changed(cli, workdir):
     """Rollback protection cannot be stripped by writing the manifest as format 4, nor a record moved
     from a copy of the bundle under another id: the bundle id is part of what each key enrolled in."""
     b = workdir / "u.prop"
-    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
-            "--key-file", workdir / "k.bin", "--out", b, *FAST)  # fmt: skip
-    assert r.code == 0, r.err
+    _personalize(cli, workdir, b)
     m = _manifest(b)
     m[C.M_FORMAT] = 4
     del m[C.M_BUNDLE_ID], m[VERSION]
@@ -221,9 +224,7 @@ def test_an_older_signed_revision_is_refused_by_verify(cli, workdir, monkeypatch
 
     _signing_keys(workdir)
     b = workdir / "u.prop"
-    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
-            "--key-file", workdir / "k.bin", "--out", b, *FAST)  # fmt: skip
-    assert r.code == 0, r.err
+    _personalize(cli, workdir, b)
     revs = []
     for i in (1, 2):
         if i == 2:
@@ -297,9 +298,7 @@ def test_a_format_4_bundle_is_version_0_and_the_new_fields_have_rules(cli, workd
     r = cli("run", copy, "--input", fx.input, "--output", out, "--key-file", fx.key("k.bin", workdir))
     assert r.code == 0 and "(keyed)" in r.err and v01.same(np.load(out), fx.expected(user)), r.err
     b = workdir / "u.prop"
-    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz",
-            "--key-file", workdir / "k.bin", "--out", b, *FAST)  # fmt: skip
-    assert r.code == 0, r.err
+    _personalize(cli, workdir, b)
     m = _manifest(b)
     m[C.M_FORMAT] = 4
     _write(b, m)
