@@ -118,6 +118,7 @@ def record(
         root=root,
         robot_type="panda",
         use_videos=False,
+        video_backend="pyav",  # no video recorded; LeRobot 0.6 otherwise probes torchcodec
     )
     # A fixed horizon: no time limit, no stop on success.
     env = (make_camera_env() if camera else gym.make("PandaReach-v3")).unwrapped

@@ -4,9 +4,7 @@
 #    may not exist; pip skips them.
 #  - setuptools' "Editable installation" notice (an editable install of prop_cli and prop_adapters uses
 #    a meta path finder: folders named like them in the working directory take precedence).
-#  - (.venv-lerobot only) pip's "dependency resolver" ERROR listing lerobot 0.4.4's torch / torchvision
-#    / torchcodec pins, which that environment breaks on purpose (CPU torch 2.13; scripts/setup-lerobot.sh).
-PIP_EXPECTED="^WARNING: Location|BuildBackendWarning: Editable installation|^\s*!!\s*$|^\s*\*+\s*$|Please be careful with folders in your working directory|name as your package as they may take precedence|with strategy, WheelFile\(wheel_path|^ERROR: pip's dependency resolver does not currently take into account|^lerobot 0\.4\.4 requires (torch|torchvision|torchcodec)|^\s*$"
+PIP_EXPECTED="^WARNING: Location|BuildBackendWarning: Editable installation|^\s*!!\s*$|^\s*\*+\s*$|Please be careful with folders in your working directory|name as your package as they may take precedence|with strategy, WheelFile\(wheel_path|^\s*$"
 pip_install() {
   local pip=$1 out rc=0
   shift

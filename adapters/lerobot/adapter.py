@@ -6,9 +6,9 @@ LeRobot's; the bundle carries the folder's config and processor files byte for b
 weights, so its ``lerobot/`` folder loads back with ``from_pretrained``.
 
 lerobot is optional (scripts/setup-lerobot.sh builds its environment) and imported only inside
-functions. Supported: the types of ``registry.POLICIES`` (ACT, Diffusion, SmolVLA), each built by its
-class's ``build`` (SmolVLA: its VLM's files from a local folder, never a download); other types (pi0,
-...) are refused in one line.
+functions. Supported: the types of ``registry.POLICIES``, each built by its class's ``build`` (the VLAs:
+their VLM's or tokenizer's files from a local folder, never a download); other types are refused in one
+line.
 """
 
 from __future__ import annotations
@@ -33,10 +33,17 @@ from .registry import POLICIES
 
 PREPROCESSOR = "policy_preprocessor.json"
 PROCESSORS = "policy_*processor*.json"  # the pipelines LeRobot reads: pre- and postprocessor
-# Registered steps that load further models or tokenizers by a name their config gives: code and
-# downloads a file would choose, so they need --trust-remote-code like an import path does (unless
-# the folder's policy points them at its own files: ``LeRobotProtocol.own_steps``).
-LOADS_BY_NAME = ("tokenizer", "classifier", "groot", "xvla", "pi0")
+# The registered processor steps prop accepts in a policy folder: those the supported policies' own
+# pipelines use that neither import code nor load models, tokenizers or files by a name their config gives
+# (read in lerobot 0.6's processor sources). An allow-list, since each LeRobot release registers new steps
+# that load by name (0.6: eo1_qwen_processor, molmoact2_pack_inputs, ...). Any other step needs
+# --trust-remote-code like an import path does, unless the folder's policy points it at its own files
+# (``LeRobotProtocol.own_steps``: the VLAs' tokenizer step).
+VETTED_STEPS = frozenset({
+    "rename_observations_processor", "to_batch_processor", "device_processor", "normalizer_processor",
+    "unnormalizer_processor", "smolvla_new_line_processor", "pi0_new_line_processor",
+    "pi05_prepare_state_tokenizer_processor_step", "relative_actions_processor", "absolute_actions_processor",
+})  # fmt: skip
 FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
 _TYPES = " or ".join([", ".join(list(POLICIES)[:-1]), list(POLICIES)[-1]])  # "act, diffusion or smolvla"
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
@@ -60,8 +67,7 @@ def processor_code(folder: Path) -> list[str]:
     _lerobot()
     from lerobot.processor import ProcessorStepRegistry
 
-    known = {n for n in ProcessorStepRegistry.list() if not any(w in n for w in LOADS_BY_NAME)}
-    known |= _protocol_of(folder).own_steps
+    known = (VETTED_STEPS | _protocol_of(folder).own_steps) & set(ProcessorStepRegistry.list())
     named = []
     for f in sorted(folder.glob(PROCESSORS)):
         try:
@@ -151,16 +157,22 @@ def _check_type(config: dict, where: str) -> str:
     return kind
 
 
-def _load(folder: Path, weights: dict[str, torch.Tensor] | None, where: str, contained: bool = False):
+def _load(
+    folder: Path, weights: dict[str, torch.Tensor] | None, where: str, contained: bool = False,
+    made_with: str | None = None,
+):  # fmt: skip
     """LeRobot's policy and processors from ``folder``. ``contained``: the folder is a bundle's, and
-    nothing outside it is read (SmolVLA's VLM files included)."""
+    nothing outside it is read (SmolVLA's VLM files included). ``made_with``: the lerobot version the
+    bundle was made under (its manifest)."""
     version, get_policy_class, make_pre_post_processors = _lerobot()
     kind = _check_type(read_config(folder), where)
     state_files(folder, where)
     try:
         # LeRobot prints progress (stdout is for results); nothing it calls may ask at the terminal.
         with contextlib.redirect_stdout(sys.stderr), no_prompt():
-            built = POLICIES[kind].build(get_policy_class(kind), folder, weights, where, contained=contained)
+            built = POLICIES[kind].build(
+                get_policy_class(kind), folder, weights, where, contained=contained, made_with=made_with
+            )
             pre, post = make_pre_post_processors(
                 built.policy.config, pretrained_path=str(folder), preprocessor_overrides=built.overrides
             )
@@ -202,8 +214,10 @@ class LeRobotAdapter(Adapter):
             folder, contained = Path(source), False  # the original LeRobot folder itself (--original)
         if not (folder / CONFIG).is_file():
             raise PropError(f"bundle {source} has no {FOLDER_IN_BUNDLE}/{CONFIG}", "write the bundle again")
-        version, policy, pre, post, files = _load(folder, weights, source, contained)
-        return self._loaded(policy, pre, post, version, source, files)
+        made_with = spec.get("lerobot_version") if isinstance(spec.get("lerobot_version"), str) else None
+        version, policy, pre, post, files = _load(folder, weights, source, contained, made_with)
+        # The version the weights were trained under stays the bundle's (add-user rewrites the manifest).
+        return self._loaded(policy, pre, post, made_with or version, source, files)
 
     def _loaded(self, policy, pre, post, version: str, source: str, files: dict[str, bytes]) -> LoadedModel:
         module = finish(policy)

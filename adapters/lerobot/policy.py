@@ -27,6 +27,21 @@ FALLBACK_DRAWS = 8  # a denoising policy's (t, noise) draws per fallback frame (
 POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
+def older_than(version: str, than: str) -> bool:
+    """``version`` (a manifest's ``lerobot_version``, e.g. "0.4.4") is an older release than ``than``."""
+
+    def parts(v: str) -> tuple[int, ...]:
+        out = []
+        for p in v.split("."):
+            digits = "".join(c for c in p if c.isdigit()) if p[:1].isdigit() else ""
+            if not digits:
+                break
+            out.append(int(digits))
+        return tuple(out)
+
+    return parts(version) < parts(than)
+
+
 @dataclass
 class Built:
     """A LeRobot policy built from its folder: the policy, the preprocessor overrides its folder needs,
@@ -81,11 +96,12 @@ class LeRobotProtocol(PolicyProtocol):
     @classmethod
     def build(
         cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-        contained: bool = False,
+        contained: bool = False, made_with: str | None = None,
     ) -> Built:  # fmt: skip
         """LeRobot's ``policy_class`` from ``folder``: its own weights (``from_pretrained``), or
         ``weights`` (a bundle's base) into the policy its config describes. ``contained``: the folder
-        is a bundle's, and the policy reads nothing outside it."""
+        is a bundle's, and the policy reads nothing outside it. ``made_with``: the lerobot version a
+        bundle was made under, where a policy runs differently under today's (``smolvla``)."""
         if weights is None:
             return Built(policy_class.from_pretrained(str(folder)))
         from lerobot.configs.policies import PreTrainedConfig

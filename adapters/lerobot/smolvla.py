@@ -14,9 +14,9 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   ``noise_seed`` (the shape SmolVLA draws: chunk_size x max_action_dim), so a row's chunk does not
   depend on its batch and a batch of one equals LeRobot's ``select_action`` after
   ``torch.manual_seed(noise_seed)``. Cut to the action's own width.
-- **User term**: the policy's own loss (velocity MSE at a Beta-distributed time), its draws in its order.
-  LeRobot 0.4.4 reads the padding mask under a misspelt key (``actions_id_pad``), so its loss never
-  masks padded steps; prop's user term is the same loss, unmasked too.
+- **User term**: the policy's own loss (velocity MSE at a Beta-distributed time), its draws in its order,
+  cut to the action's own width and with padded steps (``action_is_pad``) masked out, as LeRobot 0.6's
+  ``SmolVLAPolicy.forward`` computes it.
 - **Fallback term**: the expert is deterministic given (observation, instruction, x_t, t). Each fallback
   frame gets ``FALLBACK_DRAWS`` rows with t uniform on (0, 1] (the sampler visits 1.0 ... 0.1) and
   x_t noised from the original's deployed chunk; the keyed policy's velocity is distilled towards the
@@ -33,12 +33,17 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
   import code a file names (``auto_map``) or, as LeRobot gives no trust_remote_code, ask at the terminal:
   such a VLM file is refused (``check_vlm``; in a bundle also ``bundle.read.check_tree``), and a bundle
   reads its own ``vlm/`` only, never a folder its config.json names.
+- **Bundles made under lerobot 0.4 (transformers 4)**: transformers 5 changed how SmolVLM's vision
+  embeddings bucket patch positions (its ``(k / n) * (1 - 1e-6)`` became ``min(k / n, 1 - 1e-6)``), which
+  moves their actions by up to 1.4e-3. Such a bundle's policy gets the 4.x position ids back on its own
+  vision-embedding instance (``legacy_positions``), so it runs as it was trained, bit for bit.
 """
 
 from __future__ import annotations
 
 import importlib
 import json
+import types
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +56,7 @@ from prop_cli.constants import LEROBOT_VLM_DIR, TASK
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol, construct
+from .policy import ACTION, FALLBACK_DRAWS, Built, LeRobotProtocol, construct, older_than
 
 # LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
 SMOLVLA_LAYERS = [
@@ -121,6 +126,30 @@ def check_vlm(vlm: Path, where: str) -> Path:
     return vlm
 
 
+def legacy_positions(embeddings: torch.nn.Module) -> None:
+    """Give one SmolVLM vision-embedding module transformers 4.x's patch position ids (bound on the
+    instance: other policies in the process keep transformers' own)."""
+
+    def forward(self, pixel_values: torch.Tensor, patch_attention_mask: torch.Tensor) -> torch.Tensor:
+        b, _, height, width = pixel_values.shape
+        out = self.patch_embedding(pixel_values).flatten(2).transpose(1, 2)
+        side = self.num_patches_per_side
+        dev = pixel_values.device
+        bounds = torch.arange(1 / side, 1.0, 1 / side, device=dev)
+        ids = torch.zeros((b, (height // self.patch_size) * (width // self.patch_size)), dtype=torch.long,
+                          device=dev)  # fmt: skip
+        for i, mask in enumerate(patch_attention_mask):
+            rows, cols = mask[:, 0].sum(), mask[0].sum()
+            fh = torch.arange(rows, device=dev, dtype=pixel_values.dtype) / rows * (1 - 1e-6)
+            fw = torch.arange(cols, device=dev, dtype=pixel_values.dtype) / cols * (1 - 1e-6)
+            bh = torch.bucketize(fh, bounds, right=True)
+            bw = torch.bucketize(fw, bounds, right=True)
+            ids[i][mask.view(-1)] = (bh[:, None] * side + bw).flatten()
+        return out + self.position_embedding(ids)
+
+    embeddings.forward = types.MethodType(forward, embeddings)
+
+
 class SmolVLAProtocol(LeRobotProtocol):
     """SmolVLA through the policy protocol (see the module docstring)."""
 
@@ -131,12 +160,12 @@ class SmolVLAProtocol(LeRobotProtocol):
     @classmethod
     def build(
         cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-        contained: bool = False,
+        contained: bool = False, made_with: str | None = None,
     ) -> Built:  # fmt: skip
         """Built from its config and the weights (``load_vlm_weights=False``: model.safetensors holds
         every weight), the VLM's files read from a local folder (``vlm_folder``; a bundle's own
         ``vlm/`` where ``contained``) and carried in the bundle's ``vlm/``; the tokenizer step reads
-        that folder."""
+        that folder. ``made_with``: the lerobot version a bundle was made under (its manifest)."""
         from lerobot.configs.policies import PreTrainedConfig
 
         config = PreTrainedConfig.from_pretrained(str(folder))
@@ -145,6 +174,8 @@ class SmolVLAProtocol(LeRobotProtocol):
         weights = read_weights(folder / WEIGHTS)[0] if weights is None else weights
         policy = construct(policy_class, config, weights, where)
         policy.load_state_dict(weights)
+        if made_with is not None and older_than(made_with, "0.5"):
+            legacy_positions(policy.model.vlm_with_expert.get_vlm_model().vision_model.embeddings)
         files = {f"{LEROBOT_VLM_DIR}/{n}": (vlm / n).read_bytes() for n in VLM_FILES if (vlm / n).is_file()}
         return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(vlm)}}, files)
 
@@ -198,7 +229,7 @@ class SmolVLAProtocol(LeRobotProtocol):
         att = make_att_2d_masks(pad, torch.cat([prefix_att, suffix_att], dim=1))
         (_, out), _ = m.vlm_with_expert.forward(
             attention_mask=att, position_ids=torch.cumsum(pad, dim=1) - 1, past_key_values=None,
-            inputs_embeds=[prefix, suffix], use_cache=False, fill_kv_cache=False,
+            inputs_embeds=[prefix, suffix], use_cache=False,
         )  # fmt: skip
         return m.action_out_proj(out[:, -c.chunk_size :].to(torch.float32))
 
@@ -253,7 +284,13 @@ class SmolVLAProtocol(LeRobotProtocol):
         both = {k: torch.cat([user[k], fallback[k]]) for k in self.row_shapes}
         v = self._velocity(self._inputs(both), torch.cat([x_t, fallback["x_t"]]),
                            torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
-        return torch.nn.functional.mse_loss(v[:n], noise - actions), v[n:]
+        width = self.config.action_feature.shape[0]
+        losses = (v[:n, :, :width] - (noise - actions)[:, :, :width]) ** 2
+        pad = user.get("action_is_pad")
+        if pad is None:
+            return losses.mean(), v[n:]
+        keep = (~pad.bool()).unsqueeze(-1).to(losses)
+        return (losses * keep).sum() / (keep.sum() * width).clamp_min(1), v[n:]
 
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()

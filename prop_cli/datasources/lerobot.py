@@ -135,7 +135,8 @@ class LeRobotSource(DataSource):
         # Offline for good: a missing file must be an error here, not a download.
         os.environ["HF_HUB_OFFLINE"] = "1"
         try:
-            ds = LeRobotDataset(repo_id=f"local/{root.name}", root=root, episodes=episodes)
+            # pyav: prop reads no video, and LeRobot 0.6 otherwise probes torchcodec (a long log without it).
+            ds = LeRobotDataset(repo_id=f"local/{root.name}", root=root, episodes=episodes, video_backend="pyav")
             table = ds.hf_dataset
             columns = [c for c in table.column_names if c not in _BOOKKEEPING or c in INDEX_COLUMNS]
             rows = table[0 : len(table)]
