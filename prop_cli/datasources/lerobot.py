@@ -136,7 +136,9 @@ class LeRobotSource(DataSource):
         os.environ["HF_HUB_OFFLINE"] = "1"
         try:
             # pyav: prop reads no video, and LeRobot 0.6 otherwise probes torchcodec (a long log without it).
-            ds = LeRobotDataset(repo_id=f"local/{root.name}", root=root, episodes=episodes, video_backend="pyav")
+            ds = LeRobotDataset(
+                repo_id=f"local/{root.name}", root=root, episodes=episodes, video_backend="pyav"
+            )
             table = ds.hf_dataset
             columns = [c for c in table.column_names if c not in _BOOKKEEPING or c in INDEX_COLUMNS]
             rows = table[0 : len(table)]
