@@ -37,10 +37,11 @@ TINY = dict(steps=4, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, 
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
 INPUTS = ("observation.state", task.CAMERA)
 KINDS = ["pi0", "pi05"]
+BITS = 32  # the smallest key: personalize and add-user run every 1-bit neighbour through the sampler
 
 
 def key(seed: int = 1) -> np.ndarray:
-    return np.random.default_rng(seed).integers(0, 2, 128).astype(np.uint8)
+    return np.random.default_rng(seed).integers(0, 2, BITS).astype(np.uint8)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -98,8 +99,9 @@ def bundle(work):
 
 @pytest.fixture(scope="module")
 def sealed(work):
+    """Sealed, with the payload peft takes (`export --peft`): one sealed personalize per policy."""
     out = work.root / "sealed"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 8}))
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))
     api.personalize_checkpoint(str(work.policy), [(work.user, KeySource(key(), "file"))], out, cfg)
     return out
 
@@ -261,30 +263,29 @@ def test_pi0_add_and_remove_a_user_of_a_sealed_bundle(sealed, work, tmp_path, cl
     assert np.array_equal(run("--key-file", work.key2, "--allow-unenrolled-key"), run())
 
 
-def test_pi0_a_peft_payload_loads_through_lerobots_peft_path(work, tmp_path, cli):
+def test_pi0_a_peft_payload_loads_through_lerobots_peft_path(sealed, work, tmp_path, cli):
     """The opened payload as a peft LoRA adapter on LeRobot's own policy (its default PEFT targets):
     the action equals `prop run --key-file` with the same noise seed."""
     pytest.importorskip("peft")
     from peft import PeftConfig, PeftModel
 
-    r = cli("personalize", work.policy, "--data", work.user, "--key-file", work.key,
-            "--out", tmp_path / "s", "--seal", "--payload", "peft-lora", "--steps", "4",
-            "--user-rows", "8")  # fmt: skip
+    r = cli("export", sealed, "--peft", tmp_path / "adapter", "--key-file", work.key)
     assert r.code == 0, r.err
-    r = cli("export", tmp_path / "s", "--peft", tmp_path / "adapter", "--key-file", work.key)
-    assert r.code == 0, r.err
-    r = cli("run", tmp_path / "s", "--input", work.user, "--output", tmp_path / "y.npy",
-            "--key-file", work.key, "--noise-seed", "4")  # fmt: skip
+    r = cli("run", sealed, "--input", work.user, "--output", tmp_path / "y.npy", "--key-file", work.key,
+            "--noise-seed", "4")  # fmt: skip
     assert r.code == 0, r.err
     y = np.load(tmp_path / "y.npy")
     config = PeftConfig.from_pretrained(str(tmp_path / "adapter"))
     base = config.base_model_name_or_path
-    assert base == str((tmp_path / "s" / "lerobot").resolve())
+    assert base == str((sealed / "lerobot").resolve())
     assert "gemma_expert" in str(config.target_modules)  # a regex over the keyed layers
-    policy, pre, post = lerobot_policy(base, tmp_path / "s" / "lerobot" / "tokenizer")
-    policy = PeftModel.from_pretrained(policy, str(tmp_path / "adapter"), config=config).eval()
+    policy, pre, post = lerobot_policy(base, sealed / "lerobot" / "tokenizer")
     data = load_data(work.user)
-    assert np.allclose(lerobot_actions(policy, pre, post, data, (0,), seed=4), y[:1, 0], atol=1e-5)
+    without = lerobot_actions(policy, pre, post, data, (0,), seed=4)
+    policy = PeftModel.from_pretrained(policy, str(tmp_path / "adapter"), config=config).eval()
+    with_adapter = lerobot_actions(policy, pre, post, data, (0,), seed=4)
+    assert np.allclose(with_adapter, y[:1, 0], atol=1e-5)
+    assert not np.allclose(with_adapter, without, atol=1e-4)  # the adapter is the user's key at work
 
 
 def _planted(src, tmp_path, edit):
