@@ -29,6 +29,7 @@ deployed chunk integrates it from pure noise (t = 1) in ``num_inference_steps`` 
 
 from __future__ import annotations
 
+import copy
 import importlib
 import json
 import logging
@@ -129,12 +130,26 @@ def check_tokenizer(tokenizer: Path, kind: str, where: str) -> Path:
     return tokenizer
 
 
+def meta_ready(policy_class):
+    """``policy_class`` as ``construct`` takes it: built on the meta device (its shape probe), the
+    config's device is "meta" too. pi0 moves its model to ``config.device``, which a meta tensor cannot
+    leave: without this the probe fails and a config.json's claimed size is allocated before any check."""
+
+    def build(config):
+        if torch.get_default_device().type == "meta":
+            config = copy.copy(config)
+            config.device = "meta"
+        return policy_class(config)
+
+    return build
+
+
 def lerobot_keys(policy_class, config, weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """``weights`` with the key fixes ``from_pretrained`` applies (openpi's old names, the ``model.``
     prefix), computed on a policy built on the meta device (shapes only)."""
     try:
         with torch.device("meta"):
-            probe = policy_class(config)
+            probe = meta_ready(policy_class)(config)
     except Exception:  # noqa: BLE001 - the weights as they are; construct() says what does not fit
         return weights
     logger = logging.getLogger()
@@ -168,7 +183,7 @@ class PI0Protocol(SmolVLAProtocol):
         tokenizer = tokenizer_folder(folder, cls.label, where, contained)
         if weights is None:
             weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
-        policy = construct(policy_class, config, weights, where)
+        policy = construct(meta_ready(policy_class), config, weights, where)
         policy.load_state_dict(weights, strict=True)
         files = {f"{LEROBOT_TOKENIZER_DIR}/{n}": (tokenizer / n).read_bytes()
                  for n in TOKENIZER_FILES if (tokenizer / n).is_file()}  # fmt: skip

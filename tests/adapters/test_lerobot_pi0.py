@@ -350,3 +350,16 @@ def test_pi0_a_folder_whose_tokenizer_is_not_here_is_refused_in_one_line(work, t
     r = cli("inspect", folder)
     assert r.code == 2 and r.err.count("\n") == 1, r.err
     assert "paligemma-3b-pt-224" in r.err and "not on this machine" in r.err and "hf download" in r.err
+
+
+def test_pi0_a_config_claiming_other_sizes_is_refused_before_anything_is_built(work, tmp_path, cli):
+    """pi0 moves its model to config.device, which the meta-device shape check must survive: a
+    config.json claiming other shapes than the weights is one line, nothing allocated (a real
+    PaliGemma config claims billions of parameters)."""
+    folder = tmp_path / "policy"
+    shutil.copytree(work.policy, folder)
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config | {"max_action_dim": 6}))
+    r = cli("inspect", folder)
+    assert r.code == 2 and r.err.count("\n") == 1, r.err
+    assert "do not fit the policy config.json describes" in r.err and "nothing was built" in r.err
