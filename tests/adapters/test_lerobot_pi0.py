@@ -255,12 +255,12 @@ def test_pi0_add_and_remove_a_user_of_a_sealed_bundle(sealed, work, tmp_path, cl
     r = cli("add-user", s, "--data", work.user, "--key-file", work.key2, "--steps", "4", "--json")
     assert r.code == 0, r.err
     assert json.loads(r.out)["users"] == 2
-    second = run("--key-file", work.key2)
-    assert not np.allclose(second, run(), atol=1e-4)  # the new user's key acts
+    none = run()
+    assert not np.allclose(run("--key-file", work.key2), none, atol=1e-4)  # the new user's key acts
     assert np.array_equal(run("--key-file", work.key), first)  # the first user's is untouched
     r = cli("remove-user", s, "--key-file", work.key2)
     assert r.code == 0 and "(1 user left)" in r.err, r.err
-    assert np.array_equal(run("--key-file", work.key2, "--allow-unenrolled-key"), run())
+    assert np.array_equal(run("--key-file", work.key2, "--allow-unenrolled-key"), none)
 
 
 def test_pi0_a_peft_payload_loads_through_lerobots_peft_path(sealed, work, tmp_path, cli):
