@@ -363,3 +363,19 @@ def test_pi0_a_config_claiming_other_sizes_is_refused_before_anything_is_built(w
     r = cli("inspect", folder)
     assert r.code == 2 and r.err.count("\n") == 1, r.err
     assert "do not fit the policy config.json describes" in r.err and "nothing was built" in r.err
+
+
+def test_pi0_weights_load_with_lerobots_key_fixes(work, tmp_path):
+    """A checkpoint converted from openpi (keys without the policy's `model.` prefix, pi0.5's time MLP
+    under pi0's name) loads as PI0Policy.from_pretrained loads it: the same weights."""
+    from safetensors.torch import load_file, save_file
+
+    folder = tmp_path / "policy"
+    shutil.copytree(work.policy, folder)
+    weights = load_file(str(folder / "model.safetensors"))
+    renamed = {k.removeprefix("model."): v for k, v in weights.items()}
+    if work.kind == "pi05":
+        renamed = {k.replace("time_mlp_", "action_time_mlp_"): v for k, v in renamed.items()}
+    save_file(renamed, str(folder / "model.safetensors"))
+    loaded = load_checkpoint(folder).module.state_dict()
+    assert set(loaded) == set(weights) and all(torch.equal(loaded[k], weights[k]) for k in weights)
