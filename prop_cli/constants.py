@@ -8,6 +8,7 @@ ENCODER_WEIGHTS = "encoder.safetensors"
 MANIFEST = "manifest.json"
 LEROBOT_DIR = "lerobot"  # a LeRobot policy's bundle: its folder (config, processors, weights alias)
 LEROBOT_VLM_DIR = "vlm"  # in a SmolVLA bundle's LeRobot folder: its VLM's config, tokenizer, processor
+LEROBOT_TOKENIZER_DIR = "tokenizer"  # in a pi0 / pi0.5 bundle's LeRobot folder: PaliGemma's tokenizer files
 TASK = "task"  # a LeRobot Dataset's x[TASK]: each frame's task text (SmolVLA's instruction)
 RECORDS_DIR = "users"  # sealed bundles: one encrypted file per user, users/<record id>.sealed
 RECORD_SUFFIX = ".sealed"

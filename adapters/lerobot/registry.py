@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from .act import ACTProtocol
 from .diffusion import DiffusionProtocol
+from .pi0 import PI0Protocol
+from .pi05 import PI05Protocol
 from .policy import LeRobotProtocol
 from .smolvla import SmolVLAProtocol
 
@@ -16,4 +18,6 @@ POLICIES: dict[str, type[LeRobotProtocol]] = {
     "act": ACTProtocol,
     "diffusion": DiffusionProtocol,
     "smolvla": SmolVLAProtocol,
+    "pi0": PI0Protocol,
+    "pi05": PI05Protocol,
 }

@@ -56,11 +56,11 @@ MAX_JSON = 256 << 20  # a carried JSON file read whole (a large model's tokenize
 def check_tree(path: Path, manifest: dict) -> None:
     """What a bundle folder holds, before anything in it is read: plain files and folders only, no
     symbolic link anywhere (prop would read, write or delete through it, outside the bundle); and in
-    each folder the manifest lists files in (a LeRobot policy's ``lerobot/`` with its VLM's ``vlm/``,
-    which LeRobot and transformers read by name, whatever is there) only listed files, none of them
-    code: no Python file, no JSON with an ``auto_map``. Prop never writes any of these, so each is
-    refused in one line naming it, ``--trust-remote-code`` or not (that flag trusts the import paths a
-    manifest names, never code carried in a bundle's files)."""
+    each folder the manifest lists files in (a LeRobot policy's ``lerobot/`` with its VLM's ``vlm/`` or
+    pi0's ``tokenizer/``, which LeRobot and transformers read by name, whatever is there) only listed
+    files, none of them code: no Python file, no JSON with an ``auto_map``. Prop never writes any of
+    these, so each is refused in one line naming it, ``--trust-remote-code`` or not (that flag trusts
+    the import paths a manifest names, never code carried in a bundle's files)."""
     listed = set(manifest[C.M_FILES])
     carried = {n.split("/", 1)[0] for n in listed if "/" in n}
     for here, dirs, files in os.walk(path):

@@ -223,12 +223,12 @@ def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer)
 
 
 def test_unsupported_and_old_folders_are_refused(work, tmp_path, cli):
-    other = tmp_path / "pi0"
+    other = tmp_path / "vqbet"
     shutil.copytree(work / "act", other)
     cfg = json.loads((other / "config.json").read_text())
-    (other / "config.json").write_text(json.dumps(cfg | {"type": "pi0"}))
+    (other / "config.json").write_text(json.dumps(cfg | {"type": "vqbet"}))
     r = cli("inspect", other)
-    assert r.code == 2 and "policy type 'pi0' is not supported" in r.err
+    assert r.code == 2 and "policy type 'vqbet' is not supported" in r.err
     assert len(r.err.strip().splitlines()) == 1
     from safetensors.torch import load_file, save_file
 
