@@ -141,6 +141,26 @@ class PolicyProtocol(ABC):
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The policy's own training loss on ``batch`` (a batch mean), in training mode."""
 
+    def loss_parts(self, batch: dict[str, torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """``loss(batch)`` as parts ``(value, weights)`` whose values add up to it: each value normalised
+        over ``batch`` as the policy normalises it, ``weights`` (rows,) each row's share of that
+        normaliser. Several processes (prop_cli.train.distributed) scale each process's value by its
+        rows' weight over the step's, so their gradients add up to the whole step's. Default: one
+        part, a mean over rows (``row_weights``)."""
+        return [(self.loss(batch), self.row_weights(batch))]
+
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Each row's weight in the normaliser of the policy's loss: 1 each (a mean over rows)."""
+        first = next(iter(batch.values()))
+        return torch.ones(len(first), device=first.device)
+
+    def joint_parts(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+        """``joint_terms`` with its user loss as ``loss_parts``."""
+        loss, out = self.joint_terms(user, fallback)
+        return [(loss, self.row_weights(user))], out
+
     @abstractmethod
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The deployed prediction (rows, ...) for the observations in ``batch``; differentiable."""

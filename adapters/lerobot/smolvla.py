@@ -292,6 +292,11 @@ class SmolVLAProtocol(LeRobotProtocol):
         keep = (~pad.bool()).unsqueeze(-1).to(losses)
         return (losses * keep).sum() / (keep.sum() * width).clamp_min(1), v[n:]
 
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        # Its loss (LeRobot's and ``joint_terms``) is a mean over the chunk steps that are not padding.
+        pad = batch.get("action_is_pad")
+        return super().row_weights(batch) if pad is None else (~pad.bool()).sum(1).float()
+
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()
         return self.policy.forward({k: v for k, v in batch.items() if k != "episode_index"})[0]
