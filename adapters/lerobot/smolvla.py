@@ -293,9 +293,12 @@ class SmolVLAProtocol(LeRobotProtocol):
         return (losses * keep).sum() / (keep.sum() * width).clamp_min(1), v[n:]
 
     def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        # Its loss (LeRobot's and ``joint_terms``) is a mean over the chunk steps that are not padding.
+        # SmolVLA's loss (LeRobot's and ``joint_terms``) is a mean over the chunk steps that are not
+        # padding. A subclass with a loss of its own (pi0: every step counts) keeps the mean over rows.
         pad = batch.get("action_is_pad")
-        return super().row_weights(batch) if pad is None else (~pad.bool()).sum(1).float()
+        if pad is None or type(self).joint_terms is not SmolVLAProtocol.joint_terms:
+            return super().row_weights(batch)
+        return (~pad.bool()).sum(1).float()
 
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()

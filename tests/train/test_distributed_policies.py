@@ -10,8 +10,6 @@ they change no output, and the two bundles' outputs are compared too.
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 import torch
@@ -45,8 +43,6 @@ def work(tmp_path_factory):
 
 @pytest.mark.parametrize("seal", [False, True], ids=["unsealed", "sealed"])
 def test_two_processes_train_the_policy_one_process_trains(work, seal):
-    if shutil.which("accelerate") is None:
-        pytest.skip("the accelerate command is not on PATH")
     mode = "sealed" if seal else "unsealed"
     outs, reports = [], []
     for n in (1, 2):
