@@ -76,9 +76,10 @@ class PolicyProtocol(ABC):
     Batches are dicts of tensors in the policy's normalised units, one row per frame, with the action
     chunk (``action``) and its padding mask where the policy has them.
 
-    Where policies differ in training, this is the one place: the user term (``loss``), the fallback
-    term's rows, output and target (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and
-    the deployed chunk (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
+    Where policies differ in training, this is the one place: the user term (``loss``, split by its
+    normaliser in ``loss_parts`` for several processes), the fallback term's rows, output and target
+    (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and the deployed chunk
+    (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
     the fallback distils the original's chunk, L1. A denoising policy (Diffusion) distils the original's
     denoiser on the same (observation, x_t, t) instead, and draws its chunks' noise from ``noise_seed``.
     """

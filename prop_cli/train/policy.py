@@ -166,10 +166,11 @@ class PolicyTrainer:
 
     def _probe(self, n_user: int, n_fallback: int) -> None:
         """The step's training forward on ``n_user`` user rows and ``n_fallback`` fallback rows."""
-        policy, user = self.policy, self.pool[0]
-        ub = rows(user, torch.arange(n_user) % len(user["episode_index"]))
+        policy, user, dev = self.policy, self.pool[0], self.device
+        ub = rows(user, torch.arange(n_user, device=dev) % len(user["episode_index"]))
         if policy.joins_terms:
-            policy.joint_parts(ub, rows(self.fb_rows, torch.arange(n_fallback) % len(self.targets)))
+            fb = rows(self.fb_rows, torch.arange(n_fallback, device=dev) % len(self.targets))
+            policy.joint_parts(ub, fb)
         else:
             policy.loss_parts(ub)
 

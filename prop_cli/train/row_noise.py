@@ -176,7 +176,7 @@ class RowNoise:
         try:
             for rows, other in ((2, 2), (3, 2), (2, 3)):
                 rec = _Record()
-                with rec:
+                with rec, torch.no_grad():  # the draws only: no graph (a real-size policy's memory)
                     forward(rows, other)
                 if rec.unsupported:
                     return None, f"it draws with {', '.join(sorted(rec.unsupported))}"

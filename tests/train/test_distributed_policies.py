@@ -3,9 +3,10 @@ train what one process trains (pytest -m lerobot; prop_cli.train.distributed, ro
 
 A tiny ACT (dropout 0.1 and its VAE: it draws inside its loss) for a few steps, unsealed and sealed;
 benchmarks/bench_dist_policies.py measures ACT, Diffusion and SmolVLA over 50 steps (docs/speed.md).
-Tolerance: 1e-5 on every trained weight but attention key biases, whose true gradient is 0 (softmax
-ignores them) and which rounding noise moves as much between one-process runs with 1 and 2 threads;
-they change no output, and the two bundles' outputs are compared too.
+Tolerance: 1e-5 on all but a thousandth of the trained weights, 1e-4 on the actions the two bundles
+give with the key. Adam's first update is ``lr * g / (|g| + 1e-8)``: a weight whose gradient is at rounding level (an
+attention key bias, whose true gradient is 0) moves by up to the learning rate either way, whichever
+process count computes it; a split that draws other noise or scales the loss wrongly moves nearly all.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ pytest.importorskip("lerobot")
 pytest.importorskip("accelerate")
 pytestmark = pytest.mark.lerobot
 
-from benchmarks.bench_dist_policies import differences, personalize, trained_weights  # noqa: E402
+from benchmarks.bench_dist_policies import personalize, trained_weights  # noqa: E402
 from examples import lerobot_reach_task as task  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.bundle.runtime import run_policy  # noqa: E402
@@ -52,8 +53,10 @@ def test_two_processes_train_the_policy_one_process_trains(work, seal):
         outs.append(out)
         reports.append(report)
     assert [r["processes"] for r in reports] == [1, 2]  # one report: the first process writes and prints
-    rest, _ = differences(*(trained_weights(o, work / "k.bin") for o in outs))
-    assert rest <= TOLERANCE
+    a, b = (trained_weights(o, work / "k.bin") for o in outs)
+    assert a.keys() == b.keys() and a
+    diffs = np.concatenate([np.abs(a[k].astype(np.float64) - b[k]).ravel() for k in a])
+    assert (diffs > TOLERANCE).mean() <= 1e-3, (int((diffs > TOLERANCE).sum()), diffs.size, diffs.max())
     key = read_key_file(work / "k.bin")
     data = load_data(work / "user")
     with torch.no_grad():
