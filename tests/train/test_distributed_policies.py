@@ -4,9 +4,10 @@ train what one process trains (pytest -m lerobot; prop_cli.train.distributed, ro
 A tiny ACT (dropout 0.1 and its VAE: it draws inside its loss) for a few steps, unsealed and sealed;
 benchmarks/bench_dist_policies.py measures ACT, Diffusion and SmolVLA over 50 steps (docs/speed.md).
 Tolerance: 1e-5 on all but a thousandth of the trained weights, 1e-4 on the actions the two bundles
-give with the key. Adam's first update is ``lr * g / (|g| + 1e-8)``: a weight whose gradient is at rounding level (an
-attention key bias, whose true gradient is 0) moves by up to the learning rate either way, whichever
-process count computes it; a split that draws other noise or scales the loss wrongly moves nearly all.
+give with the key. Adam's first update is ``lr * g / (|g| + 1e-8)``: a weight whose gradient is at
+rounding level (an attention key bias, whose true gradient is 0) moves by up to the learning rate either
+way, whichever process count computes it; a split that draws other noise or scales the loss wrongly
+moves nearly all of them.
 """
 
 from __future__ import annotations
