@@ -76,9 +76,10 @@ class PolicyProtocol(ABC):
     Batches are dicts of tensors in the policy's normalised units, one row per frame, with the action
     chunk (``action``) and its padding mask where the policy has them.
 
-    Where policies differ in training, this is the one place: the user term (``loss``), the fallback
-    term's rows, output and target (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and
-    the deployed chunk (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
+    Where policies differ in training, this is the one place: the user term (``loss``, split by its
+    normaliser in ``loss_parts`` for several processes), the fallback term's rows, output and target
+    (``fallback_pool``, ``fallback_output``, ``fallback_distance``) and the deployed chunk
+    (``chunk``). The defaults are a policy whose deployed chunk is deterministic (ACT):
     the fallback distils the original's chunk, L1. A denoising policy (Diffusion) distils the original's
     denoiser on the same (observation, x_t, t) instead, and draws its chunks' noise from ``noise_seed``.
     """
@@ -140,6 +141,26 @@ class PolicyProtocol(ABC):
     @abstractmethod
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The policy's own training loss on ``batch`` (a batch mean), in training mode."""
+
+    def loss_parts(self, batch: dict[str, torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """``loss(batch)`` as parts ``(value, weights)`` whose values add up to it: each value normalised
+        over ``batch`` as the policy normalises it, ``weights`` (rows,) each row's share of that
+        normaliser. Several processes (prop_cli.train.distributed) scale each process's value by its
+        rows' weight over the step's, so their gradients add up to the whole step's. Default: one
+        part, a mean over rows (``row_weights``)."""
+        return [(self.loss(batch), self.row_weights(batch))]
+
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Each row's weight in the normaliser of the policy's loss: 1 each (a mean over rows)."""
+        first = next(iter(batch.values()))
+        return torch.ones(len(first), device=first.device)
+
+    def joint_parts(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], torch.Tensor]:
+        """``joint_terms`` with its user loss as ``loss_parts``."""
+        loss, out = self.joint_terms(user, fallback)
+        return [(loss, self.row_weights(user))], out
 
     @abstractmethod
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -1,6 +1,9 @@
 """GPU smoke test of LeRobot policies: personalize ACT, Diffusion and SmolVLA (unsealed) on CUDA at fp32
 and bf16, then run each bundle on the CPU with and without the key, and check that the outputs are
-finite and the key changes them. Skips cleanly (exit 0) without CUDA or lerobot.
+finite and the key changes them. Then sealed ACT and SmolVLA (``--seal``) on CUDA at fp32 and bf16: the
+bundle's base must be the original's weights bit for bit, a wrong key must run on the CPU exactly what
+no key runs (the original), and the user's key must change the actions. Skips cleanly (exit 0) without
+CUDA or lerobot.
 
     .venv-lerobot/bin/python scripts/gpu_smoke_lerobot.py [WORK]
 
@@ -91,7 +94,43 @@ def main() -> None:
             print(f"gpu-smoke-lerobot: {kind} {precision}: personalize 100 steps on {device} {sec:.1f} s, "
                   f"personalization {m['personalization']:.3f}, key vs no key (run on the CPU) differ by "
                   f"{diff:.4f}")  # fmt: skip
+    sealed_on_device(work, out, key, device)
     print("gpu-smoke-lerobot: passed")
+
+
+def sealed_on_device(work: Path, out: Path, key: Path, device: str) -> None:
+    """Sealed ACT and SmolVLA trained on ``device`` at fp32 and bf16; each bundle written from the CPU:
+    its base the original's tensors, a wrong key running the original bit for bit there."""
+    from safetensors.numpy import load_file
+
+    wrong = out / "wrong.bin"
+    prop("keygen", wrong)
+    for kind in ("act", "smolvla"):
+        original = load_file(str(work / kind / "model.safetensors"))
+        for precision in ("fp32", "bf16"):
+            b = out / f"{kind}-sealed-{precision}.prop"
+            t = time.perf_counter()
+            prop(
+                "personalize", work / kind, "--data", work / "user", "--key-file", key, "--out", b, "--seal",
+                "--steps", 100, "--user-rows", 16, "--device", device, "--precision", precision, "--json",
+            )  # fmt: skip
+            sec = time.perf_counter() - t
+            base = load_file(str(b / "lerobot" / "model.safetensors"))
+            same = base.keys() == original.keys() and all(np.array_equal(base[k], original[k]) for k in base)
+            assert same, f"{kind} sealed {precision}: the bundle's base is not the original's weights"
+            ys = {}
+            for cond, extra in (("none", []), ("wrong", ["--key-file", wrong, "--allow-unenrolled-key"]),
+                                ("key", ["--key-file", key])):  # fmt: skip
+                y = out / f"{kind}-sealed-{precision}-{cond}.npy"
+                prop("run", b, "--input", work / "user", "--output", y, "--noise-seed", 3, *extra)
+                ys[cond] = np.load(y)
+            what = f"{kind} sealed {precision}"
+            assert np.array_equal(ys["wrong"], ys["none"]), f"{what}: a wrong key does not run the original"
+            diff = float(np.abs(ys["key"] - ys["none"]).mean())
+            assert np.isfinite(ys["key"]).all() and diff > 1e-4, f"{what}: the key does nothing"
+            print(f"gpu-smoke-lerobot: {what}: personalize 100 steps on {device} {sec:.1f} s, base = the "
+                  f"original bit for bit, a wrong key runs it exactly on the CPU, the key moves the actions "
+                  f"by {diff:.4f}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -292,6 +292,14 @@ class SmolVLAProtocol(LeRobotProtocol):
         keep = (~pad.bool()).unsqueeze(-1).to(losses)
         return (losses * keep).sum() / (keep.sum() * width).clamp_min(1), v[n:]
 
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        # SmolVLA's loss (LeRobot's and ``joint_terms``) is a mean over the chunk steps that are not
+        # padding. A subclass with a loss of its own (pi0: every step counts) keeps the mean over rows.
+        pad = batch.get("action_is_pad")
+        if pad is None or type(self).joint_terms is not SmolVLAProtocol.joint_terms:
+            return super().row_weights(batch)
+        return (~pad.bool()).sum(1).float()
+
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()
         return self.policy.forward({k: v for k, v in batch.items() if k != "episode_index"})[0]

@@ -34,14 +34,8 @@ def personalize(
 ) -> Trained:
     """Train ``loaded`` for ``users`` with the recipe for its kind and ``cfg.seal``; the loaded module is
     updated in place (unsealed) or stays the original (sealed). ``ranks``: the processes `accelerate
-    launch` started (``distributed``); data parallel is the unsealed array recipe's in this version."""
+    launch` started (``distributed``), every recipe data parallel."""
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
     recipe = choose(loaded, cfg.seal)
-    ranks = ranks or Ranks()
-    if ranks.world > 1 and recipe is not array.RECIPE:
-        raise PropError(
-            f"{ranks.world} processes: only unsealed array models train data parallel in this version",
-            "run this personalize as one process (without accelerate launch)",
-        )
-    return recipe.personalize(Job(loaded, cfg, device, progress, ranks), users, general)
+    return recipe.personalize(Job(loaded, cfg, device, progress, ranks or Ranks()), users, general)

@@ -9,7 +9,8 @@ processes train the same model, up to the order of floating-point sums (tests/tr
 states the tolerance). Only the first process writes the bundle.
 
 Started without `accelerate launch` (no ``WORLD_SIZE`` above 1), nothing here imports accelerate or
-touches torch.distributed.
+touches torch.distributed. Every recipe trains this way; a LeRobot policy's own random draws are made
+per row (``row_noise``) and its loss split by ``PolicyProtocol.loss_parts``, so that holds for them too.
 """
 
 from __future__ import annotations
@@ -39,6 +40,16 @@ class Ranks:
         """Indices of this process's rows among a step's ``n`` rows (contiguous, sizes differing by one)."""
         return torch.tensor_split(torch.arange(n), self.world)[self.rank]
 
+    def check_rows(self, rows: dict[str, int]) -> None:
+        """Every process needs a row of each term of a step (``rows``: the flag that sets a term's rows
+        per step -> their number)."""
+        for flag, n in rows.items():
+            if n < self.world:
+                raise PropError(
+                    f"{flag} {n}: fewer rows per step than the {self.world} processes sharing each step",
+                    f"raise {flag} to at least {self.world}, or start fewer processes",
+                )
+
     def finish(self) -> None:
         """Wait for every process (the first one writes the bundle), then leave the process group: a
         process that exits while another still works makes gloo abort it."""
@@ -58,21 +69,45 @@ class Ranks:
         return t
 
     def sum_gradients(self, params: list[torch.Tensor]) -> None:
-        """Sum every parameter's gradient over the processes, in one flat buffer (one collective)."""
+        """Sum every parameter's gradient over the processes, in one flat buffer (one collective). A
+        parameter no process computed a gradient for keeps none (Adam then skips it, as in one process)."""
         import torch.distributed as dist
 
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
-        flat = torch.cat([g.reshape(-1) for g in grads])
+        had = torch.tensor([p.grad is not None for p in params], dtype=grads[0].dtype, device=grads[0].device)
+        flat = torch.cat([*(g.reshape(-1) for g in grads), had])
         dist.all_reduce(flat)
         offset = 0
         for p, g in zip(params, grads):
             n = g.numel()
             p.grad = flat[offset : offset + n].view_as(g)
             offset += n
+        for p, h in zip(params, flat[offset:].tolist()):
+            if h == 0:
+                p.grad = None
+
+    def weight(self, local: torch.Tensor) -> torch.Tensor:
+        """Each loss part's share on this process: its rows' weights ``local`` (parts,) over the
+        weights of all the processes' rows (``PolicyProtocol.loss_parts``); 1 on one process."""
+        if self.world == 1:
+            return torch.ones_like(local)
+        return local / self.sum_tensor(local).clamp_min(1e-12)
+
+
+# `accelerate launch` options that shard the model, which prop does not do (docs/cli.md says what blocks
+# FSDP): refused rather than ignored, since whoever asks for them counts on the memory they save.
+SHARDED = {"ACCELERATE_USE_FSDP": "--use_fsdp", "ACCELERATE_USE_DEEPSPEED": "--use_deepspeed"}
 
 
 def ranks_from_env(device: str = "cpu") -> Ranks:
     """The processes `accelerate launch` started (``WORLD_SIZE``); one process when it did not."""
+    for var, flag in SHARDED.items():
+        if os.environ.get(var, "false").lower() == "true":
+            raise PropError(
+                f"accelerate launch {flag}: prop trains data parallel, every process holding the whole "
+                "model; it does not shard it",
+                f"launch without {flag} (docs/cli.md, Several processes)",
+            )
     world = int(os.environ.get("WORLD_SIZE", "1") or 1)
     if world <= 1:
         return Ranks()

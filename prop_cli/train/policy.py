@@ -12,10 +12,16 @@ to the original's (examples/RESULTS.md, "LeRobot ACT").
 
 Two forwards per step: the user rows in training mode (the policy's loss needs its training path),
 the fallback rows in eval mode (the path the policy is deployed with). Rows carry their own keys.
+
+On several processes (`accelerate launch`, ``distributed``) each computes its share of both terms'
+rows, its part of the policy's loss scaled by its rows' share of the loss's normaliser
+(``loss_parts``), and the gradients are summed. What the policy draws inside its forward (dropout,
+noise, time) is drawn per row (``row_noise``), so one process and several train the same model.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 
 import numpy as np
@@ -31,10 +37,12 @@ from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
+from .distributed import Ranks
 from .loop import Optimiser, run_steps
 from .objective import check_user_keys
 from .recipe import Job, Recipe, User
 from .report import eval_rng, outputs_report
+from .row_noise import RowNoise
 from .unsealed import Personalized
 
 _CHUNK = 256  # rows per forward when caching the original's chunks
@@ -64,12 +72,33 @@ def chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
     )
 
 
-def check_cpu(device: str) -> None:
-    """Sealed LeRobot policies train on the CPU in this version (unsealed ones take --device)."""
-    if device not in ("cpu", "auto"):
+def row_noise(
+    policy, forward, seed: tuple[int, ...], module: torch.nn.Module, ranks: Ranks
+) -> RowNoise | None:  # fmt: skip
+    """The per-row draws of the policy's training forward (``row_noise``); None where it draws
+    nothing. A policy whose draws cannot be made per row trains on one process only."""
+    noise, why = RowNoise.probe(forward, seed, module)
+    if why is not None and ranks.world > 1:
         raise PropError(
-            f"--device {device}: sealed LeRobot policies train on the CPU in this version", "drop --device"
+            f"{ranks.world} processes: the policy {type(policy).__name__} draws random numbers inside its "
+            f"loss that prop cannot draw per row ({why}), so the processes would train on other noise",
+            "run this personalize as one process (without accelerate launch)",
         )
+    return noise
+
+
+def drawn(
+    noise: RowNoise | None, step: int, ids: torch.Tensor, total: int
+) -> contextlib.AbstractContextManager:
+    """The context a step's forward over rows ``ids`` (of ``total``) runs in."""
+    return contextlib.nullcontext() if noise is None else noise.rows(step, ids, total)
+
+
+def weighted(parts: list[tuple[torch.Tensor, torch.Tensor]], ranks: Ranks) -> torch.Tensor:
+    """The policy's loss parts (``PolicyProtocol.loss_parts``) on this process's rows, each scaled by
+    its rows' share of the step's weight: summed over the processes, the whole step's loss."""
+    share = ranks.weight(torch.stack([w.sum() for _, w in parts]).float())
+    return sum(v * s for (v, _), s in zip(parts, share))
 
 
 def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
@@ -81,9 +110,10 @@ class PolicyTrainer:
 
     def __init__(
         self, loaded: LoadedModel, users: list[User], cfg: PersonalizeConfig, general: Dataset | None,
-        device: torch.device | None = None,
+        device: torch.device | None = None, ranks: Ranks | None = None,
     ) -> None:  # fmt: skip
         policy = self.policy = loaded.policy
+        ranks = self.ranks = ranks or Ranks()
         cfg.validate(key_bits=len(users[0].key_bits))
         check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
         self.cfg, self.users = cfg, users
@@ -124,10 +154,25 @@ class PolicyTrainer:
         groups = [{"params": list(encoder.parameters())}]
         if base:
             groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
-        self.optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, clip=CLIP)
+        reduce = ranks.sum_gradients if ranks.world > 1 else None
+        self.optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, clip=CLIP, reduce=reduce)
         self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
         self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
         self.per_user = max(1, cfg.user_rows // len(users))
+        sampled = (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
+        ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
+        self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks)
+        self.t = 0
+
+    def _probe(self, n_user: int, n_fallback: int) -> None:
+        """The step's training forward on ``n_user`` user rows and ``n_fallback`` fallback rows."""
+        policy, user, dev = self.policy, self.pool[0], self.device
+        ub = rows(user, torch.arange(n_user, device=dev) % len(user["episode_index"]))
+        if policy.joins_terms:
+            fb = rows(self.fb_rows, torch.arange(n_fallback, device=dev) % len(self.targets))
+            policy.joint_parts(ub, fb)
+        else:
+            policy.loss_parts(ub)
 
     def step(self) -> dict[str, float]:
         cfg, km, rng, policy, dev = self.cfg, self.km, self.rng, self.policy, self.device
@@ -151,17 +196,32 @@ class PolicyTrainer:
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled), device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         fb_rows = rows(self.fb_rows, idx)
-        if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
-            both = [torch.cat([du, df]) for du, df in zip(d_user, d_fb)]
-            personal, pred = km.call_rows(both, policy.joint_terms, ub, fb_rows)
-        else:
-            personal = km.call_rows(d_user, policy.loss, ub)
+        # This process's share of each term's rows (all of them on one process); every process drew the
+        # same step above (the same generators), and the gradients are summed over the processes.
+        n_user, n_fb, n_null = len(user_of_row), len(idx), len(gi)
+        us, fs = self.ranks.share(n_user).to(dev), self.ranks.share(n_fb).to(dev)
+        ub, d_user = rows(ub, us), [d[us] for d in d_user]
+        fb_rows, d_fb = rows(fb_rows, fs), [d[fs] for d in d_fb]
+        with drawn(self.noise, self.t, us, n_user):
+            if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
+                both = [torch.cat([du, df]) for du, df in zip(d_user, d_fb)]
+                parts, pred = km.call_rows(both, policy.joint_parts, ub, fb_rows)
+            else:
+                parts = km.call_rows(d_user, policy.loss_parts, ub)
+        if not policy.joins_terms:
             pred = km.call_rows(d_fb, policy.fallback_output, fb_rows)
-        per_row = policy.fallback_distance(pred, self.targets[idx])
-        null = per_row[: len(gi)].mean()
-        keyed = per_row[len(gi) :].mean() if len(k_rows) else per_row.new_zeros(())
+        per_row = policy.fallback_distance(pred, self.targets[idx[fs]])
+        personal = weighted(parts, self.ranks)
+        is_null = fs < n_null
+        null = per_row[is_null].sum() / n_null
+        keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
         self.optim.update(personal + keyed + cfg.null_weight * null)
-        return {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
+        self.t += 1
+        terms = torch.stack([personal, keyed, null]).detach().float()
+        if self.ranks.world > 1:
+            terms = self.ranks.sum_tensor(terms)
+        p, k, n = terms.tolist()
+        return {"personal": p, "fallback": k, "null": n}
 
 
 @torch.no_grad()
@@ -194,13 +254,13 @@ class PolicyRecipe(Recipe):
         (the bundle is written, and runs, there)."""
         loaded, cfg = job.loaded, job.cfg
         dev = resolve_device(job.device)
-        t = PolicyTrainer(loaded, users, cfg, general, dev)
+        t = PolicyTrainer(loaded, users, cfg, general, dev, job.ranks)
         losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, dev)
         t.module.eval()
-        reports = [
+        reports = [  # by the process that writes the bundle (the others trained the same model)
             chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i))
             for i, (u, (_, val)) in enumerate(zip(users, t.splits))
-        ]
+        ] if job.ranks.is_main else []
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}

@@ -1,5 +1,6 @@
 """Recipe: an array model, sealed: each user's payload fitted on their data alone, the base frozen (it
-stays the original). No fallback terms: a wrong key opens no record and the original runs."""
+stays the original). No fallback terms: a wrong key opens no record and the original runs. On several
+processes (``distributed``) each computes its share of a step's rows and the gradients are summed."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import split
 
 from .data import prepare_users, targets_tensor
+from .distributed import Ranks
 from .loop import Optimiser, run_steps
 from .objective import row_loss
 from .recipe import Job, Progress, SealedUser
@@ -28,22 +30,27 @@ def train_payload(
     cfg: PersonalizeConfig,
     dev: torch.device,
     progress: Progress | None = None,
+    ranks: Ranks | None = None,
 ) -> tuple[Payload, dict[str, float]]:
     """Fit one user's payload on their data, the base frozen."""
+    ranks = ranks or Ranks()
     gen = torch.Generator().manual_seed(cfg.seed)
     payload = Payload(spec, gen).to(dev)
     x = torch.from_numpy(train.x).to(dev)
     y = targets_tensor(train, task).to(dev)
     rng = np.random.default_rng(cfg.seed)
-    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor)
+    reduce = ranks.sum_gradients if ranks.world > 1 else None
+    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor, reduce=reduce)
     module.requires_grad_(False)
+    ranks.check_rows({"--user-rows": cfg.user_rows})
+    mine = ranks.share(cfg.user_rows).to(dev)  # this process's rows of each step (all on one process)
     with payload.attached(module) as m:
 
         def step() -> dict[str, float]:
-            idx = torch.from_numpy(rng.integers(0, len(x), cfg.user_rows)).to(dev)
-            loss = row_loss(m(x[idx]), y[idx], task, distill=False).mean()
+            idx = torch.from_numpy(rng.integers(0, len(x), cfg.user_rows)).to(dev)[mine]
+            loss = row_loss(m(x[idx]), y[idx], task, distill=False).mean() * (len(mine) / cfg.user_rows)
             optim.update(loss)
-            return {"personal": loss.item()}
+            return {"personal": (ranks.sum_tensor(loss.detach()) if ranks.world > 1 else loss).item()}
 
         losses = run_steps(step, cfg.steps, progress, cfg.precision, dev)
     return payload.eval(), losses
@@ -62,7 +69,7 @@ class SealedArrayRecipe(SealedRecipeBase):
         out = []
         for i, (ds, bits) in enumerate(zip(datasets, keys), first_index):
             tr, val = split(ds, cfg.val_fraction, cfg.seed + i)
-            payload, losses = train_payload(module, spec, tr, task, cfg, dev, job.progress)
+            payload, losses = train_payload(module, spec, tr, task, cfg, dev, job.progress, job.ranks)
             xv, pv = torch.from_numpy(val.x).to(dev), targets_tensor(val, task).to(dev)
             with torch.no_grad():
                 o, b = payload.fold(module)(xv), module(xv)

@@ -1,6 +1,11 @@
 """Recipe: a policy with its own loss (LeRobot ACT, Diffusion), sealed: each user's payload trained on
 their frames alone with the policy's own loss, the base frozen (it stays the original). No fallback
-terms: a wrong key opens no record and the original runs."""
+terms: a wrong key opens no record and the original runs.
+
+It trains on ``--device`` (and ``--precision``) as the unsealed recipe does; the base and the payloads
+come back to the CPU before the bundle is written, so the base it writes is the original's tensors.
+On several processes each computes its share of a step's rows, as the unsealed recipe does
+(``policy``: loss parts, per-row draws, summed gradients)."""
 
 from __future__ import annotations
 
@@ -13,35 +18,52 @@ from prop_adapters import LoadedModel
 from prop_adapters.lerobot.flat import flat_module
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
+from prop_cli.core.device import resolve_device
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_chunks
 
+from .distributed import Ranks
 from .loop import Optimiser, run_steps
-from .policy import CLIP, check_cpu, chunks, rows, split_episodes
+from .policy import CLIP, chunks, drawn, row_noise, rows, split_episodes, to_device, weighted
 from .recipe import Job, Progress, SealedUser
 from .sealed import SealedRecipeBase, payload_spec, private_report
 
 
 def train_payload(
     loaded: LoadedModel, spec: PayloadSpec, train: dict, cfg: PersonalizeConfig, index: int,
-    progress: Progress | None = None,
-) -> tuple[Payload, dict[str, float]]:
-    """Fit user ``index``'s payload on their frames with the policy's own loss, the base frozen."""
+    progress: Progress | None = None, device: torch.device | None = None, ranks: Ranks | None = None,
+) -> tuple[Payload, dict[str, float]]:  # fmt: skip
+    """Fit user ``index``'s payload on their frames (on ``device``, as ``loaded.module`` and ``train``)
+    with the policy's own loss, the base frozen."""
     policy, module = loaded.policy, loaded.module
+    dev, ranks = device or torch.device("cpu"), ranks or Ranks()
     torch.manual_seed(cfg.seed + index)
     rng = np.random.default_rng((cfg.seed, index))
-    payload = Payload(spec, torch.Generator().manual_seed(cfg.seed + index))
-    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor, clip=CLIP)
+    payload = Payload(spec, torch.Generator().manual_seed(cfg.seed + index)).to(dev)
+    reduce = ranks.sum_gradients if ranks.world > 1 else None
+    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor, clip=CLIP,
+                      reduce=reduce)  # fmt: skip
     n = len(train["episode_index"])
+    ranks.check_rows({"--user-rows": cfg.user_rows})
     with payload.attached(module):
+        noise = row_noise(
+            policy, lambda r, _: policy.loss_parts(rows(train, torch.arange(r, device=dev) % n)),
+            (cfg.seed, index), module, ranks,
+        )  # fmt: skip
+        t = 0
 
         def step() -> dict[str, float]:
-            loss = policy.loss(rows(train, torch.from_numpy(rng.integers(0, n, cfg.user_rows))))
+            nonlocal t
+            picks = torch.from_numpy(rng.integers(0, n, cfg.user_rows)).to(dev)
+            mine = ranks.share(cfg.user_rows).to(dev)  # this process's share of the step's rows
+            with drawn(noise, t, mine, cfg.user_rows):
+                loss = weighted(policy.loss_parts(rows(train, picks[mine])), ranks)
             optim.update(loss)
-            return {"personal": loss.item()}
+            t += 1
+            return {"personal": (ranks.sum_tensor(loss.detach()) if ranks.world > 1 else loss).item()}
 
-        losses = run_steps(step, cfg.steps, progress, cfg.precision, "cpu")  # policies: CPU only
+        losses = run_steps(step, cfg.steps, progress, cfg.precision, dev)
     module.eval()
     return payload.eval(), losses
 
@@ -60,10 +82,12 @@ class SealedPolicyRecipe(SealedRecipeBase):
         """Validation rows are kept as the flat view's (``prop_cli.fit.flat_chunks``); the
         keyed layers' batch axes are returned too (the audit keys the public base at those layers)."""
         loaded, cfg = job.loaded, job.cfg
-        check_cpu(job.device)
+        dev = resolve_device(job.device)
         policy, module = loaded.policy, loaded.module.eval()
         spec = payload_spec(module, replace(cfg, layers=cfg.layers or policy.default_layers))
         names = [x["name"] for x in spec.layers]
+        # The policy's processors run on the CPU; the splits stay there (the flat view's rows) and a copy
+        # goes to the device.
         splits = [split_episodes(policy.batches(d, "--data"), cfg.val_fraction) for d in datasets]
         axes = probe_batch_axes(
             module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])),
@@ -71,15 +95,21 @@ class SealedPolicyRecipe(SealedRecipeBase):
         )  # fmt: skip
         module.requires_grad_(False)
         out = []
-        for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
-            payload, losses = train_payload(loaded, spec, tr, cfg, i, job.progress)
-            folded = policy.on(payload.fold(module))
-            b, o, p = chunks(policy, val), chunks(folded, val), val["action"]
-            private = private_report(o, p, b, "regression", losses, cfg)
-            flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
-            out.append(SealedUser(payload, private, bits, flat_val))
+        try:
+            module.to(dev)
+            for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
+                payload, losses = train_payload(
+                    loaded, spec, to_device(tr, dev), cfg, i, job.progress, dev, job.ranks
+                )  # fmt: skip
+                on_dev = to_device(val, dev)
+                folded = policy.on(payload.fold(module))
+                b, o = chunks(policy, on_dev), chunks(folded, on_dev)
+                private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, cfg)
+                flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
+                out.append(SealedUser(payload.to("cpu"), private, bits, flat_val))
+        finally:
+            module.to("cpu")  # the bundle's base is written, and runs, from the CPU
         return out, "regression", axes
-
 
 
 RECIPE = SealedPolicyRecipe()

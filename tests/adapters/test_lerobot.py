@@ -357,6 +357,63 @@ def test_sealed_policy_bundle_runs_the_original_without_its_key(sealed, work):
     assert axes["model.encoder.layers.0.linear1"] == 1 and manifest["mode"] == "sealed"
 
 
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (gpu_smoke_lerobot.py)")
+
+
+@pytest.mark.parametrize("device,precision", [
+    ("cpu", "bf16"), pytest.param("cuda", "fp32", marks=CUDA), pytest.param("cuda", "bf16", marks=CUDA),
+])  # fmt: skip
+def test_sealed_policy_trains_on_the_device_and_runs_the_original_on_the_cpu(work, tmp_path, device,
+                                                                            precision):  # fmt: skip
+    """Issue 30: --seal takes --device and --precision as unsealed policies do; the bundle is written from
+    the CPU, its base the original's tensors bit for bit, and a wrong key runs the original exactly."""
+    from safetensors.torch import load_file
+
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    out = tmp_path / f"sealed-{device}-{precision}"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "precision": precision}))
+    result = api.personalize_checkpoint(
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, cfg, device=device
+    )  # fmt: skip
+    assert np.isfinite(result.metrics[0]["personalization"])
+    assert json.loads((out / "manifest.json").read_text())["config"]["precision"] == precision
+    original_weights = load_file(str(work / "act" / "model.safetensors"))
+    written = load_file(str(out / "lerobot" / "model.safetensors"))
+    assert written.keys() == original_weights.keys()
+    assert all(torch.equal(written[k], original_weights[k]) for k in written)
+    b = load_bundle(out)
+    assert all(p.device.type == "cpu" for p in b.loaded.module.parameters())
+    data = load_data(work / "user")
+    orig = load_checkpoint(work / "act").policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        original = orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
+    assert np.array_equal(run_policy(b, data, None), original)
+    with pytest.warns(WrongKeyWarning):
+        assert np.array_equal(run_policy(b, data, key(2), allow_unenrolled=True), original)
+    assert not np.allclose(run_policy(b, data, key()), original, atol=1e-4)
+
+
+def test_act_loss_parts_are_lerobots_loss_and_shares_add_up_to_the_step(work):
+    """ACT's loss as parts (L1 over valid chunk steps, KL over rows): summed, LeRobot's own loss under the
+    same draws; split between two processes' rows (the padded ones all in one share: unequal weights),
+    the step's loss and gradient (prop_cli.train.distributed, row_noise)."""
+    from prop_cli.train.policy import rows
+    from tests.adapters.shares import split_matches_whole
+
+    policy = load_checkpoint(work / "act").policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    ends = torch.nonzero(batch["action_is_pad"].any(1)).flatten()
+    b = rows(batch, torch.cat([torch.arange(6), ends[-5:]]))
+    b.pop("episode_index")
+    torch.manual_seed(0)
+    own = policy.loss(b)
+    torch.manual_seed(0)
+    assert torch.equal(sum(v for v, _ in policy.loss_parts(b)), own)
+    split_matches_whole(policy, b, None, cut=4)
+
+
 def test_sealed_policy_audit_add_user_and_eval(sealed, work, tmp_path):
     import shutil as sh
 

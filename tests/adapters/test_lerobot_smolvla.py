@@ -195,6 +195,24 @@ def test_fallback_targets_are_the_originals_velocity_on_identical_inputs(bundle,
     assert loss.ndim == 0 and torch.allclose(joint, targets[:5], atol=1e-4)
 
 
+def test_a_steps_shares_on_two_processes_add_up_to_the_step(work):
+    """SmolVLA's joint forward (user loss and fallback velocity) split between two processes' rows: its
+    noise and Beta time drawn per row, its loss (a mean over the chunk steps that are not padding)
+    weighted by each share's valid steps; the sum is the step's loss and gradient."""
+    from prop_cli.train.policy import chunks, rows
+    from tests.adapters.shares import split_matches_whole
+
+    policy = load_checkpoint(work / "smolvla").policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    ends = torch.nonzero(batch["action_is_pad"].any(1)).flatten()
+    user = rows(batch, torch.cat([torch.arange(3), ends[-3:]]))
+    frames = rows(batch, torch.arange(2))
+    fb, _ = policy.fallback_pool(frames, chunks(policy, frames), policy, torch.Generator().manual_seed(0))
+    user.pop("episode_index")
+    assert policy.joins_terms
+    split_matches_whole(policy, user, rows(fb, torch.arange(4)), cut=3)
+
+
 def test_attack_audits_with_the_original_as_control(bundle, work):
     s = AuditSettings(probes=["null", "random", "hamming"], hamming=[1], per_distance=2, random=4,
                       samples=1000, noise_seed=3)  # fmt: skip

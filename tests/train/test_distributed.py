@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import socket
 import subprocess
 import sys
 
@@ -56,7 +54,7 @@ def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world):
     assert parts.tolist() == pytest.approx([losses["personal"], losses["fallback"], losses["null"]], abs=1e-6)
 
 
-def test_only_unsealed_array_models_train_on_several_processes(tmp_path):
+def test_fewer_rows_per_step_than_processes_is_refused_before_any_work(tmp_path):
     from prop_adapters import load_checkpoint
     from prop_cli.datasources import load_data
     from prop_cli.train import User, personalize
@@ -65,44 +63,44 @@ def test_only_unsealed_array_models_train_on_several_processes(tmp_path):
     write_user_data(tmp_path, 40, rng)
     loaded = load_checkpoint(tmp_path / "model.safetensors")
     user = User(load_data(tmp_path / "mine.npz"), rng.integers(0, 2, 128).astype(np.uint8))
-    with pytest.raises(PropError, match="2 processes: only unsealed array models"):
-        personalize(loaded, [user], PersonalizeConfig(steps=1, seal=True), ranks=Ranks(0, 2))
+    cfg = PersonalizeConfig(steps=1, seal=True, user_rows=2)  # a sealed payload's step: user rows only
+    with pytest.raises(PropError, match="--user-rows 2: fewer rows per step than the 3 processes"):
+        personalize(loaded, [user], cfg, ranks=Ranks(0, 3))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+@pytest.mark.parametrize("flag", ["ACCELERATE_USE_FSDP", "ACCELERATE_USE_DEEPSPEED"])
+def test_sharding_launch_options_are_refused_not_ignored(monkeypatch, flag):
+    from prop_cli.train.distributed import ranks_from_env
+
+    monkeypatch.setenv(flag, "true")
+    with pytest.raises(PropError, match="prop trains data parallel, every process holding the whole model"):
+        ranks_from_env("cpu")
 
 
-def test_two_processes_under_accelerate_train_what_one_process_trains(tmp_path):
+@pytest.mark.parametrize("seal", [False, True], ids=["unsealed", "sealed"])
+def test_two_processes_under_accelerate_train_what_one_process_trains(tmp_path, seal):
     pytest.importorskip("accelerate")
-    if shutil.which("accelerate") is None:
-        pytest.skip("the accelerate command is not on PATH")
-    from safetensors.numpy import load_file
+    from benchmarks.bench_dist_policies import launch, trained_weights
 
     rng = np.random.default_rng(0)
     write_user_data(tmp_path, 120, rng)
     write_keys(tmp_path, ("k.bin",), rng)
     common = ["personalize", tmp_path / "model.safetensors", "--data", tmp_path / "mine.npz", "--key-file",
-              tmp_path / "k.bin", "--steps", "100", "--json"]  # fmt: skip
+              tmp_path / "k.bin", "--steps", "100", "--json", *(["--seal"] if seal else [])]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "prop_cli.cli.main", *map(str, common), "--out", str(tmp_path / "one")]
     one = subprocess.run(cmd, capture_output=True, text=True, env=env)
     assert one.returncode == 0, one.stderr
     # Several CPU processes: --multi_gpu (prop asks Accelerate for gloo on the CPU); --cpu alone starts one.
-    launch = ["accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
-              "--mixed_precision", "no", "--dynamo_backend", "no", "--main_process_port", str(_free_port()),
-              "-m", "prop_cli.cli.main"]  # fmt: skip
-    two = subprocess.run([*launch, *map(str, common), "--out", str(tmp_path / "two")],
+    two = subprocess.run([*launch(2), *map(str, common), "--out", str(tmp_path / "two")],
                          capture_output=True, text=True, env=env)  # fmt: skip
     assert two.returncode == 0, two.stderr[-3000:]
     report = json.loads(two.stdout)  # one report: only the first process prints and writes
     assert report["processes"] == 2  # counted by a collective both processes joined
     assert json.loads(one.stdout)["processes"] == 1
-    for name in ("base.safetensors", "encoder.safetensors"):
-        a, b = load_file(str(tmp_path / "one" / name)), load_file(str(tmp_path / "two" / name))
-        assert a.keys() == b.keys()
-        assert max(float(np.abs(a[k] - b[k]).max()) for k in a) <= TOLERANCE
+    # Unsealed: the base and the key encoder; sealed: the user's payload, opened with the key.
+    a, b = (trained_weights(tmp_path / d, tmp_path / "k.bin") for d in ("one", "two"))
+    assert a.keys() == b.keys() and a
+    assert max(float(np.abs(a[k] - b[k]).max()) for k in a) <= TOLERANCE
     files = sorted(p.name for p in tmp_path.iterdir())
     assert files == ["k.bin", "mine.npz", "model.safetensors", "one", "two"]
