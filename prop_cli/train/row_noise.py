@@ -6,26 +6,34 @@ noise, Diffusion the noise and timestep of each row, SmolVLA (and pi0) the flow-
 Beta-distributed time. From torch's global generator, a row's draws depend on the rows drawn before it,
 so a step split between processes (``distributed``) would train on other noise than one process.
 
-``RowNoise`` intercepts every seeded random operator of the forward (a ``TorchDispatchMode``: it sees
-the aten operators, also those inside composite functions such as attention's dropout) and makes each
-from one generator per (run, step, call, row): row r's slice of the draw is the same whether r is
-computed alone, beside the step's other rows, or on another process. ``probe`` finds, for each random
-call of the forward, the axis that holds the rows (and how many entries each row has on it) by
-running the forward at two row counts; a draw whose shape does not follow the rows (a random crop's
-offset) is drawn once per step and call, the same on every process. Operators it cannot draw per row
-(attention kernels with dropout inside, a data-dependent sequence of draws) are reported by name.
+``RowNoise`` makes each seeded aten operator of the forward (a ``TorchDispatchMode``, ``_Draws``) as the
+whole step would draw it, from one generator per (run, step, call), and keeps this forward's rows; a
+draw from per-row parameters (a Beta's) is made per row, from one generator per (run, step, call, row).
+Either way row r's draws are the same whether r is computed alone, beside the step's other rows, or on
+another process. ``probe`` finds, for each random call of the forward, the axis that holds the rows
+(and how many entries each row has on it) by running the forward at two row counts; a draw whose shape
+does not follow the rows (a random crop's offset) is made once per step and call, the same on every
+process. Operators it cannot draw per row (an attention kernel with dropout inside, a sequence of draws
+that depends on the data) are reported by name.
 
-One process uses it too, so one process and several train the same model. It only changes where the
-numbers come from: each draw keeps its distribution, dtype and device.
+The mode makes every operator a trip through Python. Where the probe saw every draw made inside one of
+torch's random functions (``torch.randn``, ``F.dropout``, ``Tensor.bernoulli_``, ...: all of LeRobot's
+policies), only those run inside it, swapped for wrapped ones during the step's forward
+(``_random_functions``: prop trains in one thread); otherwise the whole forward does.
+
+One process draws this way too, so one process and several train the same model. It only changes where
+the numbers come from: each draw keeps its distribution, dtype and device.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from prop_cli.errors import PropError
@@ -67,14 +75,21 @@ def _seeded(func) -> bool:
     return seeded
 
 
+_NAMES: dict = {}  # operator -> its schema's argument names (the schema is rebuilt on every read)
+
+
+def _arg_names(func) -> list[str]:
+    names = _NAMES.get(func)
+    if names is None:
+        names = _NAMES[func] = [a.name for a in func._schema.arguments]
+    return names
+
+
 def _args(func, args: tuple, kwargs: dict) -> dict:
     """The call's arguments by their schema names (those given; defaults left to the operator)."""
-    out = {}
-    for i, a in enumerate(func._schema.arguments):
-        if i < len(args):
-            out[a.name] = args[i]
-        elif a.name in kwargs:
-            out[a.name] = kwargs[a.name]
+    out = dict(zip(_arg_names(func), args))
+    for k, v in kwargs.items():
+        out[k] = v
     return out
 
 
@@ -91,7 +106,7 @@ def _kind(func, named: dict) -> str | None:
     if name in _FROM_TENSORS:
         return "tensors"
     # Kernels that draw inside (attention with dropout): nothing to draw at probability 0.
-    takes_p = any(a.name == "dropout_p" for a in func._schema.arguments)
+    takes_p = "dropout_p" in _arg_names(func)
     return None if takes_p and named.get("dropout_p", 0.0) == 0 else "unsupported"
 
 
@@ -100,8 +115,8 @@ def _shape(func, named: dict) -> tuple[int, ...]:
     name = _name(func)
     if "size" in named:
         return tuple(int(s) for s in named["size"])
-    for a in func._schema.arguments:
-        v = named.get(a.name)
+    for name in _arg_names(func):
+        v = named.get(name)
         if isinstance(v, torch.Tensor):
             return tuple(v.shape)
     raise PropError(f"the policy draws with aten.{name} on no tensor", "report this as a bug")
@@ -117,11 +132,64 @@ class Draw:
     per_row: int
 
 
+# torch's random functions (and Tensor methods) a policy's Python code draws with: while a step's forward
+# runs, each is wrapped to run inside the per-row dispatch mode (``_random_functions``), and the rest of
+# the forward runs without it. A dispatch mode costs every operator a trip through Python: over a whole
+# forward it made the small ACT's PRoP step 1.5x slower.
+_TORCH_FUNCTIONS = ("randn", "rand", "randint", "randn_like", "rand_like", "randint_like", "normal",
+                    "bernoulli", "multinomial", "poisson", "binomial", "_sample_dirichlet",
+                    "_standard_gamma")  # fmt: skip
+_FUNCTIONAL = ("dropout", "dropout1d", "dropout2d", "dropout3d", "alpha_dropout", "feature_alpha_dropout")
+_METHODS = ("normal_", "uniform_", "bernoulli_", "random_", "exponential_", "cauchy_", "log_normal_",
+            "geometric_", "bernoulli", "multinomial")  # fmt: skip
+
+
+class _Inside:
+    """Whether a wrapped random function is running (the flag the probe reads; nested calls pass)."""
+
+    depth = 0
+
+
+@contextlib.contextmanager
+def _random_functions(mode: Callable[[], contextlib.AbstractContextManager]) -> Iterator[None]:
+    """torch's random functions, each run inside ``mode()`` while called (the outermost call only)."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            if _Inside.depth:
+                return fn(*args, **kwargs)
+            _Inside.depth += 1
+            try:
+                with mode():
+                    return fn(*args, **kwargs)
+            finally:
+                _Inside.depth -= 1
+
+        return inner
+
+    saved = []
+    for owner, names in ((torch, _TORCH_FUNCTIONS), (F, _FUNCTIONAL), (torch.Tensor, _METHODS)):
+        for name in names:
+            if hasattr(owner, name):
+                saved.append((owner, name, owner.__dict__.get(name), getattr(owner, name)))
+                setattr(owner, name, wrap(getattr(owner, name)))
+    try:
+        yield
+    finally:
+        for owner, name, own, _ in reversed(saved):
+            if own is None:
+                delattr(owner, name)  # a Tensor method inherited from TensorBase
+            else:
+                setattr(owner, name, own)
+
+
 class _Record(TorchDispatchMode):
     def __init__(self) -> None:
         super().__init__()
         self.calls: list[tuple[str, tuple[int, ...]]] = []
         self.unsupported: set[str] = set()
+        self.covered = True  # every draw made inside a wrapped random function
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
@@ -132,6 +200,7 @@ class _Record(TorchDispatchMode):
                 self.unsupported.add(f"aten.{_name(func)}")
             elif kind is not None:
                 self.calls.append((_name(func), _shape(func, named)))
+                self.covered = self.covered and _Inside.depth > 0
         return func(*args, **kwargs)
 
 
@@ -159,8 +228,10 @@ class RowNoise:
     """The per-row draws of one forward (``probe`` makes one); ``rows(step, ids)`` is the context a
     step's forward runs in, over the rows ``ids`` (their indices among the step's rows)."""
 
-    def __init__(self, draws: list[Draw], seed: tuple[int, ...]) -> None:
+    def __init__(self, draws: list[Draw], seed: tuple[int, ...], covered: bool = False) -> None:
         self.draws, self.seed = draws, seed
+        # Every draw is made by a function ``_random_functions`` wraps: the mode runs only inside them.
+        self.covered = covered
 
     @classmethod
     def probe(
@@ -172,15 +243,17 @@ class RowNoise:
         RowNoise (None: the forward draws nothing) and, where its draws cannot be made per row, why
         (then None too). ``module``: its buffers (batch-norm statistics) are restored after."""
         saved = {k: v.clone() for k, v in module.named_buffers()} if module is not None else {}
-        runs = []
+        runs, covered = [], True
         try:
             for rows, other in ((2, 2), (3, 2), (2, 3)):
                 rec = _Record()
-                with rec, torch.no_grad():  # the draws only: no graph (a real-size policy's memory)
+                # The draws only, without a graph (a real-size policy's memory).
+                with rec, _random_functions(contextlib.nullcontext), torch.no_grad():
                     forward(rows, other)
                 if rec.unsupported:
                     return None, f"it draws with {', '.join(sorted(rec.unsupported))}"
                 runs.append(rec.calls)
+                covered = covered and rec.covered
         finally:
             if saved:
                 with torch.no_grad():
@@ -191,12 +264,13 @@ class RowNoise:
         layout = _layout((2, 3), runs[:2])
         if isinstance(layout, str):
             return None, layout
-        return (cls(layout, seed) if layout else None), None
+        return (cls(layout, seed, covered) if layout else None), None
 
     @contextlib.contextmanager
     def rows(self, step: int, ids: torch.Tensor, total: int) -> Iterator[None]:
         """The context of step ``step``'s forward over its rows ``ids`` (of ``total``)."""
-        with _Draws(self, step, ids, total):
+        draws = _Draws(self, step, ids, total)
+        with _random_functions(lambda: draws) if self.covered else draws:
             yield
 
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from prop_cli.errors import PropError
 from prop_cli.train.row_noise import RowNoise
+
+RANDN, DROPOUT = torch.randn, F.dropout
 
 
 class Noisy(nn.Module):
@@ -44,10 +47,23 @@ def probe(model, x):
     return RowNoise.probe(lambda rows, _: model(x[:rows]), (7,), model)
 
 
-def test_a_rows_draws_are_the_same_whatever_rows_share_its_forward(noisy):
+class Direct(nn.Module):
+    """Draws with an operator called directly, outside the random functions prop wraps."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        eps = torch.ops.aten.randn.default([len(x), x.shape[1]])
+        return x + eps + torch.randn_like(x)
+
+
+@pytest.mark.parametrize("make", [Noisy, Direct])
+def test_a_rows_draws_are_the_same_whatever_rows_share_its_forward(make):
+    torch.manual_seed(0)
+    noisy = make().train()
     x = torch.randn(7, 6)
     noise, why = probe(noisy, x)
     assert why is None and noise is not None
+    # Draws made by torch's random functions need the dispatch mode only inside them; others, throughout.
+    assert noise.covered == (make is Noisy)
     with noise.rows(3, torch.arange(7), 7):
         whole = noisy(x)
     for ids in (torch.arange(0, 4), torch.arange(4, 7), torch.tensor([1, 5, 6])):
@@ -56,6 +72,8 @@ def test_a_rows_draws_are_the_same_whatever_rows_share_its_forward(noisy):
         assert torch.allclose(part, whole[ids], atol=1e-6)
     with noise.rows(4, torch.arange(7), 7):  # another step draws again
         assert not torch.allclose(noisy(x)[:, :8], whole[:, :8])
+    # torch's own functions are back: nothing outside a step draws per row.
+    assert torch.randn is RANDN and "normal_" not in torch.Tensor.__dict__ and F.dropout is DROPOUT
 
 
 def test_one_process_is_the_forward_it_replaces_in_distribution(noisy):
