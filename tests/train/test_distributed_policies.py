@@ -28,7 +28,7 @@ from prop_cli.core.key_files import read_key_file  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 
 TOLERANCE = 1e-5
-STEPS = 12
+STEPS = 8
 
 
 @pytest.fixture(scope="module")
