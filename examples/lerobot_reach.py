@@ -185,7 +185,8 @@ def smolvla(out: Path) -> tuple:
 
 def pi(out: Path, kind: str) -> tuple:
     """The tiny pi0 / pi0.5 (examples/pi_tiny.py) on the camera and the state with the goal (9 values:
-    max_state_dim 16; pi0.5's prompt then holds 22 tokens of its 24)."""
+    max_state_dim 16). pi0.5 writes the state into its prompt as bins 0..255, and a value below the
+    dataset's minimum as "-1" (two tokens): 22 to 31 tokens, so 32 rather than pi_tiny's 24."""
     from lerobot.configs.types import FeatureType, PolicyFeature
 
     from examples.pi_tiny import build_pi, build_tokenizer
@@ -195,7 +196,9 @@ def pi(out: Path, kind: str) -> tuple:
         task.CAMERA: PolicyFeature(FeatureType.VISUAL, (3, task.IMAGE, task.IMAGE)),
     }
     stats = task.dataset_stats(out / "reach-general", keys=(task.STATE, task.ACTION))
-    return build_pi(kind, build_tokenizer(out / "tokenizer"), stats, features=features, max_state_dim=16)
+    length = {"tokenizer_max_length": 32} if kind == "pi05" else {}
+    return build_pi(kind, build_tokenizer(out / "tokenizer"), stats, features=features, max_state_dim=16,
+                    **length)  # fmt: skip
 
 
 def pi_attack() -> None:
