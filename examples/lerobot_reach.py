@@ -24,7 +24,8 @@
    the original), `prop eval` and `prop attack` of the sealed bundle (--out/audit-sealed.json).
 
 --reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
---attack-only keeps the bundle too and redoes step 5; --sealed-only keeps steps 1-5 and redoes step 6;
+--attack-only keeps the bundle too and redoes step 5 (--attack-only sealed: step 6's audit); --sealed-only
+keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only);
 --datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
 
 SmolVLA, pi0 and pi0.5 read the camera, the state with the goal and the instruction. pi0 and pi0.5 are
@@ -57,7 +58,7 @@ PERSONALIZE = [
 ]  # fmt: skip
 PI_ATTACK = [
     "--samples", "32", "--random", "256", "--hamming", "1,2,4,8", "--per-distance", "16", "--blackbox", "512",
-    "--restarts", "8", "--search-steps", "50", "--fewshot-restarts", "4", "--fewshot-steps", "100",
+    "--restarts", "8", "--search-steps", "50", "--fewshot-restarts", "2", "--fewshot-steps", "50",
 ]  # fmt: skip
 VLA = ("smolvla", "pi0", "pi05")  # camera + state with the goal + instruction
 PI = ("pi0", "pi05")  # loaded through examples.pi_tiny (its size patch)
@@ -117,16 +118,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--datasets", type=Path, default=None,
                     help="copy the general and user datasets from this earlier run's --out")  # fmt: skip
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
-    ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
+    ap.add_argument("--attack-only", nargs="?", const="bundle", choices=("bundle", "sealed"),
+                    help="keep the bundle (or with 'sealed' the sealed one) of an earlier run; audit it")
+    ap.add_argument("--no-attack", action="store_true", help="skip the audits (run them with --attack-only)")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
     if args.attack_only:
-        attack(out, "bundle", kind)
+        attack(out, args.attack_only, kind)
         return
     if args.sealed_only:
-        sealed(out, args.episodes, kind)
+        sealed(out, args.episodes, kind, audit=not args.no_attack)
         return
     figures: dict = {}
     if args.reuse and (out / "figures.json").is_file():
@@ -165,8 +168,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
           f"eval {figures['eval_s']} s")  # fmt: skip
-    attack(out, "bundle", kind)
-    sealed(out, args.episodes, kind)
+    if not args.no_attack:
+        attack(out, "bundle", kind)
+    sealed(out, args.episodes, kind, audit=not args.no_attack)
 
 
 def smolvla(out: Path) -> tuple:
@@ -218,12 +222,13 @@ def pi_attack() -> None:
     pi_tiny.main()
 
 
-def sealed(out: Path, episodes: int, kind: str) -> None:
+def sealed(out: Path, episodes: int, kind: str, audit: bool = True) -> None:
     """Step 6: the same user sealed: a LoRA payload in an encrypted record, the base the original."""
     figures = run_bundle(out, "sealed", SETTINGS[kind]["sealed"], episodes, kind)
     (out / "figures-sealed.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: personalize --seal {figures['personalize_s']} s, eval {figures['eval_s']} s")
-    attack(out, "sealed", kind)
+    if audit:
+        attack(out, "sealed", kind)
 
 
 def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
