@@ -2,13 +2,16 @@
 
     bash scripts/setup-lerobot.sh
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step --policy diffusion --reps 30
+    .venv-lerobot/bin/python -m benchmarks.bench_lerobot_step --policy pi0 --reps 30  # default threads
 
 LeRobot step: policy.forward(32 rows) -> backward -> clip 10 -> AdamW (lerobot_train.update_policy).
 PRoP step: prop_cli.train.policy.PolicyTrainer.step, the step `prop personalize` runs: 16 user rows
 through the policy's loss under the user key, 8 null + 8 sampled-key rows through the deployed path
-against the original (ACT: its cached chunks; Diffusion / SmolVLA: its denoiser / velocity on noised
-rows drawn once, both terms in one forward), key encoder in the graph, same clip. The two alternate
-(the machine is shared); medians and their ratio are printed. Target (issues 11 and 22): <= 1.3x.
+against the original (ACT: its cached chunks; Diffusion / SmolVLA / pi0 / pi0.5: its denoiser /
+velocity on noised rows drawn once, both terms in one forward), key encoder in the graph, same clip. The
+two alternate (the machine is shared); medians and their ratio are printed. Target (issues 11, 22 and
+29): <= 1.3x. pi0 and pi0.5 are the tiny ones of examples/pi_tiny.py (2+2-layer Gemmas of width 64),
+built and loaded under its size patch.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from examples.pi_tiny import tiny
 from examples.smolvla_tiny import KINDS, record_and_build
 from prop_adapters import load_checkpoint
 from prop_cli.config import PersonalizeConfig
@@ -37,6 +41,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--full-size", action="store_true",
                     help="Diffusion at LeRobot's default U-Net (down_dims 512/1024/2048, 250M parameters)")
     args = ap.parse_args(argv)
+    with tiny():  # a tiny pi0 / pi0.5 loads only under it; the other policies do not see it
+        bench(args)
+
+
+def bench(args: argparse.Namespace) -> None:
     torch.manual_seed(0)
     work = Path(tempfile.mkdtemp(prefix="prop-bench-lerobot-"))
     full = {"down_dims": (512, 1024, 2048), "diffusion_step_embed_dim": 128} if args.full_size else {}
@@ -77,8 +86,11 @@ def main(argv: list[str] | None = None) -> None:
     med = {k: statistics.median(v) * 1000 for k, v in times.items()}
     unet = "512/1024/2048" if args.full_size else "32/64/128"
     what = {"act": "ACT (dim 64, chunk 10)", "diffusion": f"Diffusion (U-Net {unet}, horizon 16)",
-            "smolvla": "SmolVLA (tiny SmolVLM, 2 layers; chunk 10)"}  # fmt: skip
-    print(f"{what[args.policy]}, {rows} rows per step, {args.reps} alternating reps, medians:")
+            "smolvla": "SmolVLA (tiny SmolVLM, 2 layers; chunk 10)",
+            "pi0": "pi0 (tiny: 2+2-layer Gemmas of width 64, 2-layer SigLIP; chunk 10)",
+            "pi05": "pi0.5 (tiny: 2+2-layer Gemmas of width 64, 2-layer SigLIP; chunk 10)"}  # fmt: skip
+    print(f"{what[args.policy]}, {rows} rows per step, {args.reps} alternating reps, "
+          f"{torch.get_num_threads()} torch threads, medians:")  # fmt: skip
     print(f"  LeRobot step {med['lerobot']:.1f} ms, PRoP step {med['prop']:.1f} ms, "
           f"ratio {med['prop'] / med['lerobot']:.2f}x (target <= 1.3x)")  # fmt: skip
 

@@ -1,10 +1,13 @@
-"""LeRobot ACT, Diffusion or SmolVLA end to end on PandaReach, through the `prop` command line (figures
-in examples/RESULTS.md).
+"""LeRobot ACT, Diffusion, SmolVLA, pi0 or pi0.5 end to end on PandaReach, through the `prop` command line
+(figures in examples/RESULTS.md).
 
     bash scripts/setup-lerobot.sh
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --out out/lerobot-reach
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --policy diffusion \
         --out out/lerobot-reach-diffusion
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --policy pi0
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --policy pi05 \
+        --datasets out/lerobot-reach-pi0
 
 1. Record two LeRobotDatasets from a scripted expert: general (reach the goal, 80 episodes) and the
    user's (hold 10 cm above it, 20 episodes). No downloads, nobody labels anything.
@@ -21,7 +24,13 @@ in examples/RESULTS.md).
    the original), `prop eval` and `prop attack` of the sealed bundle (--out/audit-sealed.json).
 
 --reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
---attack-only keeps the bundle too and redoes step 5; --sealed-only keeps steps 1-5 and redoes step 6.
+--attack-only keeps the bundle too and redoes step 5 (--attack-only sealed: step 6's audit); --sealed-only
+keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only);
+--datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
+
+SmolVLA, pi0 and pi0.5 read the camera, the state with the goal and the instruction. pi0 and pi0.5 are
+the tiny ones of examples/pi_tiny.py, which load only under its size patch: every `prop` call for them
+runs as `python -m examples.pi_tiny ARGS` (prop with that patch).
 """
 
 from __future__ import annotations
@@ -47,6 +56,12 @@ PERSONALIZE = [
     "--steps", "3000", "--user-rows", "16", "--null-rows", "8", "--neighbour-keys", "4", "--random-keys", "4",
     "--samples-per-key", "1", "--null-weight", "2", "--lr", "1e-3", "--base-lr-scale", "0.1",
 ]  # fmt: skip
+PI_ATTACK = [
+    "--samples", "32", "--random", "256", "--hamming", "1,2,4,8", "--per-distance", "16", "--blackbox", "512",
+    "--restarts", "8", "--search-steps", "50", "--fewshot-restarts", "2", "--fewshot-steps", "50",
+]  # fmt: skip
+VLA = ("smolvla", "pi0", "pi05")  # camera + state with the goal + instruction
+PI = ("pi0", "pi05")  # loaded through examples.pi_tiny (its size patch)
 # Diffusion: the same Eq. 8 batch; lr 3e-4 (LeRobot trains Diffusion at 1e-4, ACT at 1e-5 to 1e-4, and
 # the keyed encoder needs more than the base: base-lr-scale 0.1 as for ACT).
 SETTINGS = {
@@ -59,6 +74,14 @@ SETTINGS = {
         "attack": ["--samples", "128", "--random", "512", "--blackbox", "4096", "--restarts", "16",
                    "--fewshot-restarts", "8"],
     },
+    # pi0 / pi0.5 (the tiny ones of examples/pi_tiny.py, camera + state with the goal + instruction):
+    # SmolVLA's settings with fewer steps and the audit's budgets cut further, to fit a 2-core machine
+    # (each chunk is 10 flow steps through the 2+2-layer Gemmas; figures in examples/RESULTS.md).
+    **{kind: {
+        "personalize": ["--steps", "2000", *PERSONALIZE[2:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
+        "sealed": ["--seal", "--steps", "2000", *SEALED[3:]], "base_steps": 3000, "base_lr": 1e-3,
+        "attack": PI_ATTACK,
+    } for kind in ("pi0", "pi05")},
     # The audit's budgets cut for Diffusion: each chunk is 10 denoising steps of the U-Net.
     "diffusion": {
         "personalize": [*PERSONALIZE[:-4], "--lr", "3e-4", *PERSONALIZE[-2:]],
@@ -69,8 +92,14 @@ SETTINGS = {
 }  # fmt: skip
 
 
-def prop(*args: object, capture: bool = False) -> str:
-    cmd = [sys.executable, "-m", "prop_cli.cli.main", *map(str, args)]
+def prop(*args: object, capture: bool = False, kind: str = "act") -> str:
+    """``prop ARGS`` in a subprocess; for a tiny pi0 / pi0.5 ``python -m examples.pi_tiny ARGS`` (its size
+    patch), and for their audit ``pi_attack`` (below)."""
+    if kind in PI and args[0] == "attack":
+        entry = ["-c", "from examples.lerobot_reach import pi_attack; pi_attack()"]
+    else:
+        entry = ["-m", "examples.pi_tiny" if kind in PI else "prop_cli.cli.main"]
+    cmd = [sys.executable, *entry, *map(str, args)]
     print("$ prop " + " ".join(map(str, args)), flush=True)
     done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE if capture else None, text=True)
     return done.stdout if capture else ""
@@ -81,22 +110,26 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=None, help="default out/lerobot-reach[-diffusion]")
     ap.add_argument("--policy", choices=sorted(SETTINGS), default="act")
     ap.add_argument("--base-steps", type=int, default=None,
-                    help="default 2500 (act), 6000 (diffusion), 4000 (smolvla)")
+                    help="default 2500 (act), 6000 (diffusion), 4000 (smolvla), 3000 (pi0, pi05)")
     ap.add_argument("--episodes", type=int, default=30, help="closed-loop episodes per condition")
     ap.add_argument("--steps", type=int, default=None, help="personalize steps (default 3000)")
     ap.add_argument("--camera", action="store_true",
                     help="record the rendered camera too (32 x 32) and make it a policy input (diffusion)")
+    ap.add_argument("--datasets", type=Path, default=None,
+                    help="copy the general and user datasets from this earlier run's --out")  # fmt: skip
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
-    ap.add_argument("--attack-only", action="store_true", help="keep the bundle of an earlier run; audit it")
+    ap.add_argument("--attack-only", nargs="?", const="bundle", choices=("bundle", "sealed"),
+                    help="keep the bundle (or with 'sealed' the sealed one) of an earlier run; audit it")
+    ap.add_argument("--no-attack", action="store_true", help="skip the audits (run them with --attack-only)")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
     if args.attack_only:
-        attack(out, "bundle", kind)
+        attack(out, args.attack_only, kind)
         return
     if args.sealed_only:
-        sealed(out, args.episodes, kind)
+        sealed(out, args.episodes, kind, audit=not args.no_attack)
         return
     figures: dict = {}
     if args.reuse and (out / "figures.json").is_file():
@@ -106,19 +139,27 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         t = time.perf_counter()
-        vla = kind == "smolvla"  # camera frames and the goal in the state, always
+        vla = kind in VLA  # camera frames and the goal in the state, always
         camera = args.camera or vla
-        task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=camera, goal_in_state=vla)
-        task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=camera, goal_in_state=vla)
-        figures["record_s"] = round(time.perf_counter() - t, 1)
+        if args.datasets:
+            for name in ("reach-general", "reach-user"):
+                shutil.copytree(args.datasets / name, out / name)
+            figures["record_s"] = json.loads((args.datasets / "figures.json").read_text())["record_s"]
+        else:
+            task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=camera,
+                        goal_in_state=vla)  # fmt: skip
+            task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=camera, goal_in_state=vla)
+            figures["record_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
-        built = smolvla(out) if vla else None
+        built = (pi(out, kind) if kind in PI else smolvla(out)) if vla else None
+        if built:
+            figures["base_parameters"] = sum(p.numel() for p in built[0].parameters())
         ms = task.train_base(out / "reach-general", out / kind, args.base_steps or conf["base_steps"],
                              lr=conf["base_lr"], kind=kind, camera=args.camera, built=built)  # fmt: skip
         figures["base_ms_per_step"] = round(ms, 1)
         figures["base_train_s"] = round(time.perf_counter() - t, 1)
         prop("keygen", out / "user.key")
-    prop("inspect", out / kind)
+    prop("inspect", out / kind, kind=kind)
     steps = conf["personalize"]
     steps = steps if args.steps is None else [*steps[:1], str(args.steps), *steps[2:]]
     general = ["--general-data", out / "reach-general"]
@@ -127,8 +168,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
           f"eval {figures['eval_s']} s")  # fmt: skip
-    attack(out, "bundle", kind)
-    sealed(out, args.episodes, kind)
+    if not args.no_attack:
+        attack(out, "bundle", kind)
+    sealed(out, args.episodes, kind, audit=not args.no_attack)
 
 
 def smolvla(out: Path) -> tuple:
@@ -145,12 +187,48 @@ def smolvla(out: Path) -> tuple:
     return build_smolvla(build_vlm(out / "vlm"), stats, features=features)
 
 
-def sealed(out: Path, episodes: int, kind: str) -> None:
+def pi(out: Path, kind: str) -> tuple:
+    """The tiny pi0 / pi0.5 (examples/pi_tiny.py) on the camera and the state with the goal (9 values:
+    max_state_dim 16). pi0.5 writes the state into its prompt as bins 0..255, and a value below the
+    dataset's minimum as "-1" (two tokens): 22 to 31 tokens, so 32 rather than pi_tiny's 24."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    from examples.pi_tiny import build_pi, build_tokenizer
+
+    features = {
+        task.STATE: PolicyFeature(FeatureType.STATE, (9,)),
+        task.CAMERA: PolicyFeature(FeatureType.VISUAL, (3, task.IMAGE, task.IMAGE)),
+    }
+    stats = task.dataset_stats(out / "reach-general", keys=(task.STATE, task.ACTION))
+    length = {"tokenizer_max_length": 32} if kind == "pi05" else {}
+    return build_pi(kind, build_tokenizer(out / "tokenizer"), stats, features=features, max_state_dim=16,
+                    **length)  # fmt: skip
+
+
+def pi_attack() -> None:
+    """``python -m examples.pi_tiny attack ARGS`` with LeRobot's pi0 / pi0.5 ``sample_actions`` unwrapped
+    from its ``@torch.no_grad()``. A workaround, here only: the pi0 adapter's deployed chunk calls it, so
+    the audit's gradient searches (relaxed, latent, few-shot) stop with "element 0 of tensors does not
+    require grad" (SmolVLA's sample_actions has no such decorator). Without gradients asked for, the
+    unwrapped function computes the same chunk."""
+    import importlib
+
+    from examples import pi_tiny
+
+    for kind in PI:
+        model = importlib.import_module(f"lerobot.policies.{kind}.modeling_{kind}")
+        cls = getattr(model, "PI0Pytorch" if kind == "pi0" else "PI05Pytorch")
+        cls.sample_actions = getattr(cls.sample_actions, "__wrapped__", cls.sample_actions)
+    pi_tiny.main()
+
+
+def sealed(out: Path, episodes: int, kind: str, audit: bool = True) -> None:
     """Step 6: the same user sealed: a LoRA payload in an encrypted record, the base the original."""
     figures = run_bundle(out, "sealed", SETTINGS[kind]["sealed"], episodes, kind)
     (out / "figures-sealed.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: personalize --seal {figures['personalize_s']} s, eval {figures['eval_s']} s")
-    attack(out, "sealed", kind)
+    if audit:
+        attack(out, "sealed", kind)
 
 
 def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
@@ -158,14 +236,14 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
     camera = task.CAMERA in json.loads((out / kind / "config.json").read_text())["input_features"]
     env_id, obs_map = (task.CAMERA_ENV_ID, task.CAMERA_OBS_MAP) if camera else (task.ENV_ID, task.OBS_MAP)
     extra = []
-    if kind == "smolvla":
+    if kind in VLA:
         obs_map, extra = task.SMOLVLA_OBS_MAP, ["--instruction", task.INSTRUCTION]
     shutil.rmtree(out / name, ignore_errors=True)
     figures: dict = {}
     t = time.perf_counter()
     report = json.loads(prop(
         "personalize", out / kind, "--data", out / "reach-user", "--key-file", out / "user.key",
-        "--out", out / name, *personalize, "--json", capture=True,
+        "--out", out / name, *personalize, "--json", capture=True, kind=kind,
     ))  # fmt: skip
     figures["personalize_s"] = round(time.perf_counter() - t, 1)
     figures["offline"] = report["metrics"][0]
@@ -174,7 +252,7 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
         "eval", out / name, "--env", env_id, "--obs-map", obs_map, "--metric", task.METRIC,
         "--key-file", out / "user.key", "--original", out / kind, "--episodes", episodes,
         "--max-steps", task.HORIZON, "--ignore-terminated", "--json", *extra,
-        capture=True,
+        capture=True, kind=kind,
     ))  # fmt: skip
     figures["eval_s"] = round(time.perf_counter() - t, 1)
     figures["closed_loop"] = closed["conditions"]
@@ -195,7 +273,7 @@ def attack(out: Path, name: str, kind: str) -> None:
     t = time.perf_counter()
     audit = out / ("audit.json" if name == "bundle" else f"audit-{name}.json")
     prop("attack", out / name, "--data", out / "reach-user", "--key-file", out / "user.key",
-         "--original", out / kind, "--json", audit, *SETTINGS[kind]["attack"])  # fmt: skip
+         "--original", out / kind, "--json", audit, *SETTINGS[kind]["attack"], kind=kind)  # fmt: skip
     report = json.loads(audit.read_text())
     u = report["user"]
     print(f"\n{name}: audit ({time.perf_counter() - t:.0f} s): user key personalization "

@@ -125,16 +125,20 @@ def describe(folder: Path) -> dict:
 
 def record_and_build(work: Path, kind: str, general_episodes: int, user_episodes: int, **overrides) -> Path:
     """The benchmarks' set-up for any small policy: record general and user data (with the camera for
-    SmolVLA, which needs an image), build the policy and save it after one LeRobot step; its folder."""
+    SmolVLA, pi0 and pi0.5, which need an image), build the policy and save it after one LeRobot step;
+    its folder. A tiny pi0 / pi0.5 (examples/pi_tiny.py) loads back only under ``pi_tiny.tiny()``."""
     import numpy as np
 
     from examples import lerobot_reach_task as task
+    from examples import pi_tiny
 
-    camera = kind == "smolvla"
+    camera = kind in ("smolvla", *pi_tiny.KINDS)
     task.record(work / "general", general_episodes, 0, np.zeros(3, np.float32), camera=camera)
     task.record(work / "user", user_episodes, 50_000, task.USER_OFFSET, camera=camera)
     stats = task.dataset_stats(work / "general")
-    if camera:
+    if kind in pi_tiny.KINDS:
+        built = pi_tiny.build_pi(kind, pi_tiny.build_tokenizer(work / "tokenizer"), stats, **overrides)
+    elif camera:
         built = build_smolvla(build_vlm(work / "vlm"), stats, **overrides)
     else:
         built = task.BUILDERS[kind](stats, **overrides)
@@ -142,4 +146,4 @@ def record_and_build(work: Path, kind: str, general_episodes: int, user_episodes
     return work / kind
 
 
-KINDS = ("act", "diffusion", "smolvla")  # what record_and_build builds
+KINDS = ("act", "diffusion", "smolvla", "pi0", "pi05")  # what record_and_build builds
