@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import importlib
+import inspect
 import json
 import logging
 from pathlib import Path
@@ -253,6 +254,16 @@ class PI0Protocol(SmolVLAProtocol):
                            torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
         losses = torch.nn.functional.mse_loss(noise - actions, v[:n], reduction="none")
         return losses[:, :, : self.config.action_feature.shape[0]].mean(), v[n:]
+
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        # LeRobot decorates pi0's and pi0.5's sample_actions with @torch.no_grad(); the audit's gradient
+        # searches need the chunk's graph, so the undecorated function runs (the same chunk: callers that
+        # want no graph run it under no_grad themselves).
+        self.policy.eval()
+        inputs = self._inputs(batch)
+        noise = self._noise(batch[TOKENS].shape[0], batch[TOKENS].device)
+        actions = inspect.unwrap(type(self.model).sample_actions)(self.model, *inputs, noise=noise)
+        return actions[:, :, : self.config.action_feature.shape[0]]
 
     def describe(self) -> dict:
         c, pwe = self.config, self.model.paligemma_with_expert

@@ -172,6 +172,9 @@ def test_pi0_user_term_is_lerobots_own_loss_for_the_same_seed(work):
         torch.manual_seed(policy.noise_seed)
         own = policy.policy.predict_action_chunk({k: batch[k][1:2] for k in policy.row_shapes})
     assert torch.allclose(chunks[1:2], own, atol=1e-5)
+    # The audit's gradient searches differentiate the chunk (LeRobot's sample_actions is no_grad).
+    again = policy.chunk({k: batch[k][:2] for k in policy.row_shapes})
+    assert again.requires_grad and torch.equal(again.detach(), chunks)
 
 
 def test_pi0_bundle_carries_the_tokenizer_and_runs_as_lerobot(bundle, work, tmp_path, cli):
