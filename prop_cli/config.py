@@ -96,6 +96,9 @@ class PersonalizeConfig(_Settings):
     layers: list[str] | None = None  # None = default choice (see layers.default_layers)
     exclude: list[str] | None = None
     eval_random_keys: int = 64
+    # The report's budget, in (key condition x held-out frame) runs of a policy's sampler (None: by the
+    # policy's size, prop_cli.train.policy.report_budget; 0: every key on every held-out frame).
+    report_budget: int | None = None
     task: str | None = None  # None: decided against the model (prop_cli.fit.resolve_task)
     # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
     # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
@@ -152,6 +155,8 @@ class PersonalizeConfig(_Settings):
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
         self.at_least(code_negatives=0, code_flip_max=1)
+        if self.report_budget is not None:
+            self.at_least(report_budget=0)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
         self.need(self.precision in PRECISIONS, "precision", " or ".join(PRECISIONS))
         return self

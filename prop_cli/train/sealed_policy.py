@@ -18,7 +18,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_chunks
 
 from .loop import Optimiser, run_steps
-from .policy import CLIP, check_cpu, chunks, rows, split_episodes
+from .policy import CLIP, check_cpu, chunks, forward_rows, rows, split_episodes
 from .recipe import Job, Progress, SealedUser
 from .sealed import SealedRecipeBase, payload_spec, private_report
 
@@ -53,6 +53,9 @@ class SealedPolicyRecipe(SealedRecipeBase):
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> dict:
         return {k: list(v) for k, v in loaded.policy.input_features.items()}
 
+    def report_rows(self, cfg: PersonalizeConfig) -> int:
+        return forward_rows(cfg, cfg.user_rows)
+
     def train_users(
         self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
         first_index: int = 0,
@@ -63,8 +66,17 @@ class SealedPolicyRecipe(SealedRecipeBase):
         check_cpu(job.device)
         policy, module = loaded.policy, loaded.module.eval()
         spec = payload_spec(module, replace(cfg, layers=cfg.layers or policy.default_layers))
-        names = [x["name"] for x in spec.layers]
         splits = [split_episodes(policy.batches(d, "--data"), cfg.val_fraction) for d in datasets]
+        with policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+            return self._train(job, spec, splits, keys, datasets, first_index)
+
+    def _train(
+        self, job: Job, spec: PayloadSpec, splits: list, keys: list[np.ndarray], datasets: list[Dataset],
+        first_index: int,
+    ) -> tuple[list[SealedUser], str, dict[str, int]]:  # fmt: skip
+        loaded, cfg = job.loaded, job.cfg
+        policy, module = loaded.policy, loaded.module
+        names = [x["name"] for x in spec.layers]
         axes = probe_batch_axes(
             module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])),
             f"the policy {loaded.source}",
@@ -74,12 +86,12 @@ class SealedPolicyRecipe(SealedRecipeBase):
         for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
             payload, losses = train_payload(loaded, spec, tr, cfg, i, job.progress)
             folded = policy.on(payload.fold(module))
-            b, o, p = chunks(policy, val), chunks(folded, val), val["action"]
+            per = self.report_rows(cfg)
+            b, o, p = chunks(policy, val, per), chunks(folded, val, per), val["action"]
             private = private_report(o, p, b, "regression", losses, cfg)
             flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
             out.append(SealedUser(payload, private, bits, flat_val))
         return out, "regression", axes
-
 
 
 RECIPE = SealedPolicyRecipe()
