@@ -144,14 +144,14 @@ class Clock:
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
         self.phase_start = self.t0
-        self.figures: dict = {"phases": {p: 0.0 for p in PHASES}, "peak_gb": {}, "steps_s": []}
+        self.figures: dict = {"phases": {p: 0.0 for p in PHASES}, "peak_gib": {}, "steps_s": []}
         atexit.register(self.emit)
 
     def add(self, phase: str, seconds: float) -> None:
         self.figures["phases"][phase] += seconds
 
     def peak(self, label: str) -> None:
-        self.figures["peak_gb"][label] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+        self.figures["peak_gib"][label] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
     def emit(self) -> None:
         self.peak("end")
@@ -220,15 +220,18 @@ def prop_worker(argv: list[str]) -> None:
     import prop_cli.train.sealed as ts
     import prop_cli.train.sealed_policy as tsp
 
-    state = {"stepped": False}
+    state = {"stepped": False, "depth": 0}
 
     def timed(fn, phase_of):
-        def wrapper(*a, **k):
+        def wrapper(*a, **k):  # the outermost timed call counts (a report's chunks are the report's)
             t = time.perf_counter()
+            state["depth"] += 1
             try:
                 return fn(*a, **k)
             finally:
-                clock.add(phase_of(), time.perf_counter() - t)
+                state["depth"] -= 1
+                if not state["depth"]:
+                    clock.add(phase_of(), time.perf_counter() - t)
 
         return wrapper
 
@@ -295,8 +298,10 @@ def measured(cmd: list[str], env: dict, log: Path) -> dict:
     lines = [line for line in text.splitlines() if line.startswith(MARK)]
     figures = json.loads(lines[-1][len(MARK) :]) if lines else {}
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", text)
-    figures["rss_gb"] = int(rss.group(1)) / 2**20 if rss else float("nan")
+    figures["rss_gb"] = int(rss.group(1)) / 2**20 if rss else float("nan")  # KiB -> GiB
     figures["wall_s"] = wall
+    cpu = re.findall(r"(?:User|System) time \(seconds\): ([\d.]+)", text)
+    figures["cpu_s"] = sum(map(float, cpu)) if cpu else float("nan")
     return figures
 
 
@@ -309,13 +314,13 @@ def median(xs: list[float]) -> float:
 def table(results: dict[str, dict]) -> str:
     """The markdown table: peak memory, step time and fixed costs per run, then prop's ratios."""
     head = ("| run | peak memory | step (median) | set-up | precompute | targets in steps | steps | report "
-            "| wall |")  # fmt: skip
-    out = [head, "|" + "---|" * 9]
+            "| wall | CPU |")  # fmt: skip
+    out = [head, "|" + "---|" * 10]
     for name, r in results.items():
         ph = r.get("phases", {})
-        cells = [f"{r['rss_gb']:.2f} GB", f"{median(r.get('steps_s', [])):.1f} s"]
+        cells = [f"{r['rss_gb']:.2f} GiB", f"{median(r.get('steps_s', [])):.1f} s"]
         cells += [f"{ph.get(k, 0):.0f} s" for k in ("setup", "precompute", "targets", "steps", "report")]
-        out.append(f"| {name} | " + " | ".join(cells) + f" | {r['wall_s']:.0f} s |")
+        out.append(f"| {name} | " + " | ".join(cells) + f" | {r['wall_s']:.0f} s | {r['cpu_s']:.0f} s |")
     for a, b in (("prop", "lerobot"), ("sealed", "peft")):
         if a in results and b in results:
             ra, rb = results[a], results[b]
@@ -386,8 +391,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{name}: {shlex.join(cmds[name])}", file=sys.stderr, flush=True)
         results[name] = measured(cmds[name], env, work / f"{name}.log")
         r = results[name]
-        print(f"  peak {r['rss_gb']:.2f} GB, wall {r['wall_s']:.0f} s, phases "
-              f"{ {k: round(v, 1) for k, v in r.get('phases', {}).items()} }, peaks {r.get('peak_gb')}",
+        print(f"  peak {r['rss_gb']:.2f} GiB, wall {r['wall_s']:.0f} s, phases "
+              f"{ {k: round(v, 1) for k, v in r.get('phases', {}).items()} }, peaks {r.get('peak_gib')}",
               file=sys.stderr, flush=True)  # fmt: skip
     print(table(results))
     (work / "results.json").write_text(json.dumps(results, indent=1))

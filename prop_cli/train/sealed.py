@@ -9,6 +9,7 @@ protect: docs/sealed.md.
 
 from __future__ import annotations
 
+import contextlib
 from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,8 +155,10 @@ class SealedResult(Trained):
 
         def manifest_metrics(state: SealedState) -> None:
             # The reports are printed for the user; none of a user's figures goes in the clear manifest.
-            for i, u in enumerate(self.users):
-                reports.append(user_report(state, self.view, u, self.task, self.cfg, i, self.per_forward))
+            policy = self.loaded.policy
+            with policy.memo() if policy is not None else contextlib.nullcontext():
+                for i, u in enumerate(self.users):
+                    reports.append(user_report(state, self.view, u, self.task, self.cfg, i, self.per_forward))
 
         users = [(u.payload, u.private, u.bits) for u in self.users]
         written = write_sealed(

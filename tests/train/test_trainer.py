@@ -96,12 +96,12 @@ def test_the_policy_report_plan_stays_within_its_budget():
 
     assert report_plan(20, 64, 128, None) == (20, 64, 128)  # no budget: everything
     assert report_plan(5, 64, 128, 5 * 195) == (5, 64, 128)  # enough for everything
-    f, r, h = report_plan(5, 64, 128, 44)  # 450 M parameters' default
-    assert (f, r, h) == (4, 4, 4) and f * (3 + r + h) <= 44
+    f, r, h = report_plan(5, 64, 128, 22)  # 450 M parameters' default
+    assert (f, r, h) == (2, 4, 4) and f * (3 + r + h) <= 22
     assert report_plan(40, 64, 32, 2000) == (20, 64, 32)  # frames go first
-    assert report_plan(3, 64, 128, 1) == (3, 1, 1)  # at least the frames there are, one key per group
+    assert report_plan(3, 64, 128, 1) == (2, 1, 1)  # 2 frames and a key per group at least
     small, big = torch.nn.Linear(10, 10), torch.nn.Linear(6000, 75000, device="meta")  # 110; 450 M
-    assert report_budget(PersonalizeConfig(), small) > 10**6 and report_budget(PersonalizeConfig(), big) == 44
+    assert report_budget(PersonalizeConfig(), small) > 10**6 and report_budget(PersonalizeConfig(), big) == 22
     assert report_budget(PersonalizeConfig(report_budget=0), big) is None
     assert report_budget(PersonalizeConfig(report_budget=7), small) == 7
     with pytest.raises(PropError, match="--report-budget"):
