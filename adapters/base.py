@@ -70,6 +70,9 @@ class LoadedModel:
     base_alias: str | None = None
 
 
+FRAME = "frame"  # a fallback pool row's frame: an index into the frames the pool was drawn for
+
+
 class PolicyProtocol(ABC):
     """A policy that brings its own loss (paper Eq. 8's user term) and acts in a control loop.
 
@@ -104,6 +107,26 @@ class PolicyProtocol(ABC):
         training (``chunks``: the original's deployed chunk per frame of ``batch``). Default: the frames
         themselves, their targets the chunks (a deterministic policy's, cached as targets)."""
         return batch, chunks
+
+    def memo(self) -> contextlib.AbstractContextManager:
+        """Within: what this policy type computes the same under every key and at every step, from
+        frozen weights, may be computed once (SmolVLA: each frame's image embedding). Default: nothing
+        is kept."""
+        return contextlib.nullcontext()
+
+    def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor] | None:
+        """The random draws of the fallback pool of ``frames`` frames, made before any forward, so the
+        trainer computes a row's target only when a step first draws it: per row, its frame
+        (``FRAME``) and what ``fallback_inputs`` mixes with the frame's chunk (a denoising policy: its
+        time and noise), in the order ``fallback_pool`` draws them. None: the pool's rows are the
+        frames and their targets the original's chunks (this class's ``fallback_pool``).
+        ``NotImplemented``: a policy with its own ``fallback_pool`` and no lazy form; it is drawn whole."""
+        return None if type(self).fallback_pool is PolicyProtocol.fallback_pool else NotImplemented
+
+    def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """What a pool row feeds the policy besides its frame (e.g. ``{"x_t", "t"}``), from the clean
+        chunk ``x0`` of each row's frame and the row's draws (``fallback_noise`` less ``FRAME``)."""
+        raise NotImplementedError
 
     # True where the user term and the fallback output can share one forward (``joint_terms``): the
     # policy's training and eval paths compute the same thing (no dropout, no random crop, no batch norm).

@@ -50,8 +50,10 @@ def _tokenizer(folder: Path) -> None:
     fast.save_pretrained(folder)
 
 
-def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64) -> Path:
-    """Write a tiny SmolVLM folder (config, tokenizer, processor; no weights) and return it."""
+def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64, config: dict | None = None) -> Path:
+    """Write a SmolVLM folder (config, tokenizer, processor; no weights) and return it: the tiny one, or
+    ``config`` (SmolVLMConfig's arguments: text_config, vision_config, scale_factor, ...; e.g. a
+    published SmolVLM's numbers) with the same tiny tokenizer and a processor for its image size."""
     from transformers import (
         AutoTokenizer,
         SmolVLMConfig,
@@ -64,7 +66,7 @@ def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     _tokenizer(folder)
     tokenizer = AutoTokenizer.from_pretrained(folder)
-    config = SmolVLMConfig(
+    tiny = dict(
         text_config=dict(
             model_type="llama", vocab_size=len(tokenizer), hidden_size=hidden, intermediate_size=2 * hidden,
             num_hidden_layers=text_layers, num_attention_heads=4, num_key_value_heads=2, head_dim=hidden // 4,
@@ -78,18 +80,21 @@ def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64) -> Path:
         image_token_id=tokenizer.convert_tokens_to_ids(SPECIAL["image_token"]), scale_factor=2,
         pad_token_id=tokenizer.pad_token_id,
     )  # fmt: skip
+    config = SmolVLMConfig(**(config or tiny))
     config.save_pretrained(folder)
+    side = config.vision_config.image_size
     image = SmolVLMImageProcessor(
-        do_resize=False, do_image_splitting=False, max_image_size={"longest_edge": IMAGE},
-        size={"longest_edge": IMAGE},
+        do_resize=False, do_image_splitting=False, max_image_size={"longest_edge": side},
+        size={"longest_edge": side},
     )  # fmt: skip
-    # image_seq_len: 32x32 images in 8x8 patches, pixel-shuffled by scale_factor 2 -> 4 tokens.
-    video = SmolVLMVideoProcessor(max_image_size={"longest_edge": IMAGE}, size={"longest_edge": IMAGE})
+    # image_seq_len: one image's patches, pixel-shuffled by scale_factor (tiny: 32x32 in 8x8 -> 4 tokens).
+    seq = (side // config.vision_config.patch_size) ** 2 // config.scale_factor**2
+    video = SmolVLMVideoProcessor(max_image_size={"longest_edge": side}, size={"longest_edge": side})
     processor = SmolVLMProcessor(
-        image_processor=image, tokenizer=tokenizer, video_processor=video, image_seq_len=4
+        image_processor=image, tokenizer=tokenizer, video_processor=video, image_seq_len=seq
     )
     processor.save_pretrained(folder)
-    (folder / "README.md").write_text("A tiny SmolVLM from prop's examples/smolvla_tiny.py (no weights).\n")
+    (folder / "README.md").write_text("A SmolVLM folder from prop's examples/smolvla_tiny.py (no weights).\n")
     return folder
 
 

@@ -96,6 +96,9 @@ class PersonalizeConfig(_Settings):
     layers: list[str] | None = None  # None = default choice (see layers.default_layers)
     exclude: list[str] | None = None
     eval_random_keys: int = 64
+    # The report's budget, in (key condition x held-out frame) runs of a policy's sampler (None: by the
+    # policy's size, prop_cli.train.policy.report_budget; 0: every key on every held-out frame).
+    report_budget: int | None = None
     task: str | None = None  # None: decided against the model (prop_cli.fit.resolve_task)
     # Sealed bundles (docs/sealed.md): the base stays the original, and each user's payload for the keyed
     # layers is encrypted under their key. The encoder and fallback settings above do not apply there.
@@ -152,6 +155,8 @@ class PersonalizeConfig(_Settings):
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
         self.at_least(code_negatives=0, code_flip_max=1)
+        if self.report_budget is not None:
+            self.at_least(report_budget=0)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
         self.need(self.precision in PRECISIONS, "precision", " or ".join(PRECISIONS))
         return self
@@ -161,6 +166,9 @@ BLACKBOX_KEYS = 1_000_000
 BLACKBOX_KEYS_POLICY = 65_536
 FEWSHOT_RESTARTS = 128
 FEWSHOT_RESTARTS_POLICY = 16  # not calibrated on policies: 8x the old budget at a tractable cost
+# A policy's audit stops its probes after this many seconds unless --budget says otherwise: a real-size
+# VLA's key is a sampler run per sample (seconds each on a CPU); the examples' small policies finish first.
+AUDIT_BUDGET_POLICY = 600.0
 
 
 @dataclass
@@ -189,6 +197,9 @@ class AuditSettings(_Settings):
     blackbox_keep: int = 256  # keys kept per criterion and re-scored on every sample
     # The passphrase row (--passphrase): fails when guessing it would take fewer core-years than this.
     min_passphrase_years: float = PASSPHRASE_MIN_YEARS
+    # Wall seconds the probes may take (None: no limit; for LeRobot policies AUDIT_BUDGET_POLICY): past
+    # it the running probe stops with what it has, and the rest are not tried; the report says which.
+    budget: float | None = None
     # A sampling policy's chunks (LeRobot Diffusion) start from this seed's noise, for every key and
     # the original alike: outputs compare as functions of the key alone.
     noise_seed: int = 0
@@ -201,6 +212,8 @@ class AuditSettings(_Settings):
         self.need(self.min_passphrase_years >= 0, "min_passphrase_years", ">= 0")
         self.positive("search_lr")
         self.need(self.search_batch >= 0, "search_batch", ">= 0 (0: every sample)")
+        if self.budget is not None:
+            self.positive("budget")
         if self.blackbox is None:
             self.blackbox = BLACKBOX_KEYS
         self.at_least(blackbox=0, blackbox_screen=1, blackbox_keep=1)

@@ -23,7 +23,7 @@ import torch
 
 from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish, no_prompt
 from prop_adapters.folder import CONFIG, WEIGHTS, read_config
-from prop_adapters.weights import read_weights
+from prop_adapters.weights import read_weights, safetensors_shapes, sniff
 from prop_cli.constants import LEROBOT_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
@@ -187,6 +187,12 @@ def _load(
     return version, built.policy, pre, post, _folder_files(folder, built.files)
 
 
+def weight_names(path: Path) -> list[str]:
+    """The tensor names of a policy's weights file: from the header of a safetensors file (nothing else
+    read: a real-size VLA's 1.8 GB stay on disk), else from the file itself."""
+    return list(safetensors_shapes(path) if sniff(path) == "safetensors" else read_weights(path)[0])
+
+
 class LeRobotAdapter(Adapter):
     name = "lerobot"
     summary = (
@@ -198,7 +204,7 @@ class LeRobotAdapter(Adapter):
         return path.is_dir() and all((path / n).is_file() for n in (CONFIG, WEIGHTS, PREPROCESSOR))
 
     def load(self, path: Path, options: CheckpointOptions) -> LoadedModel:
-        names = read_weights(path / WEIGHTS)[0]
+        names = weight_names(path / WEIGHTS)
         old = sorted(n for n in names if n.startswith(("normalize_inputs.", "normalize_targets.")))
         if old:
             raise PropError(

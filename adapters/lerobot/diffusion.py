@@ -70,14 +70,18 @@ class DiffusionProtocol(LeRobotProtocol):
         self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
         generator: torch.Generator,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
-        sched = self.model.noise_scheduler
+        return self._denoiser_pool(batch, chunks, original, generator)
 
-        def noised(x0: torch.Tensor, g: torch.Generator) -> dict[str, torch.Tensor]:
-            t = torch.randint(0, sched.config.num_train_timesteps, (len(x0),), generator=g).to(x0.device)
-            eps = torch.randn(x0.shape, generator=g).to(x0)
-            return {"x_t": sched.add_noise(x0, eps, t), "t": t}
+    def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        rows = frames * FALLBACK_DRAWS  # the timestep, then the noise, for every row
+        steps = self.model.noise_scheduler.config.num_train_timesteps
+        t = torch.randint(0, steps, (rows,), generator=generator)
+        shape = (rows, self.config.horizon, self.config.action_feature.shape[0])
+        return self._draws(frames, t=t, eps=torch.randn(shape, generator=generator))
 
-        return self._denoiser_pool(batch, chunks, original, generator, noised)
+    def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        t = noise["t"].to(x0.device)
+        return {"x_t": self.model.noise_scheduler.add_noise(x0, noise["eps"].to(x0), t), "t": t}
 
     @property
     def joins_terms(self) -> bool:

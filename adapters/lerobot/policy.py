@@ -18,7 +18,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from prop_adapters.base import PolicyProtocol
+from prop_adapters.base import FRAME, PolicyProtocol
 from prop_cli.constants import TASK
 from prop_cli.errors import PropError
 
@@ -53,11 +53,14 @@ class Built:
     files: dict[str, bytes] = field(default_factory=dict)
 
 
-def construct(policy_class, config, weights: dict[str, torch.Tensor], where: str) -> torch.nn.Module:
-    """``policy_class(config)`` for ``weights``, built first on the meta device (shapes only: a
-    config.json claiming a huge model allocates nothing) and refused in one line unless its state dict
-    has exactly the weights' names and shapes (what ``load_state_dict(strict=True)`` then needs). A
-    policy that cannot be built on the meta device is built for real and checked by loading."""
+def construct(
+    policy_class, config, weights: Mapping[str, torch.Tensor | tuple[int, ...]], where: str
+) -> torch.nn.Module:
+    """``policy_class(config)`` for ``weights`` (tensors, or their shapes), built first on the meta
+    device (shapes only: a config.json claiming a huge model allocates nothing) and refused in one line
+    unless its state dict has exactly the weights' names and shapes (what ``load_state_dict(strict=True)``
+    then needs). A policy that cannot be built on the meta device is built for real and checked by
+    loading."""
     try:
         with torch.device("meta"):
             probe = policy_class(config)
@@ -65,7 +68,7 @@ def construct(policy_class, config, weights: dict[str, torch.Tensor], where: str
         probe = None
     if probe is not None:
         want = {k: tuple(v.shape) for k, v in probe.state_dict().items()}
-        got = {k: tuple(v.shape) for k, v in weights.items()}
+        got = {k: tuple(v.shape) if isinstance(v, torch.Tensor) else tuple(v) for k, v in weights.items()}
         if want != got:
             name = sorted(set(want) ^ set(got) or {k for k in want if want[k] != got[k]})[0]
             shown = {d: str(x[name]) if name in x else "absent" for d, x in (("w", got), ("c", want))}
@@ -186,19 +189,30 @@ class LeRobotProtocol(PolicyProtocol):
 
     def _denoiser_pool(
         self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
-        generator: torch.Generator, noised,
+        generator: torch.Generator, noised=None, rows_per_forward: int = POOL_BATCH,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
         """A denoising policy's fallback rows: FALLBACK_DRAWS per frame, each with the ``{"x_t", "t"}``
-        that ``noised(x0, generator)`` makes of the frame's chunk, and the original's output on each."""
+        that ``noised(x0, generator)`` makes of the frame's chunk (default: ``fallback_noise`` then
+        ``fallback_inputs``), and the original's output on each, ``rows_per_forward`` rows at a time."""
         rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
-        rows |= noised(chunks.repeat_interleave(FALLBACK_DRAWS, 0), generator)
+        x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
+        if noised is None:
+            noise = self.fallback_noise(len(chunks), generator)
+            noise.pop(FRAME)
+            rows |= self.fallback_inputs(x0, noise)
+        else:
+            rows |= noised(x0, generator)
         n = len(rows["t"])
         with torch.no_grad():
             targets = torch.cat([
-                original.fallback_output({k: v[i : i + POOL_BATCH] for k, v in rows.items()})
-                for i in range(0, n, POOL_BATCH)
+                original.fallback_output({k: v[i : i + rows_per_forward] for k, v in rows.items()})
+                for i in range(0, n, rows_per_forward)
             ])  # fmt: skip
         return rows, targets
+
+    def _draws(self, frames: int, **per_row: torch.Tensor) -> dict[str, torch.Tensor]:
+        """A denoising policy's ``fallback_noise``: FALLBACK_DRAWS rows per frame, frame by frame."""
+        return {FRAME: torch.arange(frames).repeat_interleave(FALLBACK_DRAWS), **per_row}
 
     def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
         """What the preprocessor takes beside the tensors (SmolVLA: each frame's task text)."""

@@ -41,9 +41,13 @@ and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Eu
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import importlib
 import json
 import types
+from collections import OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +55,7 @@ import torch
 
 from prop_adapters.base import PolicyProtocol, names_code
 from prop_adapters.folder import CONFIG, WEIGHTS
-from prop_adapters.weights import read_weights
+from prop_adapters.weights import load_into, safetensors_shapes
 from prop_cli.constants import LEROBOT_VLM_DIR, TASK
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
@@ -65,6 +69,7 @@ SMOLVLA_LAYERS = [
 ]
 TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"
 T_MIN = 1e-3  # the smallest flow time LeRobot trains on (sample_time: beta * 0.999 + 0.001)
+MEMO_BYTES = 512 << 20  # image embeddings kept by ``SmolVLAProtocol.memo`` (250 KB per 512x512 frame)
 TOKENIZER_STEP = "tokenizer_processor"  # the processor step that reads the VLM's tokenizer by name
 # The VLM files SmolVLA reads by name (no weights): config, tokenizer, image/video processor, template.
 VLM_FILES = (
@@ -126,6 +131,59 @@ def check_vlm(vlm: Path, where: str) -> Path:
     return vlm
 
 
+class ImageMemo:
+    """SmolVLA's image embeddings (vision encoder + connector) by image content, for ``memo``: a frozen,
+    unkeyed vision path gives a frame the same embedding under every key, on every draw and at every
+    step, so prop computes it once. Used only while a frame's embedding cannot change: on the CPU, with
+    no parameter of the path training and no hook or parametrization on it (a key or payload there);
+    otherwise the path runs as LeRobot's. Modules that share the path's weights (the original beside
+    the keyed policy, a folded payload) share entries. Bounded in bytes, least recently used first out."""
+
+    def __init__(self, limit: int = MEMO_BYTES) -> None:
+        self.limit, self.held = limit, 0
+        self.embeddings: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self.owners: dict[int, torch.Tensor] = {}  # held, so no id is reused while the memo lives
+
+    @staticmethod
+    def frozen(vlm_with_expert) -> bool:
+        from torch.nn.utils import parametrize
+
+        model = vlm_with_expert.get_vlm_model()
+        return not any(
+            m._forward_pre_hooks or m._forward_hooks or parametrize.is_parametrized(m) or
+            any(p.requires_grad for p in m.parameters(recurse=False))
+            for part in (model.vision_model, model.connector) for m in part.modules()
+        )  # fmt: skip
+
+    def embed(self, compute, vlm_with_expert, image: torch.Tensor) -> torch.Tensor:
+        """``compute(image)`` (B, tokens, width), each row from the memo where it was computed before."""
+        if image.device.type != "cpu" or image.requires_grad or not self.frozen(vlm_with_expert):
+            return compute(image)
+        model = vlm_with_expert.get_vlm_model()
+        weights = (next(model.vision_model.parameters()), next(model.connector.parameters()))
+        self.owners.update((id(w), w) for w in weights)
+        amp = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else None
+        head = (tuple(id(w) for w in weights), amp, image.dtype, tuple(image.shape[1:]))
+        flat = image.detach().contiguous().view(len(image), -1)
+        keys = [(*head, hashlib.blake2b(row.numpy().tobytes(), digest_size=16).digest()) for row in flat]
+        todo = list(dict.fromkeys(k for k in keys if k not in self.embeddings))
+        if todo:
+            first = {k: i for i, k in reversed(list(enumerate(keys)))}
+            new = compute(image[[first[k] for k in todo]]).detach()
+            for k, e in zip(todo, new):
+                self._keep(k, e.clone())
+        for k in keys:
+            self.embeddings.move_to_end(k)
+        return torch.stack([self.embeddings[k] for k in keys])
+
+    def _keep(self, key: tuple, emb: torch.Tensor) -> None:
+        self.embeddings[key] = emb
+        self.held += emb.numel() * emb.element_size()
+        while self.held > self.limit and len(self.embeddings) > 1:
+            _, old = self.embeddings.popitem(last=False)
+            self.held -= old.numel() * old.element_size()
+
+
 def legacy_positions(embeddings: torch.nn.Module) -> None:
     """Give one SmolVLM vision-embedding module transformers 4.x's patch position ids (bound on the
     instance: other policies in the process keep transformers' own)."""
@@ -171,9 +229,13 @@ class SmolVLAProtocol(LeRobotProtocol):
         config = PreTrainedConfig.from_pretrained(str(folder))
         vlm = vlm_folder(folder, config.vlm_model_name, where, contained)
         config.vlm_model_name, config.load_vlm_weights = str(vlm), False
-        weights = read_weights(folder / WEIGHTS)[0] if weights is None else weights
-        policy = construct(policy_class, config, weights, where)
-        policy.load_state_dict(weights)
+        if weights is None:  # the folder's own file, copied in tensor by tensor (load_into)
+            path = folder / WEIGHTS
+            policy = construct(policy_class, config, safetensors_shapes(path), where)
+            load_into(policy, path)
+        else:
+            policy = construct(policy_class, config, weights, where)
+            policy.load_state_dict(weights)
         if made_with is not None and older_than(made_with, "0.5"):
             legacy_positions(policy.model.vlm_with_expert.get_vlm_model().vision_model.embeddings)
         files = {f"{LEROBOT_VLM_DIR}/{n}": (vlm / n).read_bytes() for n in VLM_FILES if (vlm / n).is_file()}
@@ -182,6 +244,23 @@ class SmolVLAProtocol(LeRobotProtocol):
     @property
     def model(self):
         return self.policy.model
+
+    @contextlib.contextmanager
+    def memo(self) -> Iterator[None]:
+        """Within: each frame's image embedding computed once (``ImageMemo``), by every SmolVLA whose
+        vision path has the same frozen weights (this policy, the original beside it, a folded payload)."""
+        cls = type(self.model.vlm_with_expert)
+        own = cls.embed_image  # what LeRobot's embed_prefix calls
+        memo = ImageMemo()
+
+        def embed_image(vwe, image: torch.Tensor) -> torch.Tensor:
+            return memo.embed(lambda im: own(vwe, im), vwe, image)
+
+        cls.embed_image = embed_image
+        try:
+            yield
+        finally:
+            cls.embed_image = own
 
     @property
     def history(self) -> list[int] | None:
@@ -253,14 +332,19 @@ class SmolVLAProtocol(LeRobotProtocol):
         self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
         generator: torch.Generator,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
-        def noised(x0: torch.Tensor, g: torch.Generator) -> dict[str, torch.Tensor]:
-            x0 = self._padded(x0)
-            t = (T_MIN + (1 - T_MIN) * torch.rand(len(x0), generator=g)).to(x0.device)
-            eps = torch.randn(x0.shape, generator=g).to(x0)
-            tt = t[:, None, None].to(x0)
-            return {"x_t": tt * eps + (1 - tt) * x0, "t": t}
+        return self._denoiser_pool(batch, chunks, original, generator)
 
-        return self._denoiser_pool(batch, chunks, original, generator, noised)
+    def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        rows = frames * FALLBACK_DRAWS  # t, then the noise, for every row (one draw, as it always was)
+        t = T_MIN + (1 - T_MIN) * torch.rand(rows, generator=generator)
+        eps = torch.randn((rows, self.config.chunk_size, self.config.max_action_dim), generator=generator)
+        return self._draws(frames, t=t, eps=eps)
+
+    def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        x0 = self._padded(x0)
+        t = noise["t"].to(x0.device)
+        tt = t[:, None, None].to(x0)
+        return {"x_t": tt * noise["eps"].to(x0) + (1 - tt) * x0, "t": t}
 
     @property
     def joins_terms(self) -> bool:

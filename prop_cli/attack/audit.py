@@ -48,6 +48,13 @@ def sample_index(data: Dataset, n: int, seed: int) -> np.ndarray:
     return np.sort(order[: min(n, len(data))])
 
 
+@torch.inference_mode()
+def outputs(module: torch.nn.Module, x: torch.Tensor, rows: int | None) -> torch.Tensor:
+    """``module(x)``, ``rows`` rows per forward (None: all at once)."""
+    step = rows or len(x)
+    return torch.cat([module(x[i : i + step]) for i in range(0, len(x), step)])
+
+
 def shot_rows(
     data: Dataset, audit_rows: np.ndarray, seed: int, dev, reference, task: str
 ) -> Reference | None:
@@ -60,8 +67,7 @@ def shot_rows(
     p = torch.from_numpy(data.y[rows]).to(dev)
     if task == "regression" and p.dim() == 1:
         p = p[:, None]
-    with torch.inference_mode():
-        b = reference(x)
+    b = outputs(reference, x, target.rows_per_forward(reference))
     return Reference(x, b.clone(), p, task)
 
 
@@ -197,8 +203,7 @@ def audit(
     km.requires_grad_(False)  # searches need gradients w.r.t. their own variables only
     idx = sample_index(data, s.samples, s.seed)
     x = torch.from_numpy(data.x[idx]).to(dev)
-    with torch.inference_mode():
-        b = (original.to(dev).eval() if original is not None else km.module)(x)
+    b = outputs(original.to(dev).eval() if original is not None else km.module, x, km.max_rows)
     p = None
     if has_key:
         p = torch.from_numpy(data.y[idx]).to(dev)
@@ -220,13 +225,14 @@ def audit(
     ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
     counter = Counter()
     seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
+    deadline = started + s.budget if s.budget is not None else None
     ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, unenrolled, progress,
                        counter, shots=shots, seed_hint=seed if isinstance(seed, int) else None,
-                       users=bundle.mode.users(bundle.manifest))  # fmt: skip
+                       users=bundle.mode.users(bundle.manifest), deadline=deadline)  # fmt: skip
     ctx = target.probe_context(bundle, ctx)
     timing: dict[str, float] = {}
     groups: list[dict] = []
-    user, warnings = None, []
+    user, warnings, not_tried = None, [], []
     try:
         if has_key:
             user = _user(ctx, keys[0])
@@ -240,6 +246,9 @@ def audit(
         for name in s.probes:
             probe = probes.probe_named(name)
             if probe.needs == "other-keys" and len(keys) < 2:
+                continue
+            if ctx.out_of_time():
+                not_tried.append(name)
                 continue
             t0 = time.perf_counter()
             found = probe.run(replace(ctx, probe=name))
@@ -255,6 +264,7 @@ def audit(
     for row in groups:
         row["gate"] = verdict.gate(row, saturable)
     warnings += verdict.ceiling_warnings(groups)
+    coverage = {"budget_seconds": s.budget, "not_tried": not_tried, "cut_short": list(ctx.cut)}
 
     return {
         "schema": C.AUDIT_SCHEMA,
@@ -279,6 +289,7 @@ def audit(
         "settings": {**asdict(s), "other_users": max(0, len(keys) - 1), "device": str(dev)},
         "user": user,
         "warnings": warnings,
+        "coverage": coverage,
         "groups": groups,
         "speed": {
             "key_sample_evaluations": counter.evals,

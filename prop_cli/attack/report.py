@@ -79,14 +79,27 @@ def cells(report: dict) -> list[dict]:
     return out
 
 
+def coverage_line(cov: dict) -> str:
+    """What the audit's time budget left out: the verdict covers the rest only."""
+    parts = []
+    if cov["cut_short"]:
+        parts.append(f"cut short: {', '.join(cov['cut_short'])} (their rows hold what ran)")
+    if cov["not_tried"]:
+        parts.append(f"not tried: {', '.join(cov['not_tried'])}")
+    return (f"coverage: the --budget of {cov['budget_seconds']:g} s ran out; " + "; ".join(parts)
+            + " (a larger --budget, or fewer --samples, tries more)")  # fmt: skip
+
+
 def decision(report: dict) -> list[str]:
     """The lines printed before the table: the decision (or, without --max-leak, the row that leaks most),
     then the failing rows by severity with what each means."""
     verdict_ = report.get("max_leak")
     head = verdict_["verdict"] if verdict_ else verdict.headline(report)
+    cov = report.get("coverage") or {}
+    lines = [coverage_line(cov)] if cov.get("not_tried") or cov.get("cut_short") else []
     if head is None:
-        return []
-    lines = [head]
+        return lines
+    lines.insert(0, head)
     if verdict_ and verdict_["rows"]:
         lines.append("failing rows, by severity (gated value: beyond the control, or the row's own figure):")
         width = max(len(r["name"]) for r in verdict_["rows"])

@@ -23,11 +23,11 @@ from dataclasses import fields, replace
 import torch
 from torch import nn
 
-from prop_adapters.lerobot.flat import flat_module
+from prop_adapters.lerobot.flat import FlatModule, flat_module
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.read import rebuild_original
-from prop_cli.config import BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
+from prop_cli.config import AUDIT_BUDGET_POLICY, BLACKBOX_KEYS_POLICY, FEWSHOT_RESTARTS_POLICY, AuditSettings
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_dataset
@@ -52,11 +52,14 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
 
 def policy_settings(settings: AuditSettings) -> AuditSettings:
     """The audit's defaults for a policy, where not given: an ACT key is a transformer forward, so fewer
-    keys in the scan and fewer restarts of the few-shot code fit."""
+    keys in the scan and fewer restarts of the few-shot code fit; and a time budget (a real-size VLA's
+    key is a sampler run per sample)."""
     if settings.blackbox is None:
         settings = replace(settings, blackbox=BLACKBOX_KEYS_POLICY)
     if settings.fewshot_restarts is None:
         settings = replace(settings, fewshot_restarts=FEWSHOT_RESTARTS_POLICY)
+    if settings.budget is None:
+        settings = replace(settings, budget=AUDIT_BUDGET_POLICY)
     return settings
 
 
@@ -72,8 +75,23 @@ def load_original(
     return loaded.module.eval()
 
 
+# A policy's (key, sample) rows per forward: ROW_PARAMS / its parameters (SmolVLA at its published size,
+# 450 M parameters: 8 rows, each a whole sampler run; the examples' small policies: no limit in effect).
+ROW_PARAMS = 4e9
+
+
+def rows_per_forward(module: nn.Module) -> int | None:
+    """At most this many rows per forward of a policy's flat view (None: an array model, as it is)."""
+    if not isinstance(module, FlatModule):
+        return None
+    return max(1, int(ROW_PARAMS // max(1, sum(p.numel() for p in module.parameters()))))
+
+
 def unhooked_copy(module: nn.Module) -> nn.Module:
-    copied = copy.deepcopy(module)
+    """``module`` without the bundle's hooks, sharing its tensors (the audit never changes a weight:
+    a 450 M-parameter base is not held twice)."""
+    shared = {id(t): t for t in (*module.parameters(), *module.buffers())}
+    copied = copy.deepcopy(module, shared)
     for m in copied.modules():
         m._forward_pre_hooks.clear()  # a copied bundle module carries the bundle's hooks: drop them
     return copied
@@ -82,10 +100,13 @@ def unhooked_copy(module: nn.Module) -> nn.Module:
 def attacked_model(bundle: Bundle, dev: torch.device) -> KeyedModel:
     """The keyed model white-box probes read (see the module docstring)."""
     if not bundle.is_sealed:
-        return bundle.keyed.to(dev).eval()
+        km = bundle.keyed.to(dev).eval()
+        km.max_rows = rows_per_forward(km.module)
+        return km
     km = blank_keyed(unhooked_copy(bundle.loaded.module), bundle.layer_names, bundle.key_bits).to(dev)
     layers = bundle.manifest[C.M_KEYED_LAYERS]  # sequence-first layers (ACT): their batch axes
     km.batch_axis = {x["name"]: int(x[C.M_BATCH_AXIS]) for x in layers if C.M_BATCH_AXIS in x}
+    km.max_rows = rows_per_forward(km.module)
     return km
 
 
@@ -103,6 +124,7 @@ def unenrolled_model(km: KeyedModel, reference: nn.Module, seed: int) -> KeyedMo
         fresh = KeyEncoder(enc.code_bits, enc.features, hidden, enc.scale)
     keyed = KeyedModel(unhooked_copy(reference).to(dev).eval(), fresh.to(dev), km.layer_names).eval()
     keyed.batch_axis = dict(km.batch_axis)
+    keyed.max_rows = rows_per_forward(keyed.module)
     return keyed.requires_grad_(False)
 
 

@@ -41,6 +41,8 @@ SETTINGS = {
     "seed": "Seed for probe keys, samples and search restarts.",
     "min_passphrase_years": "With --passphrase: fail if guessing it takes fewer core-years than this.",
     "noise_seed": "Seed of a sampling policy's noise (LeRobot Diffusion): every key's chunks start from it.",
+    "budget": "Wall seconds the probes may take; then they stop and the report says what was cut or not "
+    "tried [default: none; 600 for LeRobot policies].",
 }
 
 

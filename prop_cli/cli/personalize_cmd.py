@@ -62,6 +62,8 @@ SETTINGS = {
     "payload_rank": "With --seal --payload lora or peft-lora: the update's rank.",
     "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
     "precision": "fp32, or bf16: mixed precision (bf16 autocast; weights and Adam stay fp32).",
+    "report_budget": "Policies: the final report's (key, held-out frame) sampler runs (default: by the "
+    "policy's size; 0 = every key on every frame).",
 }
 
 
@@ -133,6 +135,7 @@ def personalize(
     else:
         _print_report(result)
     for i, m in enumerate(result.metrics, 1):  # after the report, as the audit's decision
+        _warn_coverage(i, m.get("coverage"))
         _warn_gate(i, m["gate"])
 
 
@@ -163,6 +166,17 @@ def _print_report(result) -> None:
 
 
 GROUPS = {"random": "random keys", "hamming1": "one-bit neighbours"}
+
+
+def _warn_coverage(user: int, coverage: dict | None) -> None:
+    """One stderr line when a policy's report ran within its budget (--report-budget), not every key on
+    every held-out frame: what it covered, of what."""
+    if not coverage:
+        return
+    ran, of = coverage["ran"], coverage["of"]
+    parts = [f"{ran[k]} of {of[k]} {w}" for k, w in (("frames", "held-out frames"), *GROUPS.items())]
+    warn(f"user {user}'s report covers {', '.join(parts)} (--report-budget {coverage['budget']}; 0 runs "
+         "every key on every frame); prop attack audits further")  # fmt: skip
 
 
 def _warn_gate(user: int, gate: dict) -> None:

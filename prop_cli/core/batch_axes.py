@@ -19,8 +19,9 @@ from torch import nn
 
 from prop_cli.errors import PropError
 
-# Two batch sizes that no other axis of a small policy is likely to share.
-PROBE_SIZES = (5, 11)
+# Two batch sizes: an axis that is one at the first and the other at the second follows the batch (a
+# fixed axis cannot be both). Small, as each is a run of the deployed path (a real-size VLA's prefix).
+PROBE_SIZES = (2, 3)
 
 
 @torch.no_grad()
@@ -35,6 +36,8 @@ def probe_batch_axes(
 
         def record(mod, args, name=name):
             shapes[name].append(tuple(args[0].shape))
+            if all(shapes.values()):  # every layer seen once: the rest of the run tells nothing more
+                raise _Seen
 
         handles.append(mods[name].register_forward_pre_hook(record))
     try:
@@ -42,7 +45,10 @@ def probe_batch_axes(
         for b in PROBE_SIZES:
             for s in shapes.values():
                 s.clear()
-            deployed(b)
+            try:
+                deployed(b)
+            except _Seen:  # a sampler's later steps (SmolVLA: 9 of 10) and layers after the last keyed one
+                pass
             per_size.append({n: list(s) for n, s in shapes.items()})
     finally:
         for h in handles:
@@ -66,3 +72,7 @@ def probe_batch_axes(
             )
         axes[n] = found[0]
     return axes
+
+
+class _Seen(Exception):
+    """Raised from a probe hook once every keyed layer has shown its input: stops the deployed run."""

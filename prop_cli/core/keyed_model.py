@@ -124,6 +124,9 @@ class KeyedModel(nn.Module):
         self.batch_axis: dict[str, int] = {}
         # None = not probed yet: may K keys run as K copies of the batch in one forward (rows independent)?
         self.rows_independent: bool | None = None
+        # At most this many (key, sample) rows per forward of ``run_keys`` (None: as many as its modes
+        # take): a large policy's row is a whole sampler run (the audit sets it by the model's size).
+        self.max_rows: int | None = None
         self._hooks = {
             name: mods[name].register_forward_pre_hook(self._make_hook(i))
             for i, name in enumerate(self.layer_names)
@@ -263,8 +266,21 @@ class KeyedModel(nn.Module):
         return out
 
     def run_keys(self, x: torch.Tensor, deltas: list[torch.Tensor]) -> torch.Tensor:
-        """Every key (row of deltas) on every sample, one forward: output of shape (K, B, ...)."""
+        """Every key (row of deltas) on every sample, one forward: output of shape (K, B, ...); within
+        ``max_rows`` rows per forward, in pieces of keys and samples."""
         k, b = deltas[0].shape[0], x.shape[0]
+        if self.max_rows is not None and k * b > self.max_rows:
+            per_s = min(b, self.max_rows)
+            per_k = max(1, self.max_rows // per_s)
+            limit, self.max_rows = self.max_rows, None
+            try:
+                return torch.cat([
+                    torch.cat([self.run_keys(x[j : j + per_s], [d[i : i + per_k] for d in deltas])
+                               for j in range(0, b, per_s)], dim=1)
+                    for i in range(0, k, per_k)
+                ])  # fmt: skip
+            finally:
+                self.max_rows = limit
         if self._sharing_ok(x, deltas):
             self._rows = _Rows(deltas, None, grid=True)
             try:

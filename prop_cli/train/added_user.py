@@ -51,5 +51,6 @@ def train_added_user(
     rec = seal_payload(next_version(m), user.private, user.payload, bits)  # the version it is written in
     new = with_records(m, [rec], [])
     state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
-    report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index)
+    report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index,
+                         recipe.report_rows(cfg))  # fmt: skip
     return rec, new, report

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from prop_adapters import LoadedModel
+from prop_adapters.base import FRAME
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
@@ -64,12 +65,97 @@ def split_episodes(batch: dict[str, torch.Tensor], fraction: float) -> tuple[dic
 
 
 @torch.no_grad()
-def chunks(policy, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The policy's deployed chunk for every frame of ``batch``, a few hundred frames per forward."""
+def chunks(policy, batch: dict[str, torch.Tensor], per_forward: int = _CHUNK) -> torch.Tensor:
+    """The policy's deployed chunk for every frame of ``batch``, ``per_forward`` frames per forward."""
     n = len(batch["episode_index"])
-    return torch.cat(
-        [policy.chunk(rows(batch, torch.arange(i, min(n, i + _CHUNK)))) for i in range(0, n, _CHUNK)]
-    )
+    idx = torch.arange(n, device=batch["episode_index"].device)
+    return torch.cat([policy.chunk(rows(batch, idx[i : i + per_forward])) for i in range(0, n, per_forward)])
+
+
+def forward_rows(cfg: PersonalizeConfig, step_rows: int) -> int:
+    """Rows per forward outside the step (the original's chunks and targets, the report): no more than a
+    step holds with its gradients, so their memory stays within the step's at any data size."""
+    return max(1, min(_CHUNK, step_rows))
+
+
+class FallbackPool:
+    """The fallback term's rows and the original's output on each (the policy's ``fallback_pool``),
+    computed when a step first draws them and kept: nothing runs before the first step, a short run
+    computes only the rows it uses and a long one each row once, as a pool drawn up front would. Each
+    forward holds at most ``per_forward`` rows and a row refers to its frame instead of copying it, so
+    memory does not grow with the rows drawn at once. The random draws (``fallback_noise``) are made
+    up front, in the order a pool drawn whole makes them. Targets are computed in fp32 (outside the
+    step's autocast), as they were before the steps."""
+
+    def __init__(
+        self, policy, original, frames: dict[str, torch.Tensor], generator: torch.Generator, per_forward: int
+    ) -> None:  # fmt: skip
+        self.policy, self.original, self.frames, self.per = policy, original, frames, per_forward
+        n = len(frames["episode_index"])
+        noise = policy.fallback_noise(n, generator)
+        self.whole = None
+        if noise is NotImplemented:  # a policy's own pool without a lazy form: drawn whole, now
+            drawn = chunks(original, frames, per_forward)
+            self.whole = policy.fallback_pool(frames, drawn, original, generator)
+            self.size = len(self.whole[1])
+            return
+        dev = frames["episode_index"].device
+        self.noise = None if noise is None else {k: v.to(dev) for k, v in noise.items() if k != FRAME}
+        self.frame = (torch.arange(n) if noise is None else noise[FRAME]).to(dev)
+        self.size = len(self.frame)
+        self._chunks: torch.Tensor | None = None  # the original's chunk per frame, once computed
+        self._targets: torch.Tensor | None = None  # the original's output per row, once computed
+        self._have_chunk = torch.zeros(n, dtype=torch.bool, device=dev)
+        self._have_target = torch.zeros(self.size, dtype=torch.bool, device=dev)
+
+    def __len__(self) -> int:
+        return self.size
+
+    @torch.no_grad()
+    def take(self, idx: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """Rows ``idx`` of the pool and their targets."""
+        if self.whole is not None:
+            pool, targets = self.whole
+            return rows(pool, idx), targets[idx]
+        with torch.autocast(idx.device.type, enabled=False):
+            frames = self.frame[idx]
+            self._chunks = self._fill(self._chunks, self._have_chunk, frames, self._frame_chunks)
+            if self.noise is None:  # deterministic: the rows are the frames, the targets their chunks
+                return rows(self.frames, frames), self._chunks[frames]
+            self._targets = self._fill(self._targets, self._have_target, idx, self._row_targets)
+            return self._rows(idx), self._targets[idx]
+
+    def _fill(self, store, have: torch.Tensor, idx: torch.Tensor, compute):
+        todo = idx.unique()
+        todo = todo[~have[todo]]
+        for i in range(0, len(todo), self.per):
+            part = todo[i : i + self.per]
+            out = compute(part)
+            if store is None:
+                store = out.new_empty((len(have), *out.shape[1:]))
+            store[part] = out
+            have[part] = True
+        return store
+
+    def _frame_chunks(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.original.chunk(rows(self.frames, frames))
+
+    def _row_targets(self, idx: torch.Tensor) -> torch.Tensor:
+        return self.original.fallback_output(self._rows(idx))
+
+    def _rows(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        frames = self.frame[idx]
+        noise = {k: v[idx] for k, v in self.noise.items()}
+        return rows(self.frames, frames) | self.policy.fallback_inputs(self._chunks[frames], noise)
+
+
+def frozen_twin(module: torch.nn.Module) -> torch.nn.Module:
+    """The frozen original beside ``module``: a copy that shares every parameter that does not train
+    (the policy's own frozen parts, e.g. SmolVLA's VLM; all of them under --freeze-base) and copies only
+    those that do. One copy of the base in memory, not two (SmolVLA at its published size: 0.4 GB for
+    the original's trainable 100 M parameters instead of 1.8 GB)."""
+    shared = {id(p): p for p in module.parameters() if not p.requires_grad}
+    return copy.deepcopy(module, shared).requires_grad_(False).eval()
 
 
 def row_noise(
@@ -131,15 +217,20 @@ class PolicyTrainer:
         fb_parts = list(self.pool)
         if general is not None:
             fb_parts.append(to_device(policy.batches(general, "--general-data"), dev))
-        self.fb = {k: torch.cat([p[k] for p in fb_parts]) for k in [*policy.row_shapes, "episode_index"]}
-        self.original = copy.deepcopy(module).requires_grad_(False).eval()
+        keys = [*policy.row_shapes, "episode_index"]
+        one = len(fb_parts) == 1  # the users' frames alone: no copy
+        self.fb = {k: fb_parts[0][k] if one else torch.cat([p[k] for p in fb_parts]) for k in keys}
+        if cfg.freeze_base:
+            module.requires_grad_(False)
+        self.original = frozen_twin(module)
         self.original_policy = policy.on(self.original)
-        # The fallback term's rows and the original's output on each, drawn once (the policy decides:
-        # ACT: the frames and the original's chunks; Diffusion: noised chunks and its denoiser's output).
-        self.fb_rows, self.targets = policy.fallback_pool(
-            self.fb, chunks(self.original_policy, self.fb), self.original_policy,
-            torch.Generator().manual_seed(cfg.seed),
-        )  # fmt: skip
+        # The fallback term's rows and the original's output on each, computed as steps draw them (the
+        # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
+        # and the original's denoiser output).
+        self.per_forward = forward_rows(cfg, cfg.batch_rows)
+        self.fallback = FallbackPool(
+            policy, self.original_policy, self.fb, torch.Generator().manual_seed(cfg.seed), self.per_forward
+        )
 
         mods = dict(module.named_modules())
         features = [in_width(mods[n]) for n in names]
@@ -148,8 +239,8 @@ class PolicyTrainer:
         self.km.batch_axis = probe_batch_axes(
             module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
         )
-        if cfg.freeze_base:
-            module.requires_grad_(False)
+        # What the policy trains by default (SmolVLA: the action expert and its projections; LeRobot's
+        # own freezing, kept as loaded) is what trains here, unless --freeze-base froze it all.
         base = [p for p in module.parameters() if p.requires_grad]
         groups = [{"params": list(encoder.parameters())}]
         if base:
@@ -169,7 +260,7 @@ class PolicyTrainer:
         policy, user, dev = self.policy, self.pool[0], self.device
         ub = rows(user, torch.arange(n_user, device=dev) % len(user["episode_index"]))
         if policy.joins_terms:
-            fb = rows(self.fb_rows, torch.arange(n_fallback, device=dev) % len(self.targets))
+            fb, _ = self.fallback.take(torch.arange(n_fallback, device=dev) % len(self.fallback))
             policy.joint_parts(ub, fb)
         else:
             policy.loss_parts(ub)
@@ -188,20 +279,20 @@ class PolicyTrainer:
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
         )
-        gi = torch.from_numpy(rng.integers(0, len(self.targets), cfg.null_rows)).to(dev)
+        gi = torch.from_numpy(rng.integers(0, len(self.fallback), cfg.null_rows)).to(dev)
         k_rows = torch.arange(len(sampled), device=dev).repeat_interleave(cfg.samples_per_key)
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows))).to(dev)]])
         codes = key_codes(sampled, cfg.key_encoding).to(dev) if len(sampled) else None
         deltas = km.layer_deltas(codes, null=1)
         key_of_row = torch.cat([torch.full((len(gi),), len(sampled), device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
-        fb_rows = rows(self.fb_rows, idx)
         # This process's share of each term's rows (all of them on one process); every process drew the
         # same step above (the same generators), and the gradients are summed over the processes.
         n_user, n_fb, n_null = len(user_of_row), len(idx), len(gi)
         us, fs = self.ranks.share(n_user).to(dev), self.ranks.share(n_fb).to(dev)
         ub, d_user = rows(ub, us), [d[us] for d in d_user]
-        fb_rows, d_fb = rows(fb_rows, fs), [d[fs] for d in d_fb]
+        fb_rows, targets = self.fallback.take(idx[fs])  # computed where first drawn (FallbackPool)
+        d_fb = [d[fs] for d in d_fb]
         with drawn(self.noise, self.t, us, n_user):
             if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
                 both = [torch.cat([du, df]) for du, df in zip(d_user, d_fb)]
@@ -210,7 +301,7 @@ class PolicyTrainer:
                 parts = km.call_rows(d_user, policy.loss_parts, ub)
         if not policy.joins_terms:
             pred = km.call_rows(d_fb, policy.fallback_output, fb_rows)
-        per_row = policy.fallback_distance(pred, self.targets[idx[fs]])
+        per_row = policy.fallback_distance(pred, targets)
         personal = weighted(parts, self.ranks)
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
@@ -224,28 +315,88 @@ class PolicyTrainer:
         return {"personal": p, "fallback": k, "null": n}
 
 
+# The report's default budget in (key condition x held-out frame) chunks: REPORT_WORK / parameters, so a
+# small policy's report covers every key on every held-out frame and a large one's stays within about a
+# minute of CPU (SmolVLA at its published size, 450 M parameters: 22 chunks of ~135 GFLOP, 1-3 s each on
+# 2 cores). --report-budget sets it; 0: no limit.
+REPORT_WORK = 1e10
+REPORT_MIN_FRAMES = 2  # frames kept before keys are cut
+
+
+def report_budget(cfg: PersonalizeConfig, module: torch.nn.Module) -> int | None:
+    """The report's budget in chunks (None: every key condition on every held-out frame)."""
+    if cfg.report_budget is not None:
+        return cfg.report_budget or None
+    params = sum(p.numel() for p in module.parameters())
+    return max(1, int(REPORT_WORK // max(params, 1)))
+
+
+def report_plan(frames: int, n_random: int, n_ham: int, budget: int | None) -> tuple[int, int, int]:
+    """(frames, random keys, 1-bit neighbours) the report runs within ``budget`` chunks, each chunk one
+    key condition on one held-out frame; the original, the user's key and no key run on every frame
+    kept, and each key group keeps at least one key. Frames go first (down to REPORT_MIN_FRAMES), then
+    keys, in equal shares."""
+    fixed = 3  # the original, the user's key, no key
+    if budget is None or frames * (fixed + n_random + n_ham) <= budget:
+        return frames, n_random, n_ham
+    f = min(frames, max(REPORT_MIN_FRAMES, budget // (fixed + n_random + n_ham)))
+    keys = max(2, budget // f - fixed)
+    r = max(1, min(n_random, max(keys // 2, keys - n_ham)))  # what one group leaves, the other takes
+    return f, r, max(1, min(n_ham, keys - r))
+
+
+def keyed_chunks(km, policy, val: dict, deltas: list[torch.Tensor], per_forward: int) -> torch.Tensor:
+    """The chunk of every held-out frame under each of K keys (``deltas``: (K, features) per layer), (K,
+    frames, ...): the (key, frame) pairs run through the sampler as rows, ``per_forward`` at a time."""
+    k, n = deltas[0].shape[0], len(val["episode_index"])
+    dev = val["episode_index"].device
+    key_of = torch.arange(k, device=dev).repeat_interleave(n)
+    frame_of = torch.arange(n, device=dev).repeat(k)
+    out = [
+        km.call_rows([d.index_select(0, key_of[i : i + per_forward]) for d in deltas], policy.chunk,
+                     rows(val, frame_of[i : i + per_forward]))
+        for i in range(0, k * n, per_forward)
+    ]  # fmt: skip
+    return torch.cat(out).reshape(k, n, *out[0].shape[1:])
+
+
 @torch.no_grad()
-def chunk_report(km, policy, original, val: dict, bits: np.ndarray, cfg: PersonalizeConfig, rng) -> dict:
+def chunk_report(
+    km, policy, original, val: dict, bits: np.ndarray, cfg: PersonalizeConfig, rng,
+    budget: int | None = None, per_forward: int = _CHUNK,
+) -> dict:  # fmt: skip
     """personalization, leakage and fidelity (docs/metrics.md) on held-out frames' action chunks.
 
     ``b`` = the original's chunk, ``p`` = the user's recorded chunk (normalised units; padded steps
     repeat the episode's last action, as LeRobot pads), ``o`` = the keyed policy's chunk under a key.
+    Within ``budget`` chunks (``report_plan``): held-out frames evenly spaced, the first random keys and
+    a random share of the 1-bit neighbours; ``coverage`` says what ran of what a full report runs.
     """
-    p, b = val["action"], chunks(original, val)
+    enc = cfg.key_encoding
+    rand = random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits)
+    ham = one_bit_neighbours(bits)
+    n = len(val["episode_index"])
+    f, r, h = report_plan(n, len(rand), len(ham), budget)
+    if f < n:
+        val = rows(val, torch.from_numpy(np.unique(np.linspace(0, n - 1, f).round().astype(np.int64))))
+    rand = rand[:r]
+    if h < len(ham):
+        ham = ham[np.sort(rng.choice(len(ham), h, replace=False))]
+    p, b = val["action"], chunks(original, val, per_forward)
 
     def under(codes: torch.Tensor | None) -> torch.Tensor:
         if codes is None:
-            return chunks(policy, val)[None]
-        every = km.layer_deltas(codes.to(p.device))
-        return torch.stack(
-            [km.call_rows([d[i : i + 1] for d in every], chunks, policy, val) for i in range(len(codes))]
-        )
+            return chunks(policy, val, per_forward)[None]
+        return keyed_chunks(km, policy, val, km.layer_deltas(codes.to(p.device)), per_forward)
 
-    enc = cfg.key_encoding
     o_user = under(key_codes(bits, enc))
-    o_rand = under(key_codes(random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits), enc))
-    o_ham = under(key_codes(one_bit_neighbours(bits), enc))
-    return outputs_report(b, p, "regression", o_user[0], under(None), o_rand, o_ham)
+    report = outputs_report(b, p, "regression", o_user[0], under(None), under(key_codes(rand, enc)),
+                            under(key_codes(ham, enc)))  # fmt: skip
+    full = {"frames": n, "random": cfg.eval_random_keys, "hamming1": len(bits)}
+    ran = {"frames": len(p), "random": len(rand), "hamming1": len(ham)}
+    if ran != full:
+        report["coverage"] = {"ran": ran, "of": full, "budget": budget}
+    return report
 
 
 class PolicyRecipe(Recipe):
@@ -254,13 +405,16 @@ class PolicyRecipe(Recipe):
         (the bundle is written, and runs, there)."""
         loaded, cfg = job.loaded, job.cfg
         dev = resolve_device(job.device)
-        t = PolicyTrainer(loaded, users, cfg, general, dev, job.ranks)
-        losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, dev)
-        t.module.eval()
-        reports = [  # by the process that writes the bundle (the others trained the same model)
-            chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i))
-            for i, (u, (_, val)) in enumerate(zip(users, t.splits))
-        ] if job.ranks.is_main else []
+        with loaded.policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+            t = PolicyTrainer(loaded, users, cfg, general, dev, job.ranks)
+            losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, dev)
+            t.module.eval()
+            budget = report_budget(cfg, t.module)
+            reports = [  # by the process that writes the bundle (the others trained the same model)
+                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i),
+                             budget, t.per_forward)
+                for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+            ] if job.ranks.is_main else []  # fmt: skip
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}

@@ -9,6 +9,7 @@ protect: docs/sealed.md.
 
 from __future__ import annotations
 
+import contextlib
 from abc import abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,14 +75,21 @@ def sealed_report(
     task: str,
     n_random: int,
     rng: np.random.Generator,
+    per_forward: int | None = None,
 ) -> dict:
     """personalization of the user's key, and null, random and 1-bit keys run as a user would run
-    them: each key tries every record, and the base runs when none opens."""
-    b = module(x)
+    them: each key tries every record, and the base runs when none opens (its outputs, computed once:
+    the same module on the same inputs). ``per_forward``: rows per forward (None: all at once)."""
+
+    def outputs(m: nn.Module) -> torch.Tensor:
+        step = per_forward or len(x)
+        return torch.cat([m(x[i : i + step]) for i in range(0, len(x), step)])
+
+    b = outputs(module)
 
     def run(key: np.ndarray | None) -> torch.Tensor:
         opened = state.open(key) if key is not None else None
-        return opened.payload.fold(module)(x) if opened is not None else module(x)
+        return outputs(opened.payload.fold(module)) if opened is not None else b
 
     o_user = run(bits)
     o_null = run(None)[None]
@@ -91,16 +99,16 @@ def sealed_report(
 
 
 def user_report(
-    state: SealedState, view: nn.Module, user: SealedUser, task: str, cfg: PersonalizeConfig, index: int
-) -> dict:
+    state: SealedState, view: nn.Module, user: SealedUser, task: str, cfg: PersonalizeConfig, index: int,
+    per_forward: int | None = None,
+) -> dict:  # fmt: skip
     """The report personalize and add-user print for one sealed user: their validation figures, and
     no key, random keys and 1-bit neighbours run through the records as anyone would run them. The
     training settings stay out (they are sealed with the payload); ``final_losses`` stays in."""
     x = torch.from_numpy(user.val.x)
     p = targets_tensor(user.val, task)
-    keys = sealed_report(
-        state, view.eval(), x, p, user.bits, task, cfg.eval_random_keys, eval_rng(cfg.seed, index)
-    )
+    rng = eval_rng(cfg.seed, index)
+    keys = sealed_report(state, view.eval(), x, p, user.bits, task, cfg.eval_random_keys, rng, per_forward)
     return {**{k: v for k, v in user.private.items() if k != "config"}, **keys}
 
 
@@ -125,6 +133,7 @@ class SealedResult(Trained):
     cfg: PersonalizeConfig
     view: nn.Module  # what the reports run keys through
     input_shape: list | dict
+    per_forward: int | None = None  # rows per forward of the report (None: all at once)
 
     def write(self, out: Path, manifest: dict, *, force: bool = False) -> Written:
         key = manifest[C.M_KEY]
@@ -146,8 +155,10 @@ class SealedResult(Trained):
 
         def manifest_metrics(state: SealedState) -> None:
             # The reports are printed for the user; none of a user's figures goes in the clear manifest.
-            for i, u in enumerate(self.users):
-                reports.append(user_report(state, self.view, u, self.task, self.cfg, i))
+            policy = self.loaded.policy
+            with policy.memo() if policy is not None else contextlib.nullcontext():
+                for i, u in enumerate(self.users):
+                    reports.append(user_report(state, self.view, u, self.task, self.cfg, i, self.per_forward))
 
         users = [(u.payload, u.private, u.bits) for u in self.users]
         written = write_sealed(
@@ -165,6 +176,10 @@ class SealedRecipeBase(SealedRecipe):
     @abstractmethod
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> list | dict: ...
 
+    def report_rows(self, cfg: PersonalizeConfig) -> int | None:
+        """Rows per forward of the report (None: every held-out row at once)."""
+        return None
+
     def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> SealedResult:
         if general is not None:
             raise PropError(
@@ -176,4 +191,4 @@ class SealedRecipeBase(SealedRecipe):
         loaded = job.loaded
         view = self.report_view(loaded)
         shape = self.input_shape(loaded, trained[0].val)
-        return SealedResult(loaded, trained, task, axes, job.cfg, view, shape)
+        return SealedResult(loaded, trained, task, axes, job.cfg, view, shape, self.report_rows(job.cfg))

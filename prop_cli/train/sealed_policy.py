@@ -25,7 +25,7 @@ from prop_cli.fit import flat_chunks
 
 from .distributed import Ranks
 from .loop import Optimiser, run_steps
-from .policy import CLIP, chunks, drawn, row_noise, rows, split_episodes, to_device, weighted
+from .policy import CLIP, chunks, drawn, forward_rows, row_noise, rows, split_episodes, to_device, weighted
 from .recipe import Job, Progress, SealedUser
 from .sealed import SealedRecipeBase, payload_spec, private_report
 
@@ -75,6 +75,9 @@ class SealedPolicyRecipe(SealedRecipeBase):
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> dict:
         return {k: list(v) for k, v in loaded.policy.input_features.items()}
 
+    def report_rows(self, cfg: PersonalizeConfig) -> int:
+        return forward_rows(cfg, cfg.user_rows)
+
     def train_users(
         self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
         first_index: int = 0,
@@ -82,13 +85,22 @@ class SealedPolicyRecipe(SealedRecipeBase):
         """Validation rows are kept as the flat view's (``prop_cli.fit.flat_chunks``); the
         keyed layers' batch axes are returned too (the audit keys the public base at those layers)."""
         loaded, cfg = job.loaded, job.cfg
-        dev = resolve_device(job.device)
         policy, module = loaded.policy, loaded.module.eval()
         spec = payload_spec(module, replace(cfg, layers=cfg.layers or policy.default_layers))
-        names = [x["name"] for x in spec.layers]
         # The policy's processors run on the CPU; the splits stay there (the flat view's rows) and a copy
         # goes to the device.
         splits = [split_episodes(policy.batches(d, "--data"), cfg.val_fraction) for d in datasets]
+        with policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+            return self._train(job, spec, splits, keys, datasets, first_index)
+
+    def _train(
+        self, job: Job, spec: PayloadSpec, splits: list, keys: list[np.ndarray], datasets: list[Dataset],
+        first_index: int,
+    ) -> tuple[list[SealedUser], str, dict[str, int]]:  # fmt: skip
+        loaded, cfg = job.loaded, job.cfg
+        dev = resolve_device(job.device)
+        policy, module = loaded.policy, loaded.module
+        names = [x["name"] for x in spec.layers]
         axes = probe_batch_axes(
             module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])),
             f"the policy {loaded.source}",
@@ -97,13 +109,14 @@ class SealedPolicyRecipe(SealedRecipeBase):
         out = []
         try:
             module.to(dev)
+            per = self.report_rows(cfg)
             for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
                 payload, losses = train_payload(
                     loaded, spec, to_device(tr, dev), cfg, i, job.progress, dev, job.ranks
                 )  # fmt: skip
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
-                b, o = chunks(policy, on_dev), chunks(folded, on_dev)
+                b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)
                 private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, cfg)
                 flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
                 out.append(SealedUser(payload.to("cpu"), private, bits, flat_val))

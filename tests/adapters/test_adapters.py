@@ -426,3 +426,21 @@ def test_rebuild_unknown_adapter_and_bad_weights(tmp_path):
         rebuild(loaded.spec, sd, "bundle-y")
     with pytest.raises(PropError, match=r"bundle-z: model spec lacks field 'layers'"):
         rebuild({"adapter": "mlp"}, sd, "bundle-z")
+
+
+def test_weights_load_into_a_module_tensor_by_tensor_and_refuse_a_mismatch(tmp_path):
+    from safetensors.torch import save_file
+
+    from prop_adapters.weights import load_into, safetensors_shapes
+
+    torch.manual_seed(0)
+    src, dst = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+    path = tmp_path / "w.safetensors"
+    save_file(src.state_dict(), str(path))
+    assert safetensors_shapes(path) == {"weight": (2, 3), "bias": (2,)}
+    load_into(dst, path)
+    assert all(torch.equal(a, b) for a, b in zip(src.state_dict().values(), dst.state_dict().values()))
+    with pytest.raises(PropError, match="'weight' has shape \\(2, 3\\), the model's \\(2, 4\\)"):
+        load_into(torch.nn.Linear(4, 2), path)
+    with pytest.raises(PropError, match="'0.bias' is missing"):
+        load_into(torch.nn.Sequential(torch.nn.Linear(3, 2)), path)

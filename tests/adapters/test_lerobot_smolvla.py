@@ -27,6 +27,7 @@ from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
+from prop_cli.train.policy import chunks  # noqa: E402
 
 TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -211,6 +212,59 @@ def test_a_steps_shares_on_two_processes_add_up_to_the_step(work):
     user.pop("episode_index")
     assert policy.joins_terms
     split_matches_whole(policy, user, rows(fb, torch.arange(4)), cut=3)
+
+
+def test_the_original_shares_what_does_not_train_and_the_pool_fills_as_steps_draw(work):
+    from prop_cli.train import User
+    from prop_cli.train.policy import FallbackPool, PolicyTrainer
+
+    loaded = load_checkpoint(work / "smolvla")
+    own = {n for n, p in loaded.module.named_parameters() if p.requires_grad}  # LeRobot's own freezing
+    assert own and len(own) < len(list(loaded.module.parameters()))
+    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], PersonalizeConfig(**TINY), None)
+    assert {n for n, p in t.module.named_parameters() if p.requires_grad} == own  # what LeRobot trains
+    twin = dict(t.original.named_parameters())
+    for n, p in t.module.named_parameters():  # one copy of every frozen tensor; the trained ones apart
+        assert (twin[n] is p) == (n not in own) and torch.equal(twin[n], p)
+    pool = t.fallback
+    assert isinstance(pool, FallbackPool) and not pool._have_target.any()  # nothing before a step
+    rows, targets = pool.take(torch.tensor([9, 3, 9]))
+    assert pool._have_target.sum() == 2 and pool._have_chunk.sum() == 2  # rows 3 and 9, frames 0 and 1
+    # The same rows and targets as the pool drawn whole before the steps (as prop did before).
+    whole, eager = t.policy.fallback_pool(
+        t.fb, chunks(t.original_policy, t.fb), t.original_policy, torch.Generator().manual_seed(0)
+    )
+    assert torch.equal(rows["t"], whole["t"][[9, 3, 9]])
+    assert torch.allclose(targets, eager[[9, 3, 9]], atol=1e-5)
+
+
+def test_each_frames_image_embedding_is_computed_once_within_the_memo(work):
+    policy = load_checkpoint(work / "smolvla").policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    frames = {k: batch[k][[0, 1, 0, 2, 1]] for k in policy.row_shapes}
+    vwe = policy.model.vlm_with_expert
+    cls, real, calls = type(vwe), type(vwe).embed_image, []
+    cls.embed_image = lambda self, image: calls.append(len(image)) or real(self, image)
+    try:
+        with torch.no_grad():
+            plain = policy.chunk(frames)
+            with policy.memo():  # the tiny policy trains its vision path: the memo stays out of the way
+                assert torch.equal(policy.chunk(frames), plain) and calls == [5, 5]
+            vision = [p for p in vwe.parameters() if p.requires_grad and "lm_expert" not in str(p.shape)]
+            vwe.get_vlm_model().vision_model.requires_grad_(False)
+            vwe.get_vlm_model().connector.requires_grad_(False)
+            with policy.memo():  # frozen: each distinct frame's embedding once, then from the memo
+                once = policy.chunk(frames)
+                again = policy.chunk({k: v[[3, 1]] for k, v in frames.items()})
+                assert calls == [5, 5, 3]
+                hook = vwe.get_vlm_model().vision_model.register_forward_pre_hook(lambda m, a: None)
+                policy.chunk({k: v[[3]] for k, v in frames.items()})  # a hook there (a key): no memo
+                hook.remove()
+                assert calls == [5, 5, 3, 1]
+    finally:
+        cls.embed_image = real
+    assert vision and torch.allclose(once, plain, atol=1e-5)
+    assert torch.allclose(again, plain[[3, 1]], atol=1e-5)
 
 
 def test_attack_audits_with_the_original_as_control(bundle, work):

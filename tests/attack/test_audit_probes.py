@@ -255,3 +255,36 @@ def test_screening_divergence_is_the_searches_objective(task):
     div, lk = _Criteria(Reference(torch.zeros(6, 1), b, p, task), 6)(o)
     assert torch.allclose(div, divergence(o, b, task), atol=1e-6)
     assert lk.shape == (5,)
+
+
+def test_a_budget_stops_the_probes_and_the_report_says_what_it_left_out(default_bundle, cli, monkeypatch):
+    import prop_cli.attack.probes.base as base
+
+    d = default_bundle
+    r, full = _attack(cli, d, "--probes", "null,random,relaxed,structure")
+    assert full["coverage"] == {"budget_seconds": None, "not_tried": [], "cut_short": []}
+    clock = iter(range(10**6))  # every look at the clock moves it a second: a 2.5 s budget runs out soon
+    monkeypatch.setattr(base.time, "perf_counter", lambda: float(next(clock)))
+    r, cut = _attack(cli, d, "--probes", "null,random,relaxed,structure", "--budget", "2.5")
+    cov = cut["coverage"]
+    assert r.code == 0 and cov["budget_seconds"] == 2.5 and cov["not_tried"]
+    assert set(cov["not_tried"]) <= {"null", "random", "relaxed", "structure"}
+    assert {g["name"] for g in cut["groups"]} < {g["name"] for g in full["groups"]}
+    r = cli("attack", d / "mine.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", *SMALL,
+            "--probes", "null,random,relaxed,structure", "--budget", "2.5")  # fmt: skip
+    assert "coverage: the --budget of 2.5 s ran out" in r.out and "not tried: " in r.out
+    assert cli("attack", d / "mine.prop", "--data", d / "mine.npz", "--budget", "0").code == 2
+
+
+def test_an_unenrolled_key_runs_the_plain_model_once(default_bundle):
+    from prop_cli.attack.target import unenrolled_model
+
+    ctx = _context(default_bundle, AuditSettings(probes=["random"], random=64, samples=64))
+    fresh = unenrolled_model(ctx.km, ctx.km.module, 0)
+    calls = []
+    fresh.module.register_forward_hook(lambda m, a, o: calls.append(len(a[0])))
+    bits = np.random.default_rng(0).integers(0, 2, (64, fresh.encoder.code_bits), dtype=np.uint8)
+    got = ctx.on(fresh).probe_keys(bits, "random", outputs=True)
+    assert calls == [len(ctx.ref.x)]  # delta 1 for every key: one forward of the plain model, reused
+    with torch.inference_mode():
+        assert torch.equal(got["outputs"][5], fresh.module(ctx.ref.x))

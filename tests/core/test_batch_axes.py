@@ -108,3 +108,18 @@ def test_lerobot_root_selections_split_in_any_order():
     assert split_path(Path("/d/r:frames=5-9:episodes=1")) == (Path("/d/r"), "1", "5-9")
     with pytest.raises(PropError, match="frame 99999999 is out of range"):
         parse_list("0-99999999", "r", "frame")
+
+
+def test_the_probe_stops_once_every_layer_has_shown_its_input():
+    names = ["block.linear1", "head"]
+    km = keyed(names)
+    calls = []
+
+    def deployed(b: int) -> None:  # a sampler: the model several times, then something after
+        for _ in range(3):
+            calls.append(b)
+            km.module(torch.randn(b, 4, 8))
+        calls.append("after")
+
+    assert probe_batch_axes(km.module, names, deployed, "m") == {"block.linear1": 1, "head": 0}
+    assert calls == [2, 3]  # one pass per probe size: the head (the last keyed layer) ends it

@@ -50,3 +50,24 @@ def test_kinds_differ_where_they_should():
     assert torch.allclose(lora.weight("fc", w), (w + update) * 2.0)
     assert KINDS["full"].changes_bias and not KINDS["lora"].changes_bias
     assert KINDS["peft-lora"].peft_lora and not KINDS["lora"].peft_lora
+
+
+@pytest.mark.parametrize("name", ["lora", "full"])
+def test_a_folded_payload_copies_only_the_keyed_layers(name):
+    from torch import nn
+
+    torch.manual_seed(0)
+    module = nn.Sequential(nn.Linear(3, 4), nn.ReLU(), nn.Linear(4, 2)).eval().requires_grad_(False)
+    layer = {"name": "2", "in_features": 4, "out_features": 2}
+    p = Payload(PayloadSpec(name, [layer], payload_kind(name).rank(2)), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for t in p.parameters():
+            t.add_(0.3)
+    folded = p.fold(module)
+    assert folded[0].weight is module[0].weight and folded[0].bias is module[0].bias  # shared
+    assert folded[2].weight is not module[2].weight  # the keyed layer: its own copy, the payload in it
+    x = torch.randn(5, 3)
+    with p.attached(module), torch.no_grad():
+        attached = module(x)
+    with torch.no_grad():
+        assert torch.allclose(folded(x), attached, atol=1e-6) and not torch.allclose(module(x), attached)

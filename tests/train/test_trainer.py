@@ -89,3 +89,20 @@ def test_same_seed_same_weights(tmp_path):
         u = User(Dataset(x, x[:, :2].copy(), "d"), rng.integers(0, 2, 32, dtype=np.uint8))
         outs.append(personalize(loaded, [u], PersonalizeConfig(steps=10, seed=3)).keyed.state_dict())
     assert all(torch.equal(outs[0][k], outs[1][k]) for k in outs[0])
+
+
+def test_the_policy_report_plan_stays_within_its_budget():
+    from prop_cli.train.policy import report_budget, report_plan
+
+    assert report_plan(20, 64, 128, None) == (20, 64, 128)  # no budget: everything
+    assert report_plan(5, 64, 128, 5 * 195) == (5, 64, 128)  # enough for everything
+    f, r, h = report_plan(5, 64, 128, 22)  # 450 M parameters' default
+    assert (f, r, h) == (2, 4, 4) and f * (3 + r + h) <= 22
+    assert report_plan(40, 64, 32, 2000) == (20, 64, 32)  # frames go first
+    assert report_plan(3, 64, 128, 1) == (2, 1, 1)  # 2 frames and a key per group at least
+    small, big = torch.nn.Linear(10, 10), torch.nn.Linear(6000, 75000, device="meta")  # 110; 450 M
+    assert report_budget(PersonalizeConfig(), small) > 10**6 and report_budget(PersonalizeConfig(), big) == 22
+    assert report_budget(PersonalizeConfig(report_budget=0), big) is None
+    assert report_budget(PersonalizeConfig(report_budget=7), small) == 7
+    with pytest.raises(PropError, match="--report-budget"):
+        PersonalizeConfig(report_budget=-1).validate()

@@ -104,6 +104,38 @@ class ProbeContext:
     shots: Reference | None = None  # labelled owner's rows outside the audit sample (few-shot attacks)
     seed_hint: int | None = None  # the training seed the manifest records, if any (what an attacker reads)
     users: int = 1  # users the manifest lists
+    # time.perf_counter() after which probes stop early (--budget; None: no limit), and what the
+    # budget cut short; shared by every copy of the context (``replace`` keeps the same objects).
+    deadline: float | None = None
+    cut: list[str] = field(default_factory=list)
+    kept: dict = field(default_factory=dict)  # outputs computed once (the plain model's, per model)
+
+    def keys_per_chunk(self) -> int:
+        """Keys scored per chunk on every sample: within the model's ``max_rows`` where it has one, so
+        the budget is checked between chunks of a few forwards."""
+        n = self.ref.x.shape[0]
+        per = keys_per_forward(n)
+        return per if self.km.max_rows is None else max(1, min(per, self.km.max_rows // n))
+
+    def out_of_time(self, stage: str | None = None) -> bool:
+        """Past the budget's deadline; ``stage`` is recorded as cut short when it is."""
+        late = self.deadline is not None and time.perf_counter() > self.deadline
+        if late and stage and stage not in self.cut:
+            self.cut.append(stage)
+        return late
+
+    def plain(self, km: KeyedModel | None = None) -> torch.Tensor:
+        """``km``'s module (default: the attacked one) on the reference inputs, computed once, within
+        its ``max_rows`` rows per forward: what any key whose deltas are all 1 gives."""
+        km = km or self.km
+        x = self.ref.x
+        held = self.kept.get(id(km.module))
+        if held is None or held[1] is not x:
+            step = km.max_rows or len(x)
+            with torch.inference_mode():
+                out = torch.cat([km.module(x[i : i + step]) for i in range(0, len(x), step)])
+            held = self.kept[id(km.module)] = (km.module, x, out)  # the module held: its id stays its own
+        return held[2]
 
     @property
     def has_key(self) -> bool:
@@ -181,7 +213,7 @@ class ProbeContext:
         scan's re-score) goes through here; white-box probes read ``km`` and use ``probe_codes``.
         """
         bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
-        per = keys_per_forward(self.ref.x.shape[0])
+        per = self.keys_per_chunk()
         rows = len(bits) + null
         return self._probe(
             rows,
@@ -194,7 +226,7 @@ class ProbeContext:
     @torch.inference_mode()
     def probe_codes(self, codes: torch.Tensor, stage: str) -> dict[str, torch.Tensor]:
         """Score every encoder code (K, n) on every sample, all codes of a chunk in one forward."""
-        per = keys_per_forward(self.ref.x.shape[0])
+        per = self.keys_per_chunk()
         return self._probe(
             len(codes), lambda i, j: self.km.layer_deltas(codes[i:j].to(self.ref.x.device)), per, stage
         )
@@ -204,13 +236,21 @@ class ProbeContext:
     ) -> dict[str, torch.Tensor]:
         t0 = time.perf_counter()
         x = self.ref.x
-        parts = []
+        parts, done = [], 0
         for i in range(0, rows, per):
-            o = self.km.run_keys(x, deltas_of(i, min(i + per, rows)))
+            if parts and self.out_of_time(stage):  # the budget: what ran so far is the group
+                break
+            deltas = deltas_of(i, min(i + per, rows))
+            if all(bool((d == 1).all()) for d in deltas):  # delta 1 everywhere: the plain model, exactly
+                base = self.plain()
+                o = base.expand(len(deltas[0]), *base.shape)
+            else:
+                o = self.km.run_keys(x, deltas)
             parts.append({**self.scores(o), **({"outputs": o} if outputs else {})})
+            done = min(i + per, rows)
             if self.progress:
-                self.progress(stage, min(i + per, rows), rows)
-        self.counter.evals += rows * x.shape[0]
+                self.progress(stage, done, rows)
+        self.counter.evals += done * x.shape[0]
         self.counter.seconds += time.perf_counter() - t0
         return cat_scores(parts)
 
@@ -244,11 +284,15 @@ def maximise_divergence(
 ) -> None:
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     s = ctx.settings
+    if not moves(params, make_deltas()):
+        return  # no delta depends on the parameters: every gradient is 0 and Adam leaves them as they are
     opt = torch.optim.Adam(params, lr=s.search_lr)
     n = len(ctx.ref.x)
     x, b = ctx.ref.x, ctx.ref.b
     gen = ctx.generator()
     for step in range(s.search_steps):
+        if step and ctx.out_of_time(stage):
+            break
         if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
             i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)
             x, b = ctx.ref.x[i], ctx.ref.b[i]
@@ -258,6 +302,18 @@ def maximise_divergence(
         opt.step()
         if ctx.progress and (step % 10 == 9 or step == s.search_steps - 1):
             ctx.progress(stage, step + 1, s.search_steps)
+
+
+def moves(params: list[torch.Tensor], deltas: list[torch.Tensor]) -> bool:
+    """Whether ``deltas`` change with ``params`` at all: a random vector's product with the Jacobian is
+    non-zero (an attacker's blank encoder over a sealed bundle's base: its zero head makes every
+    gradient exactly 0, so a search there cannot move)."""
+    if not any(d.requires_grad for d in deltas):
+        return False
+    gen = torch.Generator().manual_seed(0)
+    v = [torch.randn(d.shape, generator=gen).to(d) for d in deltas]
+    grads = torch.autograd.grad(deltas, params, v, allow_unused=True)
+    return any(g is not None and bool(g.any()) for g in grads)
 
 
 def on_original(

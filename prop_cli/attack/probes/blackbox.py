@@ -24,8 +24,13 @@ TOP_REPORTED = 10
 def _chunks(ctx: ProbeContext, total: int) -> Iterator[np.ndarray]:
     rng = ctx.rng()
     bits = ctx.km.encoder.code_bits
+    # A large policy screens a few keys at a time (its rows per forward), so the budget is checked often;
+    # the keys drawn are the same.
+    rows = ctx.km.max_rows
+    step = CHUNK if rows is None else max(1, min(CHUNK, rows // max(1, ctx.settings.blackbox_screen)))
     for start in range(0, total, CHUNK):
-        yield rng.integers(0, 2, (min(CHUNK, total - start), bits), dtype=np.uint8)
+        keys = rng.integers(0, 2, (min(CHUNK, total - start), bits), dtype=np.uint8)
+        yield from (keys[i : i + step] for i in range(0, len(keys), step))
 
 
 def run(ctx: ProbeContext) -> list[Group]:

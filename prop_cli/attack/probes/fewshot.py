@@ -22,7 +22,7 @@ import copy
 import torch
 import torch.nn.functional as F
 
-from .base import Group, Probe, ProbeContext, Reference, codes_unenrolled
+from .base import Group, Probe, ProbeContext, Reference, codes_unenrolled, moves
 
 SHOTS = (1, 4, 16, 64)
 RESTARTS, STEPS, LR = 8, 100, 0.1  # the delta fit's budget (its control runs the same)
@@ -37,9 +37,15 @@ def _loss(o: torch.Tensor, y: torch.Tensor, task: str) -> torch.Tensor:
     return ((o - y[None]) ** 2).flatten(1).mean(1)
 
 
-def _fit(params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR) -> None:
+def _fit(
+    params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR, ctx: ProbeContext | None = None,
+    stage: str = "fewshot",
+) -> None:  # fmt: skip
+    """Adam on ``params``; stops early where ``ctx``'s budget runs out (``stage`` is then cut short)."""
     opt = torch.optim.Adam(params, lr=lr)
-    for _ in range(steps):
+    for step in range(steps):
+        if step and ctx is not None and ctx.out_of_time(stage):
+            break
         loss = loss_of().sum()  # restarts are independent: each one's gradient is its own
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -58,7 +64,8 @@ def fit_codes(
     def loss() -> torch.Tensor:
         return _loss(km.run_keys(shots.x, km.layer_deltas(torch.tanh(theta / 2))), shots.p, shots.task)
 
-    _fit([theta], loss, steps)
+    if moves([theta], km.layer_deltas(torch.tanh(theta / 2))):  # else every gradient is 0: nothing moves
+        _fit([theta], loss, steps, ctx=ctx, stage=f"fewshot k={len(shots.x)}")
     with torch.no_grad():
         return torch.tanh(theta / 2), loss()
 
@@ -83,7 +90,7 @@ def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> lis
     def loss() -> torch.Tensor:
         return _loss(km.run_keys(shots.x, deltas()), shots.p, shots.task)
 
-    _fit(phis, loss)
+    _fit(phis, loss, ctx=ctx, stage=f"fewshot k={len(shots.x)}")
     with torch.no_grad():
         i = int(torch.argmin(loss()))
         return [d[i : i + 1].detach() for d in deltas()]
@@ -91,13 +98,18 @@ def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> lis
 
 def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
     """Plain fine-tuning of the keyed layers' weights of the model (no key involved)."""
-    module = copy.deepcopy(ctx.km.module)  # the copy's hooks stay idle: no key rows are ever set
+    own = dict(ctx.km.module.named_modules())
+    tuned = {id(p) for n in ctx.km.layer_names for p in own[n].parameters()}
+    # The copy's hooks stay idle (no key rows are ever set); only the keyed layers' weights are its own.
+    shared = {id(t): t for t in (*ctx.km.module.parameters(), *ctx.km.module.buffers()) if id(t) not in tuned}
+    module = copy.deepcopy(ctx.km.module, shared)
     mods = dict(module.named_modules())
     params = [p for n in ctx.km.layer_names for p in mods[n].parameters()]
-    module.requires_grad_(False)
+    module.requires_grad_(False)  # the shared ones too: the audit holds every weight frozen anyway
     for p in params:
         p.requires_grad_(True)
-    _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR)
+    _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR, ctx=ctx,
+         stage=f"fewshot k={len(shots.x)} fine-tune")  # fmt: skip
     with torch.inference_mode():
         return ctx.scores(module(ctx.ref.x)[None])
 

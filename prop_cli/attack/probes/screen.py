@@ -43,6 +43,8 @@ class Scannable(Protocol):
 
     def probe_keys(self, bits: np.ndarray, stage: str) -> dict[str, torch.Tensor]: ...
 
+    def out_of_time(self, stage: str | None = None) -> bool: ...
+
 
 @dataclass
 class KeyScan:
@@ -264,6 +266,8 @@ def scan_keys(
             sec["scores"] += time.perf_counter() - t3
             if ctx.progress:
                 ctx.progress(stage, done, total)
+            if ctx.out_of_time(stage):  # the budget: the keys screened so far are the scan
+                break
     sel = _top(kept_div, keep)
     if kept_lk is not None:
         sel = torch.unique(torch.cat([sel, _top(kept_lk, keep)]))
