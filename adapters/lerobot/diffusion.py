@@ -14,9 +14,10 @@
   fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps and
   noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame; the
   keyed policy's prediction is distilled towards the frozen original's on the same (observation, x_t,
-  t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The rows and the
-  original's predictions are drawn once before training, as ACT's chunks are cached: computing the
-  original each step cost a third of the step (bench_lerobot_step). Both terms share one U-Net call
+  t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The draws are
+  made before training (``fallback_noise``) and each row's original prediction is computed once, when a
+  step first draws it, and kept, as ACT's chunks are: computing the original on every step's rows cost
+  a third of the step (bench_lerobot_step). Both terms share one U-Net call
   (``joint_terms``) where training and eval mode compute the same (no random crop or batch norm in an
   image encoder): a PRoP step then costs 1.13x LeRobot's own step at the example's size, against 1.55x
   with two calls.

@@ -4,11 +4,11 @@ own terms, which the policy protocol (``PolicyProtocol``) supplies.
 User term: the policy's own training loss (ACT: L1 on the action chunk, padding masked, plus its
 VAE's KL; Diffusion: its noise-prediction MSE) on the user's frames, every row under the user's key.
 Fallback terms (the null key, weighted by ``null_weight``; K1 Hamming neighbours and K2 random keys)
-distil the frozen original on general observations ("distill"): ACT's deployed chunk, L1, the targets
-computed once; Diffusion's denoiser on the same (observation, x_t, t) rows, MSE, the original run on
-each step's rows. Measured against the policy's loss on general data and against relabelled actions,
-the distilled fallback kept wrong keys at the base's closed-loop success and the no-key chunk closest
-to the original's (examples/RESULTS.md, "LeRobot ACT").
+distil the frozen original on general observations ("distill"): ACT's deployed chunk, L1; Diffusion's
+and SmolVLA's denoiser on the same (observation, x_t, t) rows, MSE. Each target is computed once, when
+a step first draws its row, and kept (``FallbackPool``). Measured against the policy's loss on general
+data and against relabelled actions, the distilled fallback kept wrong keys at the base's closed-loop
+success and the no-key chunk closest to the original's (examples/RESULTS.md, "LeRobot ACT").
 
 Two forwards per step: the user rows in training mode (the policy's loss needs its training path),
 the fallback rows in eval mode (the path the policy is deployed with). Rows carry their own keys.
