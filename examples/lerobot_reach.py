@@ -94,11 +94,8 @@ SETTINGS = {
 
 def prop(*args: object, capture: bool = False, kind: str = "act") -> str:
     """``prop ARGS`` in a subprocess; for a tiny pi0 / pi0.5 ``python -m examples.pi_tiny ARGS`` (its size
-    patch), and for their audit ``pi_attack`` (below)."""
-    if kind in PI and args[0] == "attack":
-        entry = ["-c", "from examples.lerobot_reach import pi_attack; pi_attack()"]
-    else:
-        entry = ["-m", "examples.pi_tiny" if kind in PI else "prop_cli.cli.main"]
+    patch)."""
+    entry = ["-m", "examples.pi_tiny" if kind in PI else "prop_cli.cli.main"]
     cmd = [sys.executable, *entry, *map(str, args)]
     print("$ prop " + " ".join(map(str, args)), flush=True)
     done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE if capture else None, text=True)
@@ -203,23 +200,6 @@ def pi(out: Path, kind: str) -> tuple:
     length = {"tokenizer_max_length": 32} if kind == "pi05" else {}
     return build_pi(kind, build_tokenizer(out / "tokenizer"), stats, features=features, max_state_dim=16,
                     **length)  # fmt: skip
-
-
-def pi_attack() -> None:
-    """``python -m examples.pi_tiny attack ARGS`` with LeRobot's pi0 / pi0.5 ``sample_actions`` unwrapped
-    from its ``@torch.no_grad()``. A workaround, here only: the pi0 adapter's deployed chunk calls it, so
-    the audit's gradient searches (relaxed, latent, few-shot) stop with "element 0 of tensors does not
-    require grad" (SmolVLA's sample_actions has no such decorator). Without gradients asked for, the
-    unwrapped function computes the same chunk."""
-    import importlib
-
-    from examples import pi_tiny
-
-    for kind in PI:
-        model = importlib.import_module(f"lerobot.policies.{kind}.modeling_{kind}")
-        cls = getattr(model, "PI0Pytorch" if kind == "pi0" else "PI05Pytorch")
-        cls.sample_actions = getattr(cls.sample_actions, "__wrapped__", cls.sample_actions)
-    pi_tiny.main()
 
 
 def sealed(out: Path, episodes: int, kind: str, audit: bool = True) -> None:
