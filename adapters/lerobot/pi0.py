@@ -29,6 +29,7 @@ deployed chunk integrates it from pure noise (t = 1) in ``num_inference_steps`` 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import importlib
 import inspect
@@ -254,6 +255,10 @@ class PI0Protocol(SmolVLAProtocol):
                            torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
         losses = torch.nn.functional.mse_loss(noise - actions, v[:n], reduction="none")
         return losses[:, :, : self.config.action_feature.shape[0]].mean(), v[n:]
+
+    def memo(self) -> contextlib.AbstractContextManager:
+        # SmolVLA's image-embedding memo hooks SmolVLM's class; pi0's PaliGemma keeps none (yet).
+        return contextlib.nullcontext()
 
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         # LeRobot decorates pi0's and pi0.5's sample_actions with @torch.no_grad(); the audit's gradient
