@@ -291,8 +291,10 @@ class PolicyTrainer:
         n_user, n_fb, n_null = len(user_of_row), len(idx), len(gi)
         us, fs = self.ranks.share(n_user).to(dev), self.ranks.share(n_fb).to(dev)
         ub, d_user = rows(ub, us), [d[us] for d in d_user]
-        fb_rows, targets = self.fallback.take(idx[fs])  # computed where first drawn (FallbackPool)
-        d_fb = [d[fs] for d in d_fb]
+        # The step's targets for every process's rows (FallbackPool: computed where first drawn), so each
+        # is computed in the same batch on any number of processes, then this process's share.
+        fb_rows, targets = self.fallback.take(idx)
+        fb_rows, targets, d_fb = rows(fb_rows, fs), targets[fs], [d[fs] for d in d_fb]
         with drawn(self.noise, self.t, us, n_user):
             if policy.joins_terms:  # one forward for both terms, rows in order [user | fallback]
                 both = [torch.cat([du, df]) for du, df in zip(d_user, d_fb)]
