@@ -242,18 +242,9 @@ class PI0Protocol(SmolVLAProtocol):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The policy's own loss on the user rows (its noise, then its time, as its ``forward`` draws
         them; padded steps not masked) and the expert's velocity on the fallback rows, as one forward."""
-        self.policy.eval()
-        m = self.model
-        actions = self.policy.prepare_action(user)
-        n = len(actions)
-        noise = m.sample_noise(actions.shape, actions.device)
-        time = m.sample_time(n, actions.device)
-        tt = time[:, None, None]
-        x_t = tt * noise + (1 - tt) * actions
-        both = {k: torch.cat([user[k], fallback[k]]) for k in self.row_shapes}
-        v = self._velocity(self._inputs(both), torch.cat([x_t, fallback["x_t"]]),
-                           torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
-        losses = torch.nn.functional.mse_loss(noise - actions, v[:n], reduction="none")
+        target, v = self._joint_forward(user, fallback)
+        n = len(target)
+        losses = torch.nn.functional.mse_loss(target, v[:n], reduction="none")
         return losses[:, :, : self.config.action_feature.shape[0]].mean(), v[n:]
 
     def memo(self) -> contextlib.AbstractContextManager:

@@ -352,11 +352,12 @@ class SmolVLAProtocol(LeRobotProtocol):
         cfg = self.model.vlm_with_expert.config
         return not any(getattr(p, "attention_dropout", 0.0) for p in (cfg.text_config, cfg.vision_config))
 
-    def joint_terms(
+    def _joint_forward(
         self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """SmolVLA's own loss on the user rows (its noise, then its time, as VLAFlowMatching.forward
-        draws them) and the expert's velocity on the fallback rows, as one forward."""
+        """(the user rows' velocity target ``noise - actions``, the velocity on user + fallback rows): the
+        policy's noise, then its time, drawn as its ``forward`` draws them, both row sets in one forward
+        (SmolVLA, pi0 and pi0.5 alike)."""
         self.policy.eval()
         m = self.model
         actions = self.policy.prepare_action(user)
@@ -368,8 +369,17 @@ class SmolVLAProtocol(LeRobotProtocol):
         both = {k: torch.cat([user[k], fallback[k]]) for k in self.row_shapes}
         v = self._velocity(self._inputs(both), torch.cat([x_t, fallback["x_t"]]),
                            torch.cat([time, fallback["t"].to(time)]))  # fmt: skip
+        return noise - actions, v
+
+    def joint_terms(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """SmolVLA's own loss on the user rows and the expert's velocity on the fallback rows, as one
+        forward (``_joint_forward``)."""
+        target, v = self._joint_forward(user, fallback)
+        n = len(target)
         width = self.config.action_feature.shape[0]
-        losses = (v[:n, :, :width] - (noise - actions)[:, :, :width]) ** 2
+        losses = (v[:n, :, :width] - target[:, :, :width]) ** 2
         pad = user.get("action_is_pad")
         if pad is None:
             return losses.mean(), v[n:]
