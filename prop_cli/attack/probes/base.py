@@ -289,8 +289,10 @@ class ProbeContext:
         return scan_keys(self, chunks, total, stage, screen=screen, keep=keep)
 
     @torch.inference_mode()
-    def probe_deltas(self, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        return cat_scores([self.scores(self.km.run_keys(self.ref.x, deltas))])
+    def probe_deltas(self, deltas: list[torch.Tensor], stage: str = "deltas") -> dict[str, torch.Tensor]:
+        """Score delta rows (K per layer) on every sample, in chunks within the budget, as keys are."""
+        rows = len(deltas[0])
+        return self._probe(rows, lambda i, j: [d[i:j] for d in deltas], self.keys_per_chunk(), stage)
 
 
 def cat_scores(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

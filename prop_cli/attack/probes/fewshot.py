@@ -112,7 +112,8 @@ def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
     _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR, ctx=ctx,
          stage=f"fewshot k={len(shots.x)} fine-tune", rows=len(shots.x))  # fmt: skip
     with torch.inference_mode():
-        return ctx.scores(module(ctx.ref.x)[None])
+        x, step = ctx.ref.x, ctx.km.max_rows or len(ctx.ref.x)
+        return ctx.scores(torch.cat([module(x[i : i + step]) for i in range(0, len(x), step)])[None])
 
 
 def shots_of(ctx: ProbeContext, k: int) -> Reference:
@@ -137,7 +138,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         code = _fit_code(ctx, shots, ctx.generator())
         rounded = torch.where(code >= 0, 1.0, -1.0)
         parts = [ctx.probe_codes(code, f"fewshot k={k}"),
-                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()))]  # fmt: skip
+                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()), f"fewshot k={k}")]  # fmt: skip
         groups.append(_group(k, parts, ["code (relaxed)", "delta"]))
         key = _group(k, [ctx.probe_codes(rounded, f"fewshot k={k}")], ["code (rounded)"])
         key.name, key.codes, key.kind = f"fewshot k={k} rounded", rounded, "key"
@@ -154,7 +155,8 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
     orig = ctx.on(ctx.original)
     for k in _ks(ctx):
         shots = shots_of(ctx, k)
-        parts = [orig.probe_deltas(_fit_delta(orig, shots, ctx.generator())), _finetune(orig, shots)]
+        fitted = _fit_delta(orig, shots, ctx.generator())
+        parts = [orig.probe_deltas(fitted, f"fewshot k={k} control"), _finetune(orig, shots)]
         groups.append(_group(k, parts, ["delta", "fine-tune keyed layers"]))
     return groups
 
