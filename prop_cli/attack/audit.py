@@ -248,17 +248,21 @@ def audit(
                         f"{user['leakage']:.2f}, personalization {user['personalization']:.2f}): it may not "
                         f"be this bundle's key, or --data not the data it was personalized on"
                     )
-            for name in s.probes:
+            chosen = [n for n in s.probes if probes.probe_named(n).needs != "other-keys" or len(keys) > 1]
+            for i, name in enumerate(chosen):
                 probe = probes.probe_named(name)
-                if probe.needs == "other-keys" and len(keys) < 2:
-                    continue
-                if ctx.out_of_time() and not target.cheap_when_late(bundle, probe):
+                cheap = target.cheap_when_late(bundle, probe)
+                if ctx.out_of_time() and not cheap:
                     not_tried.append(name)
                     continue
                 t0 = time.perf_counter()
-                found = probe.run(replace(ctx, probe=name))
+                # Each probe (with its control) gets an even share of what is left of the budget, so one
+                # probe's many keys do not leave the others untried; what it leaves goes to the next.
+                share = None if deadline is None or cheap else t0 + (deadline - t0) / (len(chosen) - i)
+                here = replace(ctx, probe=name, deadline=share)
+                found = probe.run(here)
                 rows = [_row(g, probe, task) for g in found]
-                _controls(probe, replace(ctx, probe=name), found, rows, models, task)
+                _controls(probe, here, found, rows, models, task)
                 timing[name] = time.perf_counter() - t0
                 warnings += [g.note for g in found if g.note]
                 groups += rows
