@@ -201,65 +201,74 @@ def audit(
     km = target.attacked_model(bundle, dev)
     grad_flags = [p.requires_grad for p in km.parameters()]
     km.requires_grad_(False)  # searches need gradients w.r.t. their own variables only
-    idx = sample_index(data, s.samples, s.seed)
-    x = torch.from_numpy(data.x[idx]).to(dev)
-    b = outputs(original.to(dev).eval() if original is not None else km.module, x, km.max_rows)
-    p = None
-    if has_key:
-        p = torch.from_numpy(data.y[idx]).to(dev)
-        if task == "regression" and p.dim() == 1:
-            p = p[:, None]
-    shots = (
-        shot_rows(data, idx, s.seed, x.device, km.module if original is None else original, task)
-        if has_key
-        else None
-    )
-    control_km, control_from = _control_model(bundle, km, original)
-    reference = original if original is not None else km.module  # what gives b
-    unenrolled = target.unenrolled_model(km, reference, s.seed)
-    models = {
-        "key": UNENROLLED.format("the original checkpoint" if original is not None else
-                                 "the reference (the bundle's base, no key)"),
-        "search": control_from,
-    }  # fmt: skip
-    ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
-    counter = Counter()
-    seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
-    deadline = started + s.budget if s.budget is not None else None
-    ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, unenrolled, progress,
-                       counter, shots=shots, seed_hint=seed if isinstance(seed, int) else None,
-                       users=bundle.mode.users(bundle.manifest), deadline=deadline)  # fmt: skip
-    ctx = target.probe_context(bundle, ctx)
-    timing: dict[str, float] = {}
-    groups: list[dict] = []
-    user, warnings, not_tried = None, [], []
-    try:
+    with target.memo(km.module):  # what a policy computes once for every key (SmolVLA: images)
+        idx = sample_index(data, s.samples, s.seed)
+        x = torch.from_numpy(data.x[idx]).to(dev)
+        b = outputs(original.to(dev).eval() if original is not None else km.module, x, km.max_rows)
+        p = None
         if has_key:
-            user = _user(ctx, keys[0])
-            warnings += _enrolment(bundle, keys[0])
-            if user["leakage"] < WRONG_KEY_LEAKAGE:
-                warnings.append(
-                    f"the key shows little of the personalization (leakage of your own key "
-                    f"{user['leakage']:.2f}, personalization {user['personalization']:.2f}): it may not be "
-                    f"this bundle's key, or --data not the data it was personalized on"
-                )
-        for name in s.probes:
-            probe = probes.probe_named(name)
-            if probe.needs == "other-keys" and len(keys) < 2:
-                continue
-            if ctx.out_of_time():
-                not_tried.append(name)
-                continue
-            t0 = time.perf_counter()
-            found = probe.run(replace(ctx, probe=name))
-            rows = [_row(g, probe, task) for g in found]
-            _controls(probe, replace(ctx, probe=name), found, rows, models, task)
-            timing[name] = time.perf_counter() - t0
-            warnings += [g.note for g in found if g.note]
-            groups += rows
-    finally:
-        for prm, flag in zip(km.parameters(), grad_flags):
-            prm.requires_grad_(flag)
+            p = torch.from_numpy(data.y[idx]).to(dev)
+            if task == "regression" and p.dim() == 1:
+                p = p[:, None]
+        shots = (
+            shot_rows(data, idx, s.seed, x.device, km.module if original is None else original, task)
+            if has_key
+            else None
+        )
+        control_km, control_from = _control_model(bundle, km, original)
+        reference = original if original is not None else km.module  # what gives b
+        unenrolled = target.unenrolled_model(km, reference, s.seed)
+        models = {
+            "key": UNENROLLED.format("the original checkpoint" if original is not None else
+                                     "the reference (the bundle's base, no key)"),
+            "search": control_from,
+        }  # fmt: skip
+        ref = Reference(x, b.clone(), p, task)  # clone: out of inference mode, usable next to autograd
+        counter = Counter()
+        seed = bundle.manifest.get(C.M_CONFIG, {}).get("seed")
+        deadline = started + s.budget if s.budget is not None else None
+        ctx = ProbeContext(km, ref, s, list(keys), bundle.key_encoding, control_km, unenrolled, progress,
+                           counter, shots=shots, seed_hint=seed if isinstance(seed, int) else None,
+                           users=bundle.mode.users(bundle.manifest), deadline=deadline)  # fmt: skip
+        ctx = target.probe_context(bundle, ctx)
+        # Every model here without a key gives b (the same weights on the same samples): kept, not rerun.
+        for k in (unenrolled, control_km, km if original is None else None):
+            if k is not None:
+                ctx.kept[id(k.module)] = (k.module, x, ref.b)
+        timing: dict[str, float] = {}
+        groups: list[dict] = []
+        user, warnings, not_tried = None, [], []
+        try:
+            if has_key:
+                user = _user(ctx, keys[0])
+                warnings += _enrolment(bundle, keys[0])
+                if user["leakage"] < WRONG_KEY_LEAKAGE:
+                    warnings.append(
+                        f"the key shows little of the personalization (leakage of your own key "
+                        f"{user['leakage']:.2f}, personalization {user['personalization']:.2f}): it may not "
+                        f"be this bundle's key, or --data not the data it was personalized on"
+                    )
+            chosen = [n for n in s.probes if probes.probe_named(n).needs != "other-keys" or len(keys) > 1]
+            for i, name in enumerate(chosen):
+                probe = probes.probe_named(name)
+                cheap = target.cheap_when_late(bundle, probe)
+                if ctx.out_of_time() and not cheap:
+                    not_tried.append(name)
+                    continue
+                t0 = time.perf_counter()
+                # Each probe (with its control) gets an even share of what is left of the budget, so one
+                # probe's many keys do not leave the others untried; what it leaves goes to the next.
+                share = None if deadline is None or cheap else t0 + (deadline - t0) / (len(chosen) - i)
+                here = replace(ctx, probe=name, deadline=share)
+                found = probe.run(here)
+                rows = [_row(g, probe, task) for g in found]
+                _controls(probe, here, found, rows, models, task)
+                timing[name] = time.perf_counter() - t0
+                warnings += [g.note for g in found if g.note]
+                groups += rows
+        finally:
+            for prm, flag in zip(km.parameters(), grad_flags):
+                prm.requires_grad_(flag)
     saturable = target.controls_can_saturate(bundle)
     for row in groups:
         row["gate"] = verdict.gate(row, saturable)

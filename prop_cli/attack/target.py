@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 from dataclasses import fields, replace
 
@@ -85,6 +86,17 @@ def rows_per_forward(module: nn.Module) -> int | None:
     if not isinstance(module, FlatModule):
         return None
     return max(1, int(ROW_PARAMS // max(1, sum(p.numel() for p in module.parameters()))))
+
+
+def memo(module: nn.Module) -> contextlib.AbstractContextManager:
+    """What a policy computes once for every key while the audit runs (its ``PolicyProtocol.memo``)."""
+    return module.protocol.memo() if isinstance(module, FlatModule) else contextlib.nullcontext()
+
+
+def cheap_when_late(bundle: Bundle, probe) -> bool:
+    """Whether a probe still runs once the budget is spent: a sealed bundle's key probes run no model for
+    the keys that open no record (the base's outputs are kept), so they cost trial decryptions only."""
+    return bundle.is_sealed and probe.kind == "key"
 
 
 def unhooked_copy(module: nn.Module) -> nn.Module:

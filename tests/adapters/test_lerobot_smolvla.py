@@ -240,6 +240,25 @@ def test_the_original_shares_what_does_not_train_and_the_pool_fills_as_steps_dra
     assert torch.allclose(targets, eager[[9, 3, 9]], atol=1e-5)
 
 
+def test_under_bf16_frozen_weights_step_as_bf16_and_come_back_exactly(work):
+    from prop_cli.train import User
+    from prop_cli.train.policy import PolicyTrainer
+
+    loaded = load_checkpoint(work / "smolvla")
+    before = {n: p.detach().clone() for n, p in loaded.module.named_parameters() if not p.requires_grad}
+    cfg = PersonalizeConfig(**(TINY | {"precision": "bf16"}))
+    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], cfg, None)
+    params = dict(t.module.named_parameters())
+    assert before and all(params[n].dtype == torch.bfloat16 for n in before)  # frozen: bf16, shared
+    assert all(p.dtype == torch.float32 for n, p in params.items() if n not in before)  # trained: fp32
+    assert all(dict(t.original.named_parameters())[n] is params[n] for n in before)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        losses = t.step()
+    t.finish()  # the report and the bundle see the checkpoint's own frozen weights again
+    assert np.isfinite(list(losses.values())).all() and t.optim is None
+    assert all(params[n].dtype == torch.float32 and torch.equal(params[n], before[n]) for n in before)
+
+
 def test_each_frames_image_embedding_is_computed_once_within_the_memo(work):
     policy = load_checkpoint(work / "smolvla").policy
     batch = policy.batches(load_data(work / "user"), "--data")

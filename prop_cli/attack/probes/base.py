@@ -82,6 +82,13 @@ class Counter:
 
     evals: int = 0
     seconds: float = 0.0
+    # (key, sample) rows the model actually ran, and their wall time: the speed ``affordable`` plans by
+    model_rows: int = 0
+    model_seconds: float = 0.0
+
+    def ran(self, rows: int, seconds: float) -> None:
+        self.model_rows += rows
+        self.model_seconds += seconds
 
 
 @dataclass
@@ -110,6 +117,21 @@ class ProbeContext:
     cut: list[str] = field(default_factory=list)
     kept: dict = field(default_factory=dict)  # outputs computed once (the plain model's, per model)
 
+    def affordable(self, rows: int, stage: str, passes: float = 3.0) -> bool:
+        """Whether ``rows`` (key, sample) rows, each ``passes`` forwards' cost (3: a forward and its
+        backward), end before the budget's deadline at the speed the model has run at so far; if not,
+        ``stage`` is recorded as cut short. A search step cannot stop half-way: a large policy's first
+        step alone can outlast any budget."""
+        if self.deadline is None:
+            return True
+        c = self.counter
+        need = passes * rows * c.model_seconds / c.model_rows if c.model_rows else 0.0
+        if time.perf_counter() + need <= self.deadline:
+            return True
+        if stage not in self.cut:
+            self.cut.append(stage)
+        return False
+
     def keys_per_chunk(self) -> int:
         """Keys scored per chunk on every sample: within the model's ``max_rows`` where it has one, so
         the budget is checked between chunks of a few forwards."""
@@ -132,8 +154,10 @@ class ProbeContext:
         held = self.kept.get(id(km.module))
         if held is None or held[1] is not x:
             step = km.max_rows or len(x)
+            t0 = time.perf_counter()
             with torch.inference_mode():
                 out = torch.cat([km.module(x[i : i + step]) for i in range(0, len(x), step)])
+            self.counter.ran(len(x), time.perf_counter() - t0)
             held = self.kept[id(km.module)] = (km.module, x, out)  # the module held: its id stays its own
         return held[2]
 
@@ -245,7 +269,9 @@ class ProbeContext:
                 base = self.plain()
                 o = base.expand(len(deltas[0]), *base.shape)
             else:
+                t1 = time.perf_counter()
                 o = self.km.run_keys(x, deltas)
+                self.counter.ran(len(deltas[0]) * len(x), time.perf_counter() - t1)
             parts.append({**self.scores(o), **({"outputs": o} if outputs else {})})
             done = min(i + per, rows)
             if self.progress:
@@ -263,8 +289,10 @@ class ProbeContext:
         return scan_keys(self, chunks, total, stage, screen=screen, keep=keep)
 
     @torch.inference_mode()
-    def probe_deltas(self, deltas: list[torch.Tensor]) -> dict[str, torch.Tensor]:
-        return cat_scores([self.scores(self.km.run_keys(self.ref.x, deltas))])
+    def probe_deltas(self, deltas: list[torch.Tensor], stage: str = "deltas") -> dict[str, torch.Tensor]:
+        """Score delta rows (K per layer) on every sample, in chunks within the budget, as keys are."""
+        rows = len(deltas[0])
+        return self._probe(rows, lambda i, j: [d[i:j] for d in deltas], self.keys_per_chunk(), stage)
 
 
 def cat_scores(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -284,14 +312,16 @@ def maximise_divergence(
 ) -> None:
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     s = ctx.settings
-    if not moves(params, make_deltas()):
+    first = make_deltas()
+    if not moves(params, first):
         return  # no delta depends on the parameters: every gradient is 0 and Adam leaves them as they are
     opt = torch.optim.Adam(params, lr=s.search_lr)
     n = len(ctx.ref.x)
     x, b = ctx.ref.x, ctx.ref.b
     gen = ctx.generator()
+    rows = len(first[0]) * (min(n, s.search_batch) if s.search_batch else n)
     for step in range(s.search_steps):
-        if step and ctx.out_of_time(stage):
+        if not ctx.affordable(rows, stage):  # the budget: the steps done so far are the search
             break
         if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
             i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)

@@ -39,12 +39,13 @@ def _loss(o: torch.Tensor, y: torch.Tensor, task: str) -> torch.Tensor:
 
 def _fit(
     params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR, ctx: ProbeContext | None = None,
-    stage: str = "fewshot",
+    stage: str = "fewshot", rows: int = 1,
 ) -> None:  # fmt: skip
-    """Adam on ``params``; stops early where ``ctx``'s budget runs out (``stage`` is then cut short)."""
+    """Adam on ``params``; stops where a step of ``rows`` rows would outlast ``ctx``'s budget (``stage``
+    is then cut short)."""
     opt = torch.optim.Adam(params, lr=lr)
-    for step in range(steps):
-        if step and ctx is not None and ctx.out_of_time(stage):
+    for _ in range(steps):
+        if ctx is not None and not ctx.affordable(rows, stage):  # the budget: the steps done so far
             break
         loss = loss_of().sum()  # restarts are independent: each one's gradient is its own
         opt.zero_grad(set_to_none=True)
@@ -65,7 +66,7 @@ def fit_codes(
         return _loss(km.run_keys(shots.x, km.layer_deltas(torch.tanh(theta / 2))), shots.p, shots.task)
 
     if moves([theta], km.layer_deltas(torch.tanh(theta / 2))):  # else every gradient is 0: nothing moves
-        _fit([theta], loss, steps, ctx=ctx, stage=f"fewshot k={len(shots.x)}")
+        _fit([theta], loss, steps, ctx=ctx, stage=f"fewshot k={len(shots.x)}", rows=restarts * len(shots.x))
     with torch.no_grad():
         return torch.tanh(theta / 2), loss()
 
@@ -90,7 +91,7 @@ def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> lis
     def loss() -> torch.Tensor:
         return _loss(km.run_keys(shots.x, deltas()), shots.p, shots.task)
 
-    _fit(phis, loss, ctx=ctx, stage=f"fewshot k={len(shots.x)}")
+    _fit(phis, loss, ctx=ctx, stage=f"fewshot k={len(shots.x)}", rows=RESTARTS * len(shots.x))
     with torch.no_grad():
         i = int(torch.argmin(loss()))
         return [d[i : i + 1].detach() for d in deltas()]
@@ -109,9 +110,10 @@ def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
     for p in params:
         p.requires_grad_(True)
     _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR, ctx=ctx,
-         stage=f"fewshot k={len(shots.x)} fine-tune")  # fmt: skip
+         stage=f"fewshot k={len(shots.x)} fine-tune", rows=len(shots.x))  # fmt: skip
     with torch.inference_mode():
-        return ctx.scores(module(ctx.ref.x)[None])
+        x, step = ctx.ref.x, ctx.km.max_rows or len(ctx.ref.x)
+        return ctx.scores(torch.cat([module(x[i : i + step]) for i in range(0, len(x), step)])[None])
 
 
 def shots_of(ctx: ProbeContext, k: int) -> Reference:
@@ -136,7 +138,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         code = _fit_code(ctx, shots, ctx.generator())
         rounded = torch.where(code >= 0, 1.0, -1.0)
         parts = [ctx.probe_codes(code, f"fewshot k={k}"),
-                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()))]  # fmt: skip
+                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()), f"fewshot k={k}")]  # fmt: skip
         groups.append(_group(k, parts, ["code (relaxed)", "delta"]))
         key = _group(k, [ctx.probe_codes(rounded, f"fewshot k={k}")], ["code (rounded)"])
         key.name, key.codes, key.kind = f"fewshot k={k} rounded", rounded, "key"
@@ -153,7 +155,8 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
     orig = ctx.on(ctx.original)
     for k in _ks(ctx):
         shots = shots_of(ctx, k)
-        parts = [orig.probe_deltas(_fit_delta(orig, shots, ctx.generator())), _finetune(orig, shots)]
+        fitted = _fit_delta(orig, shots, ctx.generator())
+        parts = [orig.probe_deltas(fitted, f"fewshot k={k} control"), _finetune(orig, shots)]
         groups.append(_group(k, parts, ["delta", "fine-tune keyed layers"]))
     return groups
 

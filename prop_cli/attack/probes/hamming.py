@@ -11,6 +11,8 @@ def run(ctx: ProbeContext) -> list[Group]:
     rng = ctx.rng()
     groups = []
     for d in ctx.settings.hamming or []:
+        if groups and ctx.out_of_time(f"hamming {d}"):  # the budget: the distances done so far
+            break
         near = neighbours_at(ctx.keys[0], d, ctx.settings.per_distance, rng)
         values = ctx.probe_keys(near, f"hamming {d}")
         groups.append(Group(f"hamming {d}", values, is_key=True, distance=d))

@@ -24,7 +24,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         return [1.0 + scale * torch.tanh(p) for p in phis]
 
     maximise_divergence(ctx, phis, deltas, "latent")
-    values = ctx.probe_deltas([d.detach() for d in deltas()])
+    values = ctx.probe_deltas([d.detach() for d in deltas()], "latent")
     return [Group("latent", values, is_key=False, search={"restarts": s.restarts, "steps": s.search_steps})]
 
 

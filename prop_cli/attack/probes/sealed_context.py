@@ -62,8 +62,10 @@ class SealedContext(ProbeContext):
         for k in bits:
             opened = self.records.open(k)
             if opened is not None:
+                t1 = time.perf_counter()
                 folded = opened.payload.fold(base)
                 o = torch.cat([folded(x[i : i + step]) for i in range(0, len(x), step)])[None]
+                self.counter.ran(len(x), time.perf_counter() - t1)
             else:
                 o = o_base
             parts.append(s_base if opened is None else self.scores(o))
