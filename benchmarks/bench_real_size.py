@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import json
 import os
 import re
@@ -67,26 +68,19 @@ STATE, CAMERA, ACTION = "observation.state", "observation.images.front", "action
 DIMS = 6  # state and action values
 TASK_TEXT = "pick up the red block"
 RUNS = ("lerobot", "prop", "peft", "sealed")
+POLICIES = ("smolvla", "pi0")
+TINY_ENV = "BENCH_REAL_SIZE_TINY"  # set: the tiny SmolVLA / pi0 instead (tests; pi0 under pi_tiny.tiny())
 PHASES = ("setup", "precompute", "steps", "targets", "report")
 MARK = "BENCH-REAL-SIZE "  # the line a worker prints its figures on (stderr)
 
 
 # ---------------------------------------------------------------------------------------------- build
-def build(work: Path, image: int, episodes: int, frames: int, seed: int = 0) -> tuple[Path, Path]:
-    """The VLM folder, the policy folder and the dataset under ``work`` (kept if already there)."""
+def build_data(data_dir: Path, image: int, episodes: int, frames: int, seed: int = 0) -> dict:
+    """The LeRobotDataset at ``data_dir`` (kept if already there) and its statistics as the policies'
+    processors take them."""
     import numpy as np
     import torch
-
-    from examples.smolvla_tiny import build_vlm
-
-    policy_dir, data_dir = work / "smolvla", work / "data"
-    if (policy_dir / "model.safetensors").is_file() and (data_dir / "meta" / "info.json").is_file():
-        return policy_dir, data_dir
-    from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     rng = np.random.default_rng(seed)
     if not (data_dir / "meta" / "info.json").is_file():
@@ -111,24 +105,130 @@ def build(work: Path, image: int, episodes: int, frames: int, seed: int = 0) -> 
             ds.save_episode()
         ds.finalize()
     meta = LeRobotDatasetMetadata("local/real-size", root=data_dir)
-    stats = {
+    return {
         k: {s: torch.as_tensor(np.asarray(v), dtype=torch.float32) for s, v in meta.stats[k].items()
             if s in ("mean", "std", "min", "max")}
         for k in (STATE, ACTION, CAMERA)
     }  # fmt: skip
-    vlm = build_vlm(work / "vlm", config=SMOLVLM2_500M)
-    cfg = SmolVLAConfig(
+
+
+def features(image: int) -> dict:
+    """(input_features, output_features) of the policies: one camera, the state, the action."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    return dict(
         input_features={STATE: PolicyFeature(FeatureType.STATE, (DIMS,)),
                         CAMERA: PolicyFeature(FeatureType.VISUAL, (3, image, image))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (DIMS,))},
-        device="cpu", vlm_model_name=str(vlm), load_vlm_weights=False,
     )  # fmt: skip
+
+
+def build(work: Path, image: int, episodes: int, frames: int, seed: int = 0, *, tiny: bool = False,
+          data: str = "data") -> tuple[Path, Path]:  # fmt: skip
+    """The SmolVLA policy folder (its VLM in ``work/vlm``) and the dataset under ``work`` (kept if
+    already there). ``tiny``: examples/smolvla_tiny.py's VLM instead of the published size (tests)."""
+    import torch
+
+    from examples.smolvla_tiny import build_vlm
+
+    policy_dir, data_dir = work / ("smolvla-tiny" if tiny else "smolvla"), work / data
+    stats = build_data(data_dir, image, episodes, frames, seed)
+    if (policy_dir / "model.safetensors").is_file():
+        return policy_dir, data_dir
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    vlm = build_vlm(work / "vlm-tiny") if tiny else build_vlm(work / "vlm", config=SMOLVLM2_500M)
+    cfg = SmolVLAConfig(**features(image), device="cpu", vlm_model_name=str(vlm), load_vlm_weights=False,
+                        **(dict(resize_imgs_with_padding=(image, image)) if tiny else {}))  # fmt: skip
     torch.manual_seed(seed)
     policy = SmolVLAPolicy(cfg)
     pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
     for part in (policy, pre, post):
         part.save_pretrained(policy_dir)
     return policy_dir, data_dir
+
+
+# pi0 at its published size: LeRobot's PI0Config defaults (PaliGemma's gemma_2b with SigLIP so400m at
+# 224 px, the gemma_300m action expert, chunk 50, 10 flow steps; every weight trainable), held as
+# lerobot/pi0_base is (its config says "dtype": "bfloat16", its model.safetensors is 7.0 GB: LeRobot's
+# to_bfloat16_for_selected_params, the vision tower, projector and norms fp32, the rest bf16).
+PI0_IMAGE = 224
+CHUNK = 2**25  # values generated at once when writing random weights (128 MB as fp32)
+
+
+def build_pi0(work: Path, stats: dict, seed: int = 0, *, tiny: bool = False, **overrides) -> Path:
+    """A pi0 policy folder under ``work`` (kept if already there): its config, processors (the tokenizer
+    step reading examples/pi_tiny.py's word-level tokenizer, written to ``work/tokenizer``; the embedding
+    keeps PaliGemma's 257,152 rows) and random weights. The model is built on the meta device (shapes
+    and dtypes only) and its weights written one tensor at a time (``write_random_safetensors``): 3.5 B
+    parameters in 7 GB, never the whole model in memory. ``tiny``: pi_tiny's sizes (loads only under
+    ``pi_tiny.tiny()``; tests)."""
+    import contextlib
+    import copy
+
+    import torch
+    from lerobot.policies.pi0.configuration_pi0 import PI0Config
+    from lerobot.policies.pi0.modeling_pi0 import PI0Policy
+
+    from examples import pi_tiny
+
+    policy_dir = work / ("pi0-tiny" if tiny else "pi0")
+    if (policy_dir / "model.safetensors").is_file():
+        return policy_dir
+    tok = pi_tiny.build_tokenizer(work / "tokenizer")
+    sizes = dict(chunk_size=10, n_action_steps=5, max_state_dim=8, max_action_dim=8, tokenizer_max_length=16,
+                 image_resolution=(pi_tiny.IMAGE, pi_tiny.IMAGE)) if tiny else {}  # fmt: skip
+    image = pi_tiny.IMAGE if tiny else PI0_IMAGE
+    cfg = PI0Config(**features(image), device="cpu", dtype="bfloat16", **(sizes | overrides))
+    on_meta = copy.copy(cfg)
+    on_meta.device = "meta"  # PI0Policy moves its model to config.device
+    with pi_tiny.tiny() if tiny else contextlib.nullcontext(), torch.device("meta"):
+        policy = PI0Policy(on_meta)
+    policy_dir.mkdir(parents=True, exist_ok=True)
+    write_random_safetensors(policy, policy_dir / "model.safetensors", seed)
+    cfg.save_pretrained(policy_dir)
+    for part in pi_tiny.local_processors("pi0", cfg, tok, stats):
+        part.save_pretrained(policy_dir)
+    return policy_dir
+
+
+def write_random_safetensors(module, path: Path, seed: int = 0) -> None:
+    """``module``'s state dict (meta tensors: names, shapes, dtypes) written to ``path`` as safetensors
+    with random values, one tensor at a time: matrices N(0, 1/fan_in), LayerNorm weights 1, every other
+    vector 0 (biases; Gemma's RMSNorm scales by 1 + weight)."""
+    import json as _json
+
+    import torch
+
+    codes = {torch.float32: "F32", torch.bfloat16: "BF16", torch.float16: "F16", torch.int64: "I64"}
+    mods = dict(module.named_modules())
+    state = module.state_dict()
+    header, offset = {}, 0
+    for name, t in state.items():
+        size = t.numel() * t.element_size()
+        header[name] = {"dtype": codes[t.dtype], "shape": list(t.shape),
+                        "data_offsets": [offset, offset + size]}  # fmt: skip
+        offset += size
+    header["__metadata__"] = {"format": "pt"}
+    head = _json.dumps(header, separators=(",", ":")).encode()
+    head += b" " * (-len(head) % 8)
+    gen = torch.Generator().manual_seed(seed)
+    with open(path, "wb") as f:
+        f.write(len(head).to_bytes(8, "little") + head)
+        for name, t in state.items():
+            owner = mods.get(name.rpartition(".")[0])
+            rows = max(1, CHUNK // max(1, t[0].numel())) if t.dim() else 1
+            for i in range(0, max(1, len(t)) if t.dim() else 1, rows):  # a block of rows at a time
+                shape = (min(rows, len(t) - i), *t.shape[1:]) if t.dim() else ()
+                if t.dim() >= 2:
+                    value = torch.randn(shape, generator=gen).mul_(t[0].numel() ** -0.5)
+                elif isinstance(owner, torch.nn.LayerNorm) and name.endswith("weight"):
+                    value = torch.ones(shape)
+                else:
+                    value = torch.zeros(shape)
+                f.write(value.to(t.dtype).reshape(-1).view(torch.uint8).numpy().data)
 
 
 def counts(module) -> tuple[int, int]:
@@ -138,6 +238,13 @@ def counts(module) -> tuple[int, int]:
 
 
 # -------------------------------------------------------------------------------------------- workers
+def sync() -> None:
+    """Wait for the GPU's queued work (a step's time is its work's, not its launch's)."""
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 class Clock:
     """Phase timings and the peak resident memory reached by the end of each phase, printed on exit."""
 
@@ -155,12 +262,15 @@ class Clock:
 
     def emit(self) -> None:
         self.peak("end")
+        torch = sys.modules.get("torch")
+        if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+            self.figures["cuda_peak_gib"] = torch.cuda.max_memory_allocated() / 2**30
         self.figures["wall_s"] = time.perf_counter() - self.t0
         print(MARK + json.dumps(self.figures), file=sys.stderr, flush=True)
 
 
 def lerobot_worker(args: argparse.Namespace) -> None:
-    """LeRobot's own training of the policy at ``args.policy`` (``--peft``: its LoRA run)."""
+    """LeRobot's own training of the policy at ``args.folder`` (``--peft``: its LoRA run)."""
     import dataclasses
 
     import torch
@@ -170,14 +280,14 @@ def lerobot_worker(args: argparse.Namespace) -> None:
     from lerobot.configs.default import PeftConfig
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     torch.manual_seed(0)
-    policy = SmolVLAPolicy.from_pretrained(args.policy)
-    pre, _ = make_pre_post_processors(policy.config, pretrained_path=args.policy)
+    kind = json.loads((Path(args.folder) / "config.json").read_text())["type"]
+    policy = get_policy_class(kind).from_pretrained(args.folder).to(args.device)
+    pre, _ = make_pre_post_processors(policy.config, pretrained_path=args.folder)
     if args.peft:  # lerobot-train's make_policy records the path the policy came from; PEFT needs it
-        policy.config.pretrained_path = Path(args.policy)
+        policy.config.pretrained_path = Path(args.folder)
         policy = policy.wrap_with_peft(peft_cli_overrides=dataclasses.asdict(PeftConfig(r=args.rank)))
     total, trainable = counts(policy)
     clock.figures.update(parameters=total, trainable=trainable)
@@ -201,11 +311,13 @@ def lerobot_worker(args: argparse.Namespace) -> None:
         except StopIteration:
             batches = iter(loader)
             batch = next(batches)
-        loss, _ = policy.forward(pre(batch))
+        batch = {k: v.to(args.device) if torch.is_tensor(v) else v for k, v in pre(batch).items()}
+        loss, _ = policy.forward(batch)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, preset.grad_clip_norm)
         optimizer.step()
         optimizer.zero_grad()
+        sync()
         clock.figures["steps_s"].append(time.perf_counter() - t)
     clock.add("steps", sum(clock.figures["steps_s"]))
 
@@ -242,6 +354,7 @@ def prop_worker(argv: list[str]) -> None:
         def one():
             t, pool = time.perf_counter(), clock.figures["phases"]["targets"]
             out = step()
+            sync()
             clock.figures["steps_s"].append(time.perf_counter() - t)
             clock.figures.setdefault("targets_s", []).append(clock.figures["phases"]["targets"] - pool)
             return out
@@ -313,20 +426,25 @@ def median(xs: list[float]) -> float:
 
 def table(results: dict[str, dict]) -> str:
     """The markdown table: peak memory, step time and fixed costs per run, then prop's ratios."""
-    head = ("| run | peak memory | step (median) | set-up | precompute | targets in steps | steps | report "
-            "| wall | CPU |")  # fmt: skip
-    out = [head, "|" + "---|" * 10]
+    gpu = any("cuda_peak_gib" in r for r in results.values())
+    head = ("| run | peak memory |" + (" GPU peak |" if gpu else "") + " step (median) | set-up | precompute "
+            "| targets in steps | steps | report | wall | CPU |")  # fmt: skip
+    out = [head, "|" + "---|" * (11 if gpu else 10)]
     for name, r in results.items():
         ph = r.get("phases", {})
-        cells = [f"{r['rss_gb']:.2f} GiB", f"{median(r.get('steps_s', [])):.1f} s"]
+        cells = [f"{r['rss_gb']:.2f} GiB"]
+        cells += [f"{r.get('cuda_peak_gib', float('nan')):.2f} GiB"] if gpu else []
+        cells += [f"{median(r.get('steps_s', [])):.2f} s"]
         cells += [f"{ph.get(k, 0):.0f} s" for k in ("setup", "precompute", "targets", "steps", "report")]
         out.append(f"| {name} | " + " | ".join(cells) + f" | {r['wall_s']:.0f} s | {r['cpu_s']:.0f} s |")
     for a, b in (("prop", "lerobot"), ("sealed", "peft")):
         if a in results and b in results:
             ra, rb = results[a], results[b]
             own = [s - t for s, t in zip(ra["steps_s"], ra.get("targets_s", [0.0] * len(ra["steps_s"])))]
+            gpu_ratio = (f" (GPU {ra['cuda_peak_gib'] / rb['cuda_peak_gib']:.2f}x)"
+                         if "cuda_peak_gib" in ra and "cuda_peak_gib" in rb else "")  # fmt: skip
             out.append(
-                f"\n{a} / {b}: peak memory {ra['rss_gb'] / rb['rss_gb']:.2f}x; step "
+                f"\n{a} / {b}: peak memory {ra['rss_gb'] / rb['rss_gb']:.2f}x{gpu_ratio}; step "
                 f"{median(ra['steps_s']) / median(rb['steps_s']):.2f}x "
                 f"({median(own) / median(rb['steps_s']):.2f}x without the original's targets)"
             )
@@ -335,22 +453,41 @@ def table(results: dict[str, dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    with tiny_pi() if os.environ.get(TINY_ENV) else contextlib.nullcontext():
+        return _main(argv)
+
+
+def tiny_pi() -> contextlib.AbstractContextManager:
+    from examples import pi_tiny
+
+    return pi_tiny.tiny()
+
+
+def _main(argv: list[str]) -> None:
     if argv[:1] == ["worker-prop"]:
         return prop_worker(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--runs", default=",".join(RUNS), help=f"comma-separated, of {', '.join(RUNS)}")
+    ap.add_argument("--policy", choices=POLICIES, default="smolvla")
+    ap.add_argument("--runs", help=f"comma-separated, of {', '.join(RUNS)} (default: all for smolvla, "
+                    "peft,sealed for pi0: its unsealed run does not fit 24 GiB)")  # fmt: skip
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--batch", type=int, default=2)
-    ap.add_argument("--image", type=int, default=512, help="camera frames, pixels square")
+    ap.add_argument("--image", type=int, help="camera frames, pixels square (default: 512 for smolvla, 224 "
+                    "for pi0: what each resizes to)")  # fmt: skip
+    ap.add_argument("--gradient-checkpointing", choices=("on", "off"),
+                    help="pi0: set its config.json's gradient_checkpointing (LeRobot's runs and prop's "
+                    "read it); SmolVLA has none")  # fmt: skip
     ap.add_argument("--episodes", type=int, default=4)
     ap.add_argument("--frames", type=int, default=5, help="frames per episode")
     ap.add_argument("--rank", type=int, default=4, help="LoRA rank of peft and of the sealed payload")
     ap.add_argument("--key-bits", type=int, default=128)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda: where every run trains (on cuda the "
+                    "table adds torch.cuda.max_memory_allocated)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=None, help="build here (reused when it holds a build)")
     ap.add_argument("--prop-args", default="", help="more `prop personalize` flags, quoted")
     ap.add_argument("--worker", choices=("lerobot", "peft"), help=argparse.SUPPRESS)
-    ap.add_argument("--policy", help=argparse.SUPPRESS)
+    ap.add_argument("--folder", help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -360,7 +497,22 @@ def main(argv: list[str] | None = None) -> None:
     work = args.work or Path(tempfile.mkdtemp(prefix="prop-real-size-"))
     work.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    policy_dir, data_dir = build(work, args.image, args.episodes, args.frames)
+    tiny = bool(os.environ.get(TINY_ENV))
+    if args.policy == "pi0":
+        args.image = args.image or PI0_IMAGE
+        data_dir = work / "data-pi0"
+        stats = build_data(data_dir, args.image, args.episodes, args.frames)
+        policy_dir = build_pi0(work, stats, tiny=tiny)
+    else:
+        args.image = args.image or 512
+        policy_dir, data_dir = build(work, args.image, args.episodes, args.frames, tiny=tiny)
+    if args.gradient_checkpointing:
+        if args.policy != "pi0":
+            raise SystemExit("--gradient-checkpointing: SmolVLA's config offers no gradient checkpointing")
+        config = json.loads((policy_dir / "config.json").read_text())
+        config["gradient_checkpointing"] = args.gradient_checkpointing == "on"
+        (policy_dir / "config.json").write_text(json.dumps(config, indent=4))
+    runs = args.runs or ",".join(RUNS if args.policy == "smolvla" else ("peft", "sealed"))
     print(f"built in {time.perf_counter() - t:.0f} s: {policy_dir}, {data_dir} ({args.episodes} episodes x "
           f"{args.frames} frames, {args.image}x{args.image} images)", file=sys.stderr)  # fmt: skip
     env = os.environ | {"HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": str(args.threads)}
@@ -370,7 +522,8 @@ def main(argv: list[str] | None = None) -> None:
         subprocess.run([py, "-m", "prop_cli.cli.main", "keygen", str(key), "--bits", str(args.key_bits)],
                        check=True, env=env, stdout=subprocess.DEVNULL)  # fmt: skip
     common = [str(policy_dir), "--data", str(data_dir), "--key-file", str(key), "--steps", str(args.steps),
-              "--threads", str(args.threads), "--force", "--json", *shlex.split(args.prop_args)]  # fmt: skip
+              "--threads", str(args.threads), "--device", args.device, "--force", "--json",
+              *shlex.split(args.prop_args)]  # fmt: skip
     cmds = {
         "lerobot": [py, "-m", "benchmarks.bench_real_size", "--worker", "lerobot"],
         "peft": [py, "-m", "benchmarks.bench_real_size", "--worker", "peft"],
@@ -381,11 +534,11 @@ def main(argv: list[str] | None = None) -> None:
                    "--user-rows", str(args.batch)],
     }  # fmt: skip
     for name in ("lerobot", "peft"):
-        cmds[name] += ["--policy", str(policy_dir), "--data", str(data_dir), "--steps", str(args.steps),
+        cmds[name] += ["--folder", str(policy_dir), "--data", str(data_dir), "--steps", str(args.steps),
                        "--batch", str(args.batch), "--rank", str(args.rank),
-                       "--threads", str(args.threads)]  # fmt: skip
+                       "--threads", str(args.threads), "--device", args.device]  # fmt: skip
     results = {}
-    for name in [r.strip() for r in args.runs.split(",") if r.strip()]:
+    for name in [r.strip() for r in runs.split(",") if r.strip()]:
         if name not in cmds:
             raise SystemExit(f"--runs: {name!r} is not one of {', '.join(RUNS)}")
         print(f"{name}: {shlex.join(cmds[name])}", file=sys.stderr, flush=True)

@@ -122,7 +122,6 @@ def build_pi(
     """A tiny ``kind`` (pi0 or pi05) with its processors, the tokenizer step reading ``tokenizer`` (a
     folder ``build_tokenizer`` wrote): (policy, preprocessor, postprocessor)."""
     from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
-    from lerobot.policies.factory import make_pre_post_processors
 
     from examples.lerobot_reach_task import ACTION, CAMERA, STATE
 
@@ -149,16 +148,23 @@ def build_pi(
     cfg = config_class(**(settings | overrides))
     with tiny():
         policy = policy_class(cfg)
-    # LeRobot's processors name PaliGemma's hub tokenizer: this one's folder instead (saved in the
-    # preprocessor's JSON, where prop reads it from).
-    processors = importlib.import_module(f"{lerobot}.processor_{package}")
+    return (policy, *local_processors(kind, cfg, tokenizer, stats))
+
+
+def local_processors(kind: str, cfg, tokenizer: Path, stats: dict | None) -> tuple:
+    """LeRobot's (preprocessor, postprocessor) for a ``kind`` config, the tokenizer step reading the
+    folder ``tokenizer``: LeRobot's processors name PaliGemma's hub tokenizer, this one's folder is saved
+    in the preprocessor's JSON instead (where prop reads it from)."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    package = KINDS[kind][0]
+    processors = importlib.import_module(f"lerobot.policies.{package}.processor_{package}")
     step = processors.TokenizerProcessorStep
     processors.TokenizerProcessorStep = lambda **kw: step(**(kw | {"tokenizer_name": str(tokenizer)}))
     try:
-        pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+        return make_pre_post_processors(cfg, dataset_stats=stats)
     finally:
         processors.TokenizerProcessorStep = step
-    return policy, pre, post
 
 
 def main(argv: list[str] | None = None) -> None:

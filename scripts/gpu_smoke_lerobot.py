@@ -2,15 +2,20 @@
 and bf16, then run each bundle on the CPU with and without the key, and check that the outputs are
 finite and the key changes them. Then sealed ACT and SmolVLA (``--seal``) on CUDA at fp32 and bf16: the
 bundle's base must be the original's weights bit for bit, a wrong key must run on the CPU exactly what
-no key runs (the original), and the user's key must change the actions. Skips cleanly (exit 0) without
-CUDA or lerobot.
+no key runs (the original), and the user's key must change the actions. Then real size
+(``real_size``): SmolVLA (unsealed and ``--seal``) and pi0 (``--seal``) at their published sizes, built
+by benchmarks/bench_real_size.py (random weights, nothing downloaded), personalized for a few steps on
+CUDA beside LeRobot's own PEFT LoRA run of the same policy: peak GPU memory
+(``torch.cuda.max_memory_allocated``) and step time, within ``REAL_SIZE_BUDGET_S``. Skips cleanly
+(exit 0) without CUDA or lerobot.
 
-    .venv-lerobot/bin/python scripts/gpu_smoke_lerobot.py [WORK]
+    .venv-lerobot/bin/python scripts/gpu_smoke_lerobot.py [WORK] [--real-size-only]
 
 WORK holding ``general/``, ``user/`` (LeRobotDatasets with the camera) and ``act/``, ``diffusion/``,
 ``smolvla/`` (policy folders; the SmolVLA's VLM files in ``smolvla/vlm/``) is used as is (a GPU machine
 without panda-gym); otherwise they are recorded and trained here first (examples/).
-``PROP_SMOKE_DEVICE=cpu`` runs the same steps on the CPU.
+``PROP_SMOKE_DEVICE=cpu`` runs the same steps on the CPU; there ``--real-size-only --tiny`` runs the
+real-size part with the tiny SmolVLA and pi0 (the code path, in a minute or two).
 """
 
 from __future__ import annotations
@@ -24,6 +29,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+REAL_SIZE_BUDGET_S = 480  # the real-size part's wall-clock limit (the rest of the check fits in the 10 min)
+# Each run: LeRobot's PEFT LoRA of the policy, then prop's (unsealed, sealed), 3 steps of batch 2.
+REAL_SIZE_RUNS = (("smolvla", "peft,sealed,prop"), ("pi0", "peft,sealed"))
 
 
 def prop(*args: object) -> str:
@@ -53,6 +62,8 @@ def prepare(work: Path) -> None:
 def main() -> None:
     import torch
 
+    flags = {a for a in sys.argv[1:] if a.startswith("--")}
+    positional = [a for a in sys.argv[1:] if not a.startswith("--")]
     device = os.environ.get("PROP_SMOKE_DEVICE", "cuda")
     if device == "cuda" and not torch.cuda.is_available():
         print("gpu-smoke-lerobot: skipped: torch sees no CUDA device")
@@ -62,10 +73,15 @@ def main() -> None:
     except ImportError:
         print("gpu-smoke-lerobot: skipped: lerobot is not installed (scripts/setup-lerobot.sh)")
         return
-    work = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(tempfile.mkdtemp(prefix="prop-gpu-lerobot-"))
+    name = torch.cuda.get_device_name() if device == "cuda" else "the CPU"
+    if "--real-size-only" in flags:
+        print(f"gpu-smoke-lerobot: torch {torch.__version__} on {name}")
+        real_size(device, tiny="--tiny" in flags)
+        print("gpu-smoke-lerobot: passed")
+        return
+    work = Path(positional[0]) if positional else Path(tempfile.mkdtemp(prefix="prop-gpu-lerobot-"))
     if not (work / "act").is_dir():
         prepare(work)
-    name = torch.cuda.get_device_name() if device == "cuda" else "the CPU"
     print(f"gpu-smoke-lerobot: torch {torch.__version__} on {name}")
     out = Path(tempfile.mkdtemp(prefix="prop-gpu-lerobot-out-"))
     key = out / "k.bin"
@@ -95,6 +111,7 @@ def main() -> None:
                   f"personalization {m['personalization']:.3f}, key vs no key (run on the CPU) differ by "
                   f"{diff:.4f}")  # fmt: skip
     sealed_on_device(work, out, key, device)
+    real_size(device, tiny="--tiny" in flags)
     print("gpu-smoke-lerobot: passed")
 
 
@@ -135,3 +152,47 @@ def sealed_on_device(work: Path, out: Path, key: Path, device: str) -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_S) -> None:
+    """SmolVLA and pi0 at their published sizes (``tiny``: examples/'s tiny ones) personalized for 3
+    steps on ``device`` beside LeRobot's own PEFT LoRA run: benchmarks/bench_real_size.py's builders and
+    runs, each run its own process, its table printed (peak GPU memory, step time). What would not start
+    within ``budget`` seconds is named, not run."""
+    import signal
+
+    root = Path(tempfile.mkdtemp(prefix="prop-gpu-real-size-"))
+    env = os.environ | {"HF_HUB_OFFLINE": "1"}
+    if tiny:
+        env["BENCH_REAL_SIZE_TINY"] = "1"
+    t0 = time.perf_counter()
+    for policy, runs in REAL_SIZE_RUNS:
+        left = budget - (time.perf_counter() - t0)
+        if left < 60:
+            print(f"gpu-smoke-lerobot: real-size {policy}: not run ({budget:.0f} s budget spent)")
+            continue
+        cmd = [
+            sys.executable, "-m", "benchmarks.bench_real_size", "--policy", policy, "--runs", runs,
+            "--device", device, "--steps", "3", "--batch", "2", "--episodes", "2", "--frames", "6",
+            "--key-bits", "32", "--threads", str(min(8, os.cpu_count() or 1)), "--work", str(root / policy),
+            "--prop-args", "--report-budget 4", *(["--image", "32"] if tiny else []),
+        ]  # fmt: skip
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                start_new_session=True)  # fmt: skip
+        try:
+            stdout, stderr = proc.communicate(timeout=left)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)  # the benchmark and the run it started
+            proc.communicate()
+            print(f"gpu-smoke-lerobot: real-size {policy}: stopped at the {budget:.0f} s budget")
+            continue
+        if proc.returncode:
+            sys.exit(f"gpu-smoke-lerobot: real-size {policy} failed:\n{(stderr or stdout)[-3000:]}")
+        results = json.loads((root / policy / "results.json").read_text())
+        for run, r in results.items():
+            assert r.get("steps_s"), f"real-size {policy} {run}: no step ran"
+            assert device != "cuda" or r.get("cuda_peak_gib", 0) > 0, f"real-size {policy} {run}: no GPU peak"
+        print(f"gpu-smoke-lerobot: real-size {policy} on {device} ({time.perf_counter() - t0:.0f} s so far):")
+        for line in stdout.splitlines():
+            if line.strip():
+                print(f"gpu-smoke-lerobot:   {line}")

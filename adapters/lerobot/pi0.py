@@ -42,7 +42,7 @@ import torch
 
 from prop_adapters.base import names_code
 from prop_adapters.folder import CONFIG, WEIGHTS
-from prop_adapters.weights import read_weights
+from prop_adapters.weights import load_into, read_weights, safetensors_shapes, sniff
 from prop_cli.constants import LEROBOT_TOKENIZER_DIR, TASK
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
@@ -164,6 +164,32 @@ def lerobot_keys(policy_class, config, weights: dict[str, torch.Tensor]) -> dict
     return {k if k.startswith("model.") else f"model.{k}": v for k, v in fixed.items()}
 
 
+@contextlib.contextmanager
+def layer_checkpoints(model):
+    """LeRobot checkpoints pi0's layers (its config's ``gradient_checkpointing``) only in training mode;
+    prop's velocity runs in eval mode (no dropout), so while a gradient is taken the joint model's own
+    training flag is raised for the call (its layers stay in eval mode): activations recomputed layer by
+    layer in the backward pass instead of kept, as LeRobot's training does."""
+    pwe = model.paligemma_with_expert
+    on = getattr(model, "gradient_checkpointing_enabled", False) and torch.is_grad_enabled()
+    on = on and not pwe.training
+    if on:
+        pwe.training = True
+    try:
+        yield
+    finally:
+        if on:
+            pwe.training = False
+
+
+def _file_names_fit(policy_class, config, path: Path) -> bool:
+    """Whether the safetensors file at ``path`` already has the names LeRobot's key fixes give."""
+    if not path.is_file() or sniff(path) != "safetensors":
+        return False
+    shapes = {k: torch.empty(v, device="meta") for k, v in safetensors_shapes(path).items()}
+    return set(lerobot_keys(policy_class, config, shapes)) == set(shapes)
+
+
 class PI0Protocol(SmolVLAProtocol):
     """pi0 through the policy protocol (see the module docstring)."""
 
@@ -183,10 +209,17 @@ class PI0Protocol(SmolVLAProtocol):
 
         config = PreTrainedConfig.from_pretrained(str(folder))
         tokenizer = tokenizer_folder(folder, cls.label, where, contained)
-        if weights is None:
-            weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
-        policy = construct(meta_ready(policy_class), config, weights, where)
-        policy.load_state_dict(weights, strict=True)
+        if weights is None and _file_names_fit(policy_class, config, folder / WEIGHTS):
+            # LeRobot's own names: built, then filled one tensor at a time from the file (pi0 at its
+            # published size: its 7 GB of weights never held beside the model).
+            shapes = safetensors_shapes(folder / WEIGHTS)
+            policy = construct(meta_ready(policy_class), config, shapes, where)
+            load_into(policy, folder / WEIGHTS)
+        else:
+            if weights is None:
+                weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
+            policy = construct(meta_ready(policy_class), config, weights, where)
+            policy.load_state_dict(weights, strict=True)
         files = {f"{LEROBOT_TOKENIZER_DIR}/{n}": (tokenizer / n).read_bytes()
                  for n in TOKENIZER_FILES if (tokenizer / n).is_file()}  # fmt: skip
         return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(tokenizer)}}, files)
@@ -222,11 +255,12 @@ class PI0Protocol(SmolVLAProtocol):
             prefix, suffix = prefix.to(torch.bfloat16), suffix.to(torch.bfloat16)
         pad = torch.cat([prefix_pad, suffix_pad], dim=1)
         att = lerobot.make_att_2d_masks(pad, torch.cat([prefix_att, suffix_att], dim=1))
-        (_, out), _ = pwe.forward(
-            attention_mask=lerobot.prepare_attention_masks_4d(att), position_ids=torch.cumsum(pad, dim=1) - 1,
-            past_key_values=None, inputs_embeds=[prefix, suffix], use_cache=False,
-            adarms_cond=[None, adarms_cond],
-        )  # fmt: skip
+        with layer_checkpoints(m):
+            (_, out), _ = pwe.forward(
+                attention_mask=lerobot.prepare_attention_masks_4d(att),
+                position_ids=torch.cumsum(pad, dim=1) - 1, past_key_values=None,
+                inputs_embeds=[prefix, suffix], use_cache=False, adarms_cond=[None, adarms_cond],
+            )  # fmt: skip
         return m.action_out_proj(out[:, -c.chunk_size :].to(torch.float32))
 
     @property
@@ -273,4 +307,7 @@ class PI0Protocol(SmolVLAProtocol):
         }
 
 
-__all__ = ["PI0_LAYERS", "PI0Protocol", "TOKENIZER_FILES", "check_tokenizer", "tokenizer_folder"]
+__all__ = [
+    "PI0_LAYERS", "PI0Protocol", "TOKENIZER_FILES", "check_tokenizer", "layer_checkpoints",
+    "tokenizer_folder",
+]  # fmt: skip

@@ -2,8 +2,10 @@
 their frames alone with the policy's own loss, the base frozen (it stays the original). No fallback
 terms: a wrong key opens no record and the original runs.
 
-It trains on ``--device`` (and ``--precision``) as the unsealed recipe does; the base and the payloads
-come back to the CPU before the bundle is written, so the base it writes is the original's tensors.
+It trains on ``--device`` (and ``--precision``) as the unsealed recipe does (under bf16 the frozen base
+held as bf16 during the steps, ``frozen_in_bf16``, and read back from the checkpoint after them); the base
+and the payloads come back to the CPU before the bundle is written, so the base it writes is the
+original's tensors.
 On several processes each computes its share of a step's rows, as the unsealed recipe does
 (``policy``: loss parts, per-row draws, summed gradients)."""
 
@@ -25,7 +27,18 @@ from prop_cli.fit import flat_chunks
 
 from .distributed import Ranks
 from .loop import Optimiser, run_steps
-from .policy import CLIP, chunks, drawn, forward_rows, row_noise, rows, split_episodes, to_device, weighted
+from .policy import (
+    CLIP,
+    chunks,
+    drawn,
+    forward_rows,
+    frozen_in_bf16,
+    row_noise,
+    rows,
+    split_episodes,
+    to_device,
+    weighted,
+)
 from .recipe import Job, Progress, SealedUser
 from .sealed import SealedRecipeBase, payload_spec, private_report
 
@@ -111,9 +124,16 @@ class SealedPolicyRecipe(SealedRecipeBase):
             module.to(dev)
             per = self.report_rows(cfg)
             for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
-                payload, losses = train_payload(
-                    loaded, spec, to_device(tr, dev), cfg, i, job.progress, dev, job.ranks
-                )  # fmt: skip
+                # Under --precision bf16 the frozen base is held bf16 while the payload trains, then read
+                # back exactly from the checkpoint: the report and the bundle see the original's weights.
+                restore = frozen_in_bf16(module, str(loaded.source)) if cfg.precision == "bf16" else None
+                try:
+                    payload, losses = train_payload(
+                        loaded, spec, to_device(tr, dev), cfg, i, job.progress, dev, job.ranks
+                    )  # fmt: skip
+                finally:
+                    if restore is not None:
+                        restore()
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
                 b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)

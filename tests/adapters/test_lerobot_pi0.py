@@ -382,3 +382,59 @@ def test_pi0_weights_load_with_lerobots_key_fixes(work, tmp_path):
     save_file(renamed, str(folder / "model.safetensors"))
     loaded = load_checkpoint(folder).module.state_dict()
     assert set(loaded) == set(weights) and all(torch.equal(loaded[k], weights[k]) for k in weights)
+
+
+def test_pi0_sealed_bf16_keeps_the_original_bit_for_bit(work, tmp_path):
+    """--seal --precision bf16: the frozen base is held as bf16 while the payload trains and read back
+    from the checkpoint after: the bundle's base is the original's tensors exactly, a wrong key runs the
+    original exactly, the user's key moves the actions."""
+    from safetensors.torch import load_file
+
+    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+
+    if work.kind != "pi0":
+        pytest.skip("the recipe is pi0's and pi0.5's alike; one policy is enough")
+    original = load_file(str(work.policy / "model.safetensors"))
+    assert any(v.dtype == torch.float32 for v in original.values())  # there is something to cast
+    out = tmp_path / "sealed-bf16"
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 4, "precision": "bf16"}))
+    api.personalize_checkpoint(str(work.policy), [(work.user, KeySource(key(), "file"))], out, cfg)
+    base = load_file(str(out / "lerobot" / "model.safetensors"))
+    assert base.keys() == original.keys()
+    assert all(base[k].dtype == original[k].dtype and torch.equal(base[k], original[k]) for k in base)
+    b, data = load_bundle(out), load_data(work.user)
+    orig = load_checkpoint(work.policy).policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        expected = orig.post(orig.chunk({k: batch[k] for k in orig.row_shapes})).numpy()
+    with pytest.warns(WrongKeyWarning):
+        wrong = run_policy(b, data, key(2), allow_unenrolled=True)
+    assert np.array_equal(wrong, expected)
+    assert np.array_equal(run_policy(b, data, None), expected)
+    assert not np.allclose(run_policy(b, data, key()), expected, atol=1e-4)
+
+
+def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, tmp_path, monkeypatch):
+    """The config's gradient_checkpointing (LeRobot's flag) recomputes pi0's layers in the backward pass
+    of prop's steps too (its eval-mode joint forward, ``layer_checkpoints``): the same bundle as without
+    it, and the checkpoints are taken."""
+    from safetensors.torch import load_file
+
+    if work.kind != "pi0":
+        pytest.skip("pi0.5 runs the same joint forward; one policy is enough")
+    folder = tmp_path / "policy"
+    shutil.copytree(work.policy, folder)
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config | {"gradient_checkpointing": True}))
+    calls, checkpoint = [], torch.utils.checkpoint.checkpoint
+    counted = lambda *a, **k: calls.append(1) or checkpoint(*a, **k)  # noqa: E731
+    monkeypatch.setattr(torch.utils.checkpoint, "checkpoint", counted)
+    out = tmp_path / "bundle"
+    api.personalize_checkpoint(str(folder), [(work.user, KeySource(key(), "file"))], out,
+                               PersonalizeConfig(**TINY), general=work.general)  # fmt: skip
+    assert len(calls) >= TINY["steps"] * 2  # every step's layers (2 per tiny Gemma), at least
+    files = sorted(p.relative_to(bundle) for p in bundle.rglob("*.safetensors"))
+    assert files and files == sorted(p.relative_to(out) for p in out.rglob("*.safetensors"))
+    for f in files:
+        a, b = load_file(str(bundle / f)), load_file(str(out / f))
+        assert a.keys() == b.keys() and all(torch.allclose(a[k], b[k], atol=1e-6) for k in a), f
