@@ -26,7 +26,9 @@ The runs (``--runs``, each a fresh process):
 - ``sealed``: ``prop personalize --seal``, a LoRA payload of the same rank on the same layers, ``--batch``
   user rows per step.
 
-Printed: peak resident memory (``Maximum resident set size``), the median step, and the fixed costs:
+Printed: peak resident memory (``Maximum resident set size``), the largest resident memory sampled while
+the steps ran ("in the steps": a load's peak can hide it), on a GPU ``--device cuda``'s
+``torch.cuda.max_memory_allocated``, the median step, and the fixed costs:
 set-up (process start to the first step, less the precompute), precompute (the original's fallback
 targets and chunks, drawn before the steps), report (the key sweep after the steps), wall; then prop's
 ratios to LeRobot's runs (prop / lerobot, sealed / peft). The command line comes first.
@@ -45,6 +47,7 @@ import shlex
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -252,7 +255,33 @@ class Clock:
         self.t0 = time.perf_counter()
         self.phase_start = self.t0
         self.figures: dict = {"phases": {p: 0.0 for p in PHASES}, "peak_gib": {}, "steps_s": []}
+        self.watching = False  # between steps_begin and steps_end: the resident memory sampled
         atexit.register(self.emit)
+        threading.Thread(target=self._sample, daemon=True).start()
+
+    def _sample(self) -> None:
+        """The largest resident memory seen while the steps run (the process's peak may be its load's,
+        which hides what the steps hold): /proc/self/statm every 50 ms."""
+        page = os.sysconf("SC_PAGE_SIZE")
+        while True:
+            if self.watching:
+                with open("/proc/self/statm") as f:
+                    rss = int(f.read().split()[1]) * page / 2**30
+                self.figures["steps_rss_gib"] = max(self.figures.get("steps_rss_gib", 0.0), rss)
+            time.sleep(0.05)
+
+    def steps_begin(self) -> None:
+        self.watching = True
+        torch = sys.modules.get("torch")
+        if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+            self.figures["cuda_before_steps_gib"] = torch.cuda.max_memory_allocated() / 2**30
+            torch.cuda.reset_peak_memory_stats()
+
+    def steps_end(self) -> None:
+        self.watching = False
+        torch = sys.modules.get("torch")
+        if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+            self.figures["cuda_steps_gib"] = torch.cuda.max_memory_allocated() / 2**30
 
     def add(self, phase: str, seconds: float) -> None:
         self.figures["phases"][phase] += seconds
@@ -264,7 +293,9 @@ class Clock:
         self.peak("end")
         torch = sys.modules.get("torch")
         if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
-            self.figures["cuda_peak_gib"] = torch.cuda.max_memory_allocated() / 2**30
+            f = self.figures
+            now = torch.cuda.max_memory_allocated() / 2**30
+            f["cuda_peak_gib"] = max(now, f.get("cuda_before_steps_gib", 0.0), f.get("cuda_steps_gib", 0.0))
         self.figures["wall_s"] = time.perf_counter() - self.t0
         print(MARK + json.dumps(self.figures), file=sys.stderr, flush=True)
 
@@ -304,6 +335,7 @@ def lerobot_worker(args: argparse.Namespace) -> None:
     clock.peak("setup")
     batches = iter(loader)
     policy.train()
+    clock.steps_begin()
     for _ in range(args.steps):  # lerobot_train.update_policy: forward, backward, clip, step
         t = time.perf_counter()
         try:
@@ -319,6 +351,7 @@ def lerobot_worker(args: argparse.Namespace) -> None:
         optimizer.zero_grad()
         sync()
         clock.figures["steps_s"].append(time.perf_counter() - t)
+    clock.steps_end()
     clock.add("steps", sum(clock.figures["steps_s"]))
 
 
@@ -363,9 +396,11 @@ def prop_worker(argv: list[str]) -> None:
         phases = clock.figures["phases"]
         phases["setup"] = time.perf_counter() - clock.t0 - phases["precompute"]
         t = time.perf_counter()
+        clock.steps_begin()
         try:
             return run_steps(one, n, progress, *a, **k)
         finally:
+            clock.steps_end()
             clock.add("steps", time.perf_counter() - t)
             state["stepped"] = True
             clock.peak("steps")
@@ -427,12 +462,12 @@ def median(xs: list[float]) -> float:
 def table(results: dict[str, dict]) -> str:
     """The markdown table: peak memory, step time and fixed costs per run, then prop's ratios."""
     gpu = any("cuda_peak_gib" in r for r in results.values())
-    head = ("| run | peak memory |" + (" GPU peak |" if gpu else "") + " step (median) | set-up | precompute "
-            "| targets in steps | steps | report | wall | CPU |")  # fmt: skip
-    out = [head, "|" + "---|" * (11 if gpu else 10)]
+    head = "| run | peak memory | in the steps |" + (" GPU peak |" if gpu else "")
+    head += " step (median) | set-up | precompute | targets in steps | steps | report | wall | CPU |"
+    out = [head, "|" + "---|" * (12 if gpu else 11)]
     for name, r in results.items():
         ph = r.get("phases", {})
-        cells = [f"{r['rss_gb']:.2f} GiB"]
+        cells = [f"{r['rss_gb']:.2f} GiB", f"{r.get('steps_rss_gib', float('nan')):.2f} GiB"]
         cells += [f"{r.get('cuda_peak_gib', float('nan')):.2f} GiB"] if gpu else []
         cells += [f"{median(r.get('steps_s', [])):.2f} s"]
         cells += [f"{ph.get(k, 0):.0f} s" for k in ("setup", "precompute", "targets", "steps", "report")]

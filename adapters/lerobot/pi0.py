@@ -164,24 +164,6 @@ def lerobot_keys(policy_class, config, weights: dict[str, torch.Tensor]) -> dict
     return {k if k.startswith("model.") else f"model.{k}": v for k, v in fixed.items()}
 
 
-@contextlib.contextmanager
-def layer_checkpoints(model):
-    """LeRobot checkpoints pi0's layers (its config's ``gradient_checkpointing``) only in training mode;
-    prop's velocity runs in eval mode (no dropout), so while a gradient is taken the joint model's own
-    training flag is raised for the call (its layers stay in eval mode): activations recomputed layer by
-    layer in the backward pass instead of kept, as LeRobot's training does."""
-    pwe = model.paligemma_with_expert
-    on = getattr(model, "gradient_checkpointing_enabled", False) and torch.is_grad_enabled()
-    on = on and not pwe.training
-    if on:
-        pwe.training = True
-    try:
-        yield
-    finally:
-        if on:
-            pwe.training = False
-
-
 def _file_names_fit(policy_class, config, path: Path) -> bool:
     """Whether the safetensors file at ``path`` already has the names LeRobot's key fixes give."""
     if not path.is_file() or sniff(path) != "safetensors":
@@ -255,12 +237,11 @@ class PI0Protocol(SmolVLAProtocol):
             prefix, suffix = prefix.to(torch.bfloat16), suffix.to(torch.bfloat16)
         pad = torch.cat([prefix_pad, suffix_pad], dim=1)
         att = lerobot.make_att_2d_masks(pad, torch.cat([prefix_att, suffix_att], dim=1))
-        with layer_checkpoints(m):
-            (_, out), _ = pwe.forward(
-                attention_mask=lerobot.prepare_attention_masks_4d(att),
-                position_ids=torch.cumsum(pad, dim=1) - 1, past_key_values=None,
-                inputs_embeds=[prefix, suffix], use_cache=False, adarms_cond=[None, adarms_cond],
-            )  # fmt: skip
+        (_, out), _ = pwe.forward(
+            attention_mask=lerobot.prepare_attention_masks_4d(att), position_ids=torch.cumsum(pad, dim=1) - 1,
+            past_key_values=None, inputs_embeds=[prefix, suffix], use_cache=False,
+            adarms_cond=[None, adarms_cond],
+        )  # fmt: skip
         return m.action_out_proj(out[:, -c.chunk_size :].to(torch.float32))
 
     @property
@@ -307,7 +288,4 @@ class PI0Protocol(SmolVLAProtocol):
         }
 
 
-__all__ = [
-    "PI0_LAYERS", "PI0Protocol", "TOKENIZER_FILES", "check_tokenizer", "layer_checkpoints",
-    "tokenizer_folder",
-]  # fmt: skip
+__all__ = ["PI0_LAYERS", "PI0Protocol", "TOKENIZER_FILES", "check_tokenizer", "tokenizer_folder"]

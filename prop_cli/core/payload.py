@@ -269,9 +269,11 @@ class _Weight(nn.Module):
         self.layer = layer
 
     def forward(self, w: torch.Tensor) -> torch.Tensor:
-        return self.payload.weight(self.layer, w)
+        # In the base's dtype (a bf16 layer: pi0's expert as published, or a base held bf16 under
+        # --precision bf16), as ``fold`` writes it: a parametrization may not change the dtype.
+        return self.payload.weight(self.layer, w).to(w.dtype)
 
 
 class _Bias(_Weight):
     def forward(self, b: torch.Tensor) -> torch.Tensor:
-        return b + self.payload.tensor(self.layer, "bias_delta")
+        return (b + self.payload.tensor(self.layer, "bias_delta")).to(b.dtype)

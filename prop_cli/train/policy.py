@@ -43,7 +43,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
-from .loop import Optimiser, run_steps
+from .loop import Optimiser, mixed_precision, run_steps
 from .objective import check_user_keys
 from .recipe import Job, Recipe, User
 from .report import eval_rng, outputs_report
@@ -188,11 +188,15 @@ def frozen_in_bf16(module: torch.nn.Module, source: str) -> Callable[[], None] |
 
 
 def row_noise(
-    policy, forward, seed: tuple[int, ...], module: torch.nn.Module, ranks: Ranks
+    policy, forward, seed: tuple[int, ...], module: torch.nn.Module, ranks: Ranks,
+    amp: contextlib.AbstractContextManager | None = None,
 ) -> RowNoise | None:  # fmt: skip
     """The per-row draws of the policy's training forward (``row_noise``); None where it draws
-    nothing. A policy whose draws cannot be made per row trains on one process only."""
-    noise, why = RowNoise.probe(forward, seed, module)
+    nothing. A policy whose draws cannot be made per row trains on one process only. ``amp``: the
+    steps' autocast (``loop.mixed_precision``), which the probe's forward runs in as theirs do (weights
+    held bf16 take fp32 inputs only under it)."""
+    with amp or contextlib.nullcontext():
+        noise, why = RowNoise.probe(forward, seed, module)
     if why is not None and ranks.world > 1:
         raise PropError(
             f"{ranks.world} processes: the policy {type(policy).__name__} draws random numbers inside its "
@@ -283,7 +287,8 @@ class PolicyTrainer:
         self.per_user = max(1, cfg.user_rows // len(users))
         sampled = (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
         ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
-        self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks)
+        amp = mixed_precision(cfg.precision, dev)
+        self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks, amp)
         self.t = 0
 
     def _probe(self, n_user: int, n_fallback: int) -> None:

@@ -26,7 +26,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_chunks
 
 from .distributed import Ranks
-from .loop import Optimiser, run_steps
+from .loop import Optimiser, mixed_precision, run_steps
 from .policy import (
     CLIP,
     chunks,
@@ -62,7 +62,7 @@ def train_payload(
     with payload.attached(module):
         noise = row_noise(
             policy, lambda r, _: policy.loss_parts(rows(train, torch.arange(r, device=dev) % n)),
-            (cfg.seed, index), module, ranks,
+            (cfg.seed, index), module, ranks, mixed_precision(cfg.precision, dev),
         )  # fmt: skip
         t = 0
 

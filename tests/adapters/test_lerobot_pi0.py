@@ -414,14 +414,17 @@ def test_pi0_sealed_bf16_keeps_the_original_bit_for_bit(work, tmp_path):
     assert not np.allclose(run_policy(b, data, key()), expected, atol=1e-4)
 
 
-def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, tmp_path, monkeypatch):
-    """The config's gradient_checkpointing (LeRobot's flag) recomputes pi0's layers in the backward pass
-    of prop's steps too (its eval-mode joint forward, ``layer_checkpoints``): the same bundle as without
-    it, and the checkpoints are taken."""
+def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, sealed, tmp_path, monkeypatch):
+    """A config with LeRobot's gradient_checkpointing: sealed, the payload trains through LeRobot's own
+    forward, its layers recomputed in the backward pass (the checkpoints are taken) and the same payload
+    comes out; unsealed, prop's keyed forward runs as without it (its rows' keys are set only during the
+    forward, so it is not recomputed): the same bundle."""
     from safetensors.torch import load_file
 
+    from prop_cli.bundle.runtime import run_policy
+
     if work.kind != "pi0":
-        pytest.skip("pi0.5 runs the same joint forward; one policy is enough")
+        pytest.skip("pi0.5 runs the same forward; one policy is enough")
     folder = tmp_path / "policy"
     shutil.copytree(work.policy, folder)
     config = json.loads((folder / "config.json").read_text())
@@ -429,10 +432,15 @@ def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, tmp_path
     calls, checkpoint = [], torch.utils.checkpoint.checkpoint
     counted = lambda *a, **k: calls.append(1) or checkpoint(*a, **k)  # noqa: E731
     monkeypatch.setattr(torch.utils.checkpoint, "checkpoint", counted)
+    users = [(work.user, KeySource(key(), "file"))]
+    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))  # as ``sealed``
+    api.personalize_checkpoint(str(folder), users, tmp_path / "sealed", cfg)
+    assert len(calls) >= cfg.steps * 2  # every step's layers (2 per tiny Gemma), at least
+    data = load_data(work.user)
+    ours, theirs = (run_policy(load_bundle(b), data, key()) for b in (tmp_path / "sealed", sealed))
+    assert np.allclose(ours, theirs, atol=1e-5)
     out = tmp_path / "bundle"
-    api.personalize_checkpoint(str(folder), [(work.user, KeySource(key(), "file"))], out,
-                               PersonalizeConfig(**TINY), general=work.general)  # fmt: skip
-    assert len(calls) >= TINY["steps"] * 2  # every step's layers (2 per tiny Gemma), at least
+    api.personalize_checkpoint(str(folder), users, out, PersonalizeConfig(**TINY), general=work.general)
     files = sorted(p.relative_to(bundle) for p in bundle.rglob("*.safetensors"))
     assert files and files == sorted(p.relative_to(out) for p in out.rglob("*.safetensors"))
     for f in files:
