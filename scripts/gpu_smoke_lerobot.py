@@ -150,9 +150,6 @@ def sealed_on_device(work: Path, out: Path, key: Path, device: str) -> None:
                   f"by {diff:.4f}")  # fmt: skip
 
 
-if __name__ == "__main__":
-    main()
-
 
 def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_S) -> None:
     """SmolVLA and pi0 at their published sizes (``tiny``: examples/'s tiny ones) personalized for 3
@@ -196,3 +193,7 @@ def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_
         for line in stdout.splitlines():
             if line.strip():
                 print(f"gpu-smoke-lerobot:   {line}")
+
+
+if __name__ == "__main__":
+    main()

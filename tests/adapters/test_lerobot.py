@@ -596,3 +596,33 @@ def test_a_config_claiming_a_huge_policy_allocates_nothing(which, bundle, sealed
     assert lines and "do not fit the policy config.json describes" in lines[-1], r.stdout + r.stderr
     assert "(256,) in the weights, (524288,) in the config); nothing was built" in lines[-1], lines[-1]
     assert float(peak) < 500, peak
+
+
+SMOKE = ["scripts/gpu_smoke_lerobot.py", "--real-size-only"]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device: the check would run")
+def test_the_device_check_skips_in_one_line_without_a_gpu():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, *SMOKE], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout == "gpu-smoke-lerobot: skipped: torch sees no CUDA device\n"
+
+
+@pytest.mark.slow
+def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size():
+    """scripts/gpu_smoke_lerobot.py's real-size part (bench_real_size's builders and runs: SmolVLA
+    unsealed and sealed, pi0 sealed, beside LeRobot's PEFT run) on the CPU with the tiny policies: the
+    code a GPU machine runs, with every run's table printed."""
+    import os
+    import subprocess
+    import sys
+
+    env = os.environ | {"PROP_SMOKE_DEVICE": "cpu", "HF_HUB_OFFLINE": "1"}
+    done = subprocess.run([sys.executable, *SMOKE, "--tiny"], capture_output=True, text=True, env=env,
+                          timeout=900)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = done.stdout
+    assert "real-size smolvla on cpu" in out and "real-size pi0 on cpu" in out and out.endswith("passed\n")
+    assert out.count("| peft |") == 2 and out.count("| sealed |") == 2 and out.count("| prop |") == 1
