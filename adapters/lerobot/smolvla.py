@@ -249,10 +249,10 @@ class PrefixMemo:
             return None
         return n
 
-    def block_kv(self, own, vwe, embs: torch.Tensor, mask: torch.Tensor, pos: torch.Tensor) -> list:
-        """Every layer's (keys, values) of the block, (B, n, heads, head dim) each: from the memo where a
-        row was computed before, else by LeRobot's prefix fill over the block alone."""
-        weights = list(vwe.get_vlm_model().text_model.parameters())
+    def block_kv(self, fill, embs: torch.Tensor, mask, pos, weights: list[torch.Tensor]) -> list:
+        """Every layer's (keys, values) of the block as a cache holds them, (B, heads, n, head dim)
+        each: from the memo where a row was computed before, else by ``fill(rows)`` (the model's own
+        prefix fill over the block's rows alone, its cache). ``weights``: those the block runs through."""
         self.owners.update((id(w), w) for w in weights)
         dev = embs.device.type
         amp = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else None
@@ -261,18 +261,14 @@ class PrefixMemo:
         todo = list(dict.fromkeys(k for k in keys if k not in self.kv))
         if todo:
             first = {k: i for i, k in reversed(list(enumerate(keys)))}
-            pick = [first[k] for k in todo]
             with torch.no_grad():
-                _, cache = own(
-                    vwe, attention_mask=mask[pick], position_ids=pos[pick], past_key_values=None,
-                    inputs_embeds=[embs[pick].detach(), None], use_cache=True,
-                )  # fmt: skip
-            new = torch.stack([torch.stack([x.keys, x.values]) for x in cache.layers]).transpose(3, 4)
-            for j, k in enumerate(todo):  # (layers, 2, B, n, heads, dim): each row's slice
+                cache = fill([first[k] for k in todo])
+            new = torch.stack([torch.stack([x.keys, x.values]) for x in cache.layers])
+            for j, k in enumerate(todo):  # (layers, 2, B, heads, n, dim): each row's slice
                 self._keep(k, new[:, :, j].clone())
         for k in keys:
             self.kv.move_to_end(k)
-        rows = torch.stack([self.kv[k] for k in keys], dim=2)  # (layers, 2, B, n, heads, dim)
+        rows = torch.stack([self.kv[k] for k in keys], dim=2)  # (layers, 2, B, heads, n, dim)
         return [(layer[0], layer[1]) for layer in rows]
 
     def _keep(self, key: tuple, kv: torch.Tensor) -> None:
@@ -286,7 +282,8 @@ class PrefixMemo:
 def after_block(vwe, kv: list, attention_mask, position_ids, inputs_embeds: list, use_cache: bool) -> tuple:
     """LeRobot 0.6's ``SmolVLMWithExpertModel.forward`` (with ``forward_attn_layer`` and
     ``forward_cross_attn_layer``, no cache passed in) over the tokens after the prefix's first block,
-    that block's post-RoPE keys and values at every layer given (``kv``): ``inputs_embeds`` = [the rest
+    that block's post-RoPE keys and values at every layer given (``kv``, (B, n, heads, head dim) each,
+    as that module holds them): ``inputs_embeds`` = [the rest
     of the prefix, the suffix or None], ``attention_mask`` their rows over [block, rest, suffix],
     ``position_ids`` theirs. The same modules in the same order on the same inputs, so keys and payloads
     on them act as in LeRobot's forward. Returns ([None, the suffix's output], the filled cache over the
@@ -448,11 +445,18 @@ class SmolVLAProtocol(LeRobotProtocol):
                 return own_forward(vwe, attention_mask=attention_mask, position_ids=position_ids,
                                    past_key_values=past_key_values, inputs_embeds=inputs_embeds,
                                    use_cache=use_cache)  # fmt: skip
-            prefix = inputs_embeds[0]
-            mask, pos = attention_mask[:, :n, :n], position_ids[:, :n]
-            kv = prefixes.block_kv(own_forward, vwe, prefix[:, :n], mask, pos)
+            block, mask, pos = inputs_embeds[0][:, :n], attention_mask[:, :n, :n], position_ids[:, :n]
+
+            def fill(rows: list[int]):  # LeRobot's prefix fill over the block alone
+                return own_forward(vwe, attention_mask=mask[rows], position_ids=pos[rows],
+                                   past_key_values=None, inputs_embeds=[block[rows].detach(), None],
+                                   use_cache=True)[1]  # fmt: skip
+
+            weights = list(vwe.get_vlm_model().text_model.parameters())
+            held = prefixes.block_kv(fill, block, mask, pos, weights)
+            kv = [(k.transpose(1, 2), v.transpose(1, 2)) for k, v in held]  # as forward_attn_layer holds them
             return after_block(vwe, kv, attention_mask[:, n:], position_ids[:, n:],
-                               [prefix[:, n:], inputs_embeds[1]], bool(use_cache))  # fmt: skip
+                               [inputs_embeds[0][:, n:], inputs_embeds[1]], bool(use_cache))  # fmt: skip
 
         vwe_cls.embed_image, model_cls.embed_prefix, vwe_cls.forward = embed_image, embed_prefix, forward
         try:
