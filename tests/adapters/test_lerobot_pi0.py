@@ -177,6 +177,18 @@ def test_pi0_user_term_is_lerobots_own_loss_for_the_same_seed(work):
     assert again.requires_grad and torch.equal(again.detach(), chunks)
 
 
+def test_pi0_built_without_random_init_its_buffers_are_a_normal_builds(work):
+    """The policy is built without random initialisation (every weight is then loaded): what is not
+    loaded (non-persistent buffers: rotary frequencies) is what a normal build computes."""
+    module = load_checkpoint(work.policy).module
+    normal = type(module)(module.config)
+    loaded = set(module.state_dict())
+    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
+    assert mine.keys() == theirs.keys()
+    computed = [n for n in theirs if n not in loaded]
+    assert all(torch.equal(mine[n], theirs[n]) for n in computed)
+
+
 def test_pi0_prefix_memo_computes_each_frames_prefix_once_and_changes_nothing(work, monkeypatch):
     """Within the memo, with PaliGemma frozen and unkeyed (sealed, train_expert_only), each frame's
     prefix goes through PaliGemma once and a forward runs the expert over its cache: the chunk, the

@@ -288,6 +288,18 @@ def test_each_frames_image_embedding_is_computed_once_within_the_memo(work):
     assert torch.allclose(again, plain[[3, 1]], atol=1e-5)
 
 
+def test_built_without_random_init_its_buffers_are_a_normal_builds(work):
+    """The policy is built without random initialisation (every weight is then loaded): what is not
+    loaded (non-persistent buffers: rotary frequencies) is what a normal build computes."""
+    module = load_checkpoint(work / "smolvla").module
+    normal = type(module)(module.config)
+    loaded = set(module.state_dict())
+    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
+    assert mine.keys() == theirs.keys()
+    computed = [n for n in theirs if n not in loaded]
+    assert all(torch.equal(mine[n], theirs[n]) for n in computed)
+
+
 def _memo_runs(policy, frames, fb):
     """The chunk, the joint terms and their gradients on the policy's trained parameters."""
     torch.manual_seed(0)
