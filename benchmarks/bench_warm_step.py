@@ -11,7 +11,8 @@ first drawn. Here prop's step draws the same rows every step (its row generator 
 first (cold: targets and memo filled) every step is a step over frames seen before, as in a run longer
 than an epoch whose frames fit the memo. LeRobot's step (its forward on its preprocessed batch of
 ``--batch`` frames, backward, grad clip, AdamW) has no memo: every step costs the same. Both on
-``--threads`` threads. Printed: each step's seconds, the medians and their ratio.
+``--threads`` threads. Then the report's sampler (6 rows of 2 held-out frames) with and without the
+prefix memo, ``--chunks`` times each. Printed: each run's seconds, the medians and their ratios.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=4, help="timed steps of each, after one cold step")
     ap.add_argument("--batch", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--chunks", type=int, default=2, help="sampler runs timed with and without the memo")
     args = ap.parse_args(argv)
     import numpy as np
     import torch
@@ -39,10 +41,11 @@ def main(argv: list[str] | None = None) -> None:
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     from prop_adapters import load_checkpoint
+    from prop_adapters.lerobot import smolvla
     from prop_cli.config import PersonalizeConfig
     from prop_cli.datasources import load_data
     from prop_cli.train import User
-    from prop_cli.train.policy import PolicyTrainer
+    from prop_cli.train.policy import PolicyTrainer, rows
 
     folder, data = args.work / "smolvla", args.work / "data"
     # LeRobot's own: from_pretrained, its preprocessor, one batch of its dataset, its AdamW preset.
@@ -88,11 +91,31 @@ def main(argv: list[str] | None = None) -> None:
                 s = time.perf_counter()
                 step()
                 times[name].append(time.perf_counter() - s)
+        # The report's sampler (the deployed chunk) on 6 rows of 2 held-out frames, as its key sweep runs
+        # them, with and without the prefix memo (the image memo on in both), alternated.
+        val = rows(t.splits[0][1], torch.tensor([0, 1] * 3))
+        own = smolvla.PrefixMemo.block
+
+        def off(memo, *a) -> None:
+            memo.last = None
+
+        with torch.no_grad():
+            t.policy.chunk(val)  # the frames' image embeddings and blocks, once
+            for _ in range(args.chunks):
+                for name, block in (("sampler, no prefix memo", off), ("sampler, prefix memo", own)):
+                    smolvla.PrefixMemo.block = block
+                    s = time.perf_counter()
+                    t.policy.chunk(val)
+                    times.setdefault(name, []).append(time.perf_counter() - s)
+            smolvla.PrefixMemo.block = own
     med = {k: statistics.median(v) for k, v in times.items()}
     print(f"prop's first (cold) step: {cold:.1f} s (the original's targets and its frames' memo filled)")
     for k, v in times.items():
         print(f"{k}: steps {', '.join(f'{x:.1f}' for x in v)} s; median {med[k]:.1f} s")
     print(f"prop / lerobot, warm step: {med['prop'] / med['lerobot']:.2f}x")
+    if args.chunks:
+        a, b = med["sampler, prefix memo"], med["sampler, no prefix memo"]
+        print(f"sampler on 6 rows, prefix memo / none: {a / b:.2f}x")
 
 
 if __name__ == "__main__":
