@@ -35,6 +35,7 @@ import importlib
 import inspect
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +49,9 @@ from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
 from .policy import Built, construct
-from .smolvla import MASK, TOKENIZER_STEP, TOKENS, SmolVLAProtocol
+from .smolvla import MASK, TOKENIZER_STEP, TOKENS, PrefixMemo, SmolVLAProtocol, unhooked
+
+NEVER = -1e30  # below it, a float attention mask blocks (LeRobot's OPENPI_ATTENTION_MASK_VALUE: -2.4e38)
 
 # LeRobot's pi0 PEFT targets (PI0Policy._get_default_peft_targets), as prop's layer regexes.
 PI0_LAYERS = [
@@ -262,9 +265,53 @@ class PI0Protocol(SmolVLAProtocol):
         losses = torch.nn.functional.mse_loss(target, v[:n], reduction="none")
         return losses[:, :, : self.config.action_feature.shape[0]].mean(), v[n:]
 
-    def memo(self) -> contextlib.AbstractContextManager:
-        # SmolVLA's image-embedding memo hooks SmolVLM's class; pi0's PaliGemma keeps none (yet).
-        return contextlib.nullcontext()
+    @contextlib.contextmanager
+    def memo(self) -> Iterator[None]:
+        """Within: PaliGemma's keys and values for each frame's prefix (images and language; pi0's state
+        is in the suffix, pi0.5's in the language) computed once (``PrefixMemo``), where the prefix needs
+        no gradient and PaliGemma's language model has no parameter training and no hook or
+        parametrization on it (sealed, ``train_expert_only``); a forward then runs the expert only, over
+        the prefix's cache, as LeRobot's denoising step runs it. Otherwise LeRobot's forward as it is."""
+        from transformers import DynamicCache
+
+        cls = type(self.model.paligemma_with_expert)
+        own = cls.forward
+        prefixes = PrefixMemo()
+
+        def forward(pwe, attention_mask=None, position_ids=None, past_key_values=None, inputs_embeds=None,
+                    use_cache=None, adarms_cond=None):  # fmt: skip
+            args = dict(attention_mask=attention_mask, position_ids=position_ids,
+                        past_key_values=past_key_values, inputs_embeds=inputs_embeds, use_cache=use_cache,
+                        adarms_cond=adarms_cond)  # fmt: skip
+            prefix, suffix = inputs_embeds if inputs_embeds else (None, None)
+            lm = pwe.paligemma.model.language_model
+            if (past_key_values is not None or prefix is None or prefix.requires_grad or
+                    (suffix is None and not use_cache) or not unhooked(lm.modules())):  # fmt: skip
+                return own(pwe, **args)
+            n = prefix.shape[1]
+            later = attention_mask[..., :n, n:]
+            if (later if later.dtype == torch.bool else later > NEVER).any():  # the prefix attends beyond
+                return own(pwe, **args)
+            mask, pos = attention_mask[..., :n, :n], position_ids[:, :n]
+
+            def fill(rows: list[int]):  # LeRobot's prefix fill over the prefix's rows
+                return own(pwe, attention_mask=mask[rows], position_ids=pos[rows], past_key_values=None,
+                           inputs_embeds=[prefix[rows], None], use_cache=True)[1]  # fmt: skip
+
+            cache = DynamicCache()
+            for i, (k, v) in enumerate(prefixes.block_kv(fill, prefix, mask, pos, list(lm.parameters()))):
+                cache.update(k, v, i)
+            if suffix is None:  # sample_actions' prefix fill
+                return [None, None], cache
+            return own(pwe, attention_mask=attention_mask[..., n:, :], position_ids=position_ids[:, n:],
+                       past_key_values=cache, inputs_embeds=[None, suffix], use_cache=False,
+                       adarms_cond=[None, adarms_cond[1] if adarms_cond else None])  # fmt: skip
+
+        cls.forward = forward
+        try:
+            yield
+        finally:
+            cls.forward = own
 
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         # LeRobot decorates pi0's and pi0.5's sample_actions with @torch.no_grad(); the audit's gradient

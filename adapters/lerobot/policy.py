@@ -10,6 +10,7 @@ the policy, preprocessor and postprocessor objects come from ``adapter``.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,7 +61,8 @@ def construct(
     device (shapes only: a config.json claiming a huge model allocates nothing) and refused in one line
     unless its state dict has exactly the weights' names and shapes (what ``load_state_dict(strict=True)``
     then needs). A policy that cannot be built on the meta device is built for real and checked by
-    loading."""
+    loading. Built without random initialisation (every caller then loads every weight, strictly):
+    a real-size SmolVLA's 32-layer VLM is otherwise drawn at random only to be overwritten."""
     try:
         with torch.device("meta"):
             probe = policy_class(config)
@@ -77,7 +79,18 @@ def construct(
                 f"{shown['w']} in the weights, {shown['c']} in the config); nothing was built",
                 "check that config.json and model.safetensors belong together, or restore the bundle",
             )
-    return policy_class(config)
+    with no_init():
+        return policy_class(config)
+
+
+def no_init() -> contextlib.AbstractContextManager:
+    """transformers' ``no_init_weights`` (torch's and transformers' initialisers made no-ops), where
+    this transformers has it."""
+    try:
+        from transformers.initialization import no_init_weights
+    except ImportError:  # transformers 4 or none: initialised as before
+        return contextlib.nullcontext()
+    return no_init_weights()
 
 
 class LeRobotProtocol(PolicyProtocol):

@@ -70,6 +70,7 @@ SMOLVLA_LAYERS = [
 TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"
 T_MIN = 1e-3  # the smallest flow time LeRobot trains on (sample_time: beta * 0.999 + 0.001)
 MEMO_BYTES = 512 << 20  # image embeddings kept by ``SmolVLAProtocol.memo`` (250 KB per 512x512 frame)
+PREFIX_BYTES = 512 << 20  # the prefix block's keys and values kept by ``memo`` (4.6 MB a real-size frame)
 TOKENIZER_STEP = "tokenizer_processor"  # the processor step that reads the VLM's tokenizer by name
 # The VLM files SmolVLA reads by name (no weights): config, tokenizer, image/video processor, template.
 VLM_FILES = (
@@ -184,6 +185,180 @@ class ImageMemo:
             self.held -= old.numel() * old.element_size()
 
 
+def row_digest(*parts: torch.Tensor) -> bytes:
+    """A digest of one row's tensors (any dtype, any device): what a memo keys a row's content by."""
+    h = hashlib.blake2b(digest_size=16)
+    for t in parts:
+        t = t.detach().to("cpu", copy=False).contiguous()
+        h.update(str((t.dtype, tuple(t.shape))).encode())
+        t = t.to(torch.uint8) if t.dtype == torch.bool else t
+        h.update(t.view(-1).view(torch.uint8).numpy().tobytes())
+    return h.digest()
+
+
+def unhooked(modules: Iterator[torch.nn.Module]) -> bool:
+    """No parameter training, no hook and no parametrization (a key, a payload) on any of ``modules``."""
+    from torch.nn.utils import parametrize
+
+    return not any(
+        m._forward_pre_hooks or m._forward_hooks or parametrize.is_parametrized(m) or
+        any(p.requires_grad for p in m.parameters(recurse=False))
+        for m in modules
+    )  # fmt: skip
+
+
+class PrefixMemo:
+    """The VLM's keys and values for the image + language block of SmolVLA's prefix, per frame, for
+    ``memo``. The prefix is [image tokens, language tokens, state token]; the image and language tokens
+    attend only to each other (the state token opens a block of its own: ``embed_prefix``'s att_masks),
+    so with the VLM frozen and unkeyed (``train_expert_only``; prop's keyed layers are the expert's and
+    the state/action projections) their keys and values at every layer are the same under every key,
+    for the original and the keyed policy, at every step and every denoising step. They are computed
+    once per frame by LeRobot's own forward over the block (its prefix fill), and each forward runs the
+    state token and the action expert only (``after_block``). Used only while the block cannot change:
+    its embeddings need no gradient and the VLM's text model has no parameter training and no hook or
+    parametrization on it; otherwise the forward runs as LeRobot's. Bounded in bytes, least recently
+    used first out."""
+
+    def __init__(self, limit: int = PREFIX_BYTES) -> None:
+        self.limit, self.held = limit, 0
+        self.kv: OrderedDict[tuple, torch.Tensor] = OrderedDict()  # (layers, 2, tokens, heads, head dim)
+        self.owners: dict[int, torch.Tensor] = {}  # held, so no id is reused while the memo lives
+        self.last: tuple[torch.Tensor, int] | None = None  # embed_prefix's last prefix, its block's length
+
+    def note(self, vwe, prefix: tuple, images: list[torch.Tensor]) -> None:
+        """After ``embed_prefix``: where its block ends (the first token of another block), if the block
+        cannot depend on a key (no gradient into the images, the vision path frozen and unkeyed)."""
+        embs, _, att = prefix
+        self.last = None
+        opened = torch.nonzero(att[0]).flatten()
+        if not len(opened) or opened[0] == 0 or any(im.requires_grad for im in images):
+            return
+        model = vwe.get_vlm_model()
+        if unhooked(m for part in (model.vision_model, model.connector) for m in part.modules()):
+            self.last = (embs, int(opened[0]))
+
+    def block(self, vwe, inputs_embeds: list, attention_mask, past_key_values) -> int | None:
+        """The length of the memo-able block at the start of a forward's prefix, or None (LeRobot's
+        forward as it is)."""
+        last, self.last = self.last, None
+        if last is None or past_key_values is not None or inputs_embeds[0] is not last[0]:
+            return None
+        n = last[1]
+        if attention_mask[:, :n, n:].any() or not unhooked(vwe.get_vlm_model().text_model.modules()):
+            return None
+        return n
+
+    def block_kv(self, fill, embs: torch.Tensor, mask, pos, weights: list[torch.Tensor]) -> list:
+        """Every layer's (keys, values) of the block as a cache holds them, (B, heads, n, head dim)
+        each: from the memo where a row was computed before, else by ``fill(rows)`` (the model's own
+        prefix fill over the block's rows alone, its cache). ``weights``: those the block runs through."""
+        self.owners.update((id(w), w) for w in weights)
+        dev = embs.device.type
+        amp = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else None
+        head = (tuple((id(w), w.data_ptr(), w.dtype) for w in weights), amp, embs.device)
+        keys = [(*head, row_digest(e, m, p)) for e, m, p in zip(embs, mask, pos)]
+        todo = list(dict.fromkeys(k for k in keys if k not in self.kv))
+        if todo:
+            first = {k: i for i, k in reversed(list(enumerate(keys)))}
+            with torch.no_grad():
+                cache = fill([first[k] for k in todo])
+            new = torch.stack([torch.stack([x.keys, x.values]) for x in cache.layers])
+            for j, k in enumerate(todo):  # (layers, 2, B, heads, n, dim): each row's slice
+                self._keep(k, new[:, :, j].clone())
+        for k in keys:
+            self.kv.move_to_end(k)
+        rows = torch.stack([self.kv[k] for k in keys], dim=2)  # (layers, 2, B, heads, n, dim)
+        return [(layer[0], layer[1]) for layer in rows]
+
+    def _keep(self, key: tuple, kv: torch.Tensor) -> None:
+        self.kv[key] = kv
+        self.held += kv.numel() * kv.element_size()
+        while self.held > self.limit and len(self.kv) > 1:
+            _, old = self.kv.popitem(last=False)
+            self.held -= old.numel() * old.element_size()
+
+
+def after_block(vwe, kv: list, attention_mask, position_ids, inputs_embeds: list, use_cache: bool) -> tuple:
+    """LeRobot 0.6's ``SmolVLMWithExpertModel.forward`` (with ``forward_attn_layer`` and
+    ``forward_cross_attn_layer``, no cache passed in) over the tokens after the prefix's first block,
+    that block's post-RoPE keys and values at every layer given (``kv``, (B, n, heads, head dim) each,
+    as that module holds them): ``inputs_embeds`` = [the rest
+    of the prefix, the suffix or None], ``attention_mask`` their rows over [block, rest, suffix],
+    ``position_ids`` theirs. The same modules in the same order on the same inputs, so keys and payloads
+    on them act as in LeRobot's forward. Returns ([None, the suffix's output], the filled cache over the
+    whole prefix where ``use_cache``, else None); the prefix's output is not computed (no caller reads
+    it)."""
+    mod = importlib.import_module(type(vwe).__module__)
+    models = [vwe.get_vlm_model().text_model, vwe.lm_expert]
+    layers = vwe.get_model_layers(models)
+    rest, suffix = inputs_embeds
+    b, r, n = rest.shape[0], rest.shape[1], kv[0][0].shape[1]
+    head_dim = vwe.vlm.config.text_config.head_dim
+    attend = vwe.get_attention_interface()
+    every = vwe.self_attn_every_n_layers
+    cache = mod.DynamicCache() if use_cache else None
+
+    def qkv(layer, h: torch.Tensor) -> tuple:
+        h = layer.input_layernorm(h)
+        shape = (*h.shape[:-1], -1, layer.self_attn.head_dim)
+        h = h.to(dtype=layer.self_attn.q_proj.weight.dtype)
+        a = layer.self_attn
+        return a.q_proj(h).view(shape), a.k_proj(h).view(shape), a.v_proj(h).view(shape)
+
+    for i in range(vwe.num_vlm_layers):
+        ka, va = kv[i]
+        if use_cache or "cross" not in vwe.attention_mode or (every > 0 and i % every == 0):
+            both = zip((layers[0][i], layers[1][i]), (rest, suffix))
+            parts = [qkv(layer, h) for layer, h in both if h is not None and layer is not None]
+            q, k, v = (torch.cat(x, dim=1) for x in zip(*parts))
+            t = q.shape[1]
+            q, k = mod.apply_rope(q, position_ids[:, :t]), mod.apply_rope(k, position_ids[:, :t])
+            k, v = torch.cat([ka, k], dim=1), torch.cat([va, v], dim=1)
+            if cache is not None:
+                cache.update(k.transpose(1, 2), v.transpose(1, 2), i)
+            outs = [attend(attention_mask[:, :t, : n + t], b, head_dim, q, k, v)]
+        else:
+            q, k, v = qkv(layers[0][i], rest)
+            q, k = mod.apply_rope(q, position_ids[:, :r]), mod.apply_rope(k, position_ids[:, :r])
+            k, v = torch.cat([ka, k], dim=1), torch.cat([va, v], dim=1)
+            outs = [attend(attention_mask[:, :r, : n + r], b, head_dim, q, k, v)]
+            expert = layers[1][i]
+            if expert is None:
+                outs.append(None)
+            else:
+                a = expert.self_attn
+                h = expert.input_layernorm(suffix)
+                eq = a.q_proj(h.to(dtype=a.q_proj.weight.dtype)).view(*h.shape[:-1], -1, a.head_dim)
+                ek_in = k.to(dtype=a.k_proj.weight.dtype).reshape(*k.shape[:2], -1)
+                ek = a.k_proj(ek_in).view(*ek_in.shape[:-1], -1, a.head_dim)
+                ev_in = v.to(dtype=a.v_proj.weight.dtype).reshape(*v.shape[:2], -1)
+                ev = a.v_proj(ev_in).view(*ev_in.shape[:-1], -1, a.head_dim)
+                pos = position_ids[:, r:]
+                pos = pos - torch.min(pos, dim=1, keepdim=True).values
+                mask = attention_mask[:, -suffix.shape[1] :, : ek.shape[1]]
+                outs.append(attend(mask, b, head_dim, mod.apply_rope(eq, pos), ek, ev))
+        new, start = [], 0
+        for j, h in enumerate((rest, suffix)):
+            layer = layers[j][i]
+            out = outs[j] if j < len(outs) else outs[0]
+            if h is None or layer is None:
+                new.append(h)
+                continue
+            end = start + h.shape[1]
+            if out.dtype != layer.self_attn.o_proj.weight.dtype:
+                out = out.to(layer.self_attn.o_proj.weight.dtype)
+            emb = layer.self_attn.o_proj(out[:, start:end])
+            emb += h
+            residual = emb.clone()
+            emb = layer.mlp(layer.post_attention_layernorm(emb))
+            emb += residual
+            new.append(emb)
+            start = end if len(outs) == 1 else 0
+        rest, suffix = new
+    return [None, None if suffix is None else models[1].norm(suffix)], cache
+
+
 def legacy_positions(embeddings: torch.nn.Module) -> None:
     """Give one SmolVLM vision-embedding module transformers 4.x's patch position ids (bound on the
     instance: other policies in the process keep transformers' own)."""
@@ -247,20 +422,47 @@ class SmolVLAProtocol(LeRobotProtocol):
 
     @contextlib.contextmanager
     def memo(self) -> Iterator[None]:
-        """Within: each frame's image embedding computed once (``ImageMemo``), by every SmolVLA whose
-        vision path has the same frozen weights (this policy, the original beside it, a folded payload)."""
-        cls = type(self.model.vlm_with_expert)
-        own = cls.embed_image  # what LeRobot's embed_prefix calls
-        memo = ImageMemo()
+        """Within: what SmolVLA computes the same for every key, computed once per frame and shared by
+        every SmolVLA with the same frozen weights (this policy, the original beside it, a folded
+        payload): each frame's image embedding (``ImageMemo``) and the VLM's keys and values for its
+        image + language block (``PrefixMemo``), so a forward runs the state token and the expert only."""
+        vwe_cls, model_cls = type(self.model.vlm_with_expert), type(self.model)
+        own_image, own_prefix, own_forward = vwe_cls.embed_image, model_cls.embed_prefix, vwe_cls.forward
+        images, prefixes = ImageMemo(), PrefixMemo()
 
         def embed_image(vwe, image: torch.Tensor) -> torch.Tensor:
-            return memo.embed(lambda im: own(vwe, im), vwe, image)
+            return images.embed(lambda im: own_image(vwe, im), vwe, image)
 
-        cls.embed_image = embed_image
+        def embed_prefix(model, imgs, img_masks, lang_tokens, lang_masks, state=None):
+            out = own_prefix(model, imgs, img_masks, lang_tokens, lang_masks, state=state)
+            prefixes.note(model.vlm_with_expert, out, imgs)
+            return out
+
+        def forward(vwe, attention_mask=None, position_ids=None, past_key_values=None, inputs_embeds=None,
+                    use_cache=None):  # fmt: skip
+            n = prefixes.block(vwe, inputs_embeds, attention_mask, past_key_values)
+            if n is None:
+                return own_forward(vwe, attention_mask=attention_mask, position_ids=position_ids,
+                                   past_key_values=past_key_values, inputs_embeds=inputs_embeds,
+                                   use_cache=use_cache)  # fmt: skip
+            block, mask, pos = inputs_embeds[0][:, :n], attention_mask[:, :n, :n], position_ids[:, :n]
+
+            def fill(rows: list[int]):  # LeRobot's prefix fill over the block alone
+                return own_forward(vwe, attention_mask=mask[rows], position_ids=pos[rows],
+                                   past_key_values=None, inputs_embeds=[block[rows].detach(), None],
+                                   use_cache=True)[1]  # fmt: skip
+
+            weights = list(vwe.get_vlm_model().text_model.parameters())
+            held = prefixes.block_kv(fill, block, mask, pos, weights)
+            kv = [(k.transpose(1, 2), v.transpose(1, 2)) for k, v in held]  # as forward_attn_layer holds them
+            return after_block(vwe, kv, attention_mask[:, n:], position_ids[:, n:],
+                               [inputs_embeds[0][:, n:], inputs_embeds[1]], bool(use_cache))  # fmt: skip
+
+        vwe_cls.embed_image, model_cls.embed_prefix, vwe_cls.forward = embed_image, embed_prefix, forward
         try:
             yield
         finally:
-            cls.embed_image = own
+            vwe_cls.embed_image, model_cls.embed_prefix, vwe_cls.forward = own_image, own_prefix, own_forward
 
     @property
     def history(self) -> list[int] | None:

@@ -177,6 +177,77 @@ def test_pi0_user_term_is_lerobots_own_loss_for_the_same_seed(work):
     assert again.requires_grad and torch.equal(again.detach(), chunks)
 
 
+def test_pi0_built_without_random_init_its_buffers_are_a_normal_builds(work):
+    """The policy is built without random initialisation (every weight is then loaded): what is not
+    loaded (non-persistent buffers: rotary frequencies) is what a normal build computes."""
+    module = load_checkpoint(work.policy).module
+    normal = type(module)(module.config)
+    loaded = set(module.state_dict())
+    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
+    assert mine.keys() == theirs.keys()
+    computed = [n for n in theirs if n not in loaded]
+    assert all(torch.equal(mine[n], theirs[n]) for n in computed)
+
+
+def test_pi0_prefix_memo_computes_each_frames_prefix_once_and_changes_nothing(work, monkeypatch):
+    """Within the memo, with PaliGemma frozen and unkeyed (sealed, train_expert_only), each frame's
+    prefix goes through PaliGemma once and a forward runs the expert over its cache: the chunk, the
+    terms and the expert's gradients are LeRobot's own to float rounding. A PaliGemma that trains, or a
+    hook (a key) on it, turns the memo off."""
+    from prop_cli.train.policy import rows
+
+    policy = load_checkpoint(work.policy).policy
+    batch = policy.batches(load_data(work.user), "--data")
+    frames = {k: batch[k][[0, 1, 0, 2]] for k in [*policy.row_shapes, "action", "action_is_pad"]}
+    fb, _ = policy.fallback_pool(rows(batch, torch.arange(2)), batch["action"][:2], policy,
+                                 torch.Generator().manual_seed(0))  # fmt: skip
+    fb = rows(fb, torch.arange(5))
+    pwe = policy.model.paligemma_with_expert
+    lm = pwe.paligemma.model.language_model
+    fills = []
+    real = type(lm).forward
+    fill = lambda self, **k: (self is lm and fills.append(len(k["inputs_embeds"]))) or real(self, **k)  # noqa: E731
+    monkeypatch.setattr(type(lm), "forward", fill)  # the expert's Gemma has the class too: counted apart
+
+    def runs():
+        torch.manual_seed(0)
+        with torch.no_grad():
+            chunk = policy.chunk(frames)
+        policy.policy.zero_grad()
+        loss, v = policy.joint_terms(frames, fb)
+        (loss + v.square().mean()).backward()
+        grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
+        return chunk, loss.detach(), v.detach(), grads
+
+    def memo_runs():
+        with policy.memo():
+            out = runs()
+            again = policy.chunk(frames)
+        assert torch.allclose(again, out[0], atol=1e-6)
+        return out
+
+    pwe.paligemma.requires_grad_(False)  # train_expert_only (a sealed run freezes it all)
+    plain = runs()
+    fills.clear()
+    memo = memo_runs()
+    assert fills == [3]  # one fill over the 3 distinct frames, then every forward from the memo
+    for a, b in zip(plain[:3], memo[:3]):
+        assert torch.allclose(a, b, atol=1e-5)
+    assert plain[3].keys() == memo[3].keys() and plain[3]
+    assert all(torch.allclose(plain[3][n], memo[3][n], atol=1e-5) for n in plain[3])
+    hook = lm.layers[0].self_attn.q_proj.register_forward_hook(lambda m, a, o: o)  # a key on PaliGemma
+    fills.clear()
+    try:
+        memo_runs()
+    finally:
+        hook.remove()
+    assert fills == [4, 4]  # LeRobot's forward: the chunk's prefix fill, again for the chunk after
+    lm.layers[0].self_attn.q_proj.weight.requires_grad_(True)  # PaliGemma trains (pi0's default)
+    fills.clear()
+    memo_runs()
+    assert fills == [4, 4]
+
+
 def test_pi0_bundle_carries_the_tokenizer_and_runs_as_lerobot(bundle, work, tmp_path, cli):
     tok = bundle / "lerobot" / "tokenizer"
     assert sorted(p.name for p in tok.iterdir()) == ["tokenizer.json", "tokenizer_config.json"]

@@ -288,6 +288,79 @@ def test_each_frames_image_embedding_is_computed_once_within_the_memo(work):
     assert torch.allclose(again, plain[[3, 1]], atol=1e-5)
 
 
+def test_built_without_random_init_its_buffers_are_a_normal_builds(work):
+    """The policy is built without random initialisation (every weight is then loaded): what is not
+    loaded (non-persistent buffers: rotary frequencies) is what a normal build computes."""
+    module = load_checkpoint(work / "smolvla").module
+    normal = type(module)(module.config)
+    loaded = set(module.state_dict())
+    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
+    assert mine.keys() == theirs.keys()
+    computed = [n for n in theirs if n not in loaded]
+    assert all(torch.equal(mine[n], theirs[n]) for n in computed)
+
+
+def _memo_runs(policy, frames, fb):
+    """The chunk, the joint terms and their gradients on the policy's trained parameters."""
+    torch.manual_seed(0)
+    with torch.no_grad():
+        chunk = policy.chunk(frames)
+    policy.policy.zero_grad()
+    loss, v = policy.joint_terms(frames, fb)
+    (loss + v.square().mean()).backward()
+    grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
+    return chunk, loss.detach(), v.detach(), grads
+
+
+def test_the_prefix_blocks_keys_and_values_are_computed_once_and_change_nothing(work, monkeypatch):
+    """Within the memo, with the VLM frozen and unkeyed (LeRobot's train_expert_only), each frame's image
+    and language tokens go through the VLM once (their keys and values kept), and a forward runs the state
+    token and the expert only: its chunk, terms and gradients are LeRobot's own to float rounding. A VLM
+    that trains, or a hook (a key) on it, turns the memo off."""
+    from prop_adapters.lerobot import smolvla
+    from prop_cli.train.policy import rows
+
+    policy = load_checkpoint(work / "smolvla").policy
+    batch = policy.batches(load_data(work / "user"), "--data")
+    frames = rows(batch, torch.tensor([0, 1, 0, 2]))
+    fb, _ = policy.fallback_pool(rows(batch, torch.arange(2)), batch["action"][:2], policy,
+                                 torch.Generator().manual_seed(0))  # fmt: skip
+    fb = rows(fb, torch.arange(5))
+    vwe = policy.model.vlm_with_expert
+    ran = []
+    real = smolvla.after_block
+    monkeypatch.setattr(smolvla, "after_block", lambda *a: ran.append(len(a[3])) or real(*a))
+
+    def memo_runs():
+        with policy.memo():
+            out = _memo_runs(policy, frames, fb)
+            assert torch.equal(policy.chunk(frames), out[0])  # the second time from the memo: the same
+            return out
+
+    with policy.memo():  # the tiny policy trains its VLM: the memo stays out of the way
+        policy.chunk(frames)
+    assert ran == []
+    vwe.vlm.requires_grad_(False)  # train_expert_only
+    plain = _memo_runs(policy, frames, fb)
+    assert ran == []  # outside the memo: LeRobot's forward as it is
+    memo = memo_runs()
+    assert len(ran) == 3  # the chunk's prefix fill, the joint forward, the chunk again
+    for a, b in zip(plain[:3], memo[:3]):
+        assert torch.allclose(a, b, atol=1e-5)
+    assert plain[3].keys() == memo[3].keys() and plain[3]
+    assert all(torch.allclose(plain[3][n], memo[3][n], atol=1e-5) for n in plain[3])
+    ran.clear()
+    layer = vwe.get_vlm_model().text_model.layers[0].self_attn.q_proj
+    hook = layer.register_forward_hook(lambda m, a, o: o)  # a key on the VLM: its tokens change with it
+    try:
+        memo_runs()
+    finally:
+        hook.remove()
+    layer.weight.requires_grad_(True)  # a VLM layer that trains
+    memo_runs()
+    assert ran == []
+
+
 def test_attack_audits_with_the_original_as_control(bundle, work):
     s = AuditSettings(probes=["null", "random", "hamming"], hamming=[1], per_distance=2, random=4,
                       samples=1000, noise_seed=3)  # fmt: skip
