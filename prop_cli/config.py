@@ -80,6 +80,13 @@ class PersonalizeConfig(_Settings):
     samples_per_key: int = 2  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
+    # Hard-negative random keys (core.key_sampling.KeySampler; docs/hardening.md, "Wrong keys in closed
+    # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
+    # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
+    # them. 0: uniform random keys only (bundles before issue 32).
+    hard_negatives: int = 32
+    hard_pool: int = 256
+    hard_every: int = 200
     # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's
     # fallback samples is a given input plus Gaussian noise of `fallback_sigma` per-feature standard
     # deviations, labelled by the original on the fly. Keeps the no-key model the original around and
@@ -154,7 +161,9 @@ class PersonalizeConfig(_Settings):
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
-        self.at_least(code_negatives=0, code_flip_max=1)
+        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0)
+        if self.hard_negatives:
+            self.at_least(hard_pool=1, hard_every=1)
         if self.report_budget is not None:
             self.at_least(report_budget=0)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")
