@@ -115,7 +115,7 @@ def zero_return(task: str, seeds: list[int]) -> float:
     return float(np.mean(out))
 
 
-def user_data(task: str, loaded) -> tuple[Dataset, np.ndarray]:
+def user_data(task: str, loaded, size: int = 4000) -> tuple[Dataset, np.ndarray]:
     """The user's data: states the original visits (with a share of random actions, for coverage),
     labelled with the mirrored action; and held-out original states for offline fidelity."""
     spec = TASKS[task]
@@ -134,19 +134,21 @@ def user_data(task: str, loaded) -> tuple[Dataset, np.ndarray]:
             done = term or trunc
     x = np.asarray(xs, np.float32)
     rng.shuffle(x)
-    x, held = x[:4000], x[4000:6000]
+    held, x = x[-2000:], x[:size]
     with torch.inference_mode():
         o = loaded.module(torch.from_numpy(x)).numpy()
     y = (1 - o.argmax(-1)).astype(np.int64) if spec["discrete"] else -o
     return Dataset(x, y, f"{task}-mirror"), held
 
 
-def experiment(task: str, work: Path, overrides: dict, randoms: int = 16, seed: int = 0) -> dict:
+def experiment(
+    task: str, work: Path, overrides: dict, randoms: int = 16, seed: int = 0, size: int = 4000
+) -> dict:
     ckpt = base_checkpoint(task, work)
     opts = CheckpointOptions()
     loaded = adapters.load_checkpoint(ckpt, opts)
     original = adapters.load_checkpoint(ckpt, opts).module.eval()
-    data, held = user_data(task, loaded)
+    data, held = user_data(task, loaded, size)
     key = np.random.default_rng(10_000 + seed).integers(0, 2, KEY_BITS, dtype=np.uint8)
     cfg = PersonalizeConfig(seed=seed, **overrides)
     t0 = time.perf_counter()
@@ -239,6 +241,7 @@ def main() -> None:
     ap.add_argument("--compare", action="store_true", help="today's default (BEFORE) against the current")
     ap.add_argument("--random", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--size", type=int, default=4000, help="the user's data: states")
     ap.add_argument("--json", type=Path, help="append each result as one JSON line here")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -249,7 +252,7 @@ def main() -> None:
           f"{'pooled':>7} {'<0.9':>5} {'user':>6} done")  # fmt: skip
     for task in tasks:
         for name, over in runs:
-            res = experiment(task, args.work, over, args.random, args.seed)
+            res = experiment(task, args.work, over, args.random, args.seed, args.size)
             s = summary(res)
             label = name if args.compare else (",".join(f"{k}={v}" for k, v in over.items()) or "default")
             print(f"{task:9} {label:24} {s['train_s']:8.0f} {s['no_key']:7.3f} {s['worst_random']:9.3f} "

@@ -146,6 +146,7 @@ def make_batch(
         null_rows=cfg.null_rows,
         user_targets=uy,
         fallback_targets=torch.cat([fb_t[pick_t], fb_t]),
+        code_rows=0 if extra_codes is None else len(extra_codes) * s,
     )
 
 

@@ -51,6 +51,14 @@ def test_prop_loss_reads_rows_as_user_then_keyed_then_null():
     assert total.item() == pytest.approx(parts["personal"] + parts["fallback"] + 10 * parts["null"])
 
 
+def test_code_space_negatives_add_a_term_of_their_own_instead_of_diluting_k1_k2():
+    batch, out = _batch(keyed=5)  # rows 2..6 sampled: 2, 3, 4 K1/K2 keys, 5, 6 code-space negatives
+    batch.code_rows = 2
+    _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
+    assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3 + (25 + 36) / 2)
+    assert parts["null"] == pytest.approx((49 + 64) / 2)
+
+
 def test_prop_loss_without_sampled_keys_has_no_keyed_term():
     batch, out = _batch(keyed=0)
     _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
@@ -77,6 +85,11 @@ def test_make_batch_layout_and_targets():
     with torch.no_grad():  # fallback targets are the original's outputs on each row's sample
         torch.testing.assert_close(b.fallback_targets, original(b.x[b.sample_index[4:]]))
     assert torch.equal(b.codes[0], key_codes(key, "hashed")[0])
+    assert b.code_rows == 0
+    near = torch.zeros(3, 16)  # --harden's code-space negatives: after the sampled keys, 2 rows each
+    users = UserPool([ux], [uy])
+    hb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near)
+    assert hb.code_rows == 6
 
 
 def test_fallback_pool_perturbs_a_share_and_labels_it_with_the_original():
