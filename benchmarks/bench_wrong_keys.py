@@ -115,26 +115,39 @@ def zero_return(task: str, seeds: list[int]) -> float:
     return float(np.mean(out))
 
 
-def user_data(task: str, loaded, size: int = 4000) -> tuple[Dataset, np.ndarray]:
-    """The user's data: states the original visits (with a share of random actions, for coverage),
-    labelled with the mirrored action; and held-out original states for offline fidelity."""
+def user_data(task: str, loaded, size: int = 4000, explore: float = 0.2) -> tuple[Dataset, np.ndarray]:
+    """The user's data, labelled with the mirrored action: ``size`` states the original visits with a
+    share of random actions (for coverage), or with ``explore`` 1 the states of a random policy (a user
+    recording their own play); and 2000 held-out states of the original (offline fidelity)."""
     spec = TASKS[task]
     rng = np.random.default_rng(DATA_SEED)
     xs = []
     for ep in range(60):
         env = gym.make(spec["env"])
         obs, _ = env.reset(seed=DATA_SEED + ep)
+        env.action_space.seed(DATA_SEED + ep)  # the exploring actions too: the same data every run
         done = False
         while not done:
             xs.append(obs)
             a = act(loaded.module, obs[None], spec["discrete"], loaded.action_low, loaded.action_high)[0]
-            if rng.random() < 0.2:
+            if rng.random() < min(explore, 0.2):
                 a = env.action_space.sample()
             obs, _, term, trunc, _ = env.step(a)
             done = term or trunc
     x = np.asarray(xs, np.float32)
     rng.shuffle(x)
-    held, x = x[-2000:], x[:size]
+    x, held = x[:size], x[-2000:]
+    if explore >= 1:
+        xs = []
+        while len(xs) < size:
+            obs, _ = env.reset(seed=DATA_SEED + 10_000 + len(xs))
+            env.action_space.seed(DATA_SEED + 10_000 + len(xs))
+            done = False
+            while not done and len(xs) < size:
+                xs.append(obs)
+                obs, _, term, trunc, _ = env.step(env.action_space.sample())
+                done = term or trunc
+        x = np.asarray(xs, np.float32)
     with torch.inference_mode():
         o = loaded.module(torch.from_numpy(x)).numpy()
     y = (1 - o.argmax(-1)).astype(np.int64) if spec["discrete"] else -o
@@ -142,13 +155,14 @@ def user_data(task: str, loaded, size: int = 4000) -> tuple[Dataset, np.ndarray]
 
 
 def experiment(
-    task: str, work: Path, overrides: dict, randoms: int = 16, seed: int = 0, size: int = 4000
+    task: str, work: Path, overrides: dict, randoms: int = 16, seed: int = 0, size: int = 4000,
+    explore: float = 0.2,
 ) -> dict:
     ckpt = base_checkpoint(task, work)
     opts = CheckpointOptions()
     loaded = adapters.load_checkpoint(ckpt, opts)
     original = adapters.load_checkpoint(ckpt, opts).module.eval()
-    data, held = user_data(task, loaded, size)
+    data, held = user_data(task, loaded, size, explore)
     key = np.random.default_rng(10_000 + seed).integers(0, 2, KEY_BITS, dtype=np.uint8)
     cfg = PersonalizeConfig(seed=seed, **overrides)
     t0 = time.perf_counter()
@@ -201,14 +215,14 @@ def experiment(
         r, _ = rollouts(mod, task, loaded, seeds)
         rows.append({
             "kind": "random" if i < len(rand) else f"d{dists[i - len(rand)]}",
-            "score": score(r), "return": float(r.mean()), "offline": offline(mod),
+            "score": score(r), "return": float(r.mean()), "offline": offline(mod), "episodes": r.round(1).tolist(),
             "delta_rms": float(dev[i].pow(2).mean().sqrt()),
             "code_dist": int((codes[i] != ucode[0]).sum()),
         })  # fmt: skip
     rep = trained.metrics[0]
     return {
         "task": task, "overrides": overrides, "train_s": train_s,
-        "original": float(r_orig.mean()), "floor": floor, "no_key": score(r_null), "user_return": float(r_user.mean()),
+        "original": float(r_orig.mean()), "original_episodes": r_orig.round(1).tolist(), "floor": floor, "no_key": score(r_null), "user_return": float(r_user.mean()),
         "user_closed_loop": personal, "personalization": rep["personalization"],
         "user_delta_rms": float(udev.pow(2).mean().sqrt()), "keys": rows,
     }  # fmt: skip
@@ -242,6 +256,8 @@ def main() -> None:
     ap.add_argument("--random", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--size", type=int, default=4000, help="the user's data: states")
+    ap.add_argument("--explore", type=float, default=0.2,
+                    help="share of random actions in the user's recording (1: a random policy's states)")
     ap.add_argument("--json", type=Path, help="append each result as one JSON line here")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -252,7 +268,7 @@ def main() -> None:
           f"{'pooled':>7} {'<0.9':>5} {'user':>6} done")  # fmt: skip
     for task in tasks:
         for name, over in runs:
-            res = experiment(task, args.work, over, args.random, args.seed, args.size)
+            res = experiment(task, args.work, over, args.random, args.seed, args.size, args.explore)
             s = summary(res)
             label = name if args.compare else (",".join(f"{k}={v}" for k, v in over.items()) or "default")
             print(f"{task:9} {label:24} {s['train_s']:8.0f} {s['no_key']:7.3f} {s['worst_random']:9.3f} "

@@ -80,6 +80,9 @@ class PersonalizeConfig(_Settings):
     samples_per_key: int = 2  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
+    # Weight of the sampled keys' fallback term (K1, K2; the mean over their rows). Eq. 8 sums over the
+    # keys; 1 weighs all of them together as much as the user's term (bundles before issue 32).
+    key_weight: float = 1.0
     # Hard-negative random keys (core.key_sampling.KeySampler; docs/hardening.md, "Wrong keys in closed
     # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
     # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
@@ -138,7 +141,8 @@ class PersonalizeConfig(_Settings):
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
         self.at_least(steps=1, user_rows=1, null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1,
-                      hamming_radius=1, null_weight=0, eval_random_keys=1, payload_rank=1)  # fmt: skip
+                      hamming_radius=1, null_weight=0, key_weight=0, eval_random_keys=1,
+                      payload_rank=1)  # fmt: skip
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale", "payload_lr")
         self.need(0 < self.lr_floor <= 1, "lr_floor", "in (0, 1]")
         if key_bits is not None:

@@ -42,6 +42,7 @@ SETTINGS = {
     "random_keys": "K2: random keys per step.",
     "neighbour_keys": "K1: Hamming neighbours per step (0 = none: leaky, for audits).",
     "null_weight": "Weight of the no-key fallback loss.",
+    "key_weight": "Weight of the random and neighbour keys' fallback loss.",
     "hard_negatives": "Worst-scoring random keys kept to train on (half of K2 each step; 0 = uniform K2).",
     "hard_pool": "Fresh random keys scored for --hard-negatives at each rescoring.",
     "hard_every": "Steps between the rescorings of --hard-negatives.",

@@ -220,13 +220,13 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         deltas = km.layer_deltas(batch.codes, null=1)
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
-            loss, losses = prop_loss(out, batch, task, cfg.null_weight)
+            loss, losses = prop_loss(out, batch, task, cfg.null_weight, cfg.key_weight)
             optim.update(loss)
             return losses
         # Data parallel: this process's share of the step's rows; the gradients are summed over processes.
         rows = ranks.share(len(batch.key_index)).to(dev)
         out = km.run_rows(batch.x, deltas, batch.key_index[rows], batch.sample_index[rows])
-        loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight)
+        loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight, cfg.key_weight)
         optim.update(loss)
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}

@@ -63,10 +63,10 @@ def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) 
 
 
 def prop_loss(
-    out: torch.Tensor, batch: Batch, task: str, null_weight: float
+    out: torch.Tensor, batch: Batch, task: str, null_weight: float, key_weight: float = 1.0
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 8: mean personalized loss + mean keyed fallback loss + null_weight * mean null loss (with
-    --harden, + the mean loss of the code-space negatives: ``Batch.code_rows``)."""
+    """Eq. 8: mean personalized loss + key_weight * mean keyed fallback loss (with --harden, + the mean
+    loss of the code-space negatives: ``Batch.code_rows``) + null_weight * mean null loss."""
     u, n0 = batch.user_rows, batch.null_rows
     personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
     fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
@@ -75,12 +75,13 @@ def prop_loss(
     keyed = sampled[: len(sampled) - c].mean() if len(sampled) > c else out.new_zeros(())
     if c:
         keyed = keyed + sampled[len(sampled) - c :].mean()
-    total = personal + keyed + null_weight * null
+    total = personal + key_weight * keyed + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
 def prop_loss_share(
-    out: torch.Tensor, batch: Batch, rows: torch.Tensor, task: str, null_weight: float
+    out: torch.Tensor, batch: Batch, rows: torch.Tensor, task: str, null_weight: float,
+    key_weight: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 8 restricted to ``rows`` of the step (``out``: their outputs), as a sum over rows weighted by
     each row's share of its term, so that the shares of all processes add up to ``prop_loss``
@@ -104,4 +105,4 @@ def prop_loss_share(
         if c:
             keyed = keyed + fb[code].sum() / c
         parts = parts + torch.stack([out.new_zeros(()), keyed, fb[null].sum() / n0])
-    return parts[0] + parts[1] + null_weight * parts[2], parts.detach()
+    return parts[0] + key_weight * parts[1] + null_weight * parts[2], parts.detach()

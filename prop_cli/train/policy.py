@@ -379,7 +379,7 @@ class PolicyTrainer:
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
         keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
-        self.optim.update(personal + keyed + cfg.null_weight * null)
+        self.optim.update(personal + cfg.key_weight * keyed + cfg.null_weight * null)
         self.t += 1
         terms = torch.stack([personal, keyed, null]).detach().float()
         if self.ranks.world > 1:

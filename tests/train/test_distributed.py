@@ -44,13 +44,13 @@ def _batch(
 @pytest.mark.parametrize("world", [2, 3, 5])
 def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world, code_rows):
     out, batch = _batch(np.random.default_rng(world), code_rows=code_rows)
-    whole, losses = prop_loss(out, batch, "regression", 2.0)
+    whole, losses = prop_loss(out, batch, "regression", 2.0, 3.0)
     (g_whole,) = torch.autograd.grad(whole, out)
     total, grad = 0.0, torch.zeros_like(out)
     parts = torch.zeros(3)
     for rank in range(world):
         rows = Ranks(rank, world).share(len(batch.key_index))
-        loss, p = prop_loss_share(out[rows], batch, rows, "regression", 2.0)
+        loss, p = prop_loss_share(out[rows], batch, rows, "regression", 2.0, 3.0)
         (g,) = torch.autograd.grad(loss, out)
         total, grad, parts = total + loss.item(), grad + g, parts + p
     assert total == pytest.approx(whole.item(), rel=1e-6, abs=1e-6)  # float32 sums in another order

@@ -59,6 +59,13 @@ def test_code_space_negatives_add_a_term_of_their_own_instead_of_diluting_k1_k2(
     assert parts["null"] == pytest.approx((49 + 64) / 2)
 
 
+def test_key_weight_scales_the_sampled_keys_term_only():
+    batch, out = _batch()
+    total, parts = prop_loss(out, batch, "regression", null_weight=10.0, key_weight=4.0)
+    assert total.item() == pytest.approx(parts["personal"] + 4 * parts["fallback"] + 10 * parts["null"])
+    assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3)  # the progress line: unweighted
+
+
 def test_prop_loss_without_sampled_keys_has_no_keyed_term():
     batch, out = _batch(keyed=0)
     _, parts = prop_loss(out, batch, "regression", null_weight=1.0)

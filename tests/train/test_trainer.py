@@ -106,3 +106,14 @@ def test_the_policy_report_plan_stays_within_its_budget():
     assert report_budget(PersonalizeConfig(report_budget=7), small) == 7
     with pytest.raises(PropError, match="--report-budget"):
         PersonalizeConfig(report_budget=-1).validate()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "flag"),
+    [("hard_negatives", -1, "--hard-negatives"), ("hard_pool", 0, "--hard-pool"),
+     ("hard_every", 0, "--hard-every"), ("key_weight", -1.0, "--key-weight")],
+)  # fmt: skip
+def test_wrong_key_settings_are_validated_with_their_flag(field, value, flag):
+    with pytest.raises(PropError, match=flag):
+        PersonalizeConfig(**{field: value}).validate()
+    PersonalizeConfig(hard_negatives=0, hard_pool=0, hard_every=0).validate()  # off: pool settings unused
