@@ -47,7 +47,7 @@ EVAL_SEED = 1_000_000
 DATA_SEED = 0
 KEY_BITS = 128
 # The settings before issue 32 (what `--compare` calls today's default).
-BEFORE = {"hard_negatives": 0}
+BEFORE = {"delta_pull": 0.0}
 TASKS = {
     "cartpole": {"env": "CartPole-v1", "algo": "PPO", "train_steps": 60_000, "discrete": True},
     "pendulum": {"env": "Pendulum-v1", "algo": "SAC", "train_steps": 12_000, "discrete": False},
@@ -63,8 +63,9 @@ def base_checkpoint(task: str, work: Path) -> Path:
 
     spec = TASKS[task]
     if spec["algo"] == "PPO":
-        model = PPO("MlpPolicy", spec["env"], seed=0, n_steps=256, batch_size=256, n_epochs=10, gae_lambda=0.8,
-                    gamma=0.98, learning_rate=1e-3, ent_coef=0.0, policy_kwargs={"net_arch": [64, 64]})  # fmt: skip
+        model = PPO("MlpPolicy", spec["env"], seed=0, n_steps=256, batch_size=256, n_epochs=10,
+                    gae_lambda=0.8, gamma=0.98, learning_rate=1e-3, ent_coef=0.0,
+                    policy_kwargs={"net_arch": [64, 64]})  # fmt: skip
     else:
         model = SAC("MlpPolicy", spec["env"], seed=0, learning_rate=1e-3, learning_starts=1000,
                     policy_kwargs={"net_arch": [64, 64]})  # fmt: skip
@@ -208,21 +209,24 @@ def experiment(
     if spec["discrete"]:  # the user's key closed loop: the share of steps it takes the mirrored action
         personal = float((uv.argmax(-1) == 1 - ov.argmax(-1)).float().mean())
     else:  # 1 - mean |a - (-a_orig)| over the range of that difference (4 N m)
-        personal = float(1 - (uv + ov).abs().mean() / float(np.ptp([loaded.action_low, loaded.action_high]) * 2))
+        span = float(np.ptp([loaded.action_low, loaded.action_high]) * 2)
+        personal = float(1 - (uv + ov).abs().mean() / span)
     rows = []
-    for i, k in enumerate(keys):
+    for i in range(len(keys)):
         mod = km.fold(codes[i : i + 1])
         r, _ = rollouts(mod, task, loaded, seeds)
         rows.append({
             "kind": "random" if i < len(rand) else f"d{dists[i - len(rand)]}",
-            "score": score(r), "return": float(r.mean()), "offline": offline(mod), "episodes": r.round(1).tolist(),
+            "score": score(r), "return": float(r.mean()), "offline": offline(mod),
+            "episodes": r.round(1).tolist(),
             "delta_rms": float(dev[i].pow(2).mean().sqrt()),
             "code_dist": int((codes[i] != ucode[0]).sum()),
         })  # fmt: skip
     rep = trained.metrics[0]
     return {
         "task": task, "overrides": overrides, "train_s": train_s,
-        "original": float(r_orig.mean()), "original_episodes": r_orig.round(1).tolist(), "floor": floor, "no_key": score(r_null), "user_return": float(r_user.mean()),
+        "original": float(r_orig.mean()), "original_episodes": r_orig.round(1).tolist(), "floor": floor,
+        "no_key": score(r_null), "user_return": float(r_user.mean()),
         "user_closed_loop": personal, "personalization": rep["personalization"],
         "user_delta_rms": float(udev.pow(2).mean().sqrt()), "keys": rows,
     }  # fmt: skip
@@ -233,7 +237,8 @@ def summary(res: dict) -> dict:
     rnd = np.array([k["score"] for k in res["keys"] if k["kind"] == "random"])
     nb = np.array([k["score"] for k in res["keys"] if k["kind"] != "random"])
     return {
-        "train_s": res["train_s"], "no_key": res["no_key"], "worst_random": rnd.min(), "worst_neighbour": nb.min(),
+        "train_s": res["train_s"], "no_key": res["no_key"], "worst_random": rnd.min(),
+        "worst_neighbour": nb.min(),
         "pooled": s.mean(), "below_0.9": int((s < 0.9).sum()), "personal": res["user_closed_loop"],
         "done": bool(s.min() >= 0.9 and s.mean() >= 0.95),
     }  # fmt: skip

@@ -83,11 +83,16 @@ class PersonalizeConfig(_Settings):
     # Weight of the sampled keys' fallback term (K1, K2; the mean over their rows). Eq. 8 sums over the
     # keys; 1 weighs all of them together as much as the user's term (bundles before issue 32).
     key_weight: float = 1.0
-    # Hard-negative random keys (core.key_sampling.KeySampler; docs/hardening.md, "Wrong keys in closed
+    # Weight of the sampled keys' delta pulled towards 1, the null key's (objective.delta_pull): a wrong
+    # key's model is then nearly the no-key model, not only close to the original on the training
+    # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
+    # loop": SAC Pendulum, keys below 0.9x the original's return 4.7% -> 0). 0: bundles before issue 32.
+    delta_pull: float = 10.0
+    # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed
     # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
     # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
-    # them. 0: uniform random keys only (bundles before issue 32).
-    hard_negatives: int = 32
+    # them. Off by default: on SB3 SAC Pendulum it did not lower the closed-loop failures (0, uniform K2).
+    hard_negatives: int = 0
     hard_pool: int = 256
     hard_every: int = 200
     # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's
@@ -141,7 +146,7 @@ class PersonalizeConfig(_Settings):
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
         self.at_least(steps=1, user_rows=1, null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1,
-                      hamming_radius=1, null_weight=0, key_weight=0, eval_random_keys=1,
+                      hamming_radius=1, null_weight=0, key_weight=0, delta_pull=0, eval_random_keys=1,
                       payload_rank=1)  # fmt: skip
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale", "payload_lr")
         self.need(0 < self.lr_floor <= 1, "lr_floor", "in (0, 1]")

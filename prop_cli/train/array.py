@@ -21,7 +21,7 @@ from prop_cli.fit import split
 from .data import outputs, prepare_users, targets_tensor
 from .hardening import code_negatives, encoder_init
 from .loop import Optimiser, run_steps
-from .objective import Batch, check_user_keys, prop_loss, prop_loss_share, row_loss
+from .objective import Batch, check_user_keys, delta_pull, prop_loss, prop_loss_share, row_loss
 from .recipe import Job, Recipe, User
 from .report import eval_rng, user_report
 from .unsealed import Personalized
@@ -218,16 +218,18 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
         batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
         deltas = km.layer_deltas(batch.codes, null=1)
+        sampled = slice(len(users), len(batch.codes))  # the sampled keys' codes (and --harden's)
+        pull = cfg.delta_pull * delta_pull(deltas, sampled) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
             loss, losses = prop_loss(out, batch, task, cfg.null_weight, cfg.key_weight)
-            optim.update(loss)
+            optim.update(loss + pull)
             return losses
         # Data parallel: this process's share of the step's rows; the gradients are summed over processes.
         rows = ranks.share(len(batch.key_index)).to(dev)
         out = km.run_rows(batch.x, deltas, batch.key_index[rows], batch.sample_index[rows])
         loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight, cfg.key_weight)
-        optim.update(loss)
+        optim.update(loss + pull / ranks.world)  # every process's share of the encoder-only term
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 

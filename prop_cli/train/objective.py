@@ -106,3 +106,13 @@ def prop_loss_share(
             keyed = keyed + fb[code].sum() / c
         parts = parts + torch.stack([out.new_zeros(()), keyed, fb[null].sum() / n0])
     return parts[0] + key_weight * parts[1] + null_weight * parts[2], parts.detach()
+
+
+def delta_pull(deltas: list[torch.Tensor], keys: slice) -> torch.Tensor:
+    """Mean squared distance of the sampled keys' layer scales from 1 (the null key's): rows ``keys`` of
+    each layer's delta (K, features), averaged over every layer's features. Zero when no key is sampled."""
+    parts = [d[keys] for d in deltas]
+    if not parts or parts[0].shape[0] == 0:
+        return deltas[0].new_zeros(())
+    return torch.cat(parts, 1).float().sub(1).pow(2).mean()
+

@@ -44,7 +44,7 @@ from prop_cli.errors import PropError
 
 from .distributed import Ranks
 from .loop import Optimiser, run_steps
-from .objective import check_user_keys
+from .objective import check_user_keys, delta_pull
 from .recipe import Job, Recipe, User
 from .report import eval_rng, outputs_report
 from .row_noise import RowNoise
@@ -379,7 +379,10 @@ class PolicyTrainer:
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
         keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
-        self.optim.update(personal + cfg.key_weight * keyed + cfg.null_weight * null)
+        loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
+        if cfg.delta_pull:  # every process's share of the encoder-only term
+            loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, len(sampled))) / self.ranks.world
+        self.optim.update(loss)
         self.t += 1
         terms = torch.stack([personal, keyed, null]).detach().float()
         if self.ranks.world > 1:

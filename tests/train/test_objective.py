@@ -12,7 +12,7 @@ from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import key_codes
 from prop_cli.errors import PropError
 from prop_cli.train.array import FallbackPool, UserPool, make_batch
-from prop_cli.train.objective import Batch, check_user_keys, prop_loss, row_loss
+from prop_cli.train.objective import Batch, check_user_keys, delta_pull, prop_loss, row_loss
 
 
 def test_row_loss_per_term():
@@ -64,6 +64,15 @@ def test_key_weight_scales_the_sampled_keys_term_only():
     total, parts = prop_loss(out, batch, "regression", null_weight=10.0, key_weight=4.0)
     assert total.item() == pytest.approx(parts["personal"] + 4 * parts["fallback"] + 10 * parts["null"])
     assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3)  # the progress line: unweighted
+
+
+def test_delta_pull_is_the_mean_square_of_the_sampled_keys_deltas_from_one_over_all_layers():
+    user = [torch.full((1, 2), 3.0), torch.full((1, 3), 3.0)]  # the user's deltas: free, not pulled
+    sampled = [torch.tensor([[1.0, 2.0], [1.0, 1.0]]), torch.tensor([[0.0, 1.0, 1.0], [1.0, 1.0, 3.0]])]
+    null = [torch.ones(1, 2), torch.ones(1, 3)]
+    deltas = [torch.cat(parts) for parts in zip(user, sampled, null)]
+    assert delta_pull(deltas, slice(1, 3)).item() == pytest.approx((1 + 1 + 4) / 10)
+    assert delta_pull(deltas, slice(1, 1)).item() == 0.0  # no key sampled
 
 
 def test_prop_loss_without_sampled_keys_has_no_keyed_term():
