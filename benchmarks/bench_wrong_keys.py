@@ -47,7 +47,7 @@ EVAL_SEED = 1_000_000
 DATA_SEED = 0
 KEY_BITS = 128
 # The settings before issue 32 (what `--compare` calls today's default).
-BEFORE = {"delta_pull": 0.0}
+BEFORE = {"delta_pull": 0.0, "far_codes": 0}
 TASKS = {
     "cartpole": {"env": "CartPole-v1", "algo": "PPO", "train_steps": 60_000, "discrete": True},
     "pendulum": {"env": "Pendulum-v1", "algo": "SAC", "train_steps": 12_000, "discrete": False},
@@ -224,7 +224,7 @@ def experiment(
         })  # fmt: skip
     rep = trained.metrics[0]
     return {
-        "task": task, "overrides": overrides, "train_s": train_s,
+        "task": task, "seed": seed, "overrides": overrides, "train_s": train_s,
         "original": float(r_orig.mean()), "original_episodes": r_orig.round(1).tolist(), "floor": floor,
         "no_key": score(r_null), "user_return": float(r_user.mean()),
         "user_closed_loop": personal, "personalization": rep["personalization"],

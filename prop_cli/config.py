@@ -88,6 +88,9 @@ class PersonalizeConfig(_Settings):
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
     # loop": SAC Pendulum, keys below 0.9x the original's return 4.7% -> 0). 0: bundles before issue 32.
     delta_pull: float = 10.0
+    # ±1 codes 32-56 bits (of 128) from the user's code per step, in K1 and K2's fallback term and pull
+    # (train.hardening.far_codes): the nearest codes real keys reach. 0: none (bundles before issue 32).
+    far_codes: int = 16
     # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed
     # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
     # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
@@ -140,7 +143,7 @@ class PersonalizeConfig(_Settings):
 
     @property
     def batch_rows(self) -> int:
-        sampled = self.random_keys + self.neighbour_keys + (self.code_negatives or 0)
+        sampled = self.random_keys + self.neighbour_keys + self.far_codes + (self.code_negatives or 0)
         return self.user_rows + self.null_rows + sampled * self.samples_per_key
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
@@ -170,7 +173,7 @@ class PersonalizeConfig(_Settings):
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
-        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0)
+        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0, far_codes=0)
         if self.hard_negatives:
             self.at_least(hard_pool=1, hard_every=1)
         if self.report_budget is not None:

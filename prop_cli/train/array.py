@@ -19,7 +19,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import split
 
 from .data import outputs, prepare_users, targets_tensor
-from .hardening import code_negatives, encoder_init
+from .hardening import code_negatives, encoder_init, far_codes
 from .loop import Optimiser, run_steps
 from .objective import Batch, check_user_keys, delta_pull, prop_loss, prop_loss_share, row_loss
 from .recipe import Job, Recipe, User
@@ -115,10 +115,12 @@ def make_batch(
     users: UserPool,
     pool: FallbackPool,
     extra_codes: torch.Tensor | None = None,
+    far: torch.Tensor | None = None,
 ) -> Batch:
     """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
 
-    ``extra_codes``: more fallback codes (code-space negatives of --harden), after the sampled keys'."""
+    ``far``: ``hardening.far_codes``, after the sampled keys' codes and in their term; ``extra_codes``: more
+    fallback codes (code-space negatives of --harden), after those, a term of their own."""
     dev = pool.x.device
     n_users = len(users)
     per_user = max(1, cfg.user_rows // n_users)
@@ -128,6 +130,8 @@ def make_batch(
     fb_x, fb_t = pool.draw(cfg.null_rows, rng)
     sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
     codes = torch.cat([user_codes, key_codes(sampled, cfg.key_encoding).to(dev)])
+    if far is not None:  # ±1 codes nearer the user's than typical keys': fallback rows like K1 and K2's
+        codes = torch.cat([codes, far.to(dev)])
     if extra_codes is not None:
         codes = torch.cat([codes, extra_codes.to(dev)])
     k, s = len(codes) - n_users, cfg.samples_per_key
@@ -216,9 +220,12 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     def step() -> dict[str, float]:
         sampler.step(score)
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
-        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
+        far = far_codes(user_codes, cfg.far_codes, rng) if cfg.far_codes else None
+        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near, far)
         deltas = km.layer_deltas(batch.codes, null=1)
-        sampled = slice(len(users), len(batch.codes))  # the sampled keys' codes (and --harden's)
+        # K1 and K2's codes; not --harden's code-space negatives after them: pulled to the no-key model,
+        # those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).
+        sampled = slice(len(users), len(users) + cfg.neighbour_keys + cfg.random_keys + cfg.far_codes)
         pull = cfg.delta_pull * delta_pull(deltas, sampled) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)

@@ -67,3 +67,20 @@ def code_negatives(
     noise = t(rng.standard_normal((q, bits)))
     c[n - q :] = (c[n - q :] + sigma * noise).clamp(-1, 1)
     return c
+
+
+def far_codes(user_codes: torch.Tensor, n: int, rng: np.random.Generator) -> torch.Tensor:
+    """``n`` ±1 codes at bits/4 to 7 bits/16 code bits from the users' codes (32-56 of 128): the
+    nearest codes that real keys reach. A random key's code is 64 +- 5.7 bits from the user's, so a
+    scan of a million keys meets codes 40 bits away; trained only on typical codes (and pulled towards
+    the no-key model, ``delta_pull``), the encoder's basin around the user's code caught such a key
+    (CartPole: a key 49 code bits away kept 15% of the return). Used in every mode."""
+    bits = user_codes.shape[1]
+    if n == 0:
+        return user_codes.new_zeros(0, bits)
+    dev = user_codes.device
+    c = user_codes[torch.from_numpy(rng.integers(0, len(user_codes), n)).to(dev)].clone()
+    m = rng.integers(max(1, bits // 4), max(1, 7 * bits // 16) + 1, n)
+    flip = torch.from_numpy(rng.random((n, bits)).argsort(1) < m[:, None]).to(dev)
+    return torch.where(flip, -c, c)
+

@@ -43,6 +43,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
+from .hardening import far_codes
 from .loop import Optimiser, run_steps
 from .objective import check_user_keys, delta_pull
 from .recipe import Job, Recipe, User
@@ -286,7 +287,7 @@ class PolicyTrainer:
         )  # fmt: skip
         self.hard_rng = np.random.default_rng((cfg.seed, HARD_STREAM))
         self.per_user = max(1, cfg.user_rows // len(users))
-        sampled = (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
+        sampled = (cfg.neighbour_keys + cfg.random_keys + cfg.far_codes) * cfg.samples_per_key
         ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
         self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks)
         self.t = 0
@@ -350,12 +351,16 @@ class PolicyTrainer:
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
         )
+        n_keys = len(sampled) + cfg.far_codes  # the sampled keys, then hardening.far_codes
         gi = torch.from_numpy(rng.integers(0, len(self.fallback), cfg.null_rows)).to(dev)
-        k_rows = torch.arange(len(sampled), device=dev).repeat_interleave(cfg.samples_per_key)
+        k_rows = torch.arange(n_keys, device=dev).repeat_interleave(cfg.samples_per_key)
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows))).to(dev)]])
-        codes = key_codes(sampled, cfg.key_encoding).to(dev) if len(sampled) else None
+        parts = [key_codes(sampled, cfg.key_encoding).to(dev)] if len(sampled) else []
+        if cfg.far_codes:
+            parts.append(far_codes(self.user_codes, cfg.far_codes, rng))
+        codes = torch.cat(parts) if parts else None
         deltas = km.layer_deltas(codes, null=1)
-        key_of_row = torch.cat([torch.full((len(gi),), len(sampled), device=dev), k_rows])
+        key_of_row = torch.cat([torch.full((len(gi),), n_keys, device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         # This process's share of each term's rows (all of them on one process); every process drew the
         # same step above (the same generators), and the gradients are summed over the processes.
@@ -381,7 +386,7 @@ class PolicyTrainer:
         keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
         loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
         if cfg.delta_pull:  # every process's share of the encoder-only term
-            loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, len(sampled))) / self.ranks.world
+            loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, n_keys)) / self.ranks.world
         self.optim.update(loss)
         self.t += 1
         terms = torch.stack([personal, keyed, null]).detach().float()
