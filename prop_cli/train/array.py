@@ -115,12 +115,11 @@ def make_batch(
     users: UserPool,
     pool: FallbackPool,
     extra_codes: torch.Tensor | None = None,
-    far: torch.Tensor | None = None,
 ) -> Batch:
     """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
 
-    ``far``: ``hardening.far_codes``, after the sampled keys' codes and in their term; ``extra_codes``: more
-    fallback codes (code-space negatives of --harden), after those, a term of their own."""
+    ``extra_codes``: more fallback codes (``hardening.far_codes``, then --harden's code-space negatives),
+    after the sampled keys', in a fallback term of their own."""
     dev = pool.x.device
     n_users = len(users)
     per_user = max(1, cfg.user_rows // n_users)
@@ -130,8 +129,6 @@ def make_batch(
     fb_x, fb_t = pool.draw(cfg.null_rows, rng)
     sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
     codes = torch.cat([user_codes, key_codes(sampled, cfg.key_encoding).to(dev)])
-    if far is not None:  # ±1 codes nearer the user's than typical keys': fallback rows like K1 and K2's
-        codes = torch.cat([codes, far.to(dev)])
     if extra_codes is not None:
         codes = torch.cat([codes, extra_codes.to(dev)])
     k, s = len(codes) - n_users, cfg.samples_per_key
@@ -220,8 +217,9 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     def step() -> dict[str, float]:
         sampler.step(score)
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
-        far = far_codes(user_codes, cfg.far_codes, rng) if cfg.far_codes else None
-        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near, far)
+        if cfg.far_codes:  # with --harden's, after K1 and K2 in a term of their own (not diluting theirs)
+            near = torch.cat([far_codes(user_codes, cfg.far_codes, rng), near])
+        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
         deltas = km.layer_deltas(batch.codes, null=1)
         # K1 and K2's codes; not --harden's code-space negatives after them: pulled to the no-key model,
         # those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).

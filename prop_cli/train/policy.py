@@ -383,7 +383,13 @@ class PolicyTrainer:
         personal = weighted(parts, self.ranks)
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
-        keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
+        # K1 and K2's rows, then the far codes' (hardening.far_codes): a term each, as in the array trainer.
+        is_far = fs >= n_null + len(sampled) * cfg.samples_per_key
+        n_far = cfg.far_codes * cfg.samples_per_key
+        n_kk = n_fb - n_null - n_far
+        keyed = per_row[~is_null & ~is_far].sum() / n_kk if n_kk else per_row.new_zeros(())
+        if n_far:
+            keyed = keyed + per_row[is_far].sum() / n_far
         loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
         if cfg.delta_pull:  # every process's share of the encoder-only term
             loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, n_keys)) / self.ranks.world
