@@ -19,8 +19,10 @@ Hamming distance to the user's code.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task cartpole --set hard_negatives=0
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task both --compare
 
-``--compare`` trains today's default (the settings before issue 32, ``BEFORE``) and the current default
-on each task and prints the done-when table (training time beside each).
+``--compare`` trains the default before issue 32 (``BEFORE``: no delta pull, no far codes) and the
+current default on each task and prints the done-when table (training time beside each). ``--work``
+holds the SB3 checkpoints (trained on first use, or put there: ``cartpole.zip``, ``pendulum.zip``);
+``--explore 1 --size 2000`` records the user's data with a random policy instead.
 """
 
 from __future__ import annotations

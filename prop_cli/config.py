@@ -88,7 +88,7 @@ class PersonalizeConfig(_Settings):
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
     # loop": SAC Pendulum, keys below 0.9x the original's return 4.7% -> 0). 0: bundles before issue 32.
     delta_pull: float = 10.0
-    # ±1 codes 32-56 bits (of 128) from the user's code per step, in K1 and K2's fallback term and pull
+    # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, and pulled
     # (train.hardening.far_codes): the nearest codes real keys reach. 0: none (bundles before issue 32).
     far_codes: int = 16
     # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed

@@ -44,7 +44,7 @@ SETTINGS = {
     "null_weight": "Weight of the no-key fallback loss.",
     "key_weight": "Weight of the random and neighbour keys' fallback loss.",
     "delta_pull": "Weight pulling wrong keys' layer scales to the no-key model's (0 = off).",
-    "far_codes": "Codes 32-56 of 128 bits from yours per step, trained to fall back (0 = none).",
+    "far_codes": "Codes 40-56 of 128 bits from yours per step, trained to fall back (0 = none).",
     "hard_negatives": "Worst-scoring random keys kept to train on (half of K2 each step; 0 = off).",
     "hard_pool": "Fresh random keys scored for --hard-negatives at each rescoring.",
     "hard_every": "Steps between the rescorings of --hard-negatives.",
