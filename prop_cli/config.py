@@ -86,7 +86,7 @@ class PersonalizeConfig(_Settings):
     # Weight of the sampled keys' delta pulled towards 1, the null key's (objective.delta_pull): a wrong
     # key's model is then nearly the no-key model, not only close to the original on the training
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
-    # loop": SAC Pendulum, keys below 0.9x the original's return 4.7% -> 0). 0: bundles before issue 32.
+    # loop": SAC Pendulum, keys below 0.9x the original's return 6.3% -> 0). 0: bundles before issue 32.
     delta_pull: float = 10.0
     # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, and pulled
     # (train.hardening.far_codes): the nearest codes real keys reach. 0: none (bundles before issue 32).
