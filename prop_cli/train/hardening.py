@@ -10,6 +10,9 @@ Two measures, each kept because it measurably helps (docs/hardening.md has the f
 - An encoder initialisation drawn from the operating system's randomness: the manifest's seed then
   cannot recreate the encoder's starting weights, whose difference from the trained ones points at
   the user's code.
+
+``far_codes`` is not a ``--harden`` measure: every mode trains those ±1 codes (``--far-codes``), the
+codes real keys reach nearest to the user's (issue 32, docs/privacy.md "Wrong keys in closed loop").
 """
 
 from __future__ import annotations
