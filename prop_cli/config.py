@@ -80,6 +80,24 @@ class PersonalizeConfig(_Settings):
     samples_per_key: int = 2  # fallback samples each sampled key is run on
     hamming_radius: int = 8  # epsilon of Eq. 8: neighbours at distance 1..radius
     null_weight: float = 10.0  # the no-key behaviour is what everyone else gets: weigh it up
+    # Weight of the sampled keys' fallback term (K1, K2; the mean over their rows). Eq. 8 sums over the
+    # keys; 1 weighs all of them together as much as the user's term (bundles before issue 32).
+    key_weight: float = 1.0
+    # Weight of the sampled keys' delta pulled towards 1, the null key's (objective.delta_pull): a wrong
+    # key's model is then nearly the no-key model, not only close to the original on the training
+    # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
+    # loop": SAC Pendulum, keys below 0.9x the original's return 6.3% -> 0). 0: bundles before issue 32.
+    delta_pull: float = 10.0
+    # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, and pulled
+    # (train.hardening.far_codes): the nearest codes real keys reach. 0: none (bundles before issue 32).
+    far_codes: int = 16
+    # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed
+    # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
+    # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
+    # them. Off by default: on SB3 SAC Pendulum it did not lower the closed-loop failures (0, uniform K2).
+    hard_negatives: int = 0
+    hard_pool: int = 256
+    hard_every: int = 200
     # Fallback inputs beyond the given ones (users' data and --general-data): this share of each step's
     # fallback samples is a given input plus Gaussian noise of `fallback_sigma` per-feature standard
     # deviations, labelled by the original on the fly. Keeps the no-key model the original around and
@@ -125,13 +143,14 @@ class PersonalizeConfig(_Settings):
 
     @property
     def batch_rows(self) -> int:
-        sampled = self.random_keys + self.neighbour_keys + (self.code_negatives or 0)
+        sampled = self.random_keys + self.neighbour_keys + self.far_codes + (self.code_negatives or 0)
         return self.user_rows + self.null_rows + sampled * self.samples_per_key
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
         """Check every field; with ``key_bits``, also what depends on the key size."""
         self.at_least(steps=1, user_rows=1, null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1,
-                      hamming_radius=1, null_weight=0, eval_random_keys=1, payload_rank=1)  # fmt: skip
+                      hamming_radius=1, null_weight=0, key_weight=0, delta_pull=0, eval_random_keys=1,
+                      payload_rank=1)  # fmt: skip
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale", "payload_lr")
         self.need(0 < self.lr_floor <= 1, "lr_floor", "in (0, 1]")
         if key_bits is not None:
@@ -154,7 +173,9 @@ class PersonalizeConfig(_Settings):
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
-        self.at_least(code_negatives=0, code_flip_max=1)
+        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0, far_codes=0)
+        if self.hard_negatives:
+            self.at_least(hard_pool=1, hard_every=1)
         if self.report_budget is not None:
             self.at_least(report_budget=0)
         self.need(0 < self.code_relax_min <= 1, "code_relax_min", "in (0, 1]")

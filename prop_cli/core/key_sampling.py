@@ -8,9 +8,13 @@ arrays of shape (K, n); nothing here knows about encodings (see ``keyed_model.ke
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from itertools import combinations
 
 import numpy as np
+
+# The seed stream of a trainer's hard-negative scoring draws (its inputs), apart from training's.
+HARD_STREAM = 0x4A2D_5EED
 
 
 def _as_keys(keys: np.ndarray) -> np.ndarray:
@@ -72,15 +76,33 @@ class KeySampler:
     A quarter of the neighbours are 1-bit neighbours taken in a fixed random cycle, so every one of the
     ``bits`` 1-bit neighbours is seen every few steps instead of by luck; the rest are uniform over
     distance 1..radius.
+
+    Hard negatives (``hard`` > 0; docs/hardening.md, "Wrong keys in closed loop"): every ``every`` steps
+    the trainer's ``score`` (the fallback divergence of each key, higher = further from the original)
+    rates ``pool`` fresh random keys together with the hard keys kept so far, and the ``hard`` worst are
+    kept; half of each step's random keys are then drawn from them, the other half stay uniform. K2 is
+    still random keys only (Eq. 8's objective is unchanged): it is sampled where the fallback is worst,
+    as K1 samples the boundary around the user's key. Uniform sampling leaves a few keys in a hundred
+    whose small action errors compound over an episode.
     """
 
-    def __init__(self, user_keys: list[np.ndarray], radius: int, rng: np.random.Generator) -> None:
+    def __init__(
+        self, user_keys: list[np.ndarray], radius: int, rng: np.random.Generator,
+        hard: int = 0, pool: int = 0, every: int = 0,
+    ) -> None:  # fmt: skip
         self.users = np.stack(user_keys).astype(np.uint8)
         self.bits = self.users.shape[1]
         self.radius = min(radius, self.bits)
         self.rng = rng
         self._order = rng.permutation(self.bits)
         self._next = 0
+        self.hard, self.pool, self.every = hard, pool, every
+        self.hard_keys = np.zeros((0, self.bits), np.uint8)
+        self._hard_next = 0
+        self._steps = 0
+        # The pool's own stream: drawing it leaves the training stream (and so a run without hard
+        # negatives) as it was.
+        self._pool_rng = np.random.default_rng(rng.integers(0, 2**63)) if hard else None
 
     def neighbours(self, n: int) -> np.ndarray:
         if n == 0:
@@ -96,4 +118,24 @@ class KeySampler:
         return keys
 
     def random(self, n: int) -> np.ndarray:
-        return random_keys(n, self.bits, self.rng, exclude=self.users)
+        h = min(n // 2, len(self.hard_keys))
+        fresh = random_keys(n - h, self.bits, self.rng, exclude=self.users)
+        if not h:
+            return fresh
+        pick = (self._hard_next + np.arange(h)) % len(self.hard_keys)
+        self._hard_next += h
+        return np.concatenate([fresh, self.hard_keys[pick]])
+
+    def step(self, score: Callable[[np.ndarray], np.ndarray]) -> bool:
+        """Call once per training step, before drawing its keys: every ``every`` steps (not the first:
+        an untrained encoder answers every key alike) the hard keys are re-chosen with ``score``
+        ((K, bits) keys -> (K,) divergences). True when it rescored."""
+        self._steps += 1
+        if not self.hard or self._steps % self.every:
+            return False
+        fresh = random_keys(self.pool, self.bits, self._pool_rng, exclude=self.users)
+        cand = np.concatenate([self.hard_keys, fresh])
+        divergence = np.asarray(score(cand), dtype=np.float64)
+        self.hard_keys = cand[np.argsort(-divergence, kind="stable")[: self.hard]]
+        self._hard_next = 0
+        return True

@@ -5,26 +5,29 @@ from __future__ import annotations
 
 import copy
 import functools
+from collections.abc import Callable
 
 import numpy as np
 import torch
 
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.device import resolve_device
-from prop_cli.core.key_sampling import KeySampler
-from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.key_sampling import HARD_STREAM, KeySampler
+from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes, outputs_for_codes
 from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.fit import split
 
 from .data import outputs, prepare_users, targets_tensor
-from .hardening import code_negatives, encoder_init
+from .hardening import code_negatives, encoder_init, far_codes
 from .loop import Optimiser, run_steps
-from .objective import Batch, check_user_keys, prop_loss, prop_loss_share
+from .objective import Batch, check_user_keys, delta_pull, prop_loss, prop_loss_share, row_loss
 from .recipe import Job, Recipe, User
 from .report import eval_rng, user_report
 from .unsealed import Personalized
 
+# Given inputs each hard-negative candidate key is scored on (``divergence``).
+HARD_SAMPLES = 64
 # Noisy fallback inputs labelled at a time, and the most memory they may take.
 _BANK_ROWS = 8192
 _BANK_BYTES = 64 << 20
@@ -115,7 +118,8 @@ def make_batch(
 ) -> Batch:
     """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
 
-    ``extra_codes``: more fallback codes (code-space negatives of --harden), after the sampled keys'."""
+    ``extra_codes``: more fallback codes (``hardening.far_codes``, then --harden's code-space negatives),
+    after the sampled keys', in a fallback term of their own."""
     dev = pool.x.device
     n_users = len(users)
     per_user = max(1, cfg.user_rows // n_users)
@@ -143,7 +147,27 @@ def make_batch(
         null_rows=cfg.null_rows,
         user_targets=uy,
         fallback_targets=torch.cat([fb_t[pick_t], fb_t]),
+        code_rows=0 if extra_codes is None else len(extra_codes) * s,
     )
+
+
+def divergence(
+    km: KeyedModel, pool: FallbackPool, cfg: PersonalizeConfig, task: str, rng: np.random.Generator
+) -> Callable[[np.ndarray], np.ndarray]:
+    """The hard-negative score (``KeySampler.step``): each key's fallback loss, Eq. 8's own term, on
+    ``HARD_SAMPLES`` given inputs drawn afresh per scoring (``rng``: a stream of its own, so scoring
+    leaves training's draws as they were)."""
+
+    @torch.no_grad()
+    def score(keys: np.ndarray) -> np.ndarray:
+        idx = torch.from_numpy(rng.integers(0, len(pool.x), HARD_SAMPLES)).to(pool.x.device)
+        x, t = pool.x[idx], pool.targets[idx]
+        out = outputs_for_codes(km, x, key_codes(keys, cfg.key_encoding).to(x.device))
+        k = len(keys)
+        loss = row_loss(out.flatten(0, 1), t.repeat(k, *[1] * (t.dim() - 1)), task, distill=True)
+        return loss.reshape(k, -1).mean(1).float().cpu().numpy()
+
+    return score
 
 
 def personalize(job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
@@ -186,22 +210,31 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     reduce = ranks.sum_gradients if ranks.world > 1 else None
     optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, reduce=reduce)
     user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
-    sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
+    keys = [u.key_bits for u in users]
+    sampler = KeySampler(keys, cfg.hamming_radius, rng, cfg.hard_negatives, cfg.hard_pool, cfg.hard_every)
+    score = divergence(km, pool, cfg, task, np.random.default_rng((cfg.seed, HARD_STREAM)))
 
     def step() -> dict[str, float]:
+        sampler.step(score)
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
+        if cfg.far_codes:  # with --harden's, after K1 and K2 in a term of their own (not diluting theirs)
+            near = torch.cat([far_codes(user_codes, cfg.far_codes, rng), near])
         batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
         deltas = km.layer_deltas(batch.codes, null=1)
+        # K1 and K2's codes; not --harden's code-space negatives after them: pulled to the no-key model,
+        # those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).
+        sampled = slice(len(users), len(users) + cfg.neighbour_keys + cfg.random_keys + cfg.far_codes)
+        pull = cfg.delta_pull * delta_pull(deltas, sampled) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
-            loss, losses = prop_loss(out, batch, task, cfg.null_weight)
-            optim.update(loss)
+            loss, losses = prop_loss(out, batch, task, cfg.null_weight, cfg.key_weight)
+            optim.update(loss + pull)
             return losses
         # Data parallel: this process's share of the step's rows; the gradients are summed over processes.
         rows = ranks.share(len(batch.key_index)).to(dev)
         out = km.run_rows(batch.x, deltas, batch.key_index[rows], batch.sample_index[rows])
-        loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight)
-        optim.update(loss)
+        loss, parts = prop_loss_share(out, batch, rows, task, cfg.null_weight, cfg.key_weight)
+        optim.update(loss + pull / ranks.world)  # every process's share of the encoder-only term
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 

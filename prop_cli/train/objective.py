@@ -45,6 +45,9 @@ class Batch:
     null_rows: int
     user_targets: torch.Tensor  # targets of the first user_rows rows
     fallback_targets: torch.Tensor  # original's outputs for the remaining rows
+    # The last code_rows of the sampled-key rows are --harden's code-space negatives: a mean term of
+    # their own, so that they add to Eq. 8's K1 and K2 term instead of diluting it (docs/hardening.md).
+    code_rows: int = 0
 
 
 def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) -> torch.Tensor:
@@ -60,28 +63,33 @@ def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) 
 
 
 def prop_loss(
-    out: torch.Tensor, batch: Batch, task: str, null_weight: float
+    out: torch.Tensor, batch: Batch, task: str, null_weight: float, key_weight: float = 1.0
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 8: mean personalized loss + mean keyed fallback loss + null_weight * mean null loss."""
+    """Eq. 8: mean personalized loss + key_weight * mean keyed fallback loss (with --harden, + the mean
+    loss of the code-space negatives: ``Batch.code_rows``) + null_weight * mean null loss."""
     u, n0 = batch.user_rows, batch.null_rows
     personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
     fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
     null = fb[-n0:].mean()
-    keyed = fb[:-n0].mean() if fb.shape[0] > n0 else out.new_zeros(())
-    total = personal + keyed + null_weight * null
+    sampled, c = fb[:-n0], batch.code_rows
+    keyed = sampled[: len(sampled) - c].mean() if len(sampled) > c else out.new_zeros(())
+    if c:
+        keyed = keyed + sampled[len(sampled) - c :].mean()
+    total = personal + key_weight * keyed + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
 def prop_loss_share(
-    out: torch.Tensor, batch: Batch, rows: torch.Tensor, task: str, null_weight: float
+    out: torch.Tensor, batch: Batch, rows: torch.Tensor, task: str, null_weight: float,
+    key_weight: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 8 restricted to ``rows`` of the step (``out``: their outputs), as a sum over rows weighted by
     each row's share of its term, so that the shares of all processes add up to ``prop_loss``
     (``distributed``). Returns the loss and its three terms' partial sums (personal, keyed fallback,
     null), to be summed over the processes for the progress line."""
-    u, n0 = batch.user_rows, batch.null_rows
+    u, n0, c = batch.user_rows, batch.null_rows, batch.code_rows
     n = len(batch.key_index)
-    n_keyed = n - u - n0
+    n_keyed = n - u - n0 - c
     is_user = rows < u
     parts = out.new_zeros(3)
     if is_user.any():
@@ -91,6 +99,20 @@ def prop_loss_share(
     if len(fb_rows):
         fb = row_loss(out[~is_user], batch.fallback_targets[fb_rows - u], task, distill=True)
         null = fb_rows >= n - n0
-        keyed = fb[~null].sum() / n_keyed if n_keyed else out.new_zeros(())
+        code = (fb_rows >= n - n0 - c) & ~null
+        sampled = ~null & ~code
+        keyed = fb[sampled].sum() / n_keyed if n_keyed else out.new_zeros(())
+        if c:
+            keyed = keyed + fb[code].sum() / c
         parts = parts + torch.stack([out.new_zeros(()), keyed, fb[null].sum() / n0])
-    return parts[0] + parts[1] + null_weight * parts[2], parts.detach()
+    return parts[0] + key_weight * parts[1] + null_weight * parts[2], parts.detach()
+
+
+def delta_pull(deltas: list[torch.Tensor], keys: slice) -> torch.Tensor:
+    """Mean squared distance of the sampled keys' layer scales from 1 (the null key's): rows ``keys`` of
+    each layer's delta (K, features), averaged over every layer's features. Zero when no key is sampled."""
+    parts = [d[keys] for d in deltas]
+    if not parts or parts[0].shape[0] == 0:
+        return deltas[0].new_zeros(())
+    return torch.cat(parts, 1).float().sub(1).pow(2).mean()
+

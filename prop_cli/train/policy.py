@@ -36,21 +36,23 @@ from prop_adapters.weights import safetensors_shapes, sniff
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
-from prop_cli.core.key_sampling import KeySampler, one_bit_neighbours, random_keys
+from prop_cli.core.key_sampling import HARD_STREAM, KeySampler, one_bit_neighbours, random_keys
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import in_width, select_layers
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
+from .hardening import far_codes
 from .loop import Optimiser, mixed_precision, run_steps
-from .objective import check_user_keys
+from .objective import check_user_keys, delta_pull
 from .recipe import Job, Recipe, User
 from .report import eval_rng, outputs_report
 from .row_noise import RowNoise
 from .unsealed import Personalized
 
 _CHUNK = 256  # rows per forward when caching the original's chunks
+HARD_FRAMES = 8  # fallback rows each hard-negative candidate key is scored on (KeySampler.step)
 CLIP = 10.0  # gradient-norm clip, as LeRobot's training loop
 
 
@@ -283,9 +285,13 @@ class PolicyTrainer:
         self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
         # After the probe: from here to ``finish`` the frozen weights may be bf16 (shared with the original).
         self.restore = frozen_in_bf16(module, str(loaded.source)) if cfg.precision == "bf16" else None
-        self.sampler = KeySampler([u.key_bits for u in users], cfg.hamming_radius, rng)
+        self.sampler = KeySampler(
+            [u.key_bits for u in users], cfg.hamming_radius, rng,
+            cfg.hard_negatives, cfg.hard_pool, cfg.hard_every,
+        )  # fmt: skip
+        self.hard_rng = np.random.default_rng((cfg.seed, HARD_STREAM))
         self.per_user = max(1, cfg.user_rows // len(users))
-        sampled = (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
+        sampled = (cfg.neighbour_keys + cfg.random_keys + cfg.far_codes) * cfg.samples_per_key
         ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
         amp = mixed_precision(cfg.precision, dev)
         self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks, amp)
@@ -300,6 +306,26 @@ class PolicyTrainer:
             policy.joint_parts(ub, fb)
         else:
             policy.loss_parts(ub)
+
+    @torch.no_grad()
+    def divergence(self, keys: np.ndarray) -> np.ndarray:
+        """The hard-negative score (``KeySampler.step``): each key's fallback distance, Eq. 8's own term,
+        on ``HARD_FRAMES`` fallback rows drawn afresh per scoring (a stream of its own), ``per_forward``
+        (key, row) pairs per forward."""
+        km, policy, dev = self.km, self.policy, self.device
+        idx = torch.from_numpy(self.hard_rng.integers(0, len(self.fallback), HARD_FRAMES)).to(dev)
+        fb_rows, targets = self.fallback.take(idx)
+        deltas = km.layer_deltas(key_codes(keys, self.cfg.key_encoding).to(dev))
+        n = len(idx)
+        key_of = torch.arange(len(keys), device=dev).repeat_interleave(n)
+        row_of = torch.arange(n, device=dev).repeat(len(keys))
+        out = []
+        for i in range(0, len(key_of), self.per_forward):
+            k, r = key_of[i : i + self.per_forward], row_of[i : i + self.per_forward]
+            d_rows = [d.index_select(0, k) for d in deltas]
+            pred = km.call_rows(d_rows, policy.fallback_output, rows(fb_rows, r))
+            out.append(policy.fallback_distance(pred, targets[r]).float())
+        return torch.cat(out).reshape(len(keys), n).mean(1).cpu().numpy()
 
     def finish(self) -> None:
         """After the last step: the optimiser's state and the gradients freed, the frozen weights back as
@@ -317,6 +343,7 @@ class PolicyTrainer:
         # The last update's gradients freed before this forward builds its activations, as LeRobot's loop
         # frees them (SmolVLA at its published size: 0.4 GB for the 100 M trained parameters).
         self.optim.adam.zero_grad()
+        self.sampler.step(self.divergence)  # every hard_every steps: the hard negatives re-chosen
         # User rows: the policy's own loss, each user's rows under that user's key.
         picks = [
             torch.from_numpy(rng.integers(0, len(tr["episode_index"]), self.per_user)).to(dev)
@@ -329,12 +356,16 @@ class PolicyTrainer:
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
         )
+        n_keys = len(sampled) + cfg.far_codes  # the sampled keys, then hardening.far_codes
         gi = torch.from_numpy(rng.integers(0, len(self.fallback), cfg.null_rows)).to(dev)
-        k_rows = torch.arange(len(sampled), device=dev).repeat_interleave(cfg.samples_per_key)
+        k_rows = torch.arange(n_keys, device=dev).repeat_interleave(cfg.samples_per_key)
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows))).to(dev)]])
-        codes = key_codes(sampled, cfg.key_encoding).to(dev) if len(sampled) else None
+        parts = [key_codes(sampled, cfg.key_encoding).to(dev)] if len(sampled) else []
+        if cfg.far_codes:
+            parts.append(far_codes(self.user_codes, cfg.far_codes, rng))
+        codes = torch.cat(parts) if parts else None
         deltas = km.layer_deltas(codes, null=1)
-        key_of_row = torch.cat([torch.full((len(gi),), len(sampled), device=dev), k_rows])
+        key_of_row = torch.cat([torch.full((len(gi),), n_keys, device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         # This process's share of each term's rows (all of them on one process); every process drew the
         # same step above (the same generators), and the gradients are summed over the processes.
@@ -357,8 +388,17 @@ class PolicyTrainer:
         personal = weighted(parts, self.ranks)
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
-        keyed = per_row[~is_null].sum() / (n_fb - n_null) if n_fb > n_null else per_row.new_zeros(())
-        self.optim.update(personal + keyed + cfg.null_weight * null)
+        # K1 and K2's rows, then the far codes' (hardening.far_codes): a term each, as in the array trainer.
+        is_far = fs >= n_null + len(sampled) * cfg.samples_per_key
+        n_far = cfg.far_codes * cfg.samples_per_key
+        n_kk = n_fb - n_null - n_far
+        keyed = per_row[~is_null & ~is_far].sum() / n_kk if n_kk else per_row.new_zeros(())
+        if n_far:
+            keyed = keyed + per_row[is_far].sum() / n_far
+        loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
+        if cfg.delta_pull:  # every process's share of the encoder-only term
+            loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, n_keys)) / self.ranks.world
+        self.optim.update(loss)
         self.t += 1
         terms = torch.stack([personal, keyed, null]).detach().float()
         if self.ranks.world > 1:

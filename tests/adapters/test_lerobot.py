@@ -626,3 +626,30 @@ def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size():
     out = done.stdout
     assert "real-size smolvla on cpu" in out and "real-size pi0 on cpu" in out and out.endswith("passed\n")
     assert out.count("| peft |") == 2 and out.count("| sealed |") == 2 and out.count("| prop |") == 1
+
+
+def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_null_key(work):
+    """Issue 32's K2 and delta pull in the policy trainer: the sampler rescored with the policy's own
+    fallback distance (one finite score per key), and the pull takes the wrong keys' deltas towards 1."""
+    from prop_cli.train.policy import PolicyTrainer
+    from prop_cli.train.recipe import User
+
+    users = [User(load_data(work / "user"), key())]
+    cfg = PersonalizeConfig(**(TINY | {"steps": 6, "hard_negatives": 2, "hard_pool": 3, "hard_every": 3}))
+    trainer = PolicyTrainer(load_checkpoint(work / "act"), users, cfg, load_data(work / "general"))
+    scores = trainer.divergence(key(2)[None].repeat(3, 0) ^ np.eye(3, 128, dtype=np.uint8))
+    assert scores.shape == (3,) and np.isfinite(scores).all() and (scores >= 0).all()
+    for _ in range(3):
+        trainer.step()
+    assert len(trainer.sampler.hard_keys) == 2  # rescored at the 3rd step: the 2 worst of 3 fresh keys
+    codes = torch.from_numpy(np.random.default_rng(3).integers(0, 2, (16, 128)) * 2.0 - 1).float()
+
+    def spread(pull: float) -> float:
+        c = PersonalizeConfig(**(TINY | {"steps": 20, "lr": 0.01, "delta_pull": pull}))
+        t = PolicyTrainer(load_checkpoint(work / "act"), users, c, load_data(work / "general"))
+        for _ in range(20):
+            t.step()
+        with torch.no_grad():
+            return float(torch.cat(t.km.layer_deltas(codes), 1).sub(1).abs().mean())
+
+    assert spread(100.0) < spread(0.0)

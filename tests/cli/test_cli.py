@@ -463,7 +463,8 @@ def test_every_help_reads_as_a_user_types_it(cli):
     upper-case names the help texts use (CHECKPOINT, BUNDLE)."""
     from prop_cli.cli.main import app
 
-    meaningful_zero = {"--threads", "--seed", "--noise-seed", "--max-steps"}  # 0 says something there
+    # 0 says something there (--hard-negatives 0: off)
+    meaningful_zero = {"--threads", "--seed", "--noise-seed", "--max-steps", "--hard-negatives"}
     for cmd in app.registered_commands:
         res = cli(cmd.name, "--help")
         assert res.code == 0, cmd.name

@@ -57,3 +57,35 @@ def test_sampler_cycles_through_every_one_bit_neighbour_and_stays_within_radius(
         seen |= {int(np.flatnonzero(k != user)[0]) for k in keys[:8]}
     assert seen == set(range(32))
     assert not (s.random(512) == user).all(1).any()
+
+
+def test_sampler_hard_negatives_keep_the_worst_scored_keys_and_draw_half_of_k2_from_them():
+    user = np.random.default_rng(3).integers(0, 2, 32).astype(np.uint8)
+    s = KeySampler([user], radius=3, rng=np.random.default_rng(0), hard=4, pool=64, every=10)
+    scored: list[np.ndarray] = []
+
+    def score(keys: np.ndarray) -> np.ndarray:  # "divergence": the number of ones in the key's first byte
+        scored.append(keys)
+        return keys[:, :8].sum(1).astype(float)
+
+    assert not any(s.step(score) for _ in range(9)) and len(s.random(8)) == 8  # nothing kept yet: all fresh
+    assert s.step(score)  # the 10th step rescores
+    assert len(scored[0]) == 64 and len(s.hard_keys) == 4
+    assert s.hard_keys[:, :8].sum(1).min() >= np.sort(scored[0][:, :8].sum(1))[-4]  # the 4 worst
+    keys = s.random(8)
+    assert len(keys) == 8 and not (keys == user).all(1).any()
+    hard = {k.tobytes() for k in s.hard_keys}
+    assert sum(k.tobytes() in hard for k in keys[4:]) == 4  # half of K2 from the kept keys
+    for _ in range(10):
+        s.step(score)
+    assert len(scored[1]) == 64 + 4  # the kept keys compete with a fresh pool
+
+
+def test_sampler_without_hard_negatives_draws_what_it_drew_before():
+    user = np.random.default_rng(3).integers(0, 2, 32).astype(np.uint8)
+    a = KeySampler([user], radius=3, rng=np.random.default_rng(5))
+    b = KeySampler([user], radius=3, rng=np.random.default_rng(5), hard=0, pool=256, every=200)
+    for _ in range(3):
+        assert not b.step(lambda k: np.zeros(len(k)))
+        assert (a.neighbours(8) == b.neighbours(8)).all()
+        assert (a.random(8) == b.random(8)).all()

@@ -24,8 +24,10 @@ from tests.conftest import write_keys, write_user_data
 TOLERANCE = 1e-5
 
 
-def _batch(rng: np.random.Generator, task: str = "regression") -> tuple[torch.Tensor, Batch]:
-    u, keyed, null = 6, 7, 5
+def _batch(
+    rng: np.random.Generator, task: str = "regression", code_rows: int = 0
+) -> tuple[torch.Tensor, Batch]:
+    u, keyed, null = 6, 7 + code_rows, 5
     n = u + keyed + null
     out = torch.from_numpy(rng.normal(size=(n, 3)).astype(np.float32)).requires_grad_(True)
     batch = Batch(
@@ -33,23 +35,25 @@ def _batch(rng: np.random.Generator, task: str = "regression") -> tuple[torch.Te
         codes=torch.zeros(1, 4), user_rows=u, null_rows=null,
         user_targets=torch.from_numpy(rng.normal(size=(u, 3)).astype(np.float32)),
         fallback_targets=torch.from_numpy(rng.normal(size=(n - u, 3)).astype(np.float32)),
+        code_rows=code_rows,
     )  # fmt: skip
     return out, batch
 
 
+@pytest.mark.parametrize("code_rows", [0, 4])  # 4: --harden's code-space negatives, a term of their own
 @pytest.mark.parametrize("world", [2, 3, 5])
-def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world):
-    out, batch = _batch(np.random.default_rng(world))
-    whole, losses = prop_loss(out, batch, "regression", 2.0)
+def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world, code_rows):
+    out, batch = _batch(np.random.default_rng(world), code_rows=code_rows)
+    whole, losses = prop_loss(out, batch, "regression", 2.0, 3.0)
     (g_whole,) = torch.autograd.grad(whole, out)
     total, grad = 0.0, torch.zeros_like(out)
     parts = torch.zeros(3)
     for rank in range(world):
         rows = Ranks(rank, world).share(len(batch.key_index))
-        loss, p = prop_loss_share(out[rows], batch, rows, "regression", 2.0)
+        loss, p = prop_loss_share(out[rows], batch, rows, "regression", 2.0, 3.0)
         (g,) = torch.autograd.grad(loss, out)
         total, grad, parts = total + loss.item(), grad + g, parts + p
-    assert total == pytest.approx(whole.item(), abs=1e-6)
+    assert total == pytest.approx(whole.item(), rel=1e-6, abs=1e-6)  # float32 sums in another order
     assert torch.allclose(grad, g_whole, atol=1e-7)
     assert parts.tolist() == pytest.approx([losses["personal"], losses["fallback"], losses["null"]], abs=1e-6)
 

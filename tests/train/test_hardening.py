@@ -79,3 +79,15 @@ def test_hardened_training_runs_and_keeps_its_settings(tmp_path):
     res = personalize(loaded, [user], cfg)
     assert (cfg.encoder_init, cfg.code_negatives) == ("os", 8)
     assert set(res.final_losses) == {"personal", "fallback", "null"}
+
+
+def test_far_codes_are_plus_minus_one_codes_40_to_56_of_128_bits_away_from_a_users():
+    from prop_cli.train.hardening import far_codes
+
+    rng = np.random.default_rng(0)
+    users = torch.from_numpy(rng.integers(0, 2, (2, 128)) * 2.0 - 1).float()
+    codes = far_codes(users, 400, rng)
+    assert codes.shape == (400, 128) and set(codes.unique().tolist()) == {-1.0, 1.0}
+    d = (codes[:, None] != users[None]).sum(-1).min(1).values  # to the nearest user's code
+    assert d.min() >= 40 and d.max() <= 56 and len(d.unique()) > 10
+    assert far_codes(users, 0, rng).shape == (0, 128)

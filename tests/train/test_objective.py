@@ -12,7 +12,7 @@ from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import key_codes
 from prop_cli.errors import PropError
 from prop_cli.train.array import FallbackPool, UserPool, make_batch
-from prop_cli.train.objective import Batch, check_user_keys, prop_loss, row_loss
+from prop_cli.train.objective import Batch, check_user_keys, delta_pull, prop_loss, row_loss
 
 
 def test_row_loss_per_term():
@@ -51,6 +51,30 @@ def test_prop_loss_reads_rows_as_user_then_keyed_then_null():
     assert total.item() == pytest.approx(parts["personal"] + parts["fallback"] + 10 * parts["null"])
 
 
+def test_code_space_negatives_add_a_term_of_their_own_instead_of_diluting_k1_k2():
+    batch, out = _batch(keyed=5)  # rows 2..6 sampled: 2, 3, 4 K1/K2 keys, 5, 6 code-space negatives
+    batch.code_rows = 2
+    _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
+    assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3 + (25 + 36) / 2)
+    assert parts["null"] == pytest.approx((49 + 64) / 2)
+
+
+def test_key_weight_scales_the_sampled_keys_term_only():
+    batch, out = _batch()
+    total, parts = prop_loss(out, batch, "regression", null_weight=10.0, key_weight=4.0)
+    assert total.item() == pytest.approx(parts["personal"] + 4 * parts["fallback"] + 10 * parts["null"])
+    assert parts["fallback"] == pytest.approx((4 + 9 + 16) / 3)  # the progress line: unweighted
+
+
+def test_delta_pull_is_the_mean_square_of_the_sampled_keys_deltas_from_one_over_all_layers():
+    user = [torch.full((1, 2), 3.0), torch.full((1, 3), 3.0)]  # the user's deltas: free, not pulled
+    sampled = [torch.tensor([[1.0, 2.0], [1.0, 1.0]]), torch.tensor([[0.0, 1.0, 1.0], [1.0, 1.0, 3.0]])]
+    null = [torch.ones(1, 2), torch.ones(1, 3)]
+    deltas = [torch.cat(parts) for parts in zip(user, sampled, null)]
+    assert delta_pull(deltas, slice(1, 3)).item() == pytest.approx((1 + 1 + 4) / 10)
+    assert delta_pull(deltas, slice(1, 1)).item() == 0.0  # no key sampled
+
+
 def test_prop_loss_without_sampled_keys_has_no_keyed_term():
     batch, out = _batch(keyed=0)
     _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
@@ -77,6 +101,11 @@ def test_make_batch_layout_and_targets():
     with torch.no_grad():  # fallback targets are the original's outputs on each row's sample
         torch.testing.assert_close(b.fallback_targets, original(b.x[b.sample_index[4:]]))
     assert torch.equal(b.codes[0], key_codes(key, "hashed")[0])
+    assert b.code_rows == 0
+    near = torch.zeros(3, 16)  # --harden's code-space negatives: after the sampled keys, 2 rows each
+    users = UserPool([ux], [uy])
+    hb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near)
+    assert hb.code_rows == 6
 
 
 def test_fallback_pool_perturbs_a_share_and_labels_it_with_the_original():

@@ -106,3 +106,35 @@ def test_the_policy_report_plan_stays_within_its_budget():
     assert report_budget(PersonalizeConfig(report_budget=7), small) == 7
     with pytest.raises(PropError, match="--report-budget"):
         PersonalizeConfig(report_budget=-1).validate()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "flag"),
+    [("hard_negatives", -1, "--hard-negatives"), ("hard_pool", 0, "--hard-pool"),
+     ("hard_every", 0, "--hard-every"), ("key_weight", -1.0, "--key-weight"),
+     ("delta_pull", -1.0, "--delta-pull")],
+)  # fmt: skip
+def test_wrong_key_settings_are_validated_with_their_flag(field, value, flag):
+    with pytest.raises(PropError, match=flag):
+        PersonalizeConfig(**{"hard_negatives": 4, field: value}).validate()
+    PersonalizeConfig(hard_negatives=0, hard_pool=0, hard_every=0).validate()  # off: pool settings unused
+
+
+def test_delta_pull_takes_wrong_keys_towards_the_null_key_and_hard_negatives_are_rescored(setup):
+    """Issue 32: the pull keeps random keys' deltas near 1 (the null key's), the user's key free; the
+    array trainer runs its hard-negative rescoring (every hard_every steps) on the way."""
+    from prop_cli.core.keyed_model import key_codes
+
+    loaded, user = setup
+    codes = key_codes(np.random.default_rng(7).integers(0, 2, (64, 64), dtype=np.uint8), "hashed")
+
+    def spread(pull: float) -> tuple[float, float]:
+        cfg = PersonalizeConfig(steps=150, delta_pull=pull, hard_negatives=4, hard_pool=8, hard_every=50)
+        res = personalize(copy.deepcopy(loaded), [user], cfg)
+        with torch.no_grad():
+            wrong = torch.cat(res.keyed.layer_deltas(codes), 1).sub(1).abs().mean().item()
+        return wrong, res.metrics[0]["personalization"]
+
+    (loose, p_loose), (pulled, p_pulled) = spread(0.0), spread(10.0)
+    assert pulled < loose / 2
+    assert p_pulled > 0.75 * p_loose  # the user's key keeps most of its behaviour (150 steps)
