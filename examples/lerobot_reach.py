@@ -119,6 +119,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="keep the bundle (or with 'sealed' the sealed one) of an earlier run; audit it")
     ap.add_argument("--no-attack", action="store_true", help="skip the audits (run them with --attack-only)")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
+    ap.add_argument("--no-sealed", action="store_true", help="skip step 6 (the sealed bundle)")
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
@@ -167,7 +168,8 @@ def main(argv: list[str] | None = None) -> None:
           f"eval {figures['eval_s']} s")  # fmt: skip
     if not args.no_attack:
         attack(out, "bundle", kind)
-    sealed(out, args.episodes, kind, audit=not args.no_attack)
+    if not args.no_sealed:
+        sealed(out, args.episodes, kind, audit=not args.no_attack)
 
 
 def smolvla(out: Path) -> tuple:
