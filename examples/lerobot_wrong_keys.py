@@ -54,9 +54,12 @@ def key_conditions(key: np.ndarray, n_random: int, n_neighbours: int, max_flip: 
     (named by distance and flipped positions only)."""
     from prop_cli.core.key_sampling import flip_random_bits, random_keys
 
-    rng = np.random.default_rng((seed, 32))
+    # One stream per group: the first n keys of a larger draw are the keys of a smaller one (a cheaper run
+    # measures a subset of a full run's keys).
+    rng = np.random.default_rng((seed, 32, 0))
     out = [{"group": "random", "bits": b, "id": {"bits": "".join(map(str, b))}}
            for b in random_keys(n_random, len(key), rng, exclude=key)]  # fmt: skip
+    rng = np.random.default_rng((seed, 32, 1))
     distances = np.array([1 + i % max_flip for i in range(n_neighbours)])
     for d, b in zip(distances, flip_random_bits(np.repeat(key[None], n_neighbours, 0), distances, rng)):
         out.append({"group": "neighbour", "bits": b,
@@ -215,10 +218,14 @@ def measure(args: argparse.Namespace) -> dict:
 def gate(rows: list[dict]) -> dict:
     """Issue 32's gate on success (each wrong key >= EVERY x the original's, their pooled mean >= POOLED x),
     each row's ratio, the worst wrong key and the pooled means of random keys and of neighbours."""
-    base = next(r for r in rows if r["group"] == "original")["success"]["mean"]
+    first = next(r for r in rows if r["group"] == "original")
+    base, ref = first["success"]["mean"], np.array(first["per_episode_success"])
     wrong = [r for r in rows if r["group"] in ("random", "neighbour")]
     for r in rows:
         r["ratio"] = r["success"]["mean"] / base if base else None
+        # paired on the same starting states: episodes the original reached and this key did not, and back
+        mine = np.array(r["per_episode_success"])
+        r["lost"], r["gained"] = int(((ref == 1) & (mine == 0)).sum()), int(((ref == 0) & (mine == 1)).sum())
     pooled = {g: float(np.mean([r["success"]["mean"] for r in wrong if r["group"] == g] or [np.nan]))
               for g in ("random", "neighbour")}  # fmt: skip
     all_wrong = float(np.mean([r["success"]["mean"] for r in wrong])) if wrong else float("nan")
@@ -231,7 +238,25 @@ def gate(rows: list[dict]) -> dict:
                                               "ratio": worst["ratio"], "key": worst.get("key")},
         "failing": failing,
         "passes": bool(wrong) and not failing and all_wrong >= POOLED * base,
+        "predicts": predictors(wrong),
     }  # fmt: skip
+
+
+def predictors(wrong: list[dict]) -> dict:
+    """Whether a wrong key's offline figures rank it as closed loop does: Spearman's rho of each figure
+    with the key's episodes lost against the original, over the wrong keys (None where either is
+    constant)."""
+    from scipy.stats import spearmanr
+
+    lost = [r["lost"] for r in wrong]
+    out = {}
+    for k in ("fidelity_user", "fidelity_general", "leakage_user", "delta_rms", "delta_cos_user"):
+        vals = [r.get(k) for r in wrong]
+        if len(wrong) > 2 and None not in vals and len(set(lost)) > 1 and len(set(vals)) > 1:
+            out[k] = float(spearmanr(vals, lost).statistic)
+        else:
+            out[k] = None
+    return out
 
 
 def _x(ratio: float | None) -> str:
@@ -241,12 +266,14 @@ def _x(ratio: float | None) -> str:
 def table(report: dict) -> str:
     rows = report["rows"]
     offline = "fidelity_user" in rows[-1]
-    head = ["key", "success", "ratio", "preference", "return", "code dist", "delta rms", "cos user"]
+    head = ["key", "success", "ratio", "lost / gained", "preference", "return", "code dist", "delta rms",
+            "cos user"]  # fmt: skip
     if offline:
         head += ["fid user", "fid general", "leak user"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for r in rows:
-        cells = [r["name"], f"{r['success']['mean']:.2f}", "" if r["ratio"] is None else f"{r['ratio']:.2f}",
+        ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
+        cells = [r["name"], f"{r['success']['mean']:.2f}", ratio, f"{r['lost']} / {r['gained']}",
                  f"{r['preference']['mean']:.2f}", f"{r['return']['mean']:.1f}"]  # fmt: skip
         cells += [f"{r[k]:.3f}" if k in r else "" for k in ("code_distance", "delta_rms", "delta_cos_user")]
         if offline:
@@ -260,6 +287,10 @@ def table(report: dict) -> str:
         f"({_x(w['ratio'])}); failing (< {EVERY}x): {', '.join(report['failing']) or 'none'}; gate "
         f"(each >= {EVERY}x, pooled >= {POOLED}x): {'PASS' if report['passes'] else 'FAIL'}"
     )
+    rho = {k: v for k, v in report["predicts"].items() if v is not None}
+    if rho:
+        lines.append("Spearman rho with episodes lost, over the wrong keys: "
+                     + ", ".join(f"{k} {v:+.2f}" for k, v in rho.items()))  # fmt: skip
     return "\n".join(lines)
 
 
@@ -278,7 +309,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--offline-frames", type=int, default=128,
                     help="frames of the user's and the general data for each key's offline figures (0: none)")
     ap.add_argument("--json", type=Path, default=None, help="default --out/wrong-keys-BUNDLE.json")
+    ap.add_argument("--from-json", type=Path, default=None,
+                    help="roll out nothing: gate and print the table of this earlier report")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.from_json is not None:
+        report = json.loads(args.from_json.read_text())
+        report |= gate(report["rows"])
+        print(table(report))
+        return report
     if min(args.episodes, args.max_flip) < 1 or min(args.random_keys, args.neighbours) < 0:
         ap.error("--episodes and --max-flip must be >= 1, --random-keys and --neighbours >= 0")
     trained = None

@@ -46,10 +46,22 @@ def test_wrong_keys_are_drawn_at_the_distances_asked_and_never_the_users_key():
     assert all((c["bits"] != key).any() for c in conds)
     assert all(c["id"]["flipped"] == np.flatnonzero(c["bits"] != key).tolist() for c in conds[3:])
     assert "bits" not in conds[3]["id"]  # a neighbour's bits with its flips would give the key away
+    fewer = wk.key_conditions(key, 2, 3, 2, seed=0)  # a smaller run measures the first keys of a larger one
+    assert all((a["bits"] == b["bits"]).all() for a, b in zip(fewer, conds[:2] + conds[3:6]))
 
 
-def _row(name: str, group: str, success: float) -> dict:
-    return {"name": name, "group": group, "success": {"mean": success}}
+def _row(name: str, group: str, success: float, episodes: list[int] | None = None, **figures) -> dict:
+    return {"name": name, "group": group, "success": {"mean": success},
+            "per_episode_success": episodes or [round(success)]} | figures  # fmt: skip
+
+
+def test_gate_counts_paired_losses_and_ranks_offline_figures_against_them():
+    rows = [_row("original", "original", 1.0, [1, 1, 1, 1])]
+    rows += [_row(f"r{i}", "random", 1 - i / 4, [1] * (4 - i) + [0] * i, fidelity_user=0.01 * i)
+             for i in range(3)]  # fmt: skip
+    g = wk.gate(rows)
+    assert [r["lost"] for r in rows] == [0, 0, 1, 2] and g["failing"] == ["r1", "r2"]
+    assert g["predicts"]["fidelity_user"] == pytest.approx(1.0) and g["predicts"]["delta_rms"] is None
 
 
 def test_gate_fails_on_one_bad_key_and_on_the_pooled_mean():
@@ -80,6 +92,11 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     saved = json.loads((d / "wrong-keys-bundle.json").read_text())
     assert saved["passes"] == report["passes"] and len(saved["rows"]) == 7
     assert "gate (each >= 0.9x, pooled >= 0.95x)" in capsys.readouterr().out
+    # paired on the seeds: a row's episodes lost and gained against the original add up to its difference
+    for r in rows:
+        assert r["gained"] - r["lost"] == round(2 * (r["success"]["mean"] - rows[0]["success"]["mean"]))
+    again = wk.main(["--out", str(d), "--from-json", str(d / "wrong-keys-bundle.json")])
+    assert again["failing"] == report["failing"] and again["pooled"] == report["pooled"]
 
 
 def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
