@@ -25,7 +25,8 @@
 
 --reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
 --attack-only keeps the bundle too and redoes step 5 (--attack-only sealed: step 6's audit); --sealed-only
-keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only);
+keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only),
+--no-sealed step 6;
 --datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
 
 SmolVLA, pi0 and pi0.5 read the camera, the state with the goal and the instruction. pi0 and pi0.5 are
