@@ -25,7 +25,8 @@
 
 --reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
 --attack-only keeps the bundle too and redoes step 5 (--attack-only sealed: step 6's audit); --sealed-only
-keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only);
+keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only),
+--no-sealed step 6;
 --datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
 
 SmolVLA, pi0 and pi0.5 read the camera, the state with the goal and the instruction. pi0 and pi0.5 are
@@ -119,6 +120,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="keep the bundle (or with 'sealed' the sealed one) of an earlier run; audit it")
     ap.add_argument("--no-attack", action="store_true", help="skip the audits (run them with --attack-only)")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
+    ap.add_argument("--no-sealed", action="store_true", help="skip step 6 (the sealed bundle)")
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
@@ -167,7 +169,8 @@ def main(argv: list[str] | None = None) -> None:
           f"eval {figures['eval_s']} s")  # fmt: skip
     if not args.no_attack:
         attack(out, "bundle", kind)
-    sealed(out, args.episodes, kind, audit=not args.no_attack)
+    if not args.no_sealed:
+        sealed(out, args.episodes, kind, audit=not args.no_attack)
 
 
 def smolvla(out: Path) -> tuple:

@@ -1,0 +1,107 @@
+"""examples/lerobot_wrong_keys.py (issue 32's closed-loop wrong-key harness) on a tiny ACT run."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("lerobot")
+pytestmark = pytest.mark.lerobot
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from examples import lerobot_reach_task as task  # noqa: E402
+from examples import lerobot_wrong_keys as wk  # noqa: E402
+from prop_cli import api  # noqa: E402
+from prop_cli.config import PersonalizeConfig  # noqa: E402
+from prop_cli.core.key_files import KeySource, generate_key_file, read_key_file  # noqa: E402
+
+TINY = dict(steps=5, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
+            eval_random_keys=4, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A tiny examples.lerobot_reach run folder: datasets, the original ACT, user.key, the bundle."""
+    d = tmp_path_factory.mktemp("wrong-keys")
+    task.record(d / "reach-general", 3, 0, np.zeros(3, np.float32))
+    task.record(d / "reach-user", 2, 50_000, task.USER_OFFSET)
+    task.train_base(d / "reach-general", d / "act", steps=5)
+    generate_key_file(d / "user.key")
+    key = read_key_file(d / "user.key", 128)
+    api.personalize_checkpoint(str(d / "act"), [(d / "reach-user", KeySource(key, "file"))], d / "bundle",
+                               PersonalizeConfig(**TINY), general=d / "reach-general")  # fmt: skip
+    return d, key
+
+
+def test_wrong_keys_are_drawn_at_the_distances_asked_and_never_the_users_key():
+    key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
+    conds = wk.key_conditions(key, 3, 5, 2, seed=0)
+    assert [c["group"] for c in conds] == ["random"] * 3 + ["neighbour"] * 5
+    assert [int((c["bits"] != key).sum()) for c in conds[3:]] == [1, 2, 1, 2, 1]
+    assert [c["id"]["distance"] for c in conds[3:]] == [1, 2, 1, 2, 1]
+    assert all((c["bits"] != key).any() for c in conds)
+    assert all(c["id"]["flipped"] == np.flatnonzero(c["bits"] != key).tolist() for c in conds[3:])
+    assert "bits" not in conds[3]["id"]  # a neighbour's bits with its flips would give the key away
+    fewer = wk.key_conditions(key, 2, 3, 2, seed=0)  # a smaller run measures the first keys of a larger one
+    assert all((a["bits"] == b["bits"]).all() for a, b in zip(fewer, conds[:2] + conds[3:6]))
+
+
+def _row(name: str, group: str, success: float, episodes: list[int] | None = None, **figures) -> dict:
+    return {"name": name, "group": group, "success": {"mean": success},
+            "per_episode_success": episodes or [round(success)]} | figures  # fmt: skip
+
+
+def test_gate_counts_paired_losses_and_ranks_offline_figures_against_them():
+    rows = [_row("original", "original", 1.0, [1, 1, 1, 1])]
+    rows += [_row(f"r{i}", "random", 1 - i / 4, [1] * (4 - i) + [0] * i, fidelity_user=0.01 * i)
+             for i in range(3)]  # fmt: skip
+    g = wk.gate(rows)
+    assert [r["lost"] for r in rows] == [0, 0, 1, 2] and g["failing"] == ["r1", "r2"]
+    assert g["predicts"]["fidelity_user"] == pytest.approx(1.0) and g["predicts"]["delta_rms"] is None
+
+
+def test_gate_fails_on_one_bad_key_and_on_the_pooled_mean():
+    ok = [_row("original", "original", 1.0), _row("r1", "random", 0.9), _row("n1", "neighbour", 1.0)]
+    assert wk.gate(ok)["passes"] and wk.gate(ok)["failing"] == []
+    one_bad = [*ok, _row("r2", "random", 0.85)]
+    g = wk.gate(one_bad)
+    assert not g["passes"] and g["failing"] == ["r2"] and g["worst"]["name"] == "r2"
+    assert g["worst"]["ratio"] == pytest.approx(0.85)
+    # every key >= 0.9x but the pooled mean 0.9 < 0.95x
+    pooled = [_row("original", "original", 1.0), _row("r1", "random", 0.9), _row("n1", "neighbour", 0.9)]
+    assert not wk.gate(pooled)["passes"] and wk.gate(pooled)["failing"] == []
+
+
+def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, capsys):
+    d, _ = run
+    report = wk.main(["--out", str(d), "--episodes", "2", "--random-keys", "2", "--neighbours", "2",
+                      "--max-flip", "8", "--offline-frames", "8"])  # fmt: skip
+    rows = report["rows"]
+    assert [r["group"] for r in rows] == ["original", "no_key", "user_key", "random", "random",
+                                          "neighbour", "neighbour"]  # fmt: skip
+    assert all(r["episodes"] == 2 for r in rows)
+    # the offline figures are taken against the original itself
+    assert rows[0]["fidelity_user"] == rows[0]["fidelity_general"] == rows[0]["leakage_user"] == 0.0
+    assert rows[2]["code_distance"] == 0.0 and rows[2]["delta_cos_user"] == pytest.approx(1.0, abs=1e-5)
+    assert all(0.0 < r["code_distance"] < 1.0 for r in rows[3:])
+    assert all(r["fidelity_general"] >= 0 and "leakage_user" in r for r in rows[2:])
+    saved = json.loads((d / "wrong-keys-bundle.json").read_text())
+    assert saved["passes"] == report["passes"] and len(saved["rows"]) == 7
+    assert "gate (each >= 0.9x, pooled >= 0.95x)" in capsys.readouterr().out
+    # paired on the seeds: a row's episodes lost and gained against the original add up to its difference
+    for r in rows:
+        assert r["gained"] - r["lost"] == round(2 * (r["success"]["mean"] - rows[0]["success"]["mean"]))
+    again = wk.main(["--out", str(d), "--from-json", str(d / "wrong-keys-bundle.json")])
+    assert again["failing"] == report["failing"] and again["pooled"] == report["pooled"]
+
+
+def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
+    d, key = run
+    api.personalize_checkpoint(str(d / "act"), [(d / "reach-user", KeySource(key, "file"))], d / "sealed",
+                               PersonalizeConfig(**TINY, seal=True))  # fmt: skip
+    with pytest.raises(SystemExit, match="is sealed"):
+        wk.main(["--out", str(d), "--bundle", "sealed", "--episodes", "1", "--offline-frames", "0"])
