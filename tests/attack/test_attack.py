@@ -42,7 +42,8 @@ QUICK = [
 
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory) -> Path:
-    """A leaky bundle (raw key bits, no neighbour negatives) and a well-trained one, same user."""
+    """A leaky bundle (raw key bits, no neighbour negatives, none of issue 32's pull or far codes) and a
+    well-trained one, same user."""
     d = tmp_path_factory.mktemp("attack")
     rng = np.random.default_rng(0)
     write_user_data(d, 200, rng)
@@ -50,7 +51,7 @@ def bundles(tmp_path_factory) -> Path:
     write_keys(d, ("k.bin", "k2.bin"), rng)
     key = KeySource(read_key_file(d / "k.bin"), "file")
     ckpt = str(d / "model.safetensors")
-    leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0)
+    leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0, delta_pull=0, far_codes=0)
     personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "leaky.prop", leaky)
     personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "good.prop", PersonalizeConfig(steps=300))
     return d
