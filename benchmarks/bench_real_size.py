@@ -432,7 +432,7 @@ def prop_worker(argv: list[str]) -> None:
 def gc_worker(args: argparse.Namespace) -> None:
     """pi0's gradient checkpointing on a sealed payload step, in one process: the policy loaded as prop
     loads it, a rank-``args.rank`` payload on prop's default layers, ``args.batch`` rows of LeRobot's
-    own loss forward and backward with LeRobot's checkpointing off, on, off; for each, the largest
+    own loss forward and backward with LeRobot's checkpointing off, then on; for each, the largest
     resident memory above the step's start (sampled every 20 ms) and its time."""
     from dataclasses import replace
 
@@ -461,7 +461,7 @@ def gc_worker(args: argparse.Namespace) -> None:
 
     out = []
     with payload.attached(module):
-        for on in (False, True, False):
+        for on in (False, True):
             m = policy.model  # PI0Pytorch: LeRobot's switch (its config's gradient_checkpointing)
             (m.gradient_checkpointing_enable if on else m.gradient_checkpointing_disable)()
             base, top, stop = rss(), [0.0], threading.Event()
