@@ -1,8 +1,13 @@
-"""SmolVLA at its published size: `prop personalize` (unsealed and --seal) beside LeRobot's own training of
-the same policy on the same data, each in its own process under ``/usr/bin/time -v``.
+"""SmolVLA and pi0 at their published sizes: `prop personalize` (unsealed and --seal) beside LeRobot's own
+training of the same policy on the same data, each in its own process under ``/usr/bin/time -v``.
 
     bash scripts/setup-lerobot.sh
-    .venv-lerobot/bin/python -m benchmarks.bench_real_size [--steps 3] [--image 512] [--runs ...]
+    .venv-lerobot/bin/python -m benchmarks.bench_real_size [--policy smolvla|pi0] [--steps 3] [--runs ...]
+
+``--policy pi0``: ``build_pi0`` (LeRobot's PI0Config defaults, held bf16 as lerobot/pi0_base; runs
+``peft`` and ``sealed`` by default, its unsealed run does not fit 24 GiB: docs/speed.md), and ``--runs
+gc`` measures its gradient checkpointing on one sealed payload step (``gc_worker``). ``--device cuda``
+runs every run on the GPU (scripts/gpu_smoke_lerobot.py does).
 
 What is built here (nothing is downloaded):
 - **The VLM**: SmolVLM2-500M-Video-Instruct's text and vision configs, written out below as the
