@@ -1,8 +1,13 @@
-"""SmolVLA at its published size: `prop personalize` (unsealed and --seal) beside LeRobot's own training of
-the same policy on the same data, each in its own process under ``/usr/bin/time -v``.
+"""SmolVLA and pi0 at their published sizes: `prop personalize` (unsealed and --seal) beside LeRobot's own
+training of the same policy on the same data, each in its own process under ``/usr/bin/time -v``.
 
     bash scripts/setup-lerobot.sh
-    .venv-lerobot/bin/python -m benchmarks.bench_real_size [--steps 3] [--image 512] [--runs ...]
+    .venv-lerobot/bin/python -m benchmarks.bench_real_size [--policy smolvla|pi0] [--steps 3] [--runs ...]
+
+``--policy pi0``: ``build_pi0`` (LeRobot's PI0Config defaults, held bf16 as lerobot/pi0_base; runs
+``peft`` and ``sealed`` by default, its unsealed run does not fit 24 GiB: docs/speed.md), and ``--runs
+gc`` measures its gradient checkpointing on one sealed payload step (``gc_worker``). ``--device cuda``
+runs every run on the GPU (scripts/gpu_smoke_lerobot.py does).
 
 What is built here (nothing is downloaded):
 - **The VLM**: SmolVLM2-500M-Video-Instruct's text and vision configs, written out below as the
@@ -70,7 +75,7 @@ SMOLVLM2_500M = dict(
 STATE, CAMERA, ACTION = "observation.state", "observation.images.front", "action"
 DIMS = 6  # state and action values
 TASK_TEXT = "pick up the red block"
-RUNS = ("lerobot", "prop", "peft", "sealed")
+RUNS = ("lerobot", "prop", "peft", "sealed", "gc")
 POLICIES = ("smolvla", "pi0")
 TINY_ENV = "BENCH_REAL_SIZE_TINY"  # set: the tiny SmolVLA / pi0 instead (tests; pi0 under pi_tiny.tiny())
 PHASES = ("setup", "precompute", "steps", "targets", "report")
@@ -429,6 +434,65 @@ def prop_worker(argv: list[str]) -> None:
             raise
 
 
+def gc_worker(args: argparse.Namespace) -> None:
+    """pi0's gradient checkpointing on a sealed payload step, in one process: the policy loaded as prop
+    loads it, a rank-``args.rank`` payload on prop's default layers, ``args.batch`` rows of LeRobot's
+    own loss forward and backward with LeRobot's checkpointing off, then on; for each, the largest
+    resident memory above the step's start (sampled every 20 ms) and its time."""
+    from dataclasses import replace
+
+    import torch
+
+    from prop_adapters import load_checkpoint
+    from prop_cli.config import PersonalizeConfig
+    from prop_cli.core.payload import Payload
+    from prop_cli.datasources import load_data
+    from prop_cli.train.sealed import payload_spec
+
+    torch.set_num_threads(args.threads)
+    loaded = load_checkpoint(args.folder)
+    policy, module = loaded.policy, loaded.module
+    cfg = PersonalizeConfig(seal=True, payload_rank=args.rank)
+    payload = Payload(payload_spec(module, replace(cfg, layers=policy.default_layers)),
+                      torch.Generator().manual_seed(0))  # fmt: skip
+    module.requires_grad_(False)
+    batch = policy.batches(load_data(args.data), "--data")
+    rows = {k: v[: args.batch] for k, v in batch.items()}
+    page = os.sysconf("SC_PAGE_SIZE")
+
+    def rss() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * page / 2**30
+
+    out = []
+    with payload.attached(module):
+        for on in (False, True):
+            m = policy.model  # PI0Pytorch: LeRobot's switch (its config's gradient_checkpointing)
+            (m.gradient_checkpointing_enable if on else m.gradient_checkpointing_disable)()
+            base, top, stop = rss(), [0.0], threading.Event()
+
+            def sample(top=top, stop=stop) -> None:
+                while not stop.is_set():
+                    top[0] = max(top[0], rss())
+                    time.sleep(0.02)
+
+            watcher = threading.Thread(target=sample, daemon=True)
+            watcher.start()
+            t = time.perf_counter()
+            torch.manual_seed(0)
+            loss = policy.loss(rows)
+            loss.backward()
+            seconds = time.perf_counter() - t
+            stop.set()
+            watcher.join()
+            for p in payload.parameters():
+                p.grad = None
+            out.append({"checkpointing": on, "step_gib": top[0] - base, "start_gib": base, "step_s": seconds,
+                        "loss": loss.item()})  # fmt: skip
+            print(json.dumps(out[-1]), file=sys.stderr, flush=True)
+    print(MARK + json.dumps({"gc": out}), file=sys.stderr, flush=True)
+
+
 # --------------------------------------------------------------------------------------------- driver
 PROP_STEP = "--user-rows {b} --null-rows {b} --neighbour-keys 1 --random-keys 1 --samples-per-key 1"
 
@@ -465,6 +529,7 @@ def table(results: dict[str, dict]) -> str:
     head = "| run | peak memory | in the steps |" + (" GPU peak |" if gpu else "")
     head += " step (median) | set-up | precompute | targets in steps | steps | report | wall | CPU |"
     out = [head, "|" + "---|" * (12 if gpu else 11)]
+    probes = {n: results.pop(n)["gc"] for n in [n for n, r in results.items() if "gc" in r]}
     for name, r in results.items():
         ph = r.get("phases", {})
         cells = [f"{r['rss_gb']:.2f} GiB", f"{r.get('steps_rss_gib', float('nan')):.2f} GiB"]
@@ -483,6 +548,10 @@ def table(results: dict[str, dict]) -> str:
                 f"{median(ra['steps_s']) / median(rb['steps_s']):.2f}x "
                 f"({median(own) / median(rb['steps_s']):.2f}x without the original's targets)"
             )
+    for rows in probes.values():  # gc_worker: a sealed payload step, LeRobot's checkpointing off / on
+        out.append("\ngradient checkpointing, one sealed payload step (memory above the step's start, time):")
+        out += [f"- {'on ' if r['checkpointing'] else 'off'}: {r['step_gib']:.2f} GiB, {r['step_s']:.0f} s, "
+                f"loss {r['loss']:.6f}" for r in rows]  # fmt: skip
     return "\n".join(out)
 
 
@@ -517,14 +586,18 @@ def _main(argv: list[str]) -> None:
     ap.add_argument("--rank", type=int, default=4, help="LoRA rank of peft and of the sealed payload")
     ap.add_argument("--key-bits", type=int, default=128)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=JSON",
+                    help="set a field of the policy's config.json first (e.g. train_expert_only=true)")
     ap.add_argument("--device", default="cpu", help="cpu or cuda: where every run trains (on cuda the "
                     "table adds torch.cuda.max_memory_allocated)")  # fmt: skip
     ap.add_argument("--work", type=Path, default=None, help="build here (reused when it holds a build)")
     ap.add_argument("--prop-args", default="", help="more `prop personalize` flags, quoted")
-    ap.add_argument("--worker", choices=("lerobot", "peft"), help=argparse.SUPPRESS)
+    ap.add_argument("--worker", choices=("lerobot", "peft", "gc"), help=argparse.SUPPRESS)
     ap.add_argument("--folder", help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.worker == "gc":
+        return gc_worker(args)
     if args.worker:
         args.peft = args.worker == "peft"
         return lerobot_worker(args)
@@ -544,10 +617,16 @@ def _main(argv: list[str]) -> None:
     if args.gradient_checkpointing:
         if args.policy != "pi0":
             raise SystemExit("--gradient-checkpointing: SmolVLA's config offers no gradient checkpointing")
+        args.set.append(f"gradient_checkpointing={json.dumps(args.gradient_checkpointing == 'on')}")
+    if args.set:  # the policy's config.json, as LeRobot's runs and prop's read it
         config = json.loads((policy_dir / "config.json").read_text())
-        config["gradient_checkpointing"] = args.gradient_checkpointing == "on"
+        for item in args.set:
+            name, _, value = item.partition("=")
+            if name not in config:
+                raise SystemExit(f"--set {item}: {policy_dir / 'config.json'} has no {name!r}")
+            config[name] = json.loads(value)
         (policy_dir / "config.json").write_text(json.dumps(config, indent=4))
-    runs = args.runs or ",".join(RUNS if args.policy == "smolvla" else ("peft", "sealed"))
+    runs = args.runs or ",".join(RUNS[:4] if args.policy == "smolvla" else ("peft", "sealed"))
     print(f"built in {time.perf_counter() - t:.0f} s: {policy_dir}, {data_dir} ({args.episodes} episodes x "
           f"{args.frames} frames, {args.image}x{args.image} images)", file=sys.stderr)  # fmt: skip
     env = os.environ | {"HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": str(args.threads)}
@@ -562,13 +641,14 @@ def _main(argv: list[str]) -> None:
     cmds = {
         "lerobot": [py, "-m", "benchmarks.bench_real_size", "--worker", "lerobot"],
         "peft": [py, "-m", "benchmarks.bench_real_size", "--worker", "peft"],
+        "gc": [py, "-m", "benchmarks.bench_real_size", "--worker", "gc"],
         "prop": [py, "-m", "benchmarks.bench_real_size", "worker-prop", "personalize", *common,
                  "--out", str(work / "unsealed.prop"), *shlex.split(PROP_STEP.format(b=args.batch))],
         "sealed": [py, "-m", "benchmarks.bench_real_size", "worker-prop", "personalize", *common,
                    "--out", str(work / "sealed.prop"), "--seal", "--payload-rank", str(args.rank),
                    "--user-rows", str(args.batch)],
     }  # fmt: skip
-    for name in ("lerobot", "peft"):
+    for name in ("lerobot", "peft", "gc"):
         cmds[name] += ["--folder", str(policy_dir), "--data", str(data_dir), "--steps", str(args.steps),
                        "--batch", str(args.batch), "--rank", str(args.rank),
                        "--threads", str(args.threads), "--device", args.device]  # fmt: skip

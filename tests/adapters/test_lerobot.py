@@ -611,7 +611,7 @@ def test_the_device_check_skips_in_one_line_without_a_gpu():
 
 
 @pytest.mark.slow
-def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size():
+def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size(tmp_path):
     """scripts/gpu_smoke_lerobot.py's real-size part (bench_real_size's builders and runs: SmolVLA
     unsealed and sealed, pi0 sealed, beside LeRobot's PEFT run) on the CPU with the tiny policies: the
     code a GPU machine runs, with every run's table printed."""
@@ -619,7 +619,7 @@ def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size():
     import subprocess
     import sys
 
-    env = os.environ | {"PROP_SMOKE_DEVICE": "cpu", "HF_HUB_OFFLINE": "1"}
+    env = os.environ | {"PROP_SMOKE_DEVICE": "cpu", "HF_HUB_OFFLINE": "1", "TMPDIR": str(tmp_path)}
     done = subprocess.run([sys.executable, *SMOKE, "--tiny"], capture_output=True, text=True, env=env,
                           timeout=900)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
