@@ -55,7 +55,8 @@ def test_a_bundle_with_todays_defaults_fails_max_leak_and_says_why_first(default
     worst = re.match(r"FAILED --max-leak 0\.05: (structure|fewshot k=\d+)( rounded)?: ", first)
     assert worst, first
     assert "--seal" in first
-    assert r.err.strip().splitlines()[-1].startswith(f"prop: leak check failed at --max-leak 0.05: {worst[1]}")
+    last = r.err.strip().splitlines()[-1]
+    assert last.startswith(f"prop: leak check failed at --max-leak 0.05: {worst[1]}")
     r, rep = _attack(cli, d, "--probes", "null,structure", "--max-leak", "0.05")
     assert r.code == 1
     assert rep["max_leak"]["passed"] is False and rep["max_leak"]["failing"][0] == "structure"
