@@ -295,8 +295,17 @@ class PI0Protocol(SmolVLAProtocol):
             mask, pos = attention_mask[..., :n, :n], position_ids[:, :n]
 
             def fill(rows: list[int]):  # LeRobot's prefix fill over the prefix's rows
-                return own(pwe, attention_mask=mask[rows], position_ids=pos[rows], past_key_values=None,
-                           inputs_embeds=[prefix[rows], None], use_cache=True)[1]  # fmt: skip
+                # Without grad, so nothing to recompute: a model checkpointing in training mode would
+                # drop the cache (transformers sets use_cache=False then), which is what is kept here.
+                ckpt = [m for m in lm.modules() if getattr(m, "gradient_checkpointing", False) is True]
+                for m in ckpt:
+                    m.gradient_checkpointing = False
+                try:
+                    return own(pwe, attention_mask=mask[rows], position_ids=pos[rows], past_key_values=None,
+                               inputs_embeds=[prefix[rows], None], use_cache=True)[1]  # fmt: skip
+                finally:
+                    for m in ckpt:
+                        m.gradient_checkpointing = True
 
             cache = DynamicCache()
             for i, (k, v) in enumerate(prefixes.block_kv(fill, prefix, mask, pos, list(lm.parameters()))):
