@@ -61,3 +61,16 @@ def split_matches_whole(policy, user: dict, fallback: dict | None, cut: int) -> 
         assert (a is None) == (b is None)
         if a is not None:
             assert torch.allclose(a, b, atol=1e-5 * (1 + float(a.abs().max()))), float((a - b).abs().max())
+
+
+def memo_terms(policy, frames, fb):
+    """The chunk, the joint terms and their gradients on the policy's trained parameters (the prefix
+    memo's tests compare them with and without it)."""
+    torch.manual_seed(0)
+    with torch.no_grad():
+        chunk = policy.chunk(frames)
+    policy.policy.zero_grad()
+    loss, v = policy.joint_terms(frames, fb)
+    (loss + v.square().mean()).backward()
+    grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
+    return chunk, loss.detach(), v.detach(), grads

@@ -32,6 +32,7 @@ from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
+from tests.adapters.shares import memo_terms  # noqa: E402
 
 TINY = dict(steps=4, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -209,25 +210,15 @@ def test_pi0_prefix_memo_computes_each_frames_prefix_once_and_changes_nothing(wo
     fill = lambda self, **k: (self is lm and fills.append(len(k["inputs_embeds"]))) or real(self, **k)  # noqa: E731
     monkeypatch.setattr(type(lm), "forward", fill)  # the expert's Gemma has the class too: counted apart
 
-    def runs():
-        torch.manual_seed(0)
-        with torch.no_grad():
-            chunk = policy.chunk(frames)
-        policy.policy.zero_grad()
-        loss, v = policy.joint_terms(frames, fb)
-        (loss + v.square().mean()).backward()
-        grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
-        return chunk, loss.detach(), v.detach(), grads
-
     def memo_runs():
         with policy.memo():
-            out = runs()
+            out = memo_terms(policy, frames, fb)
             again = policy.chunk(frames)
         assert torch.allclose(again, out[0], atol=1e-6)
         return out
 
     pwe.paligemma.requires_grad_(False)  # train_expert_only (a sealed run freezes it all)
-    plain = runs()
+    plain = memo_terms(policy, frames, fb)
     fills.clear()
     memo = memo_runs()
     assert fills == [3]  # one fill over the 3 distinct frames, then every forward from the memo

@@ -28,6 +28,7 @@ from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # no
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.train.policy import chunks  # noqa: E402
+from tests.adapters.shares import memo_terms  # noqa: E402
 
 TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -300,18 +301,6 @@ def test_built_without_random_init_its_buffers_are_a_normal_builds(work):
     assert all(torch.equal(mine[n], theirs[n]) for n in computed)
 
 
-def _memo_runs(policy, frames, fb):
-    """The chunk, the joint terms and their gradients on the policy's trained parameters."""
-    torch.manual_seed(0)
-    with torch.no_grad():
-        chunk = policy.chunk(frames)
-    policy.policy.zero_grad()
-    loss, v = policy.joint_terms(frames, fb)
-    (loss + v.square().mean()).backward()
-    grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
-    return chunk, loss.detach(), v.detach(), grads
-
-
 def test_the_prefix_blocks_keys_and_values_are_computed_once_and_change_nothing(work, monkeypatch):
     """Within the memo, with the VLM frozen and unkeyed (LeRobot's train_expert_only), each frame's image
     and language tokens go through the VLM once (their keys and values kept), and a forward runs the state
@@ -333,7 +322,7 @@ def test_the_prefix_blocks_keys_and_values_are_computed_once_and_change_nothing(
 
     def memo_runs():
         with policy.memo():
-            out = _memo_runs(policy, frames, fb)
+            out = memo_terms(policy, frames, fb)
             assert torch.equal(policy.chunk(frames), out[0])  # the second time from the memo: the same
             return out
 
@@ -341,7 +330,7 @@ def test_the_prefix_blocks_keys_and_values_are_computed_once_and_change_nothing(
         policy.chunk(frames)
     assert ran == []
     vwe.vlm.requires_grad_(False)  # train_expert_only
-    plain = _memo_runs(policy, frames, fb)
+    plain = memo_terms(policy, frames, fb)
     assert ran == []  # outside the memo: LeRobot's forward as it is
     memo = memo_runs()
     assert len(ran) == 3  # the chunk's prefix fill, the joint forward, the chunk again
