@@ -74,3 +74,14 @@ def memo_terms(policy, frames, fb):
     (loss + v.square().mean()).backward()
     grads = {n: p.grad.clone() for n, p in policy.policy.named_parameters() if p.grad is not None}
     return chunk, loss.detach(), v.detach(), grads
+
+
+def buffers_as_built(module: torch.nn.Module) -> None:
+    """A policy built without random initialisation (``construct``), then loaded: what the checkpoint
+    does not hold (non-persistent buffers: rotary frequencies) is what a normal build computes."""
+    normal = type(module)(module.config)
+    loaded = set(module.state_dict())
+    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
+    assert mine.keys() == theirs.keys()
+    computed = [n for n in theirs if n not in loaded]
+    assert all(torch.equal(mine[n], theirs[n]) for n in computed)

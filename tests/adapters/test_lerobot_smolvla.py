@@ -28,7 +28,7 @@ from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # no
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.train.policy import chunks  # noqa: E402
-from tests.adapters.shares import memo_terms  # noqa: E402
+from tests.adapters.shares import buffers_as_built, memo_terms  # noqa: E402
 
 TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -293,12 +293,7 @@ def test_built_without_random_init_its_buffers_are_a_normal_builds(work):
     """The policy is built without random initialisation (every weight is then loaded): what is not
     loaded (non-persistent buffers: rotary frequencies) is what a normal build computes."""
     module = load_checkpoint(work / "smolvla").module
-    normal = type(module)(module.config)
-    loaded = set(module.state_dict())
-    mine, theirs = dict(module.named_buffers()), dict(normal.named_buffers())
-    assert mine.keys() == theirs.keys()
-    computed = [n for n in theirs if n not in loaded]
-    assert all(torch.equal(mine[n], theirs[n]) for n in computed)
+    buffers_as_built(module)
 
 
 def test_the_prefix_blocks_keys_and_values_are_computed_once_and_change_nothing(work, monkeypatch):
