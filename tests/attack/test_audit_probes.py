@@ -293,3 +293,15 @@ def test_an_unenrolled_key_runs_the_plain_model_once(default_bundle):
     assert calls == [len(ctx.ref.x)]  # delta 1 for every key: one forward of the plain model, reused
     with torch.inference_mode():
         assert torch.equal(got["outputs"][5], fresh.module(ctx.ref.x))
+
+
+def test_structure_reads_the_code_off_the_antipode_of_the_largest_deltas(default_bundle, cli):
+    """An attack on issue 32's pull, found by attacking it: the random codes whose deltas are farthest
+    from 1 sit around the user's antipode, so their negated majority vote is a few bits from the user's
+    code. The structure probe runs it (data-free, as its other methods) and reports how close it came."""
+    d = default_bundle
+    r, rep = _attack(cli, d, "--probes", "null,structure")
+    st = next(g for g in rep["groups"] if g["name"] == "structure")
+    vote = st["search"]["methods"]["antipode_vote"]
+    # A random code is 64 +- 5.7 bits from the user's; this bundle's vote came 11 bits off (leakage 0.68)
+    assert vote["candidates"] == 2 and vote["min_code_distance"] <= 24 and vote["worst_leakage"] > 0.3, vote

@@ -12,6 +12,11 @@ training step, and training imprints it on the encoder:
   only trained codes have one;
 - W1 SVD: top singular vectors of the first layer alone (weak; kept as a floor);
 - init difference: W1 minus its initialisation recreated from the manifest's seed, where it has one;
+- antipode vote: the random codes whose delta is farthest from 1, their bitwise majority. Trained to
+  pull every wrong key's delta to 1 (``--delta-pull``), a near-odd encoder leaves the largest deltas
+  around the user's antipode, so the vote's negation lands a few bits from the user's code (found
+  attacking issue 32's fix: 2 of 128 bits off, leakage 0.94, where the same vote was 35 bits off
+  before the pull); both signs are probed;
 - and a greedy bit-flip refinement of the attacker's pick on the same data-free objective.
 
 Every candidate is rounded to ±1 (both signs: a singular vector's sign is arbitrary) and probed as a
@@ -35,6 +40,7 @@ TOP = 3  # singular vectors per matrix
 JACOBIAN_POINTS = 4  # random codes besides the zero code
 NORM_RESTARTS, NORM_STEPS, NORM_LR = 16, 100, 0.1
 FLIP_PASSES = 2
+VOTE_CODES, VOTE_TOP, VOTE_CHUNK = 16384, 64, 1024  # antipode vote: codes scanned, voters, rows per forward
 
 
 def _linears(enc: KeyEncoder) -> list[nn.Linear]:
@@ -93,6 +99,14 @@ def w1_svd(enc: KeyEncoder) -> torch.Tensor:
 
 
 @torch.no_grad()
+def antipode_vote(enc: KeyEncoder, gen: torch.Generator) -> torch.Tensor:
+    codes = torch.randint(0, 2, (VOTE_CODES, enc.code_bits), generator=gen).float() * 2 - 1
+    codes = codes.to(enc.net[0].weight.device)
+    norm = torch.cat([_head_norm(enc, codes[i : i + VOTE_CHUNK]) for i in range(0, VOTE_CODES, VOTE_CHUNK)])
+    return _both(codes[norm.topk(VOTE_TOP).indices].sum(0, keepdim=True))
+
+
+@torch.no_grad()
 def init_difference(enc: KeyEncoder, seed: int | None) -> torch.Tensor:
     if seed is None:
         return torch.zeros(0, enc.code_bits)
@@ -133,6 +147,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         "jacobian": jacobian(enc, gen),
         "latent_norm": latent_norm(enc, gen),
         "w1_svd": w1_svd(enc),
+        "antipode_vote": antipode_vote(enc, gen),
         "init_difference": init_difference(enc, ctx.seed_hint),
     }
     methods = {k: v.to(dev) for k, v in methods.items() if len(v)}
