@@ -25,7 +25,7 @@ The runs (``--runs``, each a fresh process):
   ``LeRobotDataset`` with the policy's delta timestamps, batch ``--batch``, its AdamW preset with the
   grad clip, as ``lerobot_train.update_policy`` steps (no DataLoader workers: one process to measure).
 - ``prop``: ``prop personalize`` unsealed, 128-bit key (``--key-bits``); a step is ``--batch`` user rows,
-  ``--batch`` null rows, one Hamming-neighbour and one random-key row (``PROP_STEP``).
+  ``--batch`` null rows, one Hamming-neighbour, one random-key and one far-code row (``PROP_STEP``).
 - ``peft``: the same LeRobot loop after ``policy.wrap_with_peft`` (LoRA, rank ``--rank``, LeRobot's
   default SmolVLA targets), as ``lerobot-train --peft.method_type=LORA --peft.r=RANK``.
 - ``sealed``: ``prop personalize --seal``, a LoRA payload of the same rank on the same layers, ``--batch``
@@ -494,7 +494,10 @@ def gc_worker(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------------------------- driver
-PROP_STEP = "--user-rows {b} --null-rows {b} --neighbour-keys 1 --random-keys 1 --samples-per-key 1"
+# One row of each kind of wrong key (a neighbour, a random key, a far code: issue 32's term), as LeRobot's
+# batch of --batch frames: the default 16 far codes alone would be 16 rows against LeRobot's 2.
+PROP_STEP = ("--user-rows {b} --null-rows {b} --neighbour-keys 1 --random-keys 1 --far-codes 1"
+             " --samples-per-key 1")
 
 
 def measured(cmd: list[str], env: dict, log: Path) -> dict:

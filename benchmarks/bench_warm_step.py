@@ -69,11 +69,11 @@ def main(argv: list[str] | None = None) -> None:
         optimizer.zero_grad()
 
     # prop's: the PolicyTrainer personalize runs (its step: --batch user rows, --batch null rows, one
-    # neighbour and one random key row), within the policy's memo as personalize runs it.
+    # neighbour, one random key and one far code row), within the policy's memo as personalize runs it.
     loaded = load_checkpoint(folder)
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
     cfg = PersonalizeConfig(steps=args.steps + 1, user_rows=args.batch, null_rows=args.batch,
-                            neighbour_keys=1, random_keys=1, samples_per_key=1)  # fmt: skip
+                            neighbour_keys=1, random_keys=1, far_codes=1, samples_per_key=1)  # fmt: skip
     with loaded.policy.memo():
         t = PolicyTrainer(loaded, [User(load_data(data), key)], cfg, None)
         state = t.rng.bit_generator.state
