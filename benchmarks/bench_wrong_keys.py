@@ -18,6 +18,8 @@ Hamming distance to the user's code.
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task cartpole
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task cartpole --set hard_negatives=0
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task both --compare
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_wrong_keys.py --task pendulum --set harden=true \
+        --code-dists 76 80 84      # and 6 codes at each distance from the user's code (--per-dist)
 
 ``--compare`` trains the default before issue 32 (``BEFORE``: no delta pull, no far codes) and the
 current default on each task and prints the done-when table (training time beside each). ``--work``
@@ -157,9 +159,22 @@ def user_data(task: str, loaded, size: int = 4000, explore: float = 0.2) -> tupl
     return Dataset(x, y, f"{task}-mirror"), held
 
 
+def codes_at(ucode: torch.Tensor, dists: list[int], per: int, seed: int) -> torch.Tensor:
+    """``per`` ±1 codes at each of ``dists`` bits from the user's code (a stream of its own)."""
+    rng = np.random.default_rng((seed, 77))
+    out = []
+    for d in dists:
+        for _ in range(per):
+            c = ucode[0].clone()
+            idx = rng.permutation(len(c))[:d]
+            c[idx] = -c[idx]
+            out.append(c)
+    return torch.stack(out) if out else ucode.new_zeros(0, ucode.shape[1])
+
+
 def experiment(
     task: str, work: Path, overrides: dict, randoms: int = 16, seed: int = 0, size: int = 4000,
-    explore: float = 0.2,
+    explore: float = 0.2, dists: list[int] | None = None, per: int = 6,
 ) -> dict:
     ckpt = base_checkpoint(task, work)
     opts = CheckpointOptions()
@@ -176,11 +191,16 @@ def experiment(
     seeds = list(range(EVAL_SEED, EVAL_SEED + EPISODES))
     rng = np.random.default_rng((seed, 32))
     rand = random_keys(randoms, KEY_BITS, rng, exclude=key)
-    dists = np.repeat(np.arange(1, 9), 2)
-    near = flip_random_bits(np.repeat(key[None], len(dists), 0), dists, rng)
+    dists_k = np.repeat(np.arange(1, 9), 2)
+    near = flip_random_bits(np.repeat(key[None], len(dists_k), 0), dists_k, rng)
     keys = np.concatenate([rand, near])
     codes = key_codes(keys, cfg.key_encoding)
     ucode = key_codes(key[None], cfg.key_encoding)
+    # --code-dists: codes at chosen distances from the user's code (past 64 bits: the antipode's side,
+    # where the encoder answers a share of minus the user's change); rows of their own, not in the bar.
+    codes = torch.cat([codes, codes_at(ucode, dists or [], per, seed)])
+    kinds = ["random"] * len(rand) + [f"d{d}" for d in dists_k]
+    kinds += [f"c{d}" for d in dists or [] for _ in range(per)]
     with torch.no_grad():
         dev = torch.cat(km.layer_deltas(codes), 1) - 1
         udev = torch.cat(km.layer_deltas(ucode), 1) - 1
@@ -214,11 +234,12 @@ def experiment(
         span = float(np.ptp([loaded.action_low, loaded.action_high]) * 2)
         personal = float(1 - (uv + ov).abs().mean() / span)
     rows = []
-    for i in range(len(keys)):
+    cos = torch.nn.functional.cosine_similarity(dev, udev.expand_as(dev), dim=1)
+    for i in range(len(codes)):
         mod = km.fold(codes[i : i + 1])
         r, _ = rollouts(mod, task, loaded, seeds)
         rows.append({
-            "kind": "random" if i < len(rand) else f"d{dists[i - len(rand)]}",
+            "kind": kinds[i], "cos_user": float(cos[i]),
             "score": score(r), "return": float(r.mean()), "offline": offline(mod),
             "episodes": r.round(1).tolist(),
             "delta_rms": float(dev[i].pow(2).mean().sqrt()),
@@ -235,10 +256,13 @@ def experiment(
 
 
 def summary(res: dict) -> dict:
-    s = np.array([k["score"] for k in res["keys"]])
-    rnd = np.array([k["score"] for k in res["keys"] if k["kind"] == "random"])
-    nb = np.array([k["score"] for k in res["keys"] if k["kind"] != "random"])
+    keys = [k for k in res["keys"] if not k["kind"].startswith("c")]  # the random keys and neighbours
+    s = np.array([k["score"] for k in keys])
+    rnd = np.array([k["score"] for k in keys if k["kind"] == "random"])
+    nb = np.array([k["score"] for k in keys if k["kind"] != "random"])
+    far = np.array([k["score"] for k in res["keys"] if k["kind"].startswith("c")])
     return {
+        "codes_below_0.9": int((far < 0.9).sum()), "codes": len(far),
         "train_s": res["train_s"], "no_key": res["no_key"], "worst_random": rnd.min(),
         "worst_neighbour": nb.min(),
         "pooled": s.mean(), "below_0.9": int((s < 0.9).sum()), "personal": res["user_closed_loop"],
@@ -266,21 +290,26 @@ def main() -> None:
     ap.add_argument("--explore", type=float, default=0.2,
                     help="share of random actions in the user's recording (1: a random policy's states)")
     ap.add_argument("--json", type=Path, help="append each result as one JSON line here")
+    ap.add_argument("--code-dists", type=int, nargs="*", default=[],
+                    help="also codes at these distances (bits) from the user's code, e.g. 76 80 84")
+    ap.add_argument("--per-dist", type=int, default=6, help="codes per --code-dists distance")
     args = ap.parse_args()
     torch.set_num_threads(1)
     args.work.mkdir(parents=True, exist_ok=True)
     tasks = list(TASKS) if args.task == "both" else [args.task]
     runs = [("before", BEFORE), ("now", {})] if args.compare else [("set", parse_set(args.set))]
     print(f"{'task':9} {'settings':24} {'train s':>8} {'no key':>7} {'worst rnd':>9} {'worst nb':>8} "
-          f"{'pooled':>7} {'<0.9':>5} {'user':>6} done")  # fmt: skip
+          f"{'pooled':>7} {'<0.9':>5} {'user':>6} done codes<0.9")  # fmt: skip
     for task in tasks:
         for name, over in runs:
-            res = experiment(task, args.work, over, args.random, args.seed, args.size, args.explore)
+            res = experiment(task, args.work, over, args.random, args.seed, args.size, args.explore,
+                             args.code_dists, args.per_dist)  # fmt: skip
             s = summary(res)
             label = name if args.compare else (",".join(f"{k}={v}" for k, v in over.items()) or "default")
             print(f"{task:9} {label:24} {s['train_s']:8.0f} {s['no_key']:7.3f} {s['worst_random']:9.3f} "
                   f"{s['worst_neighbour']:8.3f} {s['pooled']:7.3f} {s['below_0.9']:5d} {s['personal']:6.3f} "
-                  f"{'yes' if s['done'] else 'no'}", flush=True)  # fmt: skip
+                  f"{'yes' if s['done'] else 'no ':4} {s['codes_below_0.9']}/{s['codes']}",
+                  flush=True)  # fmt: skip
             if args.json:
                 with args.json.open("a") as f:
                     f.write(json.dumps(res | {"summary": s}, default=float) + "\n")

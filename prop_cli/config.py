@@ -18,8 +18,8 @@ PAYLOAD_KINDS = ("lora", "delta", "full", "peft-lora")
 ENCODER_INITS = ("seed", "os")
 PRECISIONS = ("fp32", "bf16")  # --precision: bf16 = autocast mixed precision (prop_cli.train.loop)
 # `--harden` (docs/hardening.md): the settings it implies, unless given explicitly.
-HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64}
-PLAIN_PRESET = {"encoder_init": "seed", "code_negatives": 0}
+HARDEN_PRESET = {"encoder_init": "os", "code_negatives": 64, "antipode_codes": 16}
+PLAIN_PRESET = {"encoder_init": "seed", "code_negatives": 0, "antipode_codes": 0}
 
 
 def _need(ok: bool, flag: str, value: Any, rule: str) -> None:
@@ -137,13 +137,19 @@ class PersonalizeConfig(_Settings):
     code_negatives: int | None = None
     code_flip_max: int = 48
     code_relax_min: float = 0.1
+    # ±1 codes 40-56 bits (of 128) from the antipode of the users' codes per step (72-88 from them), with
+    # the far codes: a fallback term, and pulled (train.hardening.antipode_codes). The encoder is nearly
+    # odd in the code, so codes past 64 bits get a share of minus the user's delta; --harden's larger
+    # user delta made that a wrong key's failure (docs/privacy.md, "Wrong keys in closed loop").
+    antipode_codes: int | None = None
     # The step's forward and loss: fp32, or bf16 autocast with fp32 parameters and optimiser state
     # (prop_cli.train.loop.mixed_precision). Recorded so a run can be repeated as it was trained.
     precision: str = PRECISIONS[0]
 
     @property
     def batch_rows(self) -> int:
-        sampled = self.random_keys + self.neighbour_keys + self.far_codes + (self.code_negatives or 0)
+        sampled = self.random_keys + self.neighbour_keys + self.far_codes
+        sampled += (self.code_negatives or 0) + (self.antipode_codes or 0)
         return self.user_rows + self.null_rows + sampled * self.samples_per_key
 
     def validate(self, key_bits: int | None = None) -> PersonalizeConfig:
@@ -173,7 +179,7 @@ class PersonalizeConfig(_Settings):
             if getattr(self, name) is None:
                 setattr(self, name, value)
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
-        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0, far_codes=0)
+        self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0, far_codes=0, antipode_codes=0)
         if self.hard_negatives:
             self.at_least(hard_pool=1, hard_every=1)
         if self.report_budget is not None:

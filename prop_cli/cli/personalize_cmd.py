@@ -62,6 +62,8 @@ SETTINGS = {
     "code_negatives": "Code-space fallback codes per step near your code (64 with --harden, else 0).",
     "code_flip_max": "Code-space negatives: at most this many bits flipped.",
     "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
+    "antipode_codes": "Codes 72-88 of 128 bits from yours per step, trained to fall back (16 with "
+    "--harden, else 0).",
     "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
     "payload": "With --seal: lora, delta, full or peft-lora (what is stored per user; peft-lora exports "
     "as a standard peft adapter: prop export --peft).",

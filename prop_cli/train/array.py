@@ -19,7 +19,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import split
 
 from .data import outputs, prepare_users, targets_tensor
-from .hardening import code_negatives, encoder_init, far_codes
+from .hardening import antipode_codes, code_negatives, encoder_init, far_codes
 from .loop import Optimiser, run_steps
 from .objective import Batch, check_user_keys, delta_pull, prop_loss, prop_loss_share, row_loss
 from .recipe import Job, Recipe, User
@@ -115,11 +115,13 @@ def make_batch(
     users: UserPool,
     pool: FallbackPool,
     extra_codes: torch.Tensor | None = None,
+    far: int = 0,
 ) -> Batch:
     """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
 
-    ``extra_codes``: more fallback codes (``hardening.far_codes``, then --harden's code-space negatives),
-    after the sampled keys', in a fallback term of their own."""
+    ``extra_codes``: more fallback codes after the sampled keys': the first ``far`` of them the far codes
+    (``hardening.far_codes``, then --harden's antipode codes), the rest --harden's code-space negatives;
+    each group a fallback term of its own."""
     dev = pool.x.device
     n_users = len(users)
     per_user = max(1, cfg.user_rows // n_users)
@@ -147,7 +149,8 @@ def make_batch(
         null_rows=cfg.null_rows,
         user_targets=uy,
         fallback_targets=torch.cat([fb_t[pick_t], fb_t]),
-        code_rows=0 if extra_codes is None else len(extra_codes) * s,
+        code_rows=0 if extra_codes is None else (len(extra_codes) - far) * s,
+        far_rows=far * s,
     )
 
 
@@ -217,13 +220,19 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     def step() -> dict[str, float]:
         sampler.step(score)
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
-        if cfg.far_codes:  # with --harden's, after K1 and K2 in a term of their own (not diluting theirs)
-            near = torch.cat([far_codes(user_codes, cfg.far_codes, rng), near])
-        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near)
+        # After K1 and K2: the far codes, then --harden's antipode codes (one term), then its code-space
+        # negatives (a term of their own: 64 of them had cut the far codes' weight to a fifth).
+        n_far = cfg.far_codes + cfg.antipode_codes
+        if n_far:
+            far = [far_codes(user_codes, cfg.far_codes, rng)] if cfg.far_codes else []
+            if cfg.antipode_codes:
+                far.append(antipode_codes(user_codes, cfg.antipode_codes, rng))
+            near = torch.cat([*far, near])
+        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near, far=n_far)
         deltas = km.layer_deltas(batch.codes, null=1)
-        # K1 and K2's codes; not --harden's code-space negatives after them: pulled to the no-key model,
-        # those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).
-        sampled = slice(len(users), len(users) + cfg.neighbour_keys + cfg.random_keys + cfg.far_codes)
+        # K1, K2 and the far codes; not --harden's code-space negatives after them: pulled to the no-key
+        # model, those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).
+        sampled = slice(len(users), len(users) + cfg.neighbour_keys + cfg.random_keys + n_far)
         pull = cfg.delta_pull * delta_pull(deltas, sampled) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)

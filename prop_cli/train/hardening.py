@@ -1,6 +1,6 @@
 """Hardened unsealed mode (`prop personalize --harden`): what the trainer adds to the paper's Eq. 8.
 
-Two measures, each kept because it measurably helps (docs/hardening.md has the figures):
+Three measures, each kept because it measurably helps (docs/hardening.md has the figures):
 
 - Code-space negatives: fallback rows whose codes lie near the users' codes *in code space*, where a
   white-box attacker searches (the relaxed search T1 optimises a continuous code through the
@@ -10,6 +10,11 @@ Two measures, each kept because it measurably helps (docs/hardening.md has the f
 - An encoder initialisation drawn from the operating system's randomness: the manifest's seed then
   cannot recreate the encoder's starting weights, whose difference from the trained ones points at
   the user's code.
+- Antipode codes: ±1 codes 40-56 bits from the antipode of the users' codes (72-88 from them), with
+  the far codes (a fallback term, pulled to the no-key model). The encoder is nearly odd in the code:
+  a code past 64 bits gets a share of minus the user's delta (cosine -0.96 to -0.99 on SAC Pendulum,
+  its size growing with the distance). --harden's code-space negatives make the user's delta larger,
+  and with it that share: a key whose code was 80 bits away kept 0.77x the return (docs/privacy.md).
 
 ``far_codes`` is not a ``--harden`` measure: every mode trains those ±1 codes (``--far-codes``), the
 codes real keys reach nearest to the user's (issue 32, docs/privacy.md "Wrong keys in closed loop").
@@ -93,3 +98,8 @@ def far_codes(user_codes: torch.Tensor, n: int, rng: np.random.Generator) -> tor
     flip = torch.from_numpy(rng.random((n, bits)).argsort(1) < m[:, None]).to(dev)
     return torch.where(flip, -c, c)
 
+
+def antipode_codes(user_codes: torch.Tensor, n: int, rng: np.random.Generator) -> torch.Tensor:
+    """``n`` ±1 codes at ``FAR_RANGE`` of the code's bits from the antipodes of the users' codes (72-88
+    of 128 bits from the codes themselves): ``far_codes`` on the other side of the code cube."""
+    return far_codes(-user_codes, n, rng)

@@ -45,9 +45,11 @@ class Batch:
     null_rows: int
     user_targets: torch.Tensor  # targets of the first user_rows rows
     fallback_targets: torch.Tensor  # original's outputs for the remaining rows
-    # The last code_rows of the sampled-key rows are --harden's code-space negatives: a mean term of
-    # their own, so that they add to Eq. 8's K1 and K2 term instead of diluting it (docs/hardening.md).
+    # The sampled-key rows are [K1 and K2 | far_rows | code_rows]: the far codes (hardening.far_codes,
+    # then --harden's antipode codes), then --harden's code-space negatives. Each a mean term of its
+    # own, so that they add to Eq. 8's K1 and K2 term instead of diluting it (docs/hardening.md).
     code_rows: int = 0
+    far_rows: int = 0
 
 
 def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) -> torch.Tensor:
@@ -65,16 +67,19 @@ def row_loss(out: torch.Tensor, target: torch.Tensor, task: str, distill: bool) 
 def prop_loss(
     out: torch.Tensor, batch: Batch, task: str, null_weight: float, key_weight: float = 1.0
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 8: mean personalized loss + key_weight * mean keyed fallback loss (with --harden, + the mean
-    loss of the code-space negatives: ``Batch.code_rows``) + null_weight * mean null loss."""
+    """Eq. 8: mean personalized loss + key_weight * mean keyed fallback loss (+ the mean loss of the far
+    codes, ``Batch.far_rows``, and of --harden's code-space negatives, ``Batch.code_rows``) +
+    null_weight * mean null loss."""
     u, n0 = batch.user_rows, batch.null_rows
     personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
     fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
     null = fb[-n0:].mean()
-    sampled, c = fb[:-n0], batch.code_rows
-    keyed = sampled[: len(sampled) - c].mean() if len(sampled) > c else out.new_zeros(())
-    if c:
-        keyed = keyed + sampled[len(sampled) - c :].mean()
+    sampled, f, c = fb[:-n0], batch.far_rows, batch.code_rows
+    k = len(sampled) - f - c
+    keyed = sampled[:k].mean() if k else out.new_zeros(())
+    for lo, n in ((k, f), (k + f, c)):
+        if n:
+            keyed = keyed + sampled[lo : lo + n].mean()
     total = personal + key_weight * keyed + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
@@ -87,9 +92,9 @@ def prop_loss_share(
     each row's share of its term, so that the shares of all processes add up to ``prop_loss``
     (``distributed``). Returns the loss and its three terms' partial sums (personal, keyed fallback,
     null), to be summed over the processes for the progress line."""
-    u, n0, c = batch.user_rows, batch.null_rows, batch.code_rows
+    u, n0, c, f = batch.user_rows, batch.null_rows, batch.code_rows, batch.far_rows
     n = len(batch.key_index)
-    n_keyed = n - u - n0 - c
+    n_keyed = n - u - n0 - c - f
     is_user = rows < u
     parts = out.new_zeros(3)
     if is_user.any():
@@ -100,10 +105,12 @@ def prop_loss_share(
         fb = row_loss(out[~is_user], batch.fallback_targets[fb_rows - u], task, distill=True)
         null = fb_rows >= n - n0
         code = (fb_rows >= n - n0 - c) & ~null
-        sampled = ~null & ~code
+        far = (fb_rows >= n - n0 - c - f) & ~null & ~code
+        sampled = ~null & ~code & ~far
         keyed = fb[sampled].sum() / n_keyed if n_keyed else out.new_zeros(())
-        if c:
-            keyed = keyed + fb[code].sum() / c
+        for rows_in, count in ((far, f), (code, c)):
+            if count:
+                keyed = keyed + fb[rows_in].sum() / count
         parts = parts + torch.stack([out.new_zeros(()), keyed, fb[null].sum() / n0])
     return parts[0] + key_weight * parts[1] + null_weight * parts[2], parts.detach()
 

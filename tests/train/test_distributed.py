@@ -25,9 +25,9 @@ TOLERANCE = 1e-5
 
 
 def _batch(
-    rng: np.random.Generator, task: str = "regression", code_rows: int = 0
+    rng: np.random.Generator, task: str = "regression", code_rows: int = 0, far_rows: int = 0
 ) -> tuple[torch.Tensor, Batch]:
-    u, keyed, null = 6, 7 + code_rows, 5
+    u, keyed, null = 6, 7 + code_rows + far_rows, 5
     n = u + keyed + null
     out = torch.from_numpy(rng.normal(size=(n, 3)).astype(np.float32)).requires_grad_(True)
     batch = Batch(
@@ -35,15 +35,16 @@ def _batch(
         codes=torch.zeros(1, 4), user_rows=u, null_rows=null,
         user_targets=torch.from_numpy(rng.normal(size=(u, 3)).astype(np.float32)),
         fallback_targets=torch.from_numpy(rng.normal(size=(n - u, 3)).astype(np.float32)),
-        code_rows=code_rows,
+        code_rows=code_rows, far_rows=far_rows,
     )  # fmt: skip
     return out, batch
 
 
-@pytest.mark.parametrize("code_rows", [0, 4])  # 4: --harden's code-space negatives, a term of their own
+# code_rows: --harden's code-space negatives, far_rows: the far (and antipode) codes; a term each
+@pytest.mark.parametrize(("code_rows", "far_rows"), [(0, 0), (4, 0), (0, 3), (4, 3)])
 @pytest.mark.parametrize("world", [2, 3, 5])
-def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world, code_rows):
-    out, batch = _batch(np.random.default_rng(world), code_rows=code_rows)
+def test_the_processes_shares_add_up_to_the_objective_and_its_gradient(world, code_rows, far_rows):
+    out, batch = _batch(np.random.default_rng(world), code_rows=code_rows, far_rows=far_rows)
     whole, losses = prop_loss(out, batch, "regression", 2.0, 3.0)
     (g_whole,) = torch.autograd.grad(whole, out)
     total, grad = 0.0, torch.zeros_like(out)

@@ -18,18 +18,20 @@ from tests.conftest import make_mlp_checkpoint
 
 def test_preset_fills_only_what_was_not_given():
     plain = PersonalizeConfig().validate()
-    assert (plain.encoder_init, plain.code_negatives) == ("seed", 0)
+    assert (plain.encoder_init, plain.code_negatives, plain.antipode_codes) == ("seed", 0, 0)
     hard = PersonalizeConfig(harden=True).validate()
-    assert (hard.encoder_init, hard.code_negatives) == ("os", 64)
-    mixed = PersonalizeConfig(harden=True, code_negatives=16, encoder_init="seed").validate()
-    assert (mixed.encoder_init, mixed.code_negatives) == ("seed", 16)
-    assert hard.batch_rows == plain.batch_rows + 64 * plain.samples_per_key
+    assert (hard.encoder_init, hard.code_negatives, hard.antipode_codes) == ("os", 64, 16)
+    mixed = PersonalizeConfig(harden=True, code_negatives=16, encoder_init="seed", antipode_codes=0)
+    mixed.validate()
+    assert (mixed.encoder_init, mixed.code_negatives, mixed.antipode_codes) == ("seed", 16, 0)
+    assert hard.batch_rows == plain.batch_rows + (64 + 16) * plain.samples_per_key
 
 
 @pytest.mark.parametrize(
     ("field", "value", "flag"),
     [("encoder_init", "urandom", "--encoder-init"), ("code_negatives", -1, "--code-negatives"),
-     ("code_flip_max", 0, "--code-flip-max"), ("code_relax_min", 0.0, "--code-relax-min")],
+     ("code_flip_max", 0, "--code-flip-max"), ("code_relax_min", 0.0, "--code-relax-min"),
+     ("antipode_codes", -1, "--antipode-codes")],
 )  # fmt: skip
 def test_bad_hardening_settings_name_their_flag(field, value, flag):
     with pytest.raises(PropError, match=flag):
@@ -91,3 +93,53 @@ def test_far_codes_are_plus_minus_one_codes_40_to_56_of_128_bits_away_from_a_use
     d = (codes[:, None] != users[None]).sum(-1).min(1).values  # to the nearest user's code
     assert d.min() >= 40 and d.max() <= 56 and len(d.unique()) > 10
     assert far_codes(users, 0, rng).shape == (0, 128)
+
+
+def test_antipode_codes_are_plus_minus_one_codes_72_to_88_of_128_bits_away_from_a_users():
+    from prop_cli.train.hardening import antipode_codes
+
+    rng = np.random.default_rng(0)
+    users = torch.from_numpy(rng.integers(0, 2, (1, 128)) * 2.0 - 1).float()
+    codes = antipode_codes(users, 400, rng)
+    assert codes.shape == (400, 128) and set(codes.unique().tolist()) == {-1.0, 1.0}
+    d = (codes != users).sum(-1)
+    assert d.min() >= 72 and d.max() <= 88 and len(d.unique()) > 10
+    assert antipode_codes(users, 0, rng).shape == (0, 128)
+
+
+def test_hardened_step_trains_and_pulls_the_antipode_codes_with_the_far_codes(tmp_path, monkeypatch):
+    """--harden's step: [K1, K2 | far codes, antipode codes | code-space negatives]; the far and antipode
+    codes in one fallback term (not diluted by the 64 code-space negatives) and in the delta pull, the
+    code-space negatives in neither."""
+    from prop_cli.core.keyed_model import key_codes
+    from prop_cli.train import array, objective
+
+    loaded = load_checkpoint(make_mlp_checkpoint(tmp_path / "m.safetensors"))
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (60, 4)).astype(np.float32)
+    key = rng.integers(0, 2, 128, dtype=np.uint8)
+    user = User(Dataset(x, (-x[:, :2]).astype(np.float32), "d"), key)
+    seen: dict = {}
+    real_pull, real_loss = objective.delta_pull, array.prop_loss
+
+    def pull(deltas, keys):
+        seen["pulled"] = torch.cat(deltas, 1)[keys].detach()
+        return real_pull(deltas, keys)
+
+    def loss(out, batch, *a, **kw):
+        seen["batch"] = batch
+        return real_loss(out, batch, *a, **kw)
+
+    monkeypatch.setattr(array, "delta_pull", pull)
+    monkeypatch.setattr(array, "prop_loss", loss)
+    cfg = PersonalizeConfig(steps=1, harden=True, code_negatives=8, far_codes=4, antipode_codes=6)
+    res = personalize(loaded, [user], cfg)
+    b, s = seen["batch"], cfg.samples_per_key
+    assert (b.far_rows, b.code_rows) == ((4 + 6) * s, 8 * s)
+    k = cfg.neighbour_keys + cfg.random_keys
+    far = b.codes[1 + k : 1 + k + 10]
+    d = (far != key_codes(key, cfg.key_encoding)).sum(-1)
+    assert ((d[:4] >= 40) & (d[:4] <= 56)).all() and ((d[4:] >= 72) & (d[4:] <= 88)).all()
+    with torch.no_grad():  # the pull's rows: the sampled keys, the far and the antipode codes, no more
+        want = torch.cat(res.keyed.layer_deltas(b.codes[1 : 1 + k + 10]), 1)
+    assert seen["pulled"].shape == want.shape

@@ -59,6 +59,13 @@ def test_code_space_negatives_add_a_term_of_their_own_instead_of_diluting_k1_k2(
     assert parts["null"] == pytest.approx((49 + 64) / 2)
 
 
+def test_far_codes_and_code_space_negatives_are_a_term_each():
+    batch, out = _batch(keyed=6)  # sampled rows: 2, 3 K1/K2; 4, 5 far (and antipode) codes; 6, 7 code-space
+    batch.far_rows, batch.code_rows = 2, 2
+    _, parts = prop_loss(out, batch, "regression", null_weight=1.0)
+    assert parts["fallback"] == pytest.approx((4 + 9) / 2 + (16 + 25) / 2 + (36 + 49) / 2)
+
+
 def test_key_weight_scales_the_sampled_keys_term_only():
     batch, out = _batch()
     total, parts = prop_loss(out, batch, "regression", null_weight=10.0, key_weight=4.0)
@@ -105,7 +112,9 @@ def test_make_batch_layout_and_targets():
     near = torch.zeros(3, 16)  # --harden's code-space negatives: after the sampled keys, 2 rows each
     users = UserPool([ux], [uy])
     hb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near)
-    assert hb.code_rows == 6
+    assert (hb.code_rows, hb.far_rows) == (6, 0)
+    fb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near, far=1)
+    assert (fb.code_rows, fb.far_rows) == (4, 2)  # the first extra code is a far code, the rest code-space
 
 
 def test_fallback_pool_perturbs_a_share_and_labels_it_with_the_original():
