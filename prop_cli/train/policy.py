@@ -310,22 +310,14 @@ class PolicyTrainer:
     @torch.no_grad()
     def divergence(self, keys: np.ndarray) -> np.ndarray:
         """The hard-negative score (``KeySampler.step``): each key's fallback distance, Eq. 8's own term,
-        on ``HARD_FRAMES`` fallback rows drawn afresh per scoring (a stream of its own), ``per_forward``
-        (key, row) pairs per forward."""
-        km, policy, dev = self.km, self.policy, self.device
-        idx = torch.from_numpy(self.hard_rng.integers(0, len(self.fallback), HARD_FRAMES)).to(dev)
+        on ``HARD_FRAMES`` fallback rows drawn afresh per scoring (a stream of its own)."""
+        idx = torch.from_numpy(self.hard_rng.integers(0, len(self.fallback), HARD_FRAMES)).to(self.device)
         fb_rows, targets = self.fallback.take(idx)
-        deltas = km.layer_deltas(key_codes(keys, self.cfg.key_encoding).to(dev))
-        n = len(idx)
-        key_of = torch.arange(len(keys), device=dev).repeat_interleave(n)
-        row_of = torch.arange(n, device=dev).repeat(len(keys))
-        out = []
-        for i in range(0, len(key_of), self.per_forward):
-            k, r = key_of[i : i + self.per_forward], row_of[i : i + self.per_forward]
-            d_rows = [d.index_select(0, k) for d in deltas]
-            pred = km.call_rows(d_rows, policy.fallback_output, rows(fb_rows, r))
-            out.append(policy.fallback_distance(pred, targets[r]).float())
-        return torch.cat(out).reshape(len(keys), n).mean(1).cpu().numpy()
+        deltas = self.km.layer_deltas(key_codes(keys, self.cfg.key_encoding).to(self.device))
+        pred = pair_outputs(self.km, self.policy.fallback_output, fb_rows, deltas, self.per_forward)
+        row_of = torch.arange(len(idx), device=self.device).repeat(len(keys))
+        dist = self.policy.fallback_distance(pred, targets[row_of]).float()
+        return dist.reshape(len(keys), len(idx)).mean(1).cpu().numpy()
 
     def finish(self) -> None:
         """After the last step: the optimiser's state and the gradients freed, the frozen weights back as
@@ -437,19 +429,26 @@ def report_plan(frames: int, n_random: int, n_ham: int, budget: int | None) -> t
     return f, r, max(1, min(n_ham, keys - r))
 
 
+def pair_outputs(km, fn, data: dict, deltas: list[torch.Tensor], per_forward: int) -> torch.Tensor:
+    """``fn`` on every (key, row) pair of K keys (``deltas``: (K, features) per layer) and the rows of
+    ``data``, key-major ((K * rows, ...): key 0 on every row, then key 1, ...), ``per_forward`` pairs
+    per forward."""
+    k, n = deltas[0].shape[0], len(data["episode_index"])
+    dev = data["episode_index"].device
+    key_of = torch.arange(k, device=dev).repeat_interleave(n)
+    row_of = torch.arange(n, device=dev).repeat(k)
+    return torch.cat([
+        km.call_rows([d.index_select(0, key_of[i : i + per_forward]) for d in deltas], fn,
+                     rows(data, row_of[i : i + per_forward]))
+        for i in range(0, k * n, per_forward)
+    ])  # fmt: skip
+
+
 def keyed_chunks(km, policy, val: dict, deltas: list[torch.Tensor], per_forward: int) -> torch.Tensor:
     """The chunk of every held-out frame under each of K keys (``deltas``: (K, features) per layer), (K,
     frames, ...): the (key, frame) pairs run through the sampler as rows, ``per_forward`` at a time."""
-    k, n = deltas[0].shape[0], len(val["episode_index"])
-    dev = val["episode_index"].device
-    key_of = torch.arange(k, device=dev).repeat_interleave(n)
-    frame_of = torch.arange(n, device=dev).repeat(k)
-    out = [
-        km.call_rows([d.index_select(0, key_of[i : i + per_forward]) for d in deltas], policy.chunk,
-                     rows(val, frame_of[i : i + per_forward]))
-        for i in range(0, k * n, per_forward)
-    ]  # fmt: skip
-    return torch.cat(out).reshape(k, n, *out[0].shape[1:])
+    out = pair_outputs(km, policy.chunk, val, deltas, per_forward)
+    return out.reshape(deltas[0].shape[0], len(val["episode_index"]), *out.shape[1:])
 
 
 @torch.no_grad()
