@@ -295,7 +295,7 @@ def test_an_unenrolled_key_runs_the_plain_model_once(default_bundle):
         assert torch.equal(got["outputs"][5], fresh.module(ctx.ref.x))
 
 
-def test_structure_reads_the_code_off_the_antipode_of_the_largest_deltas(default_bundle, cli):
+def test_structure_reads_the_code_off_a_scan_of_random_codes_deltas(default_bundle, cli):
     """An attack on issue 32's pull, found by attacking it: the random codes whose deltas are farthest
     from 1 sit around the user's antipode, so their negated majority vote is a few bits from the user's
     code. The structure probe runs it (data-free, as its other methods) and reports how close it came."""
@@ -305,3 +305,7 @@ def test_structure_reads_the_code_off_the_antipode_of_the_largest_deltas(default
     vote = st["search"]["methods"]["antipode_vote"]
     # A random code is 64 +- 5.7 bits from the user's; this bundle's vote came 11 bits off (leakage 0.68)
     assert vote["candidates"] == 2 and vote["min_code_distance"] <= 24 and vote["worst_leakage"] > 0.3, vote
+    # The same scan's delta PCA regressed on the codes (found attacking --harden's antipode codes): 1 bit
+    # off on this bundle (leakage 0.92).
+    pca = st["search"]["methods"]["delta_pca"]
+    assert pca["candidates"] == 8 and pca["min_code_distance"] <= 12 and pca["worst_leakage"] > 0.5, pca

@@ -17,6 +17,8 @@ training step, and training imprints it on the encoder:
   around the user's antipode, so the vote's negation lands a few bits from the user's code (found
   attacking issue 32's fix: 2 of 128 bits off, leakage 0.94, where the same vote was 35 bits off
   before the pull); both signs are probed;
+- delta PCA: the same scan's heads, their top principal directions regressed on the codes (a near-odd
+  encoder's delta - 1 follows the code's projection on the user's): 0-1 bits off on IL bundles;
 - and a greedy bit-flip refinement of the attacker's pick on the same data-free objective.
 
 Every candidate is rounded to ±1 (both signs: a singular vector's sign is arbitrary) and probed as a
@@ -40,7 +42,8 @@ TOP = 3  # singular vectors per matrix
 JACOBIAN_POINTS = 4  # random codes besides the zero code
 NORM_RESTARTS, NORM_STEPS, NORM_LR = 16, 100, 0.1
 FLIP_PASSES = 2
-VOTE_CODES, VOTE_TOP, VOTE_CHUNK = 16384, 64, 1024  # antipode vote: codes scanned, voters, rows per forward
+VOTE_CODES, VOTE_TOP, VOTE_CHUNK = 16384, 64, 1024  # code scan: codes, antipode voters, rows per forward
+SCAN_DIMS, SCAN_PCS = 256, 4  # code scan's delta PCA: projected width, principal directions regressed
 
 
 def _linears(enc: KeyEncoder) -> list[nn.Linear]:
@@ -99,11 +102,35 @@ def w1_svd(enc: KeyEncoder) -> torch.Tensor:
 
 
 @torch.no_grad()
-def antipode_vote(enc: KeyEncoder, gen: torch.Generator) -> torch.Tensor:
-    codes = torch.randint(0, 2, (VOTE_CODES, enc.code_bits), generator=gen).float() * 2 - 1
-    codes = codes.to(enc.net[0].weight.device)
-    norm = torch.cat([_head_norm(enc, codes[i : i + VOTE_CHUNK]) for i in range(0, VOTE_CODES, VOTE_CHUNK)])
-    return _both(codes[norm.topk(VOTE_TOP).indices].sum(0, keepdim=True))
+def code_scan(enc: KeyEncoder, gen: torch.Generator) -> dict[str, torch.Tensor]:
+    """Two reads of one scan of VOTE_CODES random codes' heads (``tanh(head(c))``: the delta's direction
+    before the scale):
+
+    - ``antipode_vote``: the bitwise majority of the VOTE_TOP codes whose delta is farthest from 1;
+    - ``delta_pca``: the heads' top SCAN_PCS principal directions (in a fixed random projection to at most
+      SCAN_DIMS dimensions, so the scan holds VOTE_CODES x SCAN_DIMS floats whatever the keyed width),
+      each code's coordinate on them regressed on the codes. A near-odd encoder gives delta(c) - 1 ~
+      f(c . u) v, so the regression's signs are +- the user's code u (found attacking --harden's
+      antipode codes: 0 and 1 bits off on a hardened and a default IL bundle, where the vote was off
+      by more)."""
+    dev = enc.net[0].weight.device
+    codes = (torch.randint(0, 2, (VOTE_CODES, enc.code_bits), generator=gen).float() * 2 - 1).to(dev)
+    width = enc.net(codes[:1]).shape[1]
+    proj = None
+    if width > SCAN_DIMS:
+        proj = (torch.randn(width, SCAN_DIMS, generator=gen) / SCAN_DIMS**0.5).to(dev)
+    norms, heads = [], []
+    for i in range(0, VOTE_CODES, VOTE_CHUNK):
+        h = torch.tanh(enc.net(codes[i : i + VOTE_CHUNK]))
+        norms.append((h**2).sum(-1))
+        heads.append(h if proj is None else h @ proj)
+    head = torch.cat(heads)
+    head = head - head.mean(0)
+    pcs = torch.linalg.svd(head, full_matrices=False).Vh[:SCAN_PCS]
+    return {
+        "antipode_vote": _both(codes[torch.cat(norms).topk(VOTE_TOP).indices].sum(0, keepdim=True)),
+        "delta_pca": _both((head @ pcs.T).T @ codes),
+    }
 
 
 @torch.no_grad()
@@ -147,7 +174,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         "jacobian": jacobian(enc, gen),
         "latent_norm": latent_norm(enc, gen),
         "w1_svd": w1_svd(enc),
-        "antipode_vote": antipode_vote(enc, gen),
+        **code_scan(enc, gen),
         "init_difference": init_difference(enc, ctx.seed_hint),
     }
     methods = {k: v.to(dev) for k, v in methods.items() if len(v)}
