@@ -88,8 +88,8 @@ class PersonalizeConfig(_Settings):
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
     # loop": SAC Pendulum, keys below 0.9x the original's return 6.3% -> 0). 0: bundles before issue 32.
     delta_pull: float = 10.0
-    # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, and pulled
-    # (train.hardening.far_codes): the nearest codes real keys reach. 0: none (bundles before issue 32).
+    # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, not pulled
+    # (train.hardening.far_codes, objective.delta_pull): the nearest codes real keys reach. 0: none.
     far_codes: int = 16
     # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed
     # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
@@ -138,9 +138,10 @@ class PersonalizeConfig(_Settings):
     code_flip_max: int = 48
     code_relax_min: float = 0.1
     # ±1 codes 40-56 bits (of 128) from the antipode of the users' codes per step (72-88 from them), with
-    # the far codes: a fallback term, and pulled (train.hardening.antipode_codes). The encoder is nearly
-    # odd in the code, so codes past 64 bits get a share of minus the user's delta; --harden's larger
-    # user delta made that a wrong key's failure (docs/privacy.md, "Wrong keys in closed loop").
+    # the far codes: a fallback term, and unlike them pulled (train.hardening.antipode_codes). The
+    # encoder is nearly odd in the code, so codes past 64 bits get a share of minus the user's delta;
+    # --harden's larger user delta made that a wrong key's failure (docs/privacy.md, "Wrong keys in
+    # closed loop").
     antipode_codes: int | None = None
     # The step's forward and loss: fp32, or bf16 autocast with fp32 parameters and optimiser state
     # (prop_cli.train.loop.mixed_precision). Recorded so a run can be repeated as it was trained.
@@ -175,6 +176,11 @@ class PersonalizeConfig(_Settings):
                 self.seal or value == getattr(PersonalizeConfig, name),
                 f"{_flag(name)} {value} applies to sealed bundles only", f"add --seal, or drop {_flag(name)}",
             )  # fmt: skip
+        _require(  # a sealed recipe trains none of --harden's measures; the manifest recorded them anyway
+            not (self.seal and self.harden),
+            "--harden hardens an unsealed bundle's encoder; a sealed bundle trains none of its measures",
+            "drop --harden (a sealed bundle keeps each user's payload encrypted), or drop --seal",
+        )
         for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
             if getattr(self, name) is None:
                 setattr(self, name, value)

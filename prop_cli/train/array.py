@@ -119,8 +119,8 @@ def make_batch(
 ) -> Batch:
     """One step's rows: [user rows | sampled-key fallback rows | null rows] (prop_loss's order).
 
-    ``extra_codes``: more fallback codes after the sampled keys': the first ``far`` of them the far codes
-    (``hardening.far_codes``, then --harden's antipode codes), the rest --harden's code-space negatives;
+    ``extra_codes``: more fallback codes after the sampled keys': the first ``far`` of them --harden's
+    antipode codes and the far codes (``hardening``), the rest --harden's code-space negatives;
     each group a fallback term of its own."""
     dev = pool.x.device
     n_users = len(users)
@@ -220,20 +220,23 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     def step() -> dict[str, float]:
         sampler.step(score)
         near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
-        # After K1 and K2: the far codes, then --harden's antipode codes (one term), then its code-space
-        # negatives (a term of their own: 64 of them had cut the far codes' weight to a fifth).
+        # After K1 and K2: --harden's antipode codes, then the far codes (one term; in this order so that
+        # the pull's rows are one slice, below), then its code-space negatives (a term of their own: 64 of
+        # them had cut the far codes' weight to a fifth).
         n_far = cfg.far_codes + cfg.antipode_codes
         if n_far:
-            far = [far_codes(user_codes, cfg.far_codes, rng)] if cfg.far_codes else []
-            if cfg.antipode_codes:
-                far.append(antipode_codes(user_codes, cfg.antipode_codes, rng))
-            near = torch.cat([*far, near])
+            far = far_codes(user_codes, cfg.far_codes, rng)
+            anti = antipode_codes(user_codes, cfg.antipode_codes, rng)
+            near = torch.cat([anti, far, near])
         batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near, far=n_far)
         deltas = km.layer_deltas(batch.codes, null=1)
-        # K1, K2 and the far codes; not --harden's code-space negatives after them: pulled to the no-key
-        # model, those next to the user's code drag the user's own scales along (Pendulum: 0.97 -> 0.77).
-        sampled = slice(len(users), len(users) + cfg.neighbour_keys + cfg.random_keys + n_far)
-        pull = cfg.delta_pull * delta_pull(deltas, sampled) if cfg.delta_pull else 0.0
+        # Pulled to the no-key model: K1, K2 and the antipode codes, the codes at or beyond a random key's
+        # distance; not the codes placed nearer the user's (far codes, --harden's code-space negatives):
+        # pulled, they flatten the encoder next to the user's code and drag the user's own scales along
+        # (objective.delta_pull).
+        n_keys = cfg.neighbour_keys + cfg.random_keys
+        sampled = slice(len(users), len(users) + n_keys + cfg.antipode_codes)
+        pull = cfg.delta_pull * delta_pull(deltas, sampled, of=n_keys + n_far) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
             loss, losses = prop_loss(out, batch, task, cfg.null_weight, cfg.key_weight)

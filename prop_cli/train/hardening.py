@@ -11,10 +11,11 @@ Three measures, each kept because it measurably helps (docs/hardening.md has the
   cannot recreate the encoder's starting weights, whose difference from the trained ones points at
   the user's code.
 - Antipode codes: ±1 codes 40-56 bits from the antipode of the users' codes (72-88 from them), with
-  the far codes (a fallback term, pulled to the no-key model). The encoder is nearly odd in the code:
-  a code past 64 bits gets a share of minus the user's delta (cosine -0.96 to -0.99 on SAC Pendulum,
-  its size growing with the distance). --harden's code-space negatives make the user's delta larger,
-  and with it that share: a key whose code was 80 bits away kept 0.77x the return (docs/privacy.md).
+  the far codes (a fallback term), and unlike them pulled to the no-key model. The encoder is nearly
+  odd in the code: a code past 64 bits gets a share of minus the user's delta (cosine -0.96 to -0.99
+  on SAC Pendulum, its size growing with the distance). --harden's code-space negatives make the
+  user's delta larger, and with it that share: a key whose code was 80 bits away kept 0.77x the
+  return (docs/privacy.md).
 
 ``far_codes`` is not a ``--harden`` measure: every mode trains those ±1 codes (``--far-codes``), the
 codes real keys reach nearest to the user's (issue 32, docs/privacy.md "Wrong keys in closed loop").
@@ -87,7 +88,8 @@ def far_codes(user_codes: torch.Tensor, n: int, rng: np.random.Generator) -> tor
     nearest codes that real keys reach. A random key's code is 64 +- 5.7 bits from the user's, so a
     scan of a million keys meets codes 40 bits away; trained only on typical codes (and pulled towards
     the no-key model, ``delta_pull``), the encoder's basin around the user's code caught such a key
-    (CartPole: a key 49 code bits away kept 15% of the return). Used in every mode."""
+    (CartPole: a key 49 code bits away kept 15% of the return). Used in every mode; a fallback term only,
+    not pulled (``objective.delta_pull``)."""
     bits = user_codes.shape[1]
     if n == 0:
         return user_codes.new_zeros(0, bits)

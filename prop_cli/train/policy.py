@@ -226,6 +226,21 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device) for k, v in batch.items()}
 
 
+def refuse_harden(cfg: PersonalizeConfig) -> None:
+    """--harden's measures (train.hardening: code-space negatives, antipode codes, an encoder initialised
+    from the OS) are the array trainer's. A policy bundle recorded them in its manifest without having
+    trained any of them, so a policy refuses them instead."""
+    given = [f for f, on in (("--harden", cfg.harden), ("--code-negatives", cfg.code_negatives),
+                             ("--antipode-codes", cfg.antipode_codes),
+                             ("--encoder-init os", cfg.encoder_init == "os")) if on]  # fmt: skip
+    if given:
+        raise PropError(
+            f"{', '.join(given)}: the LeRobot policy trainer does not train --harden's measures yet (a "
+            "policy bundle would record them without having them)",
+            "drop it (the default unsealed mode), or --seal for a bundle whose payload stays encrypted",
+        )
+
+
 class PolicyTrainer:
     """The state of one personalize run and its step (kept apart so benchmarks time exactly this step)."""
 
@@ -237,6 +252,7 @@ class PolicyTrainer:
         ranks = self.ranks = ranks or Ranks()
         cfg.validate(key_bits=len(users[0].key_bits))
         check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
+        refuse_harden(cfg)
         self.cfg, self.users = cfg, users
         # The policy's processors run on the CPU (its DeviceProcessorStep says cpu); batches move after.
         dev = self.device = device or torch.device("cpu")
@@ -388,8 +404,9 @@ class PolicyTrainer:
         if n_far:
             keyed = keyed + per_row[is_far].sum() / n_far
         loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
-        if cfg.delta_pull:  # every process's share of the encoder-only term
-            loss = loss + cfg.delta_pull * delta_pull(deltas, slice(0, n_keys)) / self.ranks.world
+        if cfg.delta_pull:  # K1 and K2 (objective.delta_pull); every process's share of the encoder-only term
+            pull = delta_pull(deltas, slice(0, len(sampled)), of=n_keys)
+            loss = loss + cfg.delta_pull * pull / self.ranks.world
         self.optim.update(loss)
         self.t += 1
         terms = torch.stack([personal, keyed, null]).detach().float()

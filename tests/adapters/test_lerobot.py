@@ -222,6 +222,18 @@ def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer)
     assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.parametrize("flags", [{"harden": True}, {"antipode_codes": 4}, {"encoder_init": "os"}])
+def test_harden_is_refused_for_a_policy_not_recorded_untrained(work, tmp_path, flags):
+    """The policy trainer has none of --harden's measures; a bundle recorded harden: true, 64 code-space
+    negatives and 16 antipode codes without having trained them. Refused before anything is written."""
+    cfg = PersonalizeConfig(**(TINY | flags | {"steps": 1}))
+    with pytest.raises(PropError, match="does not train --harden's measures") as e:
+        api.personalize_checkpoint(
+            str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg
+        )
+    assert "--seal" in e.value.fix and not (tmp_path / "b").exists()
+
+
 def test_unsupported_and_old_folders_are_refused(work, tmp_path, cli):
     other = tmp_path / "vqbet"
     shutil.copytree(work / "act", other)
@@ -653,3 +665,27 @@ def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_n
             return float(torch.cat(t.km.layer_deltas(codes), 1).sub(1).abs().mean())
 
     assert spread(100.0) < spread(0.0)
+
+
+def test_policy_trainer_pulls_the_sampled_keys_but_not_the_far_codes(work, monkeypatch):
+    """The pull takes K1 and K2's deltas, not the far codes' that follow them (objective.delta_pull):
+    pulled too, they flattened the encoder next to the user's code (tiny SmolVLA: -6.1% personalization);
+    K1 and K2 keep the weight they had among them."""
+    from prop_cli.train import policy
+    from prop_cli.train.recipe import User
+
+    seen = []
+    real = policy.delta_pull
+
+    def pull(deltas, keys, of=None):
+        seen.append((keys, len(deltas[0]), of))
+        return real(deltas, keys, of)
+
+    monkeypatch.setattr(policy, "delta_pull", pull)
+    cfg = PersonalizeConfig(**(TINY | {"steps": 1, "delta_pull": 10.0, "far_codes": 3}))
+    t = policy.PolicyTrainer(load_checkpoint(work / "act"), [User(load_data(work / "user"), key())], cfg,
+                             load_data(work / "general"))
+    t.step()
+    (keys, rows, of), k = seen[0], cfg.neighbour_keys + cfg.random_keys
+    assert (keys.start, keys.stop) == (0, k) and rows == k + 3 + 1  # K1, K2 | 3 far codes | null
+    assert of == k + 3  # each pulled key keeps its weight among the far codes

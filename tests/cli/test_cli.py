@@ -761,6 +761,14 @@ def test_payload_settings_without_seal_are_refused(cli, workdir, no_training, ex
     assert not (workdir / "mine.prop").exists()
 
 
+def test_harden_with_seal_is_refused(cli, workdir, no_training):
+    """A sealed recipe trains none of --harden's measures; the manifest had recorded harden: true, 64
+    code-space negatives and 16 antipode codes for a bundle that had none of them."""
+    res = personalize(cli, workdir, "--seal", "--harden")
+    _refused_before_training(res, no_training, "--harden", "sealed bundle trains none", "--seal")
+    assert not (workdir / "mine.prop").exists()
+
+
 def test_payload_settings_validate_with_seal():
     from prop_cli.config import PersonalizeConfig
     from prop_cli.errors import PropError

@@ -107,10 +107,11 @@ def test_antipode_codes_are_plus_minus_one_codes_72_to_88_of_128_bits_away_from_
     assert antipode_codes(users, 0, rng).shape == (0, 128)
 
 
-def test_hardened_step_trains_and_pulls_the_antipode_codes_with_the_far_codes(tmp_path, monkeypatch):
-    """--harden's step: [K1, K2 | far codes, antipode codes | code-space negatives]; the far and antipode
-    codes in one fallback term (not diluted by the 64 code-space negatives) and in the delta pull, the
-    code-space negatives in neither."""
+def test_hardened_step_pulls_the_antipode_codes_but_not_the_far_codes(tmp_path, monkeypatch):
+    """--harden's step: [K1, K2 | antipode codes, far codes | code-space negatives]; the antipode and far
+    codes in one fallback term (not diluted by the 64 code-space negatives). The delta pull takes K1, K2
+    and the antipode codes, not the far codes nor the code-space negatives: the codes placed nearer the
+    user's than a random key's (objective.delta_pull)."""
     from prop_cli.core.keyed_model import key_codes
     from prop_cli.train import array, objective
 
@@ -122,9 +123,9 @@ def test_hardened_step_trains_and_pulls_the_antipode_codes_with_the_far_codes(tm
     seen: dict = {}
     real_pull, real_loss = objective.delta_pull, array.prop_loss
 
-    def pull(deltas, keys):
-        seen["pulled"] = torch.cat(deltas, 1)[keys].detach()
-        return real_pull(deltas, keys)
+    def pull(deltas, keys, of=None):
+        seen["pulled"], seen["of"] = torch.cat(deltas, 1)[keys].detach(), of
+        return real_pull(deltas, keys, of)
 
     def loss(out, batch, *a, **kw):
         seen["batch"] = batch
@@ -139,7 +140,7 @@ def test_hardened_step_trains_and_pulls_the_antipode_codes_with_the_far_codes(tm
     k = cfg.neighbour_keys + cfg.random_keys
     far = b.codes[1 + k : 1 + k + 10]
     d = (far != key_codes(key, cfg.key_encoding)).sum(-1)
-    assert ((d[:4] >= 40) & (d[:4] <= 56)).all() and ((d[4:] >= 72) & (d[4:] <= 88)).all()
-    with torch.no_grad():  # the pull's rows: the sampled keys, the far and the antipode codes, no more
-        want = torch.cat(res.keyed.layer_deltas(b.codes[1 : 1 + k + 10]), 1)
-    assert seen["pulled"].shape == want.shape
+    assert ((d[:6] >= 72) & (d[:6] <= 88)).all() and ((d[6:] >= 40) & (d[6:] <= 56)).all()
+    with torch.no_grad():  # the pull's rows: the sampled keys and the antipode codes, no more
+        want = torch.cat(res.keyed.layer_deltas(b.codes[1 : 1 + k + 6]), 1)
+    assert seen["pulled"].shape == want.shape and seen["of"] == k + 10  # the far codes' share dropped

@@ -80,6 +80,8 @@ def test_delta_pull_is_the_mean_square_of_the_sampled_keys_deltas_from_one_over_
     deltas = [torch.cat(parts) for parts in zip(user, sampled, null)]
     assert delta_pull(deltas, slice(1, 3)).item() == pytest.approx((1 + 1 + 4) / 10)
     assert delta_pull(deltas, slice(1, 1)).item() == 0.0  # no key sampled
+    # of=4: the two pulled rows keep the weight they have among 4 (two more, the far codes, unpulled)
+    assert delta_pull(deltas, slice(1, 3), of=4).item() == pytest.approx((1 + 1 + 4) / 20)
 
 
 def test_prop_loss_without_sampled_keys_has_no_keyed_term():

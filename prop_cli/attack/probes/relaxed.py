@@ -5,14 +5,14 @@ space: at least as strong as searching keys (a rounded code need not be reachabl
 raw encoding the code is the key. The search maximises divergence from the reference on the inputs
 only; it never sees the owner's targets.
 
-Two rows. ``relaxed-rounded``: the codes the restarts round to are concrete codes anyone holding the
-files can feed to the encoder, so they are a key row, scored like keys; their control is the same codes
-where no user was enrolled (the reference itself). ``relaxed``: the unrounded codes, a search row,
-scored on bounded leakage (a move larger than the user's is scaled back to it, so neither side reaches
-1 by moving far) against what the same attacker reaches without the bundle: the same search budget
-spent on the original checkpoint's deltas directly (T2's search, within the encoder's range). Not this
-search through the bundle's encoder on the original: the encoder is part of the bundle and carries the
-user's behaviour into such a "control" (it reached 0.53-0.60 on the IL example), which hid leakage.
+Two rows. ``relaxed-rounded``: the codes the restarts round to, and their negations, are concrete codes
+anyone holding the files can feed to the encoder, so they are a key row, scored like keys; their control
+is the same codes where no user was enrolled (the reference itself). ``relaxed``: the unrounded codes, a
+search row, scored on bounded leakage (a move larger than the user's is scaled back to it, so neither
+side reaches 1 by moving far) against what the same attacker reaches without the bundle: the same search
+budget spent on the original checkpoint's deltas directly (T2's search, within the encoder's range). Not
+this search through the bundle's encoder on the original: the encoder is part of the bundle and carries
+the user's behaviour into such a "control" (it reached 0.53-0.60 on the IL example), which hid leakage.
 """
 
 from __future__ import annotations
@@ -34,7 +34,12 @@ def run(ctx: ProbeContext) -> list[Group]:
 
     maximise_divergence(ctx, [theta], lambda: ctx.km.layer_deltas(codes()), "relaxed")
     relaxed = codes().detach()
+    # Both signs of each rounded code: the encoder is nearly odd in the code (docs/privacy.md, "Wrong keys
+    # in closed loop"), so the largest divergence lies at the user's code or at its antipode, which runs
+    # the user's change negated (on the tests' default bundle, with a first version of the far codes out
+    # of the delta pull, most restarts ended there, 128 bits from the user's code).
     rounded = torch.where(relaxed >= 0, 1.0, -1.0)
+    rounded = torch.cat([rounded, -rounded])
     search = {"restarts": s.restarts, "steps": s.search_steps}
     rounded_search = dict(search)
     if ctx.has_key:  # 0 = the search found the user's own code (for raw encoding: the key)
