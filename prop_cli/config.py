@@ -147,6 +147,24 @@ class PersonalizeConfig(_Settings):
     # (prop_cli.train.loop.mixed_precision). Recorded so a run can be repeated as it was trained.
     precision: str = PRECISIONS[0]
 
+    @classmethod
+    def recorded(cls, d: dict) -> PersonalizeConfig:
+        """The settings a bundle's manifest records. For a sealed bundle, without --harden's: sealed
+        bundles written before ``--seal --harden`` was refused recorded them, untrained."""
+        cfg = cls.from_dict(d)
+        if cfg.seal:
+            cfg.harden = False
+            for name in HARDEN_PRESET:
+                setattr(cfg, name, None)
+        return cfg
+
+    def hardening(self) -> list[str]:
+        """--harden, or each of its preset's settings given away from the plain default (after
+        ``validate`` filled them), as flags: what only the array trainer's unsealed mode trains."""
+        if self.harden:
+            return ["--harden"]
+        return [f"{_flag(k)} {getattr(self, k)}" for k, v in PLAIN_PRESET.items() if getattr(self, k) != v]
+
     @property
     def batch_rows(self) -> int:
         sampled = self.random_keys + self.neighbour_keys + self.far_codes
@@ -176,14 +194,16 @@ class PersonalizeConfig(_Settings):
                 self.seal or value == getattr(PersonalizeConfig, name),
                 f"{_flag(name)} {value} applies to sealed bundles only", f"add --seal, or drop {_flag(name)}",
             )  # fmt: skip
-        _require(  # a sealed recipe trains none of --harden's measures; the manifest recorded them anyway
-            not (self.seal and self.harden),
-            "--harden hardens an unsealed bundle's encoder; a sealed bundle trains none of its measures",
-            "drop --harden (a sealed bundle keeps each user's payload encrypted), or drop --seal",
-        )
         for name, value in (HARDEN_PRESET if self.harden else PLAIN_PRESET).items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
+        hardening = self.hardening()
+        _require(  # a sealed recipe trains none of --harden's measures; the manifest recorded them anyway
+            not (self.seal and hardening),
+            f"{', '.join(hardening)}: --harden's measures harden an unsealed bundle's encoder; a sealed "
+            "bundle trains none of them",
+            "drop them (a sealed bundle keeps each user's payload encrypted), or drop --seal",
+        )
         self.need(self.encoder_init in ENCODER_INITS, "encoder_init", " or ".join(ENCODER_INITS))
         self.at_least(code_negatives=0, code_flip_max=1, hard_negatives=0, far_codes=0, antipode_codes=0)
         if self.hard_negatives:

@@ -23,7 +23,7 @@ def added_user_config(bundle: Bundle, cfg: PersonalizeConfig | None) -> Personal
     """``cfg`` (default: the settings the bundle was made with), held to the bundle's payload kind, rank
     and layers: every record is enrolled in them."""
     m = bundle.manifest
-    cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
+    cfg = cfg or PersonalizeConfig.recorded(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
     rank = payload_kind(cfg.payload).rank(cfg.payload_rank)
     if (cfg.payload, rank) != (spec["kind"], spec["rank"]):

@@ -230,14 +230,11 @@ def refuse_harden(cfg: PersonalizeConfig) -> None:
     """--harden's measures (train.hardening: code-space negatives, antipode codes, an encoder initialised
     from the OS) are the array trainer's. A policy bundle recorded them in its manifest without having
     trained any of them, so a policy refuses them instead."""
-    given = [f for f, on in (("--harden", cfg.harden), ("--code-negatives", cfg.code_negatives),
-                             ("--antipode-codes", cfg.antipode_codes),
-                             ("--encoder-init os", cfg.encoder_init == "os")) if on]  # fmt: skip
-    if given:
+    if given := cfg.hardening():
         raise PropError(
             f"{', '.join(given)}: the LeRobot policy trainer does not train --harden's measures yet (a "
             "policy bundle would record them without having them)",
-            "drop it (the default unsealed mode), or --seal for a bundle whose payload stays encrypted",
+            "drop them (the default unsealed mode), or --seal for a bundle whose payload stays encrypted",
         )
 
 

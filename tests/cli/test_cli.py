@@ -769,6 +769,26 @@ def test_harden_with_seal_is_refused(cli, workdir, no_training):
     assert not (workdir / "mine.prop").exists()
 
 
+@pytest.mark.parametrize("flags", [["--code-negatives", "8"], ["--antipode-codes", "4"],
+                                   ["--encoder-init", "os"]])
+def test_hardening_settings_with_seal_are_refused(cli, workdir, no_training, flags):
+    res = personalize(cli, workdir, "--seal", *flags)
+    _refused_before_training(res, no_training, flags[0], "sealed bundle trains none", "--seal")
+
+
+def test_a_sealed_bundles_recorded_harden_is_dropped_for_add_user():
+    """Sealed bundles written before --seal --harden was refused recorded --harden's settings untrained;
+    add-user reads them back without them instead of refusing its own bundle."""
+    from prop_cli.config import PersonalizeConfig
+
+    old = PersonalizeConfig(seal=True, harden=True).to_dict() | {"code_negatives": 64, "encoder_init": "os"}
+    cfg = PersonalizeConfig.recorded(old).validate()
+    assert cfg.seal and not cfg.harden and cfg.hardening() == []
+    assert (cfg.code_negatives, cfg.antipode_codes, cfg.encoder_init) == (0, 0, "seed")
+    unsealed = PersonalizeConfig.recorded(PersonalizeConfig(harden=True).to_dict()).validate()
+    assert unsealed.harden and unsealed.code_negatives == 64  # an unsealed bundle's record is kept
+
+
 def test_payload_settings_validate_with_seal():
     from prop_cli.config import PersonalizeConfig
     from prop_cli.errors import PropError
