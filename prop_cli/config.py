@@ -147,16 +147,12 @@ class PersonalizeConfig(_Settings):
     # (prop_cli.train.loop.mixed_precision). Recorded so a run can be repeated as it was trained.
     precision: str = PRECISIONS[0]
 
-    @classmethod
-    def recorded(cls, d: dict) -> PersonalizeConfig:
-        """The settings a bundle's manifest records. For a sealed bundle, without --harden's: sealed
-        bundles written before ``--seal --harden`` was refused recorded them, untrained."""
-        cfg = cls.from_dict(d)
-        if cfg.seal:
-            cfg.harden = False
-            for name in HARDEN_PRESET:
-                setattr(cfg, name, None)
-        return cfg
+    def without_hardening(self) -> PersonalizeConfig:
+        """These settings with --harden's preset cleared (filled with the plain defaults by ``validate``)."""
+        self.harden = False
+        for name in HARDEN_PRESET:
+            setattr(self, name, None)
+        return self
 
     def hardening(self) -> list[str]:
         """--harden, or each of its preset's settings given away from the plain default (after

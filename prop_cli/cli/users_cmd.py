@@ -65,7 +65,7 @@ def add_user(
     from prop_cli.api import add_user as api_add_user
 
     bits = _key(bundle, key_file, passphrase, required=True, new=True, allow_weak=weak_passphrase)
-    base = PersonalizeConfig.recorded(read_manifest(bundle).get("config", {}))
+    base = PersonalizeConfig.from_dict(read_manifest(bundle).get("config", {}))
     for name in SETTINGS:  # the bundle's settings, except the flags given on this command line
         if getattr(config, name) != getattr(PersonalizeConfig(), name):
             setattr(base, name, getattr(config, name))

@@ -23,7 +23,7 @@ def added_user_config(bundle: Bundle, cfg: PersonalizeConfig | None) -> Personal
     """``cfg`` (default: the settings the bundle was made with), held to the bundle's payload kind, rank
     and layers: every record is enrolled in them."""
     m = bundle.manifest
-    cfg = cfg or PersonalizeConfig.recorded(m[C.M_CONFIG])
+    cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
     rank = payload_kind(cfg.payload).rank(cfg.payload_rank)
     if (cfg.payload, rank) != (spec["kind"], spec["rank"]):
@@ -35,6 +35,9 @@ def added_user_config(bundle: Bundle, cfg: PersonalizeConfig | None) -> Personal
     cfg.layers = [x["name"] for x in spec["layers"]]
     cfg.exclude = None
     cfg.seal = True
+    # A sealed record trains none of --harden's settings; bundles written before --seal --harden was
+    # refused recorded them anyway, and their own add-user must not be refused for it.
+    cfg.without_hardening()
     return cfg.validate(key_bits=bundle.key_bits)
 
 

@@ -776,17 +776,24 @@ def test_hardening_settings_with_seal_are_refused(cli, workdir, no_training, fla
     _refused_before_training(res, no_training, flags[0], "sealed bundle trains none", "--seal")
 
 
-def test_a_sealed_bundles_recorded_harden_is_dropped_for_add_user():
+def test_a_sealed_bundles_recorded_harden_is_dropped_for_add_user(cli, workdir):
     """Sealed bundles written before --seal --harden was refused recorded --harden's settings untrained;
-    add-user reads them back without them instead of refusing its own bundle."""
-    from prop_cli.config import PersonalizeConfig
+    add-user reads them without them instead of refusing its own bundle."""
+    from types import SimpleNamespace
 
-    old = PersonalizeConfig(seal=True, harden=True).to_dict() | {"code_negatives": 64, "encoder_init": "os"}
-    cfg = PersonalizeConfig.recorded(old).validate()
-    assert cfg.seal and not cfg.harden and cfg.hardening() == []
+    from prop_cli.config import PersonalizeConfig
+    from prop_cli.errors import PropError
+    from prop_cli.train.added_user import added_user_config
+
+    out = workdir / "sealed.prop"
+    assert personalize(cli, workdir, "--seal", "--steps", "5", out="sealed.prop").code == 0
+    m = json.loads((out / "manifest.json").read_text())
+    m["config"] |= {"harden": True, "code_negatives": 64, "encoder_init": "os", "antipode_codes": 16}
+    cfg = added_user_config(SimpleNamespace(manifest=m, key_bits=128), None)
+    assert cfg.seal and cfg.hardening() == []
     assert (cfg.code_negatives, cfg.antipode_codes, cfg.encoder_init) == (0, 0, "seed")
-    unsealed = PersonalizeConfig.recorded(PersonalizeConfig(harden=True).to_dict()).validate()
-    assert unsealed.harden and unsealed.code_negatives == 64  # an unsealed bundle's record is kept
+    with pytest.raises(PropError, match="sealed bundle trains none"):  # the same settings, given anew
+        PersonalizeConfig.from_dict(m["config"]).validate()
 
 
 def test_payload_settings_validate_with_seal():
