@@ -6,3 +6,7 @@ cd "$(dirname "$0")/.."
 bash scripts/setup-lerobot.sh
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} HF_HUB_OFFLINE=1
 .venv-lerobot/bin/python -m pytest -q -p no:cacheprovider -m lerobot "$@"
+# The LeRobot compatibility tests again on other CPU kernels (issue 41; scripts/kernel-switch.sh).
+if [ $# -eq 0 ]; then
+  bash scripts/kernel-switch.sh .venv-lerobot/bin/python -m lerobot tests/adapters/test_lerobot_old_bundles.py
+fi

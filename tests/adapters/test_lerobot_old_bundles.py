@@ -1,5 +1,6 @@
-"""LeRobot policy bundles written by prop 0.1.0 still load and run bit for bit (issue 28; pytest -m
-lerobot, in .venv-lerobot).
+"""LeRobot policy bundles written by prop 0.1.0 still load and give the same action chunks (issue 28; pytest
+-m lerobot, in .venv-lerobot): within v01.TOLERANCE of those stored on the machine that wrote them, and bit
+for bit between the runs that give the base here (issue 41).
 
 tests/fixtures/bundles-0.1/lerobot-*: a tiny ACT, Diffusion Policy and SmolVLA (examples/smolvla_tiny.py),
 unsealed and sealed, that prop 0.1.0 (commit f7777f7) personalized, and the action chunks `prop run`
@@ -48,6 +49,7 @@ def test_the_bundle_holds_the_files_prop_0_1_wrote_and_loads(name):
 def test_prop_run_gives_the_same_action_chunks(name, cli, tmp_path, monkeypatch):
     fx = _fixture(name)
     assert {r["name"] for r in fx.runs} >= {"user", "none", "near", "wrong"}
+    v01.check_tolerance_tells_keyed_from_base(fx, fx.runs)
     v01.check_prop_run(fx, fx.runs, cli, tmp_path, monkeypatch)
 
 

@@ -1,4 +1,5 @@
-"""Bundles written by prop 0.1.0 still load and run bit for bit (issue 28).
+"""Bundles written by prop 0.1.0 still load and give the same outputs (issue 28), within v01.TOLERANCE of
+the outputs stored on the machine that wrote them; bit for bit between runs computed here (issue 41).
 
 tests/fixtures/bundles-0.1 holds bundles that prop 0.1.0 (commit f7777f7) wrote, of each mode (unsealed,
 hardened, sealed with each payload kind, passphrase users, users added with add-user) and adapter (plain
@@ -51,23 +52,29 @@ def test_the_bundle_holds_the_files_prop_0_1_wrote(name):
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_load_bundle_and_run_bundle_give_the_same_bits(name, tmp_path):
+def test_load_bundle_and_run_bundle_give_the_same_outputs(name, tmp_path):
     fx = v01.load(name)
     bundle = load_bundle(fx.bundle, trust_remote_code=fx.trust)
     x = np.load(fx.input, allow_pickle=False)
     runs = [r for r in fx.runs if not r["onnx"] and not r["passphrase"]]  # passphrases: the CLI test
     assert {r["name"] for r in runs} >= {"user", "none", "near", "wrong"}
+    v01.check_tolerance_tells_keyed_from_base(fx, runs)
+    outputs = {}
     for run in runs:
         key = read_key_file(fx.key(run["key_file"], tmp_path)) if run["key_file"] else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # near and wrong: enrolled in nothing, the base runs (warned)
             y = run_bundle(bundle, x, key, allow_unenrolled=v01.unenrolled(run))
+            again = run_bundle(bundle, x, key, allow_unenrolled=v01.unenrolled(run))
         expected = fx.expected(run)
-        assert v01.same(y, expected), (run["name"], v01.gap(y, expected))
+        assert v01.close(y, expected), (run["name"], v01.gap(y, expected))
+        assert v01.same(y, again), run["name"]  # one process, one machine: the same bits
+        outputs[run["name"]] = y
+    v01.check_base_runs_agree(outputs)
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_prop_run_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
+def test_prop_run_gives_the_same_outputs(name, cli, tmp_path, monkeypatch):
     """`prop run` with the user's key, a key enrolled in nothing (allowed: the base runs, warned) and every
     passphrase (the API test above runs each key file; a `prop run` costs ~0.1 s of typer set-up)."""
     fx = v01.load(name)
@@ -76,9 +83,9 @@ def test_prop_run_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("name", [n for n in NAMES if v01.load(n).meta.get("onnx")])
-def test_prop_run_onnx_gives_the_same_bits(name, cli, tmp_path, monkeypatch):
-    """The bundle's ONNX export through `prop run --onnx`, bit for bit: onnxruntime gives the same bits
-    run to run on one machine, and the expected outputs came from these very graphs."""
+def test_prop_run_onnx_gives_the_same_outputs(name, cli, tmp_path, monkeypatch):
+    """The bundle's ONNX export through `prop run --onnx`, within the tolerance: the expected outputs came
+    from these very graphs, run by onnxruntime on another CPU (its kernels too pick code by vector unit)."""
     pytest.importorskip("onnxruntime")
     fx = v01.load(name)
     v01.check_prop_run(fx, [r for r in fx.runs if r["onnx"]], cli, tmp_path, monkeypatch)
