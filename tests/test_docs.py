@@ -271,6 +271,24 @@ def test_every_relative_link_points_to_a_file(path):
         assert (ROOT / named).is_file(), f"{path.name}: {named}"
 
 
+def test_the_changelog_says_each_change_in_one_line():
+    """Issue 41: the Unreleased section read as research notes (228 lines). Keep a Changelog: one line per
+    user-visible change under its kind; the figures stay in the docs the line links, and the links hold."""
+    text = (ROOT / "CHANGELOG.md").read_text()
+    unreleased = _section(text, "## [Unreleased]")
+    kinds = re.findall(r"^### (.+)$", unreleased, flags=re.M)
+    assert kinds and set(kinds) <= {"Added", "Changed", "Deprecated", "Removed", "Fixed", "Security"}, kinds
+    for line in unreleased.splitlines():
+        assert not line or line.startswith(("### ", "- ")), f"CHANGELOG.md: not one line per change: {line!r}"
+    for target in _links(unreleased):
+        if re.match(r"[a-z]+:", target):
+            continue
+        file, _, anchor = target.partition("#")
+        assert (ROOT / file).is_file(), f"CHANGELOG.md: ({target}) points to a missing file"
+        if anchor:
+            assert anchor in _anchors((ROOT / file).read_text()), f"CHANGELOG.md: ({target}) no such heading"
+
+
 def test_design_maps_the_layout():
     """docs/design.md's "Layout" names every module and package of prop_cli and adapters/, and only those."""
     section = _section(_doc("design.md"), "## Layout")
