@@ -8,5 +8,5 @@ bash scripts/setup.sh
 . .venv/bin/activate
 # One thread: these models are small, and a 2-thread pool stalls when the machine is shared.
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
-say "demo: training a base policy, then personalizing it unsealed and sealed (~30-60 s on 2 cores)"
+say "demo: training a base policy, then personalizing it unsealed and sealed (~1 min on 2 cores)"
 python -m examples.demo "$@"
