@@ -11,13 +11,14 @@
 # CUDA build runs on the CPU (measured) and is also what a GPU needs. Measured on a 2-core machine:
 # ~215 s and 6.3 GB with a cold torch download (docs/speed.md); pybullet (panda-gym's simulator, for the
 # closed-loop examples and tests) has no cp312 wheel on PyPI, so pip compiles it once (~14 min) and
-# reuses its wheel cache afterwards.
+# reuses its wheel cache afterwards. Each step is said before it starts, with roughly how long it takes.
 #
 # Usage: scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the repository root)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
-. scripts/pip-quiet.sh  # pip_install: pip without the messages this set-up expects (listed there)
+. scripts/common.sh  # say, timed, pip_install (pip without the messages this set-up expects, listed there)
+timed setup-lerobot
 find_python() {
   local c root
   root="$(pyenv root 2>/dev/null || echo "$HOME/.pyenv")"
@@ -39,6 +40,7 @@ drop_draccus_tests() {
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
+  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
   pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]"
   drop_draccus_tests
   exit 0
@@ -47,16 +49,28 @@ PY="$(find_python)" || {
   echo "setup-lerobot: lerobot 0.6 needs Python >= 3.12 and none was found (install one, e.g. 'pyenv install 3.12', or set PYTHON=/path/to/python3.12)" >&2
   exit 1
 }
-start=$(date +%s)
+say "setup-lerobot: creating $VENV with $PY ($("$PY" -V 2>&1); a few seconds)"
 rm -rf "$VENV"  # an older environment (Python 3.11, lerobot 0.4.4) is replaced, not patched
 "$PY" -m venv "$VENV"
 PIP="$VENV/bin/pip"
+PY_TAG=$("$PY" -c 'import sys; print(f"cp{sys.version_info[0]}{sys.version_info[1]}")')
+say "setup-lerobot: upgrading pip (~10 s)"
 pip_install "$PIP" --upgrade "pip>=24"
+# pybullet first, on its own, so that its compile (the longest step by far) is said before it starts.
+cached=$("$PIP" cache list pybullet 2>/dev/null || true)
+if grep -q -E "pybullet-.*-${PY_TAG}-" <<<"$cached"; then
+  say "setup-lerobot: installing pybullet from the wheel pip built before (~10 s)"
+else
+  say "setup-lerobot: compiling pybullet (no ${PY_TAG} wheel on PyPI; ~14 min the first time, cached after)"
+fi
+pip_install "$PIP" pybullet
 # pyproject.toml's `lerobot` extra is lerobot[pi,smolvla,peft,diffusion] 0.6.x plus the dataset
 # libraries without torchcodec (prop refuses video features, and without FFmpeg torchcodec makes LeRobot
 # log a 60-line traceback per dataset); `lerobot-test` adds the simulator and the test tools.
+say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2-5 min with pip's cache warm, ~4-7 min cold)"
 pip_install "$PIP" -e ".[lerobot,lerobot-test]"
 drop_draccus_tests
+say "setup-lerobot: checking that lerobot's policies and prop import (~30 s)"
 "$VENV/bin/python" - <<'PYEOF'
 import lerobot, numpy, torch, torchvision, transformers
 from lerobot.policies.act.modeling_act import ACTPolicy  # noqa: F401
@@ -67,4 +81,4 @@ import prop_cli  # noqa: F401
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, "
       f"transformers {transformers.__version__}, numpy {numpy.__version__}")
 PYEOF
-echo "setup-lerobot: $(( $(date +%s) - start )) s, $(du -sh "$VENV" | cut -f1) (lerobot 0.6 on $("$VENV/bin/python" -V))" >&2
+say "setup-lerobot: $VENV takes $(du -sh "$VENV" | cut -f1) (lerobot 0.6 on $("$VENV/bin/python" -V))"

@@ -3,8 +3,11 @@
 # default suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+. scripts/common.sh  # say, timed
+timed test-lerobot
 bash scripts/setup-lerobot.sh
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} HF_HUB_OFFLINE=1
+say "test-lerobot: pytest -m lerobot (~5-13 min on 2 cores)"
 .venv-lerobot/bin/python -m pytest -q -p no:cacheprovider -m lerobot "$@"
 # The LeRobot compatibility tests again on other CPU kernels (issue 41; scripts/kernel-switch.sh).
 if [ $# -eq 0 ]; then

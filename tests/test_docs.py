@@ -4,6 +4,7 @@ lives in docs/ (README "Documentation")."""
 
 from __future__ import annotations
 
+import ast
 import importlib
 import re
 import sys
@@ -208,6 +209,52 @@ def test_the_docs_name_modules_by_their_current_paths(path):
         assert (ROOT / span).is_file() or (ROOT / "prop_cli" / span).is_file(), f"{path.name}: {span}"
 
 
+def _top_level_names(path: Path) -> set[str]:
+    """What a module defines or imports at its top level (read, not imported: examples pull heavy code)."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names |= {(a.asname or a.name).split(".")[0] for a in node.names}
+    return names
+
+
+def _dotted_exists(dotted: str) -> bool:
+    """`prop_cli.core.key_files.passphrase_bits`: a module of the layout, then a name it defines."""
+    parts = dotted.split(".")
+    base = ROOT / ("adapters" if parts[0] == "prop_adapters" else parts[0])
+    for i, part in enumerate(parts[1:], 1):
+        if (base / part).is_dir():
+            base = base / part
+        elif (base / f"{part}.py").is_file():
+            return i + 1 == len(parts) or parts[i + 1] in _top_level_names(base / f"{part}.py")
+        else:  # a name a package's __init__ defines
+            return (base / "__init__.py").is_file() and part in _top_level_names(base / "__init__.py")
+    return True
+
+
+# Texts beside the README and docs/ that name modules and files: pyproject.toml's comments, the examples'
+# results. (CHANGELOG.md is history: it keeps the names of its time.)
+NAMING = [*OWN, ROOT / "pyproject.toml", *sorted((ROOT / "examples").rglob("*.md"))]
+
+
+@pytest.mark.parametrize("path", NAMING, ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_files_and_modules_named_exist(path):
+    """Issue 41: pyproject.toml named prop_cli/seal.py and tests/test_sb3.py, examples/RESULTS.md
+    prop_cli.keys.passphrase_bits, each long gone."""
+    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("# file: "))
+    paths = r"(?<![\w./-])((?:prop_cli|adapters|tests|examples|scripts|docs)/[\w./-]*\.\w+)"
+    for named in re.findall(paths, text):
+        if named not in SKETCHES:
+            assert (ROOT / named).exists(), f"{path.relative_to(ROOT)}: {named}"
+    for dotted in re.findall(r"(?<![\w.])((?:prop_cli|prop_adapters|examples)(?:\.\w+)+)", text):
+        assert _dotted_exists(dotted), f"{path.relative_to(ROOT)}: {dotted}"
+
+
 @pytest.mark.parametrize("path", OWN, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_relative_link_points_to_a_file(path):
     text = path.read_text()
@@ -222,6 +269,24 @@ def test_every_relative_link_points_to_a_file(path):
     # paths named in the text, from the repository root: "docs/sealed.md", "examples/RESULTS.md"
     for named in re.findall(r"\b((?:docs|examples)/[\w.-]+\.md)\b", _prose(text)):
         assert (ROOT / named).is_file(), f"{path.name}: {named}"
+
+
+def test_the_changelog_says_each_change_in_one_line():
+    """Issue 41: the Unreleased section read as research notes (228 lines). Keep a Changelog: one line per
+    user-visible change under its kind; the figures stay in the docs the line links, and the links hold."""
+    text = (ROOT / "CHANGELOG.md").read_text()
+    unreleased = _section(text, "## [Unreleased]")
+    kinds = re.findall(r"^### (.+)$", unreleased, flags=re.M)
+    assert kinds and set(kinds) <= {"Added", "Changed", "Deprecated", "Removed", "Fixed", "Security"}, kinds
+    for line in unreleased.splitlines():
+        assert not line or line.startswith(("### ", "- ")), f"CHANGELOG.md: not one line per change: {line!r}"
+    for target in _links(unreleased):
+        if re.match(r"[a-z]+:", target):
+            continue
+        file, _, anchor = target.partition("#")
+        assert (ROOT / file).is_file(), f"CHANGELOG.md: ({target}) points to a missing file"
+        if anchor:
+            assert anchor in _anchors((ROOT / file).read_text()), f"CHANGELOG.md: ({target}) no such heading"
 
 
 def test_design_maps_the_layout():
