@@ -23,15 +23,13 @@ from prop_cli.attack.report import check_plot
 from prop_cli.attack.report import decision as audit_decision
 from prop_cli.attack.report import plot as plot_audit
 from prop_cli.attack.report import table as audit_table
-from prop_cli.bundle import KeyedPolicy, load_bundle, read_manifest, run_bundle
-from prop_cli.bundle.inputs import load_inputs, run_array
+from prop_cli.bundle import load_bundle, read_manifest
 from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
     check_new_key,
     rewrite_records,
     with_records,
 )
-from prop_cli.bundle.runtime import require_array_model, require_enrolled, run_policy, seed_noise
 from prop_cli.bundle.write import common_fields
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
@@ -58,6 +56,9 @@ from prop_cli.files import (
     no_links,
     write_file,
 )
+from prop_cli.run import KeyedPolicy, run_bundle
+from prop_cli.run.inputs import load_inputs, run_array
+from prop_cli.run.policy import require_array_model, require_enrolled, run_policy, seed_noise
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
@@ -268,7 +269,7 @@ def run_file(
         data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
         y = run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled_key)
     elif use_onnx:
-        from prop_cli.deploy.onnx import run_onnx
+        from prop_cli.run.onnx import run_onnx
 
         y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads,
                      allow_unenrolled=allow_unenrolled_key)  # fmt: skip
@@ -326,7 +327,7 @@ def describe_bundle(bundle_path: Path) -> dict:
     is needed."""
     from prop_cli.attack.report import recorded_coverage
     from prop_cli.bundle.describe import describe_bundle as describe
-    from prop_cli.deploy.onnx import describe_export
+    from prop_cli.run.onnx import describe_export
 
     info = describe(Path(bundle_path))
     if info["audit"] is not None:
@@ -389,10 +390,10 @@ def export_bundle(
     allow_unenrolled_key: bool = False,
     allow_rollback: bool = False,
 ):
-    """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
+    """`prop export --onnx`: the bundle's graphs, verified against torch (``run.onnx.export_onnx``).
     The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these.
     A key enrolled in nothing is refused (``allow_unenrolled_key``: verified with, bound to nothing)."""
-    from prop_cli.deploy.onnx import export_onnx, require_onnx
+    from prop_cli.run.onnx import export_onnx, require_onnx
 
     check_threads(threads)
     target_dir = Path(out) if out is not None else no_links(Path(bundle_path), C.EXPORT_DIR)
@@ -419,14 +420,14 @@ def eval_bundle(
     arch: str | None = None, allow_unenrolled_key: bool = False, allow_rollback: bool = False,
     key_bits: str | None = None, flip_bit: int | None = None,
 ) -> dict:  # fmt: skip
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``run.rollout``);
     ``key_bits`` (a 0/1 string) or ``flip_bit`` (a bit of the user's key): one wrong key again, as
     ``--json`` names it; a key enrolled in nothing is refused (``allow_unenrolled_key``: its row,
     ``key_not_enrolled``, runs the base);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""
     from prop_adapters.sb3.vecnormalize import read_vecnormalize
-    from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map, probe_key
+    from prop_cli.run.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map, probe_key
 
     settings = settings or EvalSettings()
     check_video(video)
@@ -488,7 +489,7 @@ def add_user(
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
     folder, export = no_links(Path(bundle_path), C.EXPORT_DIR), None
     if folder.exists():  # after the bundle: the export never holds more than it
-        from prop_cli.deploy.onnx import add_record, describe_export
+        from prop_cli.run.onnx import add_record, describe_export
 
         add_record(folder, Path(bundle_path), new, rec.id)
         export = describe_export(folder, new)
@@ -581,7 +582,7 @@ def remove_user(
     new = with_records(bundle.manifest, [], [record])
     export = no_links(Path(bundle_path), C.EXPORT_DIR)
     if (export / C.EXPORT_META).is_file():
-        from prop_cli.deploy.onnx import drop_record
+        from prop_cli.run.onnx import drop_record
 
         drop_record(export, record)  # first: the export never holds more than the bundle
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])

@@ -77,7 +77,7 @@ def dump_json(obj: dict) -> str:
 #   run --output              ARRAY: a .npy array file (what prop run writes).
 #   keygen PATH               KEY: a file of a key's size (4 to 128 bytes); the old key is lost.
 #   attack --json / --plot    AUDIT_REPORT: a prop-audit JSON report; PLOT: a PNG drawn by matplotlib.
-#   eval --video              nothing: a new folder only (deploy.rollout.check_video).
+#   eval --video              nothing: a new folder only (run.rollout.check_video).
 # add-user, remove-user, enrol and attack --record rewrite a bundle in place (no --force); push stages in
 # a temporary folder and writes nothing of the user's; formats and inspect print only.
 

@@ -197,6 +197,9 @@ def test_each_variation_is_decided_in_one_module_per_stage():
     assert deciders[("bundle", "sealed")] == ["prop_cli.bundle.modes"]
     assert deciders[("train", "sealed")] == deciders[("train", "policy")] == ["prop_cli.train.choose"]
     assert deciders[("attack", "sealed")] == deciders[("attack", "policy")] == ["prop_cli.attack.target"]
+    # running a bundle: the ONNX export's dispatch by mode, and the one place torch asks which model kind
+    assert deciders[("run", "sealed")] == ["prop_cli.run.onnx"]
+    assert deciders[("run", "policy")] == ["prop_cli.run.policy"]
 
 
 def test_the_decision_finder_sees_a_decision(tmp_path):

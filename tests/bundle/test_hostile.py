@@ -26,9 +26,9 @@ from prop_cli.api import (
     run_bundle,
 )
 from prop_cli.bundle.manifest import stamp
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 from tests.conftest import make_mlp_checkpoint
 
 ort = pytest.importorskip("onnxruntime")
@@ -310,7 +310,7 @@ def test_onnx_graph_swap_is_refused_with_the_key(cli, d, mode):
     """base.onnx replaced by the attacker's, export.json's hashes recomputed: refused; export.json's
     key bindings deleted too: refused, with the bundle at hand or the export alone (allowed: base.onnx,
     with a warning)."""
-    from prop_cli.deploy.onnx import OnnxRunner, SealedOnnxRunner
+    from prop_cli.run.onnx import OnnxRunner, SealedOnnxRunner
 
     bundle, folder = d / mode, d / mode / C.EXPORT_DIR
     assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0

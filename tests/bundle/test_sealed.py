@@ -15,8 +15,8 @@ from prop_cli import constants as C
 from prop_cli.api import load_bundle, read_key_file
 from prop_cli.bundle.cipher import SealedRecord, open_record, seal
 from prop_cli.bundle.manifest import stamp
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.files import dump_json
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 from tests.conftest import FAST
 
 SEALED = [*FAST[:1], "300", *FAST[2:], "--seal"]  # enough steps for the payload to fit the tiny task

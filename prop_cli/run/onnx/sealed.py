@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from prop_cli import constants as C
-from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle import Bundle
 from prop_cli.bundle.enrol import changed_error
 from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.records import copy_records, load_state, public_part
@@ -30,6 +30,7 @@ from prop_cli.files import (
     write_text,
 )
 
+from ..policy import KeyedPolicy
 from . import common
 from .common import ExportResult, VerificationFailed
 

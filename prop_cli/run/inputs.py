@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from prop_cli import constants as C
+from prop_cli.bundle import Bundle
 from prop_cli.datasources import load_data
 from prop_cli.datasources.npz import read_npy
 from prop_cli.errors import PropError
 
-from .read import Bundle
-from .runtime import run_bundle
+from .policy import run_bundle
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
