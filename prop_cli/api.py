@@ -47,18 +47,17 @@ from prop_cli.datasources import SOURCES, load_data
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
 from prop_cli.files import (
-    ARRAY,
     EXPORT,
     PEFT,
     check_not_input,
     check_output,
     check_writable,
     no_links,
-    write_file,
 )
 from prop_cli.run import KeyedPolicy, run_bundle
-from prop_cli.run.inputs import load_inputs, run_array
-from prop_cli.run.policy import require_array_model, require_enrolled, run_policy, seed_noise
+from prop_cli.run.file import run_file
+from prop_cli.run.inputs import load_inputs
+from prop_cli.run.policy import require_array_model, require_enrolled, seed_noise
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
@@ -218,70 +217,6 @@ def personalize_checkpoint(
         )  # fmt: skip
     finally:
         ranks.finish()
-
-
-@dataclass
-class RunResult:
-    output: Path
-    shape: tuple[int, ...]
-    keyed: bool
-    onnx: bool
-
-
-def run_file(
-    bundle_path: Path,
-    input_path: Path,
-    output: Path,
-    *,
-    key_file: Path | None = None,
-    passphrase: str | None = None,
-    onnx: bool = False,
-    onnx_dir: Path | None = None,
-    force: bool = False,
-    threads: int | None = None,
-    trust_remote_code: bool = False,
-    noise_seed: int = 0,
-    arch: str | None = None,
-    allow_unenrolled_key: bool = False,
-    allow_rollback: bool = False,
-) -> RunResult:
-    """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
-    With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing is
-    refused (``allow_unenrolled_key``: the bundle's base runs, with a warning), and so is a bundle
-    changed since the key was enrolled, and a copy older than one this machine has seen (unless
-    ``allow_rollback``).
-    ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
-    check_threads(threads)
-    check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
-    check_output(output, force, what="output", flag="--output", kind=ARRAY)
-    bundle = load_bundle(
-        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
-    )
-    seed_noise(bundle.loaded, noise_seed)
-    n_threads = configure_threads(bundle.parameters, threads)
-    key = key_for_bundle(bundle.manifest, key_file, passphrase)
-    # Before any input is read: a key enrolled in nothing is refused unless allowed (the run warns).
-    keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
-    use_onnx = onnx or onnx_dir is not None
-    if bundle.loaded.policy is not None:
-        if use_onnx:
-            raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
-        data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
-        y = run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled_key)
-    elif use_onnx:
-        from prop_cli.run.onnx import run_onnx
-
-        y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads,
-                     allow_unenrolled=allow_unenrolled_key)  # fmt: skip
-    else:
-        y = run_array(bundle, load_inputs(input_path, bundle), key, "--input", allow_unenrolled_key)
-
-    def save(tmp: Path) -> None:
-        with open(tmp, "wb") as f:
-            np.save(f, y)
-
-    write_file(output, save, what="output", flag="--output")
-    return RunResult(Path(output), tuple(y.shape), keyed, use_onnx)
 
 
 def audit_bundle(

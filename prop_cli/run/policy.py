@@ -16,6 +16,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -26,8 +27,10 @@ from prop_adapters.sb3 import observation_array
 from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
-from prop_cli.datasources import Dataset
+from prop_cli.datasources import Dataset, load_data
 from prop_cli.errors import PropError
+
+from .inputs import load_inputs
 
 ROWS = 256  # frames per forward when running a whole dataset through a policy
 
@@ -195,6 +198,39 @@ def run_bundle(
     One call folds the key once; in a control loop keep a ``KeyedPolicy(bundle, key)`` instead.
     """
     return KeyedPolicy(bundle, key, allow_unenrolled=allow_unenrolled)(x)
+
+
+def run_array(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str, allow_unenrolled: bool = False
+) -> np.ndarray:
+    """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
+    try:
+        return run_bundle(bundle, x, key, allow_unenrolled=allow_unenrolled)
+    except RuntimeError as e:
+        want = tuple(bundle.manifest[C.M_IO]["input_shape"])
+        if x.shape[1:] == want:
+            raise
+        raise PropError(
+            f"{flag}: the model does not run on samples of shape {x.shape[1:]} (personalized on {want}: "
+            f"{str(e).splitlines()[0][:120]})",
+            "give samples of shape " + str(want),
+        ) from None
+
+
+def run_inputs(
+    bundle: Bundle, input_path: Path, key: np.ndarray | None, *, allow_unenrolled: bool = False,
+    onnx: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """`prop run`'s outputs for the inputs in a file: a policy's action chunks for every frame of a
+    dataset (``run_policy``), or an array model's outputs (``inputs.load_inputs``), in torch or through
+    ``onnx(x)`` (an ONNX export's runner; a policy has none yet)."""
+    if bundle.loaded.policy is not None:
+        if onnx is not None:
+            raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
+        data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
+        return run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled)
+    x = load_inputs(input_path, bundle)
+    return onnx(x) if onnx is not None else run_array(bundle, x, key, "--input", allow_unenrolled)
 
 
 @torch.no_grad()

@@ -140,9 +140,7 @@ class SealedOnnxRunner:
                     self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
                     if bias:
                         b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
-                        self._override(
-                            so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")
-                        )
+                        self._override(so, ort, x["bias"], b + self.opened.payload.bias_delta(x["layer"]))
         self.session = common.open_session(ort, folder / C.BASE_GRAPH, so)
 
     def _override(self, so, ort, name: str, t) -> None:
