@@ -19,14 +19,11 @@ from prop_adapters.hub import resolve_checkpoint
 from prop_cli import constants as C
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
-from prop_cli.attack.report import check_plot
-from prop_cli.attack.report import decision as audit_decision
-from prop_cli.attack.report import plot as plot_audit
-from prop_cli.attack.report import table as audit_table
 from prop_cli.bundle import load_bundle, read_manifest
 from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
     check_new_key,
+    record_to_remove,
     rewrite_records,
     with_records,
 )
@@ -77,8 +74,6 @@ __all__ = [
     "apply_max_leak",
     "audit",
     "audit_bundle",
-    "audit_decision",
-    "audit_table",
     "check_passphrase",
     "enrol",
     "eval_bundle",
@@ -91,11 +86,9 @@ __all__ = [
     "load_bundle",
     "load_inputs",
     "personalize_checkpoint",
-    "plot_audit",
     "describe_bundle",
     "export_peft_adapter",
     "is_bundle",
-    "check_plot",
     "push_bundle",
     "read_key_file",
     "read_manifest",
@@ -107,6 +100,19 @@ __all__ = [
     "user_keys",
     "verify_bundle",
 ]
+
+
+# Showing a report is prop_cli.present's (the CLI imports it there); these names stay importable from here.
+_PRESENTATION = {"audit_decision": "decision", "audit_table": "table", "check_plot": "check_plot",
+                 "plot_audit": "plot"}  # fmt: skip
+
+
+def __getattr__(name: str):
+    if name in _PRESENTATION:
+        from prop_cli import present
+
+        return getattr(present, _PRESENTATION[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -489,31 +495,12 @@ def remove_user(
 ) -> UserChange:  # fmt: skip
     """`prop remove-user`: delete one user's record, from the bundle and from its ONNX export
     (``<bundle>/onnx``) if it has one. Ownership is proven by the key: it must open the record it
-    removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's maintainer
-    when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
-    add or change one without its key."""
+    removes; or ``record`` (an id from `prop inspect`), for a bundle's maintainer when a user lost
+    theirs (the rules: ``bundle.records.record_to_remove``)."""
     bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
     check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)
-    if (key is None) == (record is None):
-        raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
-    ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]
-    if key is not None:
-        opened = bundle.records.open(bundle.check_key(key))
-        if opened is None:
-            raise PropError(
-                f"the key is enrolled in nothing in {bundle_path} (it opens no user's record)",
-                "pass the key of the user to remove, or --record ID",
-            )
-        record = opened.record_id
-    elif record not in ids:
-        raise PropError(
-            f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
-        )
-    if len(ids) == 1:
-        raise PropError(
-            f"{record} is the last user of {bundle_path}: a sealed bundle keeps at least one",
-            "delete the bundle folder instead",
-        )
+    bits = None if key is None else bundle.check_key(key)
+    record = record_to_remove(bundle.manifest, bundle.records, bits, record, str(bundle_path))
     new = with_records(bundle.manifest, [], [record])
     export = no_links(Path(bundle_path), C.EXPORT_DIR)
     if (export / C.EXPORT_META).is_file():

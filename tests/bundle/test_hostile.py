@@ -364,7 +364,8 @@ def test_audit_measures_the_method_whatever_the_enrolment(d):
     """The audit's key probes run any key through the encoder (the paper's T0 rows must not turn to 0
     because prop run stops those keys); the owner's own key is reported as prop run would treat it, and
     the report says what its key rows measure."""
-    from prop_cli.api import AuditSettings, audit_bundle, audit_table
+    from prop_cli.api import AuditSettings, audit_bundle
+    from prop_cli.present import table as audit_table
 
     s = AuditSettings(probes=["random"], random=32, samples=32, hamming=[])
     rep = audit_bundle(d / "user.prop", d / "mine.npz", s, key_files=[d / "k.bin"])
