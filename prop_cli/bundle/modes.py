@@ -6,7 +6,7 @@
   folded into a copy of the base, or opens nothing and the base runs.
 
 In both, a key runs only what its holder enrolled (``enrol``): ``unlock`` is the checked path every
-runtime takes (a key enrolled in nothing: None, which ``policy.key_opens_nothing`` refuses unless the
+runtime takes (a key enrolled in nothing: None, which ``run.policy.key_opens_nothing`` refuses unless the
 caller allows it, and then the base runs; a bundle changed since the key was enrolled, or older than one
 this machine has seen (``rollback``): a PropError, nothing runs). ``respond`` is the method itself, any
 key through the encoder or the records with no check: what the audit and the paper's reproductions
@@ -73,7 +73,7 @@ class Mode(ABC):
 
     def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
         """What ``bits`` unlocks, checked: its holder's enrolled behaviour, or None where the key is
-        enrolled in nothing (``policy.key_opens_nothing`` decides what then); a PropError if the bundle
+        enrolled in nothing (``run.policy.key_opens_nothing`` decides what then); a PropError if the bundle
         changed since enrolment."""
         return self.respond(module, bits) if self.enrolled(bits) else None
 

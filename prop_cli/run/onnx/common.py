@@ -250,7 +250,7 @@ def key_bits(key, bits: int) -> np.ndarray:
 
 def not_bound(folder: Path, allow: bool) -> None:
     """A key the export binds to nothing: refused, or with ``allow`` base.onnx runs, with a warning
-    (``policy.key_opens_nothing``, the one decision for a key that opens nothing)."""
+    (``run.policy.key_opens_nothing``, the one decision for a key that opens nothing)."""
     from prop_cli.run.policy import key_opens_nothing
 
     why = (
