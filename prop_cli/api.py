@@ -452,20 +452,11 @@ def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False
     it, unless ``trust_remote_code``: enrolling is consent to run what it runs. Sealed bundles enrol
     each user in their own record (prop add-user)."""
     from prop_cli.bundle import check_files, enrol_key
-    from prop_cli.bundle.modes import mode_of
 
     manifest = read_manifest(Path(bundle_path))
     check_files(Path(bundle_path), manifest)
     named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
     adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
-    if mode_of(manifest).is_sealed:
-        raise PropError(
-            f"{bundle_path} is sealed: each user is enrolled in their own record",
-            "add a user with prop add-user (their record is their enrolment)",
-        )
-    bits = int(manifest[C.M_KEY]["bits"])
-    if len(key) != bits:
-        raise PropError(f"the key has {len(key)} bits but the bundle expects {bits}", "use the bundle's key")
     new, status = enrol_key(Path(bundle_path), manifest, key)
     return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
 

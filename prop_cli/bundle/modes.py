@@ -124,6 +124,16 @@ class Mode(ABC):
             )
 
     @classmethod
+    def require_shared_enrolment(cls, path: Path) -> None:
+        """`prop enrol` enrols a key in the bundle's shared enrolments: an unsealed bundle's. A sealed
+        bundle enrols each user in their own record (add-user)."""
+        if cls.is_sealed:
+            raise PropError(
+                f"{path} is sealed: each user is enrolled in their own record",
+                "add a user with prop add-user (their record is their enrolment)",
+            )
+
+    @classmethod
     @abstractmethod
     def exposed(cls) -> str | None:
         """What whoever holds the files can read without a key (push refuses a public upload of it);

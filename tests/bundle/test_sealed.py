@@ -244,3 +244,13 @@ def test_every_record_and_enrolment_is_tried_on_every_key(sealed, workdir, monke
         tried.clear()
         assert (enrol.open_enrolment(entries, bits) is not None) == found
         assert len(tried) == 3
+
+
+def test_enrol_refuses_a_sealed_bundle_in_one_line(sealed, cli, workdir):
+    """`prop enrol` is for unsealed bundles (the rule is the bundle's: write.enrol_key, Mode); a sealed
+    bundle's users are enrolled in their own records, and the manifest is left as it was."""
+    before = (sealed / "manifest.json").read_bytes()
+    r = cli("enrol", sealed, "--key-file", workdir / "k.bin")
+    assert r.code == 2 and "is sealed: each user is enrolled in their own record" in r.err
+    assert "prop add-user" in r.err and "Traceback" not in r.err
+    assert (sealed / "manifest.json").read_bytes() == before
