@@ -33,8 +33,8 @@ from prop_cli.bundle import load_bundle
 from prop_cli.config import PersonalizeConfig
 from prop_cli.constants import KEYED_GRAPH
 from prop_cli.core.keyed_model import key_codes
-from prop_cli.deploy.onnx import OnnxRunner, export_onnx
-from prop_cli.deploy.onnx.common import session
+from prop_cli.run.onnx import OnnxRunner, export_onnx
+from prop_cli.run.onnx.common import session
 
 
 def _per_step_us(fn, x: np.ndarray, steps: int) -> float:

@@ -23,10 +23,10 @@ import torch
 from examples import task_runs
 from prop_cli.api import KeySource, personalize_checkpoint
 from prop_cli.bundle import load_bundle
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.core.metrics import personalization
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 
 VARIANTS = {
     "unsealed (PRoP)": {},

@@ -32,9 +32,9 @@ import prop_adapters as adapters
 from examples.reproduce import common, ppo, reach
 from prop_cli import constants as C
 from prop_cli.bundle import load_bundle, write_sealed
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.config import PersonalizeConfig
 from prop_cli.core.payload import Payload, PayloadSpec
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 
 PAYLOADS = {"lora r4": ("lora", 4, 3e-3), "full": ("full", 0, 1e-3)}  # --lr to change the rates
 

@@ -182,7 +182,7 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
     from prop_cli.bundle import load_bundle
     from prop_cli.core.keyed_model import key_codes
-    from prop_cli.deploy.onnx import OnnxRunner, export_onnx
+    from prop_cli.run.onnx import OnnxRunner, export_onnx
 
     bundle = load_bundle(bundle_path)
     res = export_onnx(bundle, key=key)

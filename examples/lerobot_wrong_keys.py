@@ -153,12 +153,13 @@ def encoder_view(bundle, key: np.ndarray):
 def measure(args: argparse.Namespace) -> dict:
     import warnings
 
-    from prop_cli.bundle import KeyedPolicy, load_bundle
+    from prop_cli.bundle import load_bundle
     from prop_cli.bundle.read import rebuild_original
-    from prop_cli.bundle.runtime import seed_noise
     from prop_cli.core.key_files import key_for_bundle
-    from prop_cli.deploy.envs import make_env
-    from prop_cli.deploy.rollout import parse_obs_map
+    from prop_cli.run import KeyedPolicy
+    from prop_cli.run.envs import make_env
+    from prop_cli.run.policy import seed_noise
+    from prop_cli.run.rollout import parse_obs_map
 
     out, kind = args.out, args.policy
     bundle = load_bundle(out / args.bundle)

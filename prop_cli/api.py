@@ -19,19 +19,14 @@ from prop_adapters.hub import resolve_checkpoint
 from prop_cli import constants as C
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
-from prop_cli.attack.report import check_plot
-from prop_cli.attack.report import decision as audit_decision
-from prop_cli.attack.report import plot as plot_audit
-from prop_cli.attack.report import table as audit_table
-from prop_cli.bundle import KeyedPolicy, load_bundle, read_manifest, run_bundle
-from prop_cli.bundle.inputs import load_inputs, run_array
+from prop_cli.bundle import load_bundle, read_manifest
 from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
     check_new_key,
+    record_to_remove,
     rewrite_records,
     with_records,
 )
-from prop_cli.bundle.runtime import require_array_model, require_enrolled, run_policy, seed_noise
 from prop_cli.bundle.write import common_fields
 from prop_cli.config import AuditSettings, EvalSettings, ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import (
@@ -49,15 +44,17 @@ from prop_cli.datasources import SOURCES, load_data
 from prop_cli.deploy.publish import push_bundle  # `prop push`: bundle, ONNX export and model card to the hub
 from prop_cli.errors import PropError
 from prop_cli.files import (
-    ARRAY,
     EXPORT,
     PEFT,
     check_not_input,
     check_output,
     check_writable,
     no_links,
-    write_file,
 )
+from prop_cli.run import KeyedPolicy, run_bundle
+from prop_cli.run.file import run_file
+from prop_cli.run.inputs import load_inputs
+from prop_cli.run.policy import require_array_model, require_enrolled, seed_noise
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
 from prop_cli.train import User, personalize
@@ -77,8 +74,6 @@ __all__ = [
     "apply_max_leak",
     "audit",
     "audit_bundle",
-    "audit_decision",
-    "audit_table",
     "check_passphrase",
     "enrol",
     "eval_bundle",
@@ -91,11 +86,9 @@ __all__ = [
     "load_bundle",
     "load_inputs",
     "personalize_checkpoint",
-    "plot_audit",
     "describe_bundle",
     "export_peft_adapter",
     "is_bundle",
-    "check_plot",
     "push_bundle",
     "read_key_file",
     "read_manifest",
@@ -107,6 +100,19 @@ __all__ = [
     "user_keys",
     "verify_bundle",
 ]
+
+
+# Showing a report is prop_cli.present's (the CLI imports it there); these names stay importable from here.
+_PRESENTATION = {"audit_decision": "decision", "audit_table": "table", "check_plot": "check_plot",
+                 "plot_audit": "plot"}  # fmt: skip
+
+
+def __getattr__(name: str):
+    if name in _PRESENTATION:
+        from prop_cli import present
+
+        return getattr(present, _PRESENTATION[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass
@@ -219,70 +225,6 @@ def personalize_checkpoint(
         ranks.finish()
 
 
-@dataclass
-class RunResult:
-    output: Path
-    shape: tuple[int, ...]
-    keyed: bool
-    onnx: bool
-
-
-def run_file(
-    bundle_path: Path,
-    input_path: Path,
-    output: Path,
-    *,
-    key_file: Path | None = None,
-    passphrase: str | None = None,
-    onnx: bool = False,
-    onnx_dir: Path | None = None,
-    force: bool = False,
-    threads: int | None = None,
-    trust_remote_code: bool = False,
-    noise_seed: int = 0,
-    arch: str | None = None,
-    allow_unenrolled_key: bool = False,
-    allow_rollback: bool = False,
-) -> RunResult:
-    """`prop run`: outputs for the inputs in a file, written to ``output`` (.npy), with or without a key.
-    With a key, only what its holder enrolled runs (``bundle.enrol``): a key enrolled in nothing is
-    refused (``allow_unenrolled_key``: the bundle's base runs, with a warning), and so is a bundle
-    changed since the key was enrolled, and a copy older than one this machine has seen (unless
-    ``allow_rollback``).
-    ``noise_seed``: where a policy samples its chunks (LeRobot Diffusion), the seed of their noise."""
-    check_threads(threads)
-    check_not_input(output, "--output", [bundle_path, input_path, key_file, onnx_dir])
-    check_output(output, force, what="output", flag="--output", kind=ARRAY)
-    bundle = load_bundle(
-        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
-    )
-    seed_noise(bundle.loaded, noise_seed)
-    n_threads = configure_threads(bundle.parameters, threads)
-    key = key_for_bundle(bundle.manifest, key_file, passphrase)
-    # Before any input is read: a key enrolled in nothing is refused unless allowed (the run warns).
-    keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
-    use_onnx = onnx or onnx_dir is not None
-    if bundle.loaded.policy is not None:
-        if use_onnx:
-            raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
-        data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
-        y = run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled_key)
-    elif use_onnx:
-        from prop_cli.deploy.onnx import run_onnx
-
-        y = run_onnx(bundle, load_inputs(input_path, bundle), key, onnx_dir, threads=n_threads,
-                     allow_unenrolled=allow_unenrolled_key)  # fmt: skip
-    else:
-        y = run_array(bundle, load_inputs(input_path, bundle), key, "--input", allow_unenrolled_key)
-
-    def save(tmp: Path) -> None:
-        with open(tmp, "wb") as f:
-            np.save(f, y)
-
-    write_file(output, save, what="output", flag="--output")
-    return RunResult(Path(output), tuple(y.shape), keyed, use_onnx)
-
-
 def audit_bundle(
     bundle_path: Path,
     data_path: Path,
@@ -326,7 +268,7 @@ def describe_bundle(bundle_path: Path) -> dict:
     is needed."""
     from prop_cli.attack.report import recorded_coverage
     from prop_cli.bundle.describe import describe_bundle as describe
-    from prop_cli.deploy.onnx import describe_export
+    from prop_cli.run.onnx import describe_export
 
     info = describe(Path(bundle_path))
     if info["audit"] is not None:
@@ -389,10 +331,10 @@ def export_bundle(
     allow_unenrolled_key: bool = False,
     allow_rollback: bool = False,
 ):
-    """`prop export --onnx`: the bundle's graphs, verified against torch (``deploy.onnx.export_onnx``).
+    """`prop export --onnx`: the bundle's graphs, verified against torch (``run.onnx.export_onnx``).
     The key (if given) is verified and bound to the graphs: `prop run --onnx` with it runs only these.
     A key enrolled in nothing is refused (``allow_unenrolled_key``: verified with, bound to nothing)."""
-    from prop_cli.deploy.onnx import export_onnx, require_onnx
+    from prop_cli.run.onnx import export_onnx, require_onnx
 
     check_threads(threads)
     target_dir = Path(out) if out is not None else no_links(Path(bundle_path), C.EXPORT_DIR)
@@ -419,14 +361,14 @@ def eval_bundle(
     arch: str | None = None, allow_unenrolled_key: bool = False, allow_rollback: bool = False,
     key_bits: str | None = None, flip_bit: int | None = None,
 ) -> dict:  # fmt: skip
-    """`prop eval`: closed-loop rollouts of a bundle per key condition (``deploy.rollout``);
+    """`prop eval`: closed-loop rollouts of a bundle per key condition (``run.rollout``);
     ``key_bits`` (a 0/1 string) or ``flip_bit`` (a bit of the user's key): one wrong key again, as
     ``--json`` names it; a key enrolled in nothing is refused (``allow_unenrolled_key``: its row,
     ``key_not_enrolled``, runs the base);
     ``vecnormalize``: an SB3 VecNormalize pickle, read inertly (``adapters.sb3.vecnormalize``);
     ``video``: a new folder for one mp4 per condition."""
     from prop_adapters.sb3.vecnormalize import read_vecnormalize
-    from prop_cli.deploy.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map, probe_key
+    from prop_cli.run.rollout import check_video, evaluate_bundle, load_metric, parse_obs_map, probe_key
 
     settings = settings or EvalSettings()
     check_video(video)
@@ -488,7 +430,7 @@ def add_user(
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
     folder, export = no_links(Path(bundle_path), C.EXPORT_DIR), None
     if folder.exists():  # after the bundle: the export never holds more than it
-        from prop_cli.deploy.onnx import add_record, describe_export
+        from prop_cli.run.onnx import add_record, describe_export
 
         add_record(folder, Path(bundle_path), new, rec.id)
         export = describe_export(folder, new)
@@ -510,20 +452,11 @@ def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False
     it, unless ``trust_remote_code``: enrolling is consent to run what it runs. Sealed bundles enrol
     each user in their own record (prop add-user)."""
     from prop_cli.bundle import check_files, enrol_key
-    from prop_cli.bundle.modes import mode_of
 
     manifest = read_manifest(Path(bundle_path))
     check_files(Path(bundle_path), manifest)
     named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
     adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
-    if mode_of(manifest).is_sealed:
-        raise PropError(
-            f"{bundle_path} is sealed: each user is enrolled in their own record",
-            "add a user with prop add-user (their record is their enrolment)",
-        )
-    bits = int(manifest[C.M_KEY]["bits"])
-    if len(key) != bits:
-        raise PropError(f"the key has {len(key)} bits but the bundle expects {bits}", "use the bundle's key")
     new, status = enrol_key(Path(bundle_path), manifest, key)
     return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
 
@@ -553,35 +486,16 @@ def remove_user(
 ) -> UserChange:  # fmt: skip
     """`prop remove-user`: delete one user's record, from the bundle and from its ONNX export
     (``<bundle>/onnx``) if it has one. Ownership is proven by the key: it must open the record it
-    removes. ``record`` (an id from `prop inspect`) removes without a key, for a bundle's maintainer
-    when a user lost theirs: whoever can write the files can delete a record anyway, and no one can
-    add or change one without its key."""
+    removes; or ``record`` (an id from `prop inspect`), for a bundle's maintainer when a user lost
+    theirs (the rules: ``bundle.records.record_to_remove``)."""
     bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
     check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)
-    if (key is None) == (record is None):
-        raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
-    ids = [e["id"] for e in bundle.manifest[C.M_RECORDS]]
-    if key is not None:
-        opened = bundle.records.open(bundle.check_key(key))
-        if opened is None:
-            raise PropError(
-                f"the key is enrolled in nothing in {bundle_path} (it opens no user's record)",
-                "pass the key of the user to remove, or --record ID",
-            )
-        record = opened.record_id
-    elif record not in ids:
-        raise PropError(
-            f"--record {record!r} is not in {bundle_path}", "records: " + (", ".join(ids) or "none")
-        )
-    if len(ids) == 1:
-        raise PropError(
-            f"{record} is the last user of {bundle_path}: a sealed bundle keeps at least one",
-            "delete the bundle folder instead",
-        )
+    bits = None if key is None else bundle.check_key(key)
+    record = record_to_remove(bundle.manifest, bundle.records, bits, record, str(bundle_path))
     new = with_records(bundle.manifest, [], [record])
     export = no_links(Path(bundle_path), C.EXPORT_DIR)
     if (export / C.EXPORT_META).is_file():
-        from prop_cli.deploy.onnx import drop_record
+        from prop_cli.run.onnx import drop_record
 
         drop_record(export, record)  # first: the export never holds more than the bundle
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])

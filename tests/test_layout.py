@@ -197,6 +197,9 @@ def test_each_variation_is_decided_in_one_module_per_stage():
     assert deciders[("bundle", "sealed")] == ["prop_cli.bundle.modes"]
     assert deciders[("train", "sealed")] == deciders[("train", "policy")] == ["prop_cli.train.choose"]
     assert deciders[("attack", "sealed")] == deciders[("attack", "policy")] == ["prop_cli.attack.target"]
+    # running a bundle: the ONNX export's dispatch by mode, and the one place torch asks which model kind
+    assert deciders[("run", "sealed")] == ["prop_cli.run.onnx"]
+    assert deciders[("run", "policy")] == ["prop_cli.run.policy"]
 
 
 def test_the_decision_finder_sees_a_decision(tmp_path):
@@ -254,3 +257,28 @@ def test_the_cli_starts_without_torch(args):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "False False"
+
+
+def test_presentation_is_not_the_apis():
+    """Issue 41: showing a report (decision lines, table, plot) is prop_cli.present's, which the CLI
+    imports; prop_cli.api imports none of it, and keeps its old names for scripts, lazily."""
+    tree = ast.parse((PKG / "api.py").read_text())
+    top = {n.module for n in tree.body if isinstance(n, ast.ImportFrom)}
+    assert not top & {"prop_cli.present", "prop_cli.attack.report"}, top
+    assert "prop_cli.present" in GRAPH["prop_cli.cli.attack_cmd"]
+    from prop_cli import api, present
+
+    assert api.audit_table is present.table and api.plot_audit is present.plot
+    assert api.audit_decision is present.decision and api.check_plot is present.check_plot
+    with pytest.raises(AttributeError):
+        api.no_such_name  # noqa: B018
+
+
+def test_running_a_bundle_has_one_home():
+    """Issue 41: torch, ONNX, inputs, rollout and `prop run` are prop_cli.run's; the bundle folder is the
+    format (its contracts: pyproject.toml)."""
+    run = {m for m in MODULES if m.startswith("prop_cli.run.")}
+    assert {"prop_cli.run.policy", "prop_cli.run.inputs", "prop_cli.run.file", "prop_cli.run.rollout",
+            "prop_cli.run.onnx"} <= run  # fmt: skip
+    assert not [m for m in MODULES if m.startswith(("prop_cli.deploy.onnx", "prop_cli.deploy.rollout"))]
+    assert not {"prop_cli.bundle.runtime", "prop_cli.bundle.inputs"} & set(MODULES)

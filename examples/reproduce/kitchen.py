@@ -349,8 +349,8 @@ def fit_sealed(c: Cohort) -> Fitted:
     import warnings
 
     from prop_cli.api import KeySource, add_user, load_bundle, personalize_checkpoint
-    from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
     from prop_cli.core.payload import Payload
+    from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 
     path = c.work / "prop-sealed.prop"
     # Each sealed user trains alone, so the cost grows with users x steps; a user's data is one short

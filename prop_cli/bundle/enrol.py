@@ -11,7 +11,7 @@ processors...). With a key, prop runs only what that key's holder enrolled:
 - one opens but the behaviour differs: the bundle changed since this key was enrolled, and nothing
   runs (``check``);
 - none opens: the key is enrolled in nothing: refused, unless the caller allows it and the bundle's
-  base runs (``runtime.key_opens_nothing``).
+  base runs (``run.policy.key_opens_nothing``).
 
 Unsealed bundles keep one enrolment per user in the manifest (``enrolments``); a sealed record carries
 the behaviour inside its own plaintext (``records``), so it is its user's enrolment. Trying a key costs

@@ -357,6 +357,11 @@ def _shown(value: Any) -> str:
     return s if len(s) <= 40 else s[:37] + "..."
 
 
+def quoted(value: Any) -> str:
+    """A manifest value as one-line errors quote it (JSON, cut short)."""
+    return _shown(value)
+
+
 def _type_ok(rule: Rule, value: Any) -> bool:
     if isinstance(value, bool) and bool not in rule.kind:
         return False  # JSON true is not the integer 1
@@ -456,9 +461,10 @@ def _doc(source: str, mode: object = "unsealed") -> Doc:
     return Doc(f"bundle {source}: {C.MANIFEST}", mode if mode in C.MODES else "unsealed")
 
 
-def field_error(source: str, where: str, problem: str) -> PropError:
-    """A one-line error naming a field of the manifest of bundle ``source`` and what is wrong with it."""
-    return _doc(source).bad(where, problem)
+def field_error(source: str, where: str, problem: str, mode: str = "unsealed") -> PropError:
+    """A one-line error naming a field of the manifest of bundle ``source`` (of ``mode``, for the fix it
+    names) and what is wrong with it."""
+    return _doc(source, mode).bad(where, problem)
 
 
 def validate(manifest: dict, source: str) -> dict:
@@ -517,55 +523,3 @@ def parse(raw: bytes, source: str) -> dict:
     if version >= C.DIGEST_SINCE or C.M_DIGEST in manifest:
         check_digest(manifest, raw, C.M_DIGEST, doc)
     return validate(manifest, source)
-
-
-def check_layers(layers: list[dict], module, source: str) -> None:
-    """Each keyed layer is a linear layer or convolution of ``module`` with the recorded input width."""
-    from prop_cli.core.layers import KEYABLE, in_width
-
-    mods = dict(module.named_modules())
-    for i, layer in enumerate(layers):
-        m = mods.get(layer["name"])
-        where = f"{C.M_KEYED_LAYERS}[{i}]"
-        if not isinstance(m, KEYABLE):
-            raise _doc(source).bad(
-                f"{where}.name", f"names no linear layer or convolution of the model ({layer['name']!r})"
-            )
-        if in_width(m) != layer["features"]:
-            raise _doc(source).bad(
-                f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
-                f"{in_width(m)} inputs",
-            )  # fmt: skip
-
-
-# A payload layout may hold this many numbers beyond 8 per weight of its layers (a LoRA of any useful
-# rank holds at most 2): room for ranks above a small layer's width, never a layout of gigabytes.
-PAYLOAD_SLACK = 1 << 16
-
-
-def check_payload_layers(layers: list[dict], rank: int, elements: int, module, source: str) -> None:
-    """Each layer of a sealed payload's layout is a linear layer or convolution of ``module``, recorded
-    as it is (widths, kernel, groups), and the layout's size (``elements``, at ``rank``) is bounded by
-    those layers' weights: nothing is allocated for sizes the model does not have."""
-    from prop_cli.core.layers import KEYABLE, describe_layer
-
-    mods = dict(module.named_modules())
-    weights = 0
-    for i, layer in enumerate(layers):
-        m = mods.get(layer["name"])
-        where = f"{C.M_PAYLOAD}.layers[{i}]"
-        if not isinstance(m, KEYABLE):
-            raise _doc(source, C.MODE_SEALED).bad(
-                f"{where}.name", f"names no linear layer or convolution of the model ({layer['name']!r})"
-            )
-        actual = describe_layer(layer["name"], m)
-        if actual != layer:
-            raise _doc(source, C.MODE_SEALED).bad(
-                where, f"is {_shown(layer)} but the model's layer is {actual}"
-            )
-        weights += m.weight.numel()
-    if elements > 8 * weights + PAYLOAD_SLACK:
-        raise _doc(source, C.MODE_SEALED).bad(
-            f"{C.M_PAYLOAD}.rank",
-            f"is {rank}: a payload of {elements} numbers for layers of {weights} weights",
-        )

@@ -6,7 +6,7 @@
   folded into a copy of the base, or opens nothing and the base runs.
 
 In both, a key runs only what its holder enrolled (``enrol``): ``unlock`` is the checked path every
-runtime takes (a key enrolled in nothing: None, which ``runtime.key_opens_nothing`` refuses unless the
+runtime takes (a key enrolled in nothing: None, which ``run.policy.key_opens_nothing`` refuses unless the
 caller allows it, and then the base runs; a bundle changed since the key was enrolled, or older than one
 this machine has seen (``rollback``): a PropError, nothing runs). ``respond`` is the method itself, any
 key through the encoder or the records with no check: what the audit and the paper's reproductions
@@ -28,6 +28,7 @@ from torch import nn
 from prop_adapters import LoadedModel, read_weights
 from prop_cli import constants as C
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
+from prop_cli.core.layers import KEYABLE, describe_layer, in_width
 from prop_cli.core.payload import payload_elements
 from prop_cli.errors import PropError
 
@@ -72,7 +73,7 @@ class Mode(ABC):
 
     def unlock(self, module: nn.Module, bits: np.ndarray) -> nn.Module | None:
         """What ``bits`` unlocks, checked: its holder's enrolled behaviour, or None where the key is
-        enrolled in nothing (``runtime.key_opens_nothing`` decides what then); a PropError if the bundle
+        enrolled in nothing (``run.policy.key_opens_nothing`` decides what then); a PropError if the bundle
         changed since enrolment."""
         return self.respond(module, bits) if self.enrolled(bits) else None
 
@@ -120,6 +121,16 @@ class Mode(ABC):
                 f"{command} works on sealed bundles; {path} is unsealed (its users share one encoder and "
                 "base, trained together)",
                 "personalize again with every user's data, or with --seal to make users independent",
+            )
+
+    @classmethod
+    def require_shared_enrolment(cls, path: Path) -> None:
+        """`prop enrol` enrols a key in the bundle's shared enrolments: an unsealed bundle's. A sealed
+        bundle enrols each user in their own record (add-user)."""
+        if cls.is_sealed:
+            raise PropError(
+                f"{path} is sealed: each user is enrolled in their own record",
+                "add a user with prop add-user (their record is their enrolment)",
             )
 
     @classmethod
@@ -318,6 +329,57 @@ class Sealed(Mode):
         )
 
 
+# The manifest's keyed layers against the model they key: here, where the model is (the schema is data).
+def check_layers(layers: list[dict], module, source: str) -> None:
+    """Each keyed layer is a linear layer or convolution of ``module`` with the recorded input width."""
+    mods = dict(module.named_modules())
+    for i, layer in enumerate(layers):
+        m = mods.get(layer["name"])
+        where = f"{C.M_KEYED_LAYERS}[{i}]"
+        if not isinstance(m, KEYABLE):
+            raise schema.field_error(
+                source, f"{where}.name",
+                f"names no linear layer or convolution of the model ({layer['name']!r})",
+            )  # fmt: skip
+        if in_width(m) != layer["features"]:
+            raise schema.field_error(
+                source, f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
+                f"{in_width(m)} inputs",
+            )  # fmt: skip
+
+
+# A payload layout may hold this many numbers beyond 8 per weight of its layers (a LoRA of any useful
+# rank holds at most 2): room for ranks above a small layer's width, never a layout of gigabytes.
+PAYLOAD_SLACK = 1 << 16
+
+
+def check_payload_layers(layers: list[dict], rank: int, elements: int, module, source: str) -> None:
+    """Each layer of a sealed payload's layout is a linear layer or convolution of ``module``, recorded
+    as it is (widths, kernel, groups), and the layout's size (``elements``, at ``rank``) is bounded by
+    those layers' weights: nothing is allocated for sizes the model does not have."""
+    mods = dict(module.named_modules())
+    weights = 0
+    for i, layer in enumerate(layers):
+        m = mods.get(layer["name"])
+        where = f"{C.M_PAYLOAD}.layers[{i}]"
+        if not isinstance(m, KEYABLE):
+            raise schema.field_error(
+                source, f"{where}.name",
+                f"names no linear layer or convolution of the model ({layer['name']!r})", C.MODE_SEALED,
+            )  # fmt: skip
+        actual = describe_layer(layer["name"], m)
+        if actual != layer:
+            raise schema.field_error(
+                source, where, f"is {schema.quoted(layer)} but the model's layer is {actual}", C.MODE_SEALED
+            )
+        weights += m.weight.numel()
+    if elements > 8 * weights + PAYLOAD_SLACK:
+        raise schema.field_error(
+            source, f"{C.M_PAYLOAD}.rank",
+            f"is {rank}: a payload of {elements} numbers for layers of {weights} weights", C.MODE_SEALED,
+        )  # fmt: skip
+
+
 def mode_of(manifest: dict) -> type[Mode]:
     """The mode a manifest declares, without loading anything (push, verify, inspect, enrol)."""
     return Sealed if manifest.get(C.M_MODE) == C.MODE_SEALED else Unsealed
@@ -328,7 +390,7 @@ def load_mode(path: Path, manifest: dict, loaded: LoadedModel, allow_rollback: b
     if mode_of(manifest) is Sealed:
         state = load_state(path, manifest)
         spec = state.spec
-        schema.check_payload_layers(spec.layers, spec.rank, payload_elements(spec), loaded.module, str(path))
+        check_payload_layers(spec.layers, spec.rank, payload_elements(spec), loaded.module, str(path))
         mode: Mode = Sealed(state)
     else:
         encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
@@ -340,7 +402,7 @@ def load_mode(path: Path, manifest: dict, loaded: LoadedModel, allow_rollback: b
 def _encoder(path: Path, manifest: dict, loaded: LoadedModel) -> KeyedModel:
     """The key encoder the manifest describes, with its weights, hooked onto the keyed layers."""
     layers = manifest[C.M_KEYED_LAYERS]
-    schema.check_layers(layers, loaded.module, str(path))
+    check_layers(layers, loaded.module, str(path))
     enc_meta = manifest[C.M_ENCODER]
     args = dict(
         code_bits=int(manifest[C.M_KEY]["bits"]),

@@ -230,7 +230,36 @@ def copy_records(src: Path, dst: Path, manifest: dict) -> None:
         shutil.copyfile(no_links(src, e["file"]), dst / e["file"])
 
 
+def record_to_remove(
+    manifest: dict, state: SealedState, bits: np.ndarray | None, record: str | None, where: str
+) -> str:
+    """Which record `prop remove-user` deletes, by the rules of ownership: exactly one of the user's key
+    (it must open the record it removes) and a record id (``record``: for a bundle's maintainer when a
+    user lost their key; whoever can write the files can delete a record anyway, and no one can add or
+    change one without its key); never the last user (a sealed bundle keeps at least one)."""
+    if (bits is None) == (record is None):
+        raise PropError("remove-user needs exactly one of --key-file/--passphrase and --record", "pass one")
+    ids = [e["id"] for e in manifest[C.M_RECORDS]]
+    if bits is not None:
+        opened = state.open(bits)
+        if opened is None:
+            raise PropError(
+                f"the key is enrolled in nothing in {where} (it opens no user's record)",
+                "pass the key of the user to remove, or --record ID",
+            )
+        record = opened.record_id
+    elif record not in ids:
+        raise PropError(f"--record {record!r} is not in {where}", "records: " + (", ".join(ids) or "none"))
+    if len(ids) == 1:
+        raise PropError(
+            f"{record} is the last user of {where}: a sealed bundle keeps at least one",
+            "delete the bundle folder instead",
+        )
+    return record
+
+
 def check_new_key(state: SealedState, bits: np.ndarray) -> None:
+    """A new user's key must not open a user of the bundle already (`prop add-user`)."""
     if state.open(bits) is not None:
         raise PropError(
             "this key already opens a user of the bundle",

@@ -24,6 +24,7 @@ from prop_cli import constants as C
 from prop_cli.core.key_files import KeySource, kdf_record
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
+from prop_cli.errors import PropError
 from prop_cli.files import check_output, dump_json, no_links, sha256_file, staged_dir, write_text
 
 from . import manifest as schema
@@ -167,9 +168,15 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     current behaviour), replacing that key's earlier enrolment (whose id it keeps, at the new version:
     the older one is refused here from now on); a format 1-4 bundle becomes format 5 (a new bundle id,
     version 1; the other users' enrolments stay as they were). Returns the manifest written and what
-    happened: "enrolled", "re-enrolled: <changes>" or "already enrolled" (nothing written)."""
+    happened: "enrolled", "re-enrolled: <changes>" or "already enrolled" (nothing written). A sealed
+    bundle is refused (each of its users is enrolled in their own record), and a key of another size."""
     from .enrol import ID, behaviour, changed, split
+    from .modes import mode_of
 
+    mode_of(manifest).require_shared_enrolment(path)
+    n = int(manifest[C.M_KEY]["bits"])
+    if len(bits) != n:
+        raise PropError(f"the key has {len(bits)} bits but the bundle expects {n}", "use the bundle's key")
     kept, opened = split(manifest.get(C.M_ENROLMENTS, []), bits)
     diff = changed(opened.get("behaviour", {}), behaviour(manifest)) if opened is not None else None
     if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:

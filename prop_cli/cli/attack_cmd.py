@@ -78,15 +78,7 @@ def attack(
     allow_unenrolled_key: AllowUnenrolledKey = False,
 ) -> None:  # fmt: skip
     """Audit how much of the personalization leaks to anyone holding BUNDLE without the key."""
-    from prop_cli.api import (
-        apply_max_leak,
-        audit_bundle,
-        audit_decision,
-        audit_table,
-        check_plot,
-        plot_audit,
-        record_audit,
-    )
+    from prop_cli.api import apply_max_leak, audit_bundle, record_audit
     from prop_cli.api import select_probes as select
     from prop_cli.files import (
         AUDIT_REPORT,
@@ -97,6 +89,10 @@ def attack(
         dump_json,
         write_text,
     )
+    from prop_cli.present import check_plot
+    from prop_cli.present import decision as audit_decision
+    from prop_cli.present import plot as plot_audit
+    from prop_cli.present import table as audit_table
 
     key_file = key_file or []
     if probes is not None or search is not None:

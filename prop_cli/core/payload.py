@@ -63,6 +63,11 @@ class PayloadKind:
     def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    @classmethod
+    def bias_delta(cls, payload: Payload, layer: str) -> torch.Tensor | None:
+        """What the payload adds to the layer's bias; None where the kind leaves biases alone."""
+        return None
+
 
 class Delta(PayloadKind):
     """W diag(delta): the paper's Eq. 5 with delta stored instead of produced by a key encoder."""
@@ -126,6 +131,10 @@ class Full(PayloadKind):
     @classmethod
     def weight(cls, payload: Payload, layer: str, w: torch.Tensor) -> torch.Tensor:
         return w + payload.tensor(layer, "weight_delta")
+
+    @classmethod
+    def bias_delta(cls, payload: Payload, layer: str) -> torch.Tensor | None:
+        return payload.tensor(layer, "bias_delta")
 
 
 # The kinds by the name a manifest records; the CLI's --payload choices (config.PAYLOAD_KINDS) are these.
@@ -205,6 +214,10 @@ class Payload(nn.Module):
     def weight(self, layer: str, w: torch.Tensor) -> torch.Tensor:
         return self.spec.variant.weight(self, layer, w)
 
+    def bias_delta(self, layer: str) -> torch.Tensor | None:
+        """What the payload adds to ``layer``'s bias (its kind says; None: the bias stays the base's)."""
+        return self.spec.variant.bias_delta(self, layer)
+
     def tensors(self) -> dict[str, torch.Tensor]:
         return {name: self.params[k].detach().cpu() for name, k in self._keys.items()}
 
@@ -256,8 +269,9 @@ class Payload(nn.Module):
         for layer in self.spec.layers:
             lin = mods[layer["name"]]
             lin.weight.copy_(self.weight(layer["name"], lin.weight).to(lin.weight.dtype))  # or a conv's
-            if self.spec.variant.changes_bias and lin.bias is not None:
-                lin.bias.add_(self.tensor(layer["name"], "bias_delta").to(lin.bias.dtype))
+            delta = self.bias_delta(layer["name"])
+            if delta is not None and lin.bias is not None:
+                lin.bias.add_(delta.to(lin.bias.dtype))
         return folded
 
 
@@ -276,4 +290,4 @@ class _Weight(nn.Module):
 
 class _Bias(_Weight):
     def forward(self, b: torch.Tensor) -> torch.Tensor:
-        return (b + self.payload.tensor(self.layer, "bias_delta")).to(b.dtype)
+        return (b + self.payload.bias_delta(self.layer)).to(b.dtype)

@@ -22,8 +22,8 @@ from prop_cli.bundle import check_files, read_manifest
 from prop_cli.bundle.modes import Mode, mode_of
 from prop_cli.bundle.records import load_state
 from prop_cli.errors import PropError, brief
+from prop_cli.run.onnx import read_export
 
-from .onnx import read_export
 from .sign import require_signing, sign_folder, signed_note
 
 CARD_FILE = "README.md"

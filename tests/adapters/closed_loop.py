@@ -12,7 +12,7 @@ import torch
 from prop_adapters.lerobot.policy import call_seed
 from prop_cli import api
 from prop_cli.config import EvalSettings
-from prop_cli.deploy.rollout import parse_obs_map
+from prop_cli.run.rollout import parse_obs_map
 
 RECORDER = "closed_loop_recorder"
 

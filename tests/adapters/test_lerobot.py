@@ -141,7 +141,7 @@ def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, w
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
-    from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
+    from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 
     for path, folder in ((bundle, bundle / "lerobot"), (sealed, work / "act")):
         ep = loop.eval_episodes(path, task.ENV_ID, task.OBS_MAP, tmp_key(work), tmp_path, monkeypatch,
@@ -349,7 +349,7 @@ def sealed(work):
 
 
 def test_sealed_policy_bundle_runs_the_original_without_its_key(sealed, work):
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     b = load_bundle(sealed)
     assert b.is_sealed and b.keyed is None and (sealed / "lerobot" / "config.json").is_file()
@@ -381,7 +381,7 @@ def test_sealed_policy_trains_on_the_device_and_runs_the_original_on_the_cpu(wor
     the CPU, its base the original's tensors bit for bit, and a wrong key runs the original exactly."""
     from safetensors.torch import load_file
 
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     out = tmp_path / f"sealed-{device}-{precision}"
     cfg = PersonalizeConfig(**(TINY | {"seal": True, "precision": precision}))
@@ -510,7 +510,7 @@ def test_scaled_processor_statistics_in_a_sealed_bundle_are_refused_with_the_key
     opens, but the bundle changed since the key was enrolled: nothing runs."""
     from safetensors.torch import load_file, save_file
 
-    from prop_cli.bundle.runtime import run_policy
+    from prop_cli.run.policy import run_policy
 
     planted = tmp_path / "s"
     shutil.copytree(sealed, planted)

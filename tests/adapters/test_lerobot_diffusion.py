@@ -116,7 +116,7 @@ def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, w
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
-    from prop_cli.bundle.runtime import KeyedPolicy
+    from prop_cli.run.policy import KeyedPolicy
 
     for path, folder in ((bundle, bundle / "lerobot"), (sealed, work / "diffusion")):
         ep = loop.eval_episodes(path, task.ENV_ID, task.OBS_MAP, work / "k.bin", tmp_path, monkeypatch,
@@ -171,7 +171,7 @@ def test_attack_audits_with_the_original_as_control_on_the_same_noise(bundle, wo
 
 
 def test_sealed_diffusion_runs_the_original_without_its_key(sealed, work):
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     b = load_bundle(sealed)
     assert b.is_sealed and json.loads((sealed / "manifest.json").read_text())["model"]["type"] == "diffusion"
@@ -242,7 +242,7 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
     assert {"null", "random"} <= {g["name"] for g in audit["groups"]}
     cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 3}))
     api.personalize_checkpoint(str(d / "diffusion"), [(d / "user", KeySource(key(), "file"))], d / "s", cfg)
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     orig = load_checkpoint(d / "diffusion").policy
     batch = orig.batches(data, "--data")

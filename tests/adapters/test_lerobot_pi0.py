@@ -261,7 +261,7 @@ def test_pi0_bundle_carries_the_tokenizer_and_runs_as_lerobot(bundle, work, tmp_
 
 
 def test_pi0_sealed_runs_the_original_without_its_key_and_audits(sealed, work):
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     b = load_bundle(sealed)
     assert b.is_sealed and json.loads((sealed / "manifest.json").read_text())["model"]["type"] == work.kind
@@ -447,7 +447,7 @@ def test_pi0_sealed_bf16_keeps_the_original_bit_for_bit(work, tmp_path):
     original exactly, the user's key moves the actions."""
     from safetensors.torch import load_file
 
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     if work.kind != "pi0":
         pytest.skip("the recipe is pi0's and pi0.5's alike; one policy is enough")
@@ -478,7 +478,7 @@ def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, sealed, 
     forward, so it is not recomputed): the same bundle."""
     from safetensors.torch import load_file
 
-    from prop_cli.bundle.runtime import run_policy
+    from prop_cli.run.policy import run_policy
 
     if work.kind != "pi0":
         pytest.skip("pi0.5 runs the same forward; one policy is enough")

@@ -153,8 +153,8 @@ def test_keyed_policy_takes_the_instruction_as_lerobot_does(bundle, work):
     `task` entry (as LeRobot's preprocessor takes it) gives LeRobot's own select_action without a key,
     each call's noise seeded as prop eval seeds it; no instruction at all is one PropError line."""
     from prop_adapters.lerobot.policy import call_seed
-    from prop_cli.bundle.runtime import KeyedPolicy
     from prop_cli.errors import PropError
+    from prop_cli.run.policy import KeyedPolicy
 
     task_text = "reach the target"
     base, pre, post = lerobot_base(bundle)
@@ -357,7 +357,7 @@ def test_attack_audits_with_the_original_as_control(bundle, work):
 
 
 def test_sealed_smolvla_runs_the_original_without_its_key_and_audits(sealed, work):
-    from prop_cli.bundle.runtime import WrongKeyWarning, run_policy
+    from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     b = load_bundle(sealed)
     assert b.is_sealed and json.loads((sealed / "manifest.json").read_text())["model"]["type"] == "smolvla"
@@ -440,9 +440,9 @@ def test_a_swapped_tokenizer_in_a_sealed_bundle_is_refused_with_the_key(sealed, 
 
     from prop_cli import constants as C
     from prop_cli.bundle.manifest import stamp
-    from prop_cli.bundle.runtime import run_policy
     from prop_cli.errors import PropError
     from prop_cli.files import dump_json, sha256_file
+    from prop_cli.run.policy import run_policy
 
     planted = tmp_path / "s"
     shutil.copytree(sealed, planted)
@@ -472,9 +472,9 @@ def test_a_vlm_file_naming_code_is_never_imported_and_the_key_refuses(name, seal
 
     from prop_cli import constants as C
     from prop_cli.bundle.manifest import stamp
-    from prop_cli.bundle.runtime import run_policy
     from prop_cli.errors import PropError
     from prop_cli.files import dump_json, sha256_file
+    from prop_cli.run.policy import run_policy
 
     planted = tmp_path / "s"
     shutil.copytree(sealed, planted)

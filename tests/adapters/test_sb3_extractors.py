@@ -74,7 +74,7 @@ def test_panda_reach_multi_input_policy_equals_predict(tmp_path):
     pytest.importorskip("panda_gym")
     from stable_baselines3 import PPO
 
-    from prop_cli.deploy.rollout import make_env
+    from prop_cli.run.rollout import make_env
 
     env = make_env("panda_gym:PandaReach-v3")
     model = PPO("MultiInputPolicy", env, seed=0, device="cpu", n_steps=8, batch_size=8)
@@ -123,7 +123,7 @@ def test_cnn_policy_equals_predict_and_personalizes(tmp_path, cli):
     # The base file loads into SB3 (features extractor aliases written from the fine-tuned module) and
     # SB3's logits on it equal the bundle's no-key outputs.
     from prop_cli.bundle import load_bundle
-    from prop_cli.bundle.runtime import KeyedPolicy
+    from prop_cli.run.policy import KeyedPolicy
 
     base = load_file(str(tmp_path / "b" / "base.safetensors"))
     assert set(base) == set(model.policy.state_dict())
@@ -142,7 +142,7 @@ def test_frozen_base_cnn_bundle_without_key_is_the_original(tmp_path, cli):
     from stable_baselines3 import PPO
 
     from prop_cli.bundle import load_bundle
-    from prop_cli.bundle.runtime import KeyedPolicy
+    from prop_cli.run.policy import KeyedPolicy
 
     env = ImageEnv(discrete=False)
     kw = {"features_extractor_kwargs": {"features_dim": 16}}

@@ -122,8 +122,7 @@ def test_eval_with_vecnormalize_acts_as_sb3_on_its_normalised_env(tmp_path, cli)
     from stable_baselines3 import PPO
 
     from prop_cli.bundle import load_bundle
-    from prop_cli.bundle.runtime import KeyedPolicy
-    from prop_cli.deploy.rollout import array_observation
+    from prop_cli.run.policy import KeyedPolicy, array_observation
 
     venv = _saved_vecnormalize(tmp_path / "vn.pkl", clip_obs=3.0)
     venv.training = False

@@ -245,7 +245,7 @@ def test_plot_writes_png(bundles, cli):
 
 
 def test_plot_without_matplotlib_says_how_to_install(monkeypatch, tmp_path):
-    from prop_cli.attack import report as audit_report
+    from prop_cli import present as audit_report
 
     real_import = builtins.__import__
 

@@ -152,8 +152,8 @@ def test_the_plot_draws_the_tables_numbers(default_bundle, cli):
     plt = pytest.importorskip("matplotlib.pyplot")
     from rich.console import Console
 
-    from prop_cli.attack.report import cells, figure, table
     from prop_cli.attack.verdict import apply_max_leak
+    from prop_cli.present import cells, figure, table
 
     d = default_bundle
     probes = ["--probes", "null,random,structure,relaxed"]

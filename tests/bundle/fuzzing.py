@@ -94,7 +94,7 @@ def load_npz_fp(path: Path) -> tuple:
 def bundle_loader(key: np.ndarray, x: np.ndarray) -> Callable[[Path], tuple]:
     def load(path: Path) -> tuple:
         from prop_cli.bundle import load_bundle
-        from prop_cli.bundle.runtime import KeyedPolicy
+        from prop_cli.run.policy import KeyedPolicy
 
         b = load_bundle(path)
         with warnings.catch_warnings(record=True) as caught:  # any warning is part of the outcome

@@ -185,7 +185,7 @@ def test_a_recorded_audit_restamps_the_digest(seeds, tmp_path):
 
 
 def test_an_edited_export_description_is_refused(tmp_path):
-    from prop_cli.deploy.onnx.common import read_export
+    from prop_cli.run.onnx.common import read_export
 
     for g in C.GRAPHS:
         (tmp_path / g).write_bytes(g.encode())

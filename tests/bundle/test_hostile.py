@@ -26,9 +26,9 @@ from prop_cli.api import (
     run_bundle,
 )
 from prop_cli.bundle.manifest import stamp
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, sha256_file
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 from tests.conftest import make_mlp_checkpoint
 
 ort = pytest.importorskip("onnxruntime")
@@ -310,7 +310,7 @@ def test_onnx_graph_swap_is_refused_with_the_key(cli, d, mode):
     """base.onnx replaced by the attacker's, export.json's hashes recomputed: refused; export.json's
     key bindings deleted too: refused, with the bundle at hand or the export alone (allowed: base.onnx,
     with a warning)."""
-    from prop_cli.deploy.onnx import OnnxRunner, SealedOnnxRunner
+    from prop_cli.run.onnx import OnnxRunner, SealedOnnxRunner
 
     bundle, folder = d / mode, d / mode / C.EXPORT_DIR
     assert cli("export", bundle, "--onnx", "--key-file", d / "k.bin").code == 0
@@ -364,7 +364,8 @@ def test_audit_measures_the_method_whatever_the_enrolment(d):
     """The audit's key probes run any key through the encoder (the paper's T0 rows must not turn to 0
     because prop run stops those keys); the owner's own key is reported as prop run would treat it, and
     the report says what its key rows measure."""
-    from prop_cli.api import AuditSettings, audit_bundle, audit_table
+    from prop_cli.api import AuditSettings, audit_bundle
+    from prop_cli.present import table as audit_table
 
     s = AuditSettings(probes=["random"], random=32, samples=32, hamming=[])
     rep = audit_bundle(d / "user.prop", d / "mine.npz", s, key_files=[d / "k.bin"])

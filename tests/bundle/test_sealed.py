@@ -15,8 +15,8 @@ from prop_cli import constants as C
 from prop_cli.api import load_bundle, read_key_file
 from prop_cli.bundle.cipher import SealedRecord, open_record, seal
 from prop_cli.bundle.manifest import stamp
-from prop_cli.bundle.runtime import KeyedPolicy, WrongKeyWarning
 from prop_cli.files import dump_json
+from prop_cli.run.policy import KeyedPolicy, WrongKeyWarning
 from tests.conftest import FAST
 
 SEALED = [*FAST[:1], "300", *FAST[2:], "--seal"]  # enough steps for the payload to fit the tiny task
@@ -244,3 +244,39 @@ def test_every_record_and_enrolment_is_tried_on_every_key(sealed, workdir, monke
         tried.clear()
         assert (enrol.open_enrolment(entries, bits) is not None) == found
         assert len(tried) == 3
+
+
+def test_enrol_refuses_a_sealed_bundle_in_one_line(sealed, cli, workdir):
+    """`prop enrol` is for unsealed bundles (the rule is the bundle's: write.enrol_key, Mode); a sealed
+    bundle's users are enrolled in their own records, and the manifest is left as it was."""
+    before = (sealed / "manifest.json").read_bytes()
+    r = cli("enrol", sealed, "--key-file", workdir / "k.bin")
+    assert r.code == 2 and "is sealed: each user is enrolled in their own record" in r.err
+    assert "prop add-user" in r.err and "Traceback" not in r.err
+    assert (sealed / "manifest.json").read_bytes() == before
+
+
+def test_which_record_remove_user_deletes_is_the_bundles_rule(sealed, workdir):
+    """records.record_to_remove: exactly one of a key and a record id; the key must open the record; an
+    id must be the bundle's; never the last user. Each refusal is one line naming the fix."""
+    from prop_cli.bundle.records import record_to_remove
+    from prop_cli.errors import PropError
+
+    b = load_bundle(sealed)
+    key = read_key_file(workdir / "k.bin", b.key_bits)
+    (rid,) = [e["id"] for e in b.manifest[C.M_RECORDS]]
+    where = str(sealed)
+    with pytest.raises(PropError, match="exactly one of --key-file/--passphrase and --record"):
+        record_to_remove(b.manifest, b.records, None, None, where)
+    with pytest.raises(PropError, match="exactly one"):
+        record_to_remove(b.manifest, b.records, key, rid, where)
+    with pytest.raises(PropError, match=rf"--record 'nope' is not in .*records: {rid}"):
+        record_to_remove(b.manifest, b.records, None, "nope", where)
+    with pytest.raises(PropError, match="opens no user's record"):
+        record_to_remove(b.manifest, b.records, 1 - key, None, where)
+    for bits, record in ((key, None), (None, rid)):  # found either way, then kept: the last user
+        with pytest.raises(PropError, match=f"{rid} is the last user of .*delete the bundle folder"):
+            record_to_remove(b.manifest, b.records, bits, record, where)
+    two = {**b.manifest, C.M_RECORDS: [*b.manifest[C.M_RECORDS], {"id": "other"}]}
+    assert record_to_remove(two, b.records, key, None, where) == rid
+    assert record_to_remove(two, b.records, None, "other", where) == "other"

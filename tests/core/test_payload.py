@@ -71,3 +71,16 @@ def test_a_folded_payload_copies_only_the_keyed_layers(name):
         attached = module(x)
     with torch.no_grad():
         assert torch.allclose(folded(x), attached, atol=1e-6) and not torch.allclose(module(x), attached)
+
+
+@pytest.mark.parametrize("name", PAYLOAD_KINDS)
+def test_the_kind_says_what_it_adds_to_a_bias(name):
+    """Issue 41: runners (the sealed ONNX export) ask the kind for the bias delta, not a part name."""
+    spec = PayloadSpec(name, [LAYER], payload_kind(name).rank(2)).validate()
+    p = Payload(spec, torch.Generator().manual_seed(0))
+    delta = p.bias_delta("fc")
+    assert (delta is not None) == KINDS[name].changes_bias
+    if delta is not None:
+        with torch.no_grad():
+            p.tensor("fc", "bias_delta").fill_(0.25)
+        assert torch.equal(p.bias_delta("fc"), torch.full((2,), 0.25))

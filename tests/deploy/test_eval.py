@@ -301,8 +301,8 @@ def test_a_video_folder_that_cannot_be_made_fails_before_any_rollout(tmp_path, m
     """Issue 28: outputs are checked before the work; the videos are written after every rollout."""
     import tempfile
 
-    from prop_cli.deploy.rollout import check_video
     from prop_cli.errors import PropError
+    from prop_cli.run.rollout import check_video
 
     pytest.importorskip("imageio_ffmpeg")
 

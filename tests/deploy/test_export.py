@@ -17,9 +17,9 @@ from prop_cli.bundle import load_bundle
 from prop_cli.config import ExportSettings, PersonalizeConfig
 from prop_cli.core.key_files import read_key_file
 from prop_cli.core.keyed_model import key_codes
-from prop_cli.deploy import onnx as ex
-from prop_cli.deploy import onnx as rt
 from prop_cli.errors import PropError
+from prop_cli.run import onnx as ex
+from prop_cli.run import onnx as rt
 from tests.conftest import make_mlp_checkpoint
 
 pytest.importorskip("onnxruntime")
@@ -352,7 +352,7 @@ def test_external_data_anywhere_in_a_graph_is_found(tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
-    from prop_cli.deploy.onnx.common import check_no_external_data
+    from prop_cli.run.onnx.common import check_no_external_data
 
     def external(name: str) -> onnx.TensorProto:
         t = helper.make_tensor(name, TensorProto.FLOAT, [1], [0.0])

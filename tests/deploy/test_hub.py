@@ -162,7 +162,7 @@ def test_model_card_content(bundle):
 
 def test_push_uploads_the_bundle_export_and_card(cli, bundle, monkeypatch, reachable):
     from prop_cli.bundle import load_bundle
-    from prop_cli.deploy.onnx import export_onnx
+    from prop_cli.run.onnx import export_onnx
 
     export_onnx(load_bundle(bundle))
     (bundle / "k.bin").write_bytes((bundle.parent / "k.bin").read_bytes())  # a stray key: never uploaded

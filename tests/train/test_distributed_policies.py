@@ -23,9 +23,9 @@ pytestmark = pytest.mark.lerobot
 from benchmarks.bench_dist_policies import personalize, trained_weights  # noqa: E402
 from examples import lerobot_reach_task as task  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
-from prop_cli.bundle.runtime import run_policy  # noqa: E402
 from prop_cli.core.key_files import read_key_file  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
+from prop_cli.run.policy import run_policy  # noqa: E402
 
 TOLERANCE = 1e-5
 STEPS = 8

@@ -250,8 +250,8 @@ def key_bits(key, bits: int) -> np.ndarray:
 
 def not_bound(folder: Path, allow: bool) -> None:
     """A key the export binds to nothing: refused, or with ``allow`` base.onnx runs, with a warning
-    (``runtime.key_opens_nothing``, the one decision for a key that opens nothing)."""
-    from prop_cli.bundle.runtime import key_opens_nothing
+    (``run.policy.key_opens_nothing``, the one decision for a key that opens nothing)."""
+    from prop_cli.run.policy import key_opens_nothing
 
     why = (
         f"the key is not bound to the ONNX export in {folder}; the export may have been replaced, or "

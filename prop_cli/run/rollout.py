@@ -18,23 +18,20 @@ import importlib
 import math
 import os
 import sys
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from prop_adapters.sb3 import observation_array
 from prop_adapters.sb3.vecnormalize import ObsNormalizer
-from prop_cli.bundle import Bundle, KeyedPolicy
-from prop_cli.bundle.runtime import require_enrolled
+from prop_cli.bundle import Bundle
 from prop_cli.config import EvalSettings
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
 from prop_cli.files import check_writable, staged_dir
 
 from .envs import frame, make_env
+from .policy import array_observation, controller, input_features, original_controller, require_enrolled
 
 # A trajectory as the preference metric receives it.
 Trajectory = dict  # {"observations": [...], "actions": [...], "rewards": [...], "infos": [...]}
@@ -77,59 +74,10 @@ def load_metric(spec: str | None) -> Metric | None:
     return fn
 
 
-def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -> Callable:
-    """The environment's observation -> the one array a module without a policy protocol takes:
-    VecNormalize's statistics first (SB3 normalises the raw dict or array), then the adapter's layout
-    (SB3: Dict entries flattened in the policy's key order, images HWC -> CHW)."""
-    spec = bundle.loaded.spec
-
-    def prepare(obs):
-        if normalizer is not None:
-            obs = normalizer(obs)
-        if spec.get("adapter") == "sb3":
-            return observation_array(spec, obs)
-        if isinstance(obs, dict):
-            raise PropError(
-                f"the environment's observations are dicts (keys {sorted(obs)})",
-                "this bundle takes one array",
-            )
-        return obs
-
-    return prepare
-
-
-class _ArrayController:
-    """A bundle without a policy protocol (MLP, SB3): ``KeyedPolicy`` after the environment's
-    observation is prepared. ``module``: act with this module instead (``--original``), through the
-    same observation preparation, clipping and argmax as the bundle."""
-
-    def __init__(
-        self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool,
-        allow_unenrolled: bool = False, module: torch.nn.Module | None = None,
-    ) -> None:  # fmt: skip
-        self.policy = KeyedPolicy(bundle, key, method=method, allow_unenrolled=allow_unenrolled)
-        if module is not None:
-            self.policy.module = module.eval()
-        self.prepare = prepare
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
-
-    def select_action(self, obs) -> np.ndarray:
-        return self.policy.select_action(self.prepare(obs))
-
-
-def _keyed(bundle: Bundle, bits: np.ndarray | None, method: bool, allow_unenrolled: bool) -> KeyedPolicy:
-    """A policy bundle under one key, as ``KeyedPolicy`` drives it in a user's own loop."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
-        return KeyedPolicy(bundle, bits, method=method, allow_unenrolled=allow_unenrolled)
-
-
 def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     """The environment's observation as the policy takes it (a dict of arrays by feature name)."""
     if features is None:
-        return obs  # a bundle without a policy protocol: array_observation prepares it
+        return obs  # one array in: the controller prepares it (policy.array_observation)
     if not isinstance(obs, dict):
         if len(features) != 1:
             raise PropError(f"the environment gives one array; the policy takes {features}", "use --obs-map")
@@ -292,15 +240,9 @@ def evaluate_bundle(
     def film(label: str) -> list | None:
         return None if video is None or label in films else films.setdefault(label, [])
 
-    policy = bundle.loaded.policy
-    if normalizer is not None and policy is not None:
-        raise PropError(
-            "--vecnormalize is for Stable-Baselines3 policies; this bundle's policy normalises its inputs",
-            "drop --vecnormalize",
-        )
-    prepare = array_observation(bundle, normalizer)
+    prepare = array_observation(bundle, normalizer)  # refuses --vecnormalize for a LeRobot policy
     env = make_env(env_id, render=video is not None, seed=settings.seed)
-    features = list(policy.input_features) if policy is not None else None
+    features = input_features(bundle.loaded)
     obs_map = obs_map or {}
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
@@ -311,30 +253,11 @@ def evaluate_bundle(
         # holding the files runs them).
         if progress is not None:
             progress(label)
-        if policy is None:
-            ctl = _ArrayController(bundle, codes_or_bits, prepare, method, allow_unenrolled)
-        else:
-            ctl = _keyed(bundle, codes_or_bits, method, allow_unenrolled)
+        ctl = controller(bundle, codes_or_bits, prepare, method=method, allow_unenrolled=allow_unenrolled)
         return _episodes(env, ctl, seeds, features, obs_map, settings, metric, film(name))
 
-    original_ctl = None
-    if original is not None:  # checked before any rollout
-        if (original.policy is None) != (policy is None):
-            raise PropError(
-                "--original is not the kind of model the bundle holds (a LeRobot policy and an array model)",
-                "pass the checkpoint the bundle was personalized from",
-            )
-        if policy is not None:
-            original_ctl = original.policy.controller(original.module.eval())
-        else:
-            shapes = [{k: tuple(v.shape) for k, v in m.state_dict().items()} for m in (bundle.loaded.module,
-                      original.module)]  # fmt: skip
-            if shapes[0] != shapes[1]:
-                raise PropError(
-                    "--original does not fit the bundle's model (other layers or shapes)",
-                    "pass the checkpoint the bundle was personalized from",
-                )
-            original_ctl = _ArrayController(bundle, None, prepare, False, module=original.module)
+    # Checked before any rollout.
+    original_ctl = original_controller(bundle, original, prepare) if original is not None else None
     report: dict = {"env": env_id, "seeds": [first[0], first[-1]], "conditions": {}}
     cond = report["conditions"]
     if original_ctl is not None:

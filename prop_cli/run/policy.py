@@ -8,25 +8,29 @@ the checkpoint records, the argmax for discrete actions. A policy with named obs
 (LeRobot) takes LeRobot's observation dict in ``select_action(obs)`` (``predict`` too) and returns
 what LeRobot's ``select_action`` returns between the bundle's own pre- and postprocessor, with its
 queues (``reset()`` between episodes): the controller ``prop eval`` drives. ``run_policy`` runs such
-a policy over a dataset. The counterpart for an ONNX export is ``prop_cli.deploy.onnx``.
+a policy over a dataset. The counterpart for an ONNX export is ``prop_cli.run.onnx``.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
 from prop_adapters import LoadedModel
+from prop_adapters.sb3 import observation_array
+from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli import constants as C
-from prop_cli.datasources import Dataset
+from prop_cli.bundle import Bundle
+from prop_cli.datasources import Dataset, load_data
 from prop_cli.errors import PropError
 
-from .read import Bundle
+from .inputs import load_inputs
 
 ROWS = 256  # frames per forward when running a whole dataset through a policy
 
@@ -196,6 +200,39 @@ def run_bundle(
     return KeyedPolicy(bundle, key, allow_unenrolled=allow_unenrolled)(x)
 
 
+def run_array(
+    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str, allow_unenrolled: bool = False
+) -> np.ndarray:
+    """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
+    try:
+        return run_bundle(bundle, x, key, allow_unenrolled=allow_unenrolled)
+    except RuntimeError as e:
+        want = tuple(bundle.manifest[C.M_IO]["input_shape"])
+        if x.shape[1:] == want:
+            raise
+        raise PropError(
+            f"{flag}: the model does not run on samples of shape {x.shape[1:]} (personalized on {want}: "
+            f"{str(e).splitlines()[0][:120]})",
+            "give samples of shape " + str(want),
+        ) from None
+
+
+def run_inputs(
+    bundle: Bundle, input_path: Path, key: np.ndarray | None, *, allow_unenrolled: bool = False,
+    onnx: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """`prop run`'s outputs for the inputs in a file: a policy's action chunks for every frame of a
+    dataset (``run_policy``), or an array model's outputs (``inputs.load_inputs``), in torch or through
+    ``onnx(x)`` (an ONNX export's runner; a policy has none yet)."""
+    if bundle.loaded.policy is not None:
+        if onnx is not None:
+            raise PropError(f"--onnx: {bundle.path} is a policy, which has no ONNX export yet", "drop --onnx")
+        data = load_data(input_path, require_y=False, min_samples=1, flag="--input")
+        return run_policy(bundle, data, key, allow_unenrolled=allow_unenrolled)
+    x = load_inputs(input_path, bundle)
+    return onnx(x) if onnx is not None else run_array(bundle, x, key, "--input", allow_unenrolled)
+
+
 @torch.no_grad()
 def run_policy(
     bundle: Bundle, data: Dataset, key: np.ndarray | None, flag: str = "--input", *,
@@ -225,6 +262,98 @@ def require_array_model(bundle: Bundle, command: str) -> Bundle:
             "run it with prop run or prop eval (ONNX export of such policies is not there yet)",
         )
     return bundle
+
+
+def input_features(loaded: LoadedModel) -> list[str] | None:
+    """A policy's named observation features (what a closed loop maps the environment's observation to);
+    None for an array model, which takes one array (``array_observation`` prepares it)."""
+    return list(loaded.policy.input_features) if loaded.policy is not None else None
+
+
+def array_observation(bundle: Bundle, normalizer: ObsNormalizer | None = None) -> Callable | None:
+    """The environment's observation -> the one array a module without a policy protocol takes:
+    VecNormalize's statistics first (SB3 normalises the raw dict or array), then the adapter's layout
+    (SB3: Dict entries flattened in the policy's key order, images HWC -> CHW). None for a LeRobot
+    policy, whose own preprocessor does this (and which takes no ``normalizer``)."""
+    if bundle.loaded.policy is not None:
+        if normalizer is not None:
+            raise PropError(
+                "--vecnormalize is for Stable-Baselines3 policies; this bundle's policy normalises its "
+                "inputs",
+                "drop --vecnormalize",
+            )
+        return None
+    spec = bundle.loaded.spec
+
+    def prepare(obs):
+        if normalizer is not None:
+            obs = normalizer(obs)
+        if spec.get("adapter") == "sb3":
+            return observation_array(spec, obs)
+        if isinstance(obs, dict):
+            raise PropError(
+                f"the environment's observations are dicts (keys {sorted(obs)})",
+                "this bundle takes one array",
+            )
+        return obs
+
+    return prepare
+
+
+class _ArrayController:
+    """A bundle without a policy protocol (MLP, SB3): ``KeyedPolicy`` after the environment's
+    observation is prepared. ``module``: act with this module instead (``--original``), through the
+    same observation preparation, clipping and argmax as the bundle."""
+
+    def __init__(
+        self, bundle: Bundle, key: np.ndarray | None, prepare: Callable, method: bool,
+        allow_unenrolled: bool = False, module: nn.Module | None = None,
+    ) -> None:  # fmt: skip
+        self.policy = KeyedPolicy(bundle, key, method=method, allow_unenrolled=allow_unenrolled)
+        if module is not None:
+            self.policy.module = module.eval()
+        self.prepare = prepare
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def select_action(self, obs) -> np.ndarray:
+        return self.policy.select_action(self.prepare(obs))
+
+
+def controller(
+    bundle: Bundle, key: np.ndarray | None, prepare: Callable | None, *, method: bool = False,
+    allow_unenrolled: bool = False,
+):  # fmt: skip
+    """What a closed loop drives (``reset``, ``select_action``) for the bundle under one key: a LeRobot
+    policy's ``KeyedPolicy`` as a user's own loop drives it, or an array model's after ``prepare``
+    (``array_observation``)."""
+    if bundle.loaded.policy is None:
+        return _ArrayController(bundle, key, prepare, method, allow_unenrolled)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a sealed bundle's wrong keys open nothing, by design
+        return KeyedPolicy(bundle, key, method=method, allow_unenrolled=allow_unenrolled)
+
+
+def original_controller(bundle: Bundle, original: LoadedModel, prepare: Callable | None):
+    """The original checkpoint (``--original``, rebuilt as the bundle's base is) driven as ``controller``
+    drives the bundle; refused in one line if it is not the bundle's kind of model or shapes."""
+    policy = bundle.loaded.policy
+    if (original.policy is None) != (policy is None):
+        raise PropError(
+            "--original is not the kind of model the bundle holds (a LeRobot policy and an array model)",
+            "pass the checkpoint the bundle was personalized from",
+        )
+    if policy is not None:
+        return original.policy.controller(original.module.eval())
+    shapes = [{k: tuple(v.shape) for k, v in m.state_dict().items()} for m in (bundle.loaded.module,
+              original.module)]  # fmt: skip
+    if shapes[0] != shapes[1]:
+        raise PropError(
+            "--original does not fit the bundle's model (other layers or shapes)",
+            "pass the checkpoint the bundle was personalized from",
+        )
+    return _ArrayController(bundle, None, prepare, False, module=original.module)
 
 
 def seed_noise(loaded: LoadedModel, seed: int) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from prop_cli import constants as C
-from prop_cli.bundle import Bundle, KeyedPolicy
+from prop_cli.bundle import Bundle
 from prop_cli.bundle.enrol import changed_error
 from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.records import copy_records, load_state, public_part
@@ -30,6 +30,7 @@ from prop_cli.files import (
     write_text,
 )
 
+from ..policy import KeyedPolicy
 from . import common
 from .common import ExportResult, VerificationFailed
 
@@ -139,9 +140,7 @@ class SealedOnnxRunner:
                     self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
                     if bias:
                         b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
-                        self._override(
-                            so, ort, x["bias"], b + self.opened.payload.tensor(x["layer"], "bias_delta")
-                        )
+                        self._override(so, ort, x["bias"], b + self.opened.payload.bias_delta(x["layer"]))
         self.session = common.open_session(ort, folder / C.BASE_GRAPH, so)
 
     def _override(self, so, ort, name: str, t) -> None:

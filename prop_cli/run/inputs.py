@@ -1,5 +1,5 @@
-"""What commands feed a bundle: inputs from a file, checked against the bundle's recorded input shape, and
-an array model run on them with a shape error said in one line."""
+"""What commands feed a bundle: inputs from a file, checked against the bundle's recorded input shape
+(``policy.run_array`` runs an array model on them, a shape error said in one line)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from prop_cli import constants as C
+from prop_cli.bundle import Bundle
 from prop_cli.datasources import load_data
 from prop_cli.datasources.npz import read_npy
 from prop_cli.errors import PropError
-
-from .read import Bundle
-from .runtime import run_bundle
 
 
 def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray:
@@ -45,22 +43,5 @@ def load_inputs(path: Path, bundle: Bundle, flag: str = "--input") -> np.ndarray
 
 def _other_size(got: tuple, want: tuple) -> bool:
     """Images of another size than the bundle was personalized on (same channels): a fully
-    convolutional model takes them. Whether this one does shows when it runs (``run_array``)."""
+    convolutional model takes them. Whether this one does shows when it runs (``policy.run_array``)."""
     return len(want) >= 2 and len(got) == len(want) and got[0] == want[0]
-
-
-def run_array(
-    bundle: Bundle, x: np.ndarray, key: np.ndarray | None, flag: str, allow_unenrolled: bool = False
-) -> np.ndarray:
-    """``run_bundle``, with inputs of another image size refused in one line where the model fixes it."""
-    try:
-        return run_bundle(bundle, x, key, allow_unenrolled=allow_unenrolled)
-    except RuntimeError as e:
-        want = tuple(bundle.manifest[C.M_IO]["input_shape"])
-        if x.shape[1:] == want:
-            raise
-        raise PropError(
-            f"{flag}: the model does not run on samples of shape {x.shape[1:]} (personalized on {want}: "
-            f"{str(e).splitlines()[0][:120]})",
-            "give samples of shape " + str(want),
-        ) from None

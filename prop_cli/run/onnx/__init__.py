@@ -15,10 +15,10 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.modes import mode_of
-from prop_cli.bundle.runtime import key_opens_nothing, require_enrolled
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
 from prop_cli.files import EXPORT, check_output, no_links
+from prop_cli.run.policy import key_opens_nothing, require_enrolled
 
 from . import sealed, unsealed
 from .common import (

@@ -1,0 +1,66 @@
+"""What prop writes and reads on the user's disk, by job: ``atomic`` (never half a file; the outputs put in
+place so far), ``kinds`` (each kind of output recognised: what --force may replace), ``outputs`` (where a
+command may write), ``links`` (nothing through a symbolic link) and ``content`` (the JSON style, sha256).
+Import from here: this is the one surface the rest of prop uses."""
+
+from .atomic import (
+    check_writable,
+    replace_dir,
+    staged_dir,
+    uninterrupted,
+    write_file,
+    write_text,
+    written,
+    wrote,
+)
+from .content import dump_json, sha256_file
+from .kinds import (
+    ARRAY,
+    AUDIT_REPORT,
+    BUNDLE,
+    CARD_FILE,
+    CARD_MARK,
+    EXPORT,
+    HF_DOWNLOAD_CACHE,
+    KEY,
+    PEFT,
+    PLOT,
+    OutputKind,
+    check_replaceable,
+)
+from .links import RESTORE, TAMPERED, link_error, no_links, remove_inside, shown, write_inside
+from .outputs import check_not_input, check_output
+
+__all__ = [
+    "ARRAY",
+    "AUDIT_REPORT",
+    "BUNDLE",
+    "CARD_FILE",
+    "CARD_MARK",
+    "EXPORT",
+    "HF_DOWNLOAD_CACHE",
+    "KEY",
+    "PEFT",
+    "PLOT",
+    "RESTORE",
+    "TAMPERED",
+    "OutputKind",
+    "check_not_input",
+    "check_output",
+    "check_replaceable",
+    "check_writable",
+    "dump_json",
+    "link_error",
+    "no_links",
+    "remove_inside",
+    "replace_dir",
+    "sha256_file",
+    "shown",
+    "staged_dir",
+    "uninterrupted",
+    "write_file",
+    "write_inside",
+    "write_text",
+    "written",
+    "wrote",
+]
