@@ -143,7 +143,9 @@ class Hardening(_Settings):
         0, "Code-space fallback codes per step near your code (64 with --harden, else 0)."
     )
     code_flip_max: int = setting(48, "Code-space negatives: at most this many bits flipped.")
-    code_relax_min: float = setting(0.1, "Code-space negatives: relaxed at least this far from your code, in (0, 1].")
+    code_relax_min: float = setting(
+        0.1, "Code-space negatives: relaxed at least this far from your code, in (0, 1]."
+    )
     # ±1 codes 40-56 bits (of 128) from the antipode of the users' codes per step (72-88 from them), with
     # the far codes: a fallback term, and unlike them pulled (train.hardening.antipode_codes). The
     # encoder is nearly odd in the code, so codes past 64 bits get a share of minus the user's delta;
@@ -209,10 +211,14 @@ class UnsealedConfig(_Settings):
     # key's model is then nearly the no-key model, not only close to the original on the training
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
     # loop": SAC Pendulum, keys below 0.9x the original's return 6.3% -> 0). 0: bundles before issue 32.
-    delta_pull: float = setting(10.0, "Weight pulling wrong keys' layer scales to the no-key model's (0 = off).")
+    delta_pull: float = setting(
+        10.0, "Weight pulling wrong keys' layer scales to the no-key model's (0 = off)."
+    )
     # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, not pulled
     # (train.hardening.far_codes, objective.delta_pull): the nearest codes real keys reach. 0: none.
-    far_codes: int = setting(16, "Codes 40-56 of 128 bits from yours per step, trained to fall back (0 = none).")
+    far_codes: int = setting(
+        16, "Codes 40-56 of 128 bits from yours per step, trained to fall back (0 = none)."
+    )
     # Hard-negative random keys (core.key_sampling.KeySampler; docs/privacy.md, "Wrong keys in closed
     # loop"): every hard_every steps hard_pool fresh random keys and the kept ones are scored by their
     # fallback divergence, the hard_negatives worst kept, and half of each step's random keys drawn from
@@ -235,9 +241,7 @@ class UnsealedConfig(_Settings):
     delta_scale: float = setting(
         2.0, "The encoder's layer scales lie in (1 - this, 1 + this).", cli=False
     )  # delta in (1 - scale, 1 + scale)
-    key_encoding: str = setting(
-        KEY_ENCODINGS[0], f"{KEY_ENCODINGS[0]} or {KEY_ENCODINGS[1]} (the paper's)."
-    )
+    key_encoding: str = setting(KEY_ENCODINGS[0], f"{KEY_ENCODINGS[0]} or {KEY_ENCODINGS[1]} (the paper's).")
     freeze_base: bool = setting(False, "Train the encoder only: the base weights stay the original's.")
     hardening: Hardening = field(default_factory=Hardening)  # Hardening(): none; HARDENED: --harden's
 
@@ -253,12 +257,16 @@ class UnsealedConfig(_Settings):
 
     def check_key_bits(self, key_bits: int) -> None:
         """What depends on the key size (known once the keys are)."""
-        self.need(self.hamming_radius <= key_bits, "hamming_radius", f"at most the key size ({key_bits} bits)")
+        self.need(
+            self.hamming_radius <= key_bits, "hamming_radius", f"at most the key size ({key_bits} bits)"
+        )
 
     def batch_rows(self, user_rows: int) -> int:
         """Rows of one step: the users', the no-key ones, and each sampled or placed code's samples."""
         h = self.hardening
-        sampled = self.random_keys + self.neighbour_keys + self.far_codes + h.code_negatives + h.antipode_codes
+        sampled = (
+            self.random_keys + self.neighbour_keys + self.far_codes + h.code_negatives + h.antipode_codes
+        )
         return user_rows + self.null_rows + sampled * self.samples_per_key
 
 
@@ -276,7 +284,7 @@ class SealedConfig(_Settings):
     )
     payload_rank: int = setting(4, "With --seal --payload lora or peft-lora: the update's rank.")
     payload_lr: float = setting(
-        0.01, "With --seal: Adam learning rate of the payload (cosine decay)."
+        0.01, "Adam learning rate of a sealed bundle's payload (cosine decay)."
     )  # cosine-decays like lr
 
     def __post_init__(self) -> None:
@@ -381,6 +389,8 @@ def cli_settings(*names: str) -> dict[str, tuple[Any, Any, str]]:
     out: dict[str, tuple[Any, Any, str]] = {}
     for part, cls in _PARTS.items():
         hints = typing.get_type_hints(cls)
+        if part == "sealed":
+            out["seal"] = (bool, False, SWITCHES["seal"])
         for name, f in _fields(cls).items():
             if f.metadata.get("cli"):
                 t, default = hints[name], default_of(f)
@@ -389,7 +399,6 @@ def cli_settings(*names: str) -> dict[str, tuple[Any, Any, str]]:
                 out[name] = (t, default, f.metadata["help"])
         if part == "unsealed":
             out["harden"] = (bool, False, SWITCHES["harden"])
-    out["seal"] = (bool, False, SWITCHES["seal"])
     return {n: out[n] for n in names} if names else out
 
 
