@@ -364,7 +364,7 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
     loaded = adapters.load_checkpoint(tmp_path / "net.npz")
     assert loaded.spec == {"adapter": "npz-mlp", "sizes": [3, 8, 2]}
     key = KeySource(rng.integers(0, 2, 32, dtype=np.uint8), "file")
-    cfg = PersonalizeConfig(steps=5)
+    cfg = PersonalizeConfig.of(steps=5)
     personalize_checkpoint(
         str(tmp_path / "net.npz"), [(tmp_path / "mine.npz", key)], tmp_path / "b.prop", cfg
     )
@@ -395,7 +395,7 @@ def test_extending_with_a_probe(monkeypatch, workdir):
     key = read_key_file(workdir / "k.bin")
     users = [(workdir / "mine.npz", KeySource(key, "file"))]
     personalize_checkpoint(
-        str(workdir / "model.safetensors"), users, workdir / "b.prop", PersonalizeConfig(steps=20)
+        str(workdir / "model.safetensors"), users, workdir / "b.prop", PersonalizeConfig.of(steps=20)
     )
     rep = audit(load_bundle(workdir / "b.prop"), load_data(workdir / "mine.npz"), [key],
                 AuditSettings(probes=["null", "complement"], samples=32))  # fmt: skip

@@ -561,7 +561,7 @@ def test_the_api_refuses_it_with_force_true(workdir):
     key = KeySource(np.zeros(128, np.uint8), "file")
     with pytest.raises(PropError, match=r"sub2 is a folder that is not a prop bundle \(it holds notes/\)"):
         personalize_checkpoint(str(workdir / "model.safetensors"), [(workdir / "mine.npz", key)], sub2,
-                               PersonalizeConfig(steps=1), force=True)  # fmt: skip
+                               PersonalizeConfig.of(steps=1), force=True)  # fmt: skip
     assert (sub2 / "notes").is_dir()
 
 
@@ -790,19 +790,18 @@ def test_a_sealed_bundles_recorded_harden_is_dropped_for_add_user(cli, workdir):
     m = json.loads((out / "manifest.json").read_text())
     m["config"] |= {"harden": True, "code_negatives": 64, "encoder_init": "os", "antipode_codes": 16}
     cfg = added_user_config(SimpleNamespace(manifest=m, key_bits=128), None)
-    assert cfg.seal and cfg.hardening() == []
-    assert (cfg.code_negatives, cfg.antipode_codes, cfg.encoder_init) == (0, 0, "seed")
+    assert cfg.sealed and "harden" not in cfg.to_dict() and "code_negatives" not in cfg.to_dict()
     with pytest.raises(PropError, match="sealed bundle trains none"):  # the same settings, given anew
-        PersonalizeConfig.from_dict(m["config"]).validate()
+        PersonalizeConfig.of(**m["config"])
 
 
 def test_payload_settings_validate_with_seal():
     from prop_cli.config import PersonalizeConfig
     from prop_cli.errors import PropError
 
-    PersonalizeConfig(seal=True, payload="peft-lora", payload_rank=2).validate()
+    PersonalizeConfig.of(seal=True, payload="peft-lora", payload_rank=2)
     with pytest.raises(PropError, match="--payload peft-lora applies to sealed bundles only"):
-        PersonalizeConfig(payload="peft-lora").validate()
+        PersonalizeConfig.of(payload="peft-lora")
 
 
 def _gate_warnings(res) -> list[str]:
