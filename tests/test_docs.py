@@ -410,3 +410,14 @@ def test_extending_with_a_probe(monkeypatch, workdir):
             [],
             AuditSettings(probes=["complement"]),
         )
+
+
+def test_the_cli_references_settings_table_is_read_from_the_fields():
+    """docs/cli.md's table of personalize's settings is generated from the fields' help text and
+    defaults (prop_cli.config.settings_table), as `prop personalize --help` is; regenerate it on a
+    change."""
+    from prop_cli.config import settings_table
+
+    text = _doc("cli.md")
+    block = text.split("<!-- settings: prop_cli.config.settings_table() -->\n", 1)[1].split("\n<!-- /settings -->")[0]
+    assert block == settings_table(), "docs/cli.md's settings table is stale: paste settings_table()"
