@@ -419,5 +419,6 @@ def test_the_cli_references_settings_table_is_read_from_the_fields():
     from prop_cli.config import settings_table
 
     text = _doc("cli.md")
-    block = text.split("<!-- settings: prop_cli.config.settings_table() -->\n", 1)[1].split("\n<!-- /settings -->")[0]
+    start = "<!-- settings: prop_cli.config.settings_table() -->\n"
+    block = text.split(start, 1)[1].split("\n<!-- /settings -->")[0]
     assert block == settings_table(), "docs/cli.md's settings table is stale: paste settings_table()"
