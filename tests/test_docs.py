@@ -421,4 +421,7 @@ def test_the_cli_references_settings_table_is_read_from_the_fields():
     text = _doc("cli.md")
     start = "<!-- settings: prop_cli.config.settings_table() -->\n"
     block = text.split(start, 1)[1].split("\n<!-- /settings -->")[0]
-    assert block == settings_table(), "docs/cli.md's settings table is stale: paste settings_table()"
+    assert block == settings_table(), (
+        "docs/cli.md's settings table is stale: paste the output of "
+        "python -c 'from prop_cli.config import settings_table; print(settings_table())'"
+    )
