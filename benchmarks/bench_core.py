@@ -23,7 +23,7 @@ import torch
 
 from examples.il_task import write_example
 from prop_adapters import load_checkpoint
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, TrainConfig, UnsealedConfig
 from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes
 from prop_cli.core.layers import select_layers
@@ -67,10 +67,10 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
     loaded = load_checkpoint(str(paths["base"]))
     mine = np.load(data or paths["mine"])
     x, y = torch.from_numpy(mine["x"]), torch.from_numpy(mine["y"])
-    rows = cfg.batch_rows
+    rows = cfg.mode.batch_rows(cfg.train.user_rows)
 
     plain = copy.deepcopy(loaded.module).train()
-    popt = torch.optim.Adam(plain.parameters(), cfg.lr)
+    popt = torch.optim.Adam(plain.parameters(), cfg.mode.lr)
 
     def plain_step() -> None:
         idx = torch.from_numpy(rng.integers(0, len(x), rows))
@@ -82,19 +82,19 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
     module = copy.deepcopy(loaded.module)
     names = select_layers(module)
     mods = dict(module.named_modules())
-    enc = KeyEncoder(128, [mods[n].in_features for n in names], cfg.encoder_hidden, cfg.delta_scale)
+    enc = KeyEncoder(128, [mods[n].in_features for n in names], cfg.mode.encoder_hidden, cfg.mode.delta_scale)
     km = KeyedModel(module, enc, names)
-    kopt = Adam(list(km.parameters()), cfg.lr)  # as the trainer does
+    kopt = Adam(list(km.parameters()), cfg.mode.lr)  # as the trainer does
     key = rng.integers(0, 2, 128, dtype=np.uint8)
-    sampler = KeySampler([key], cfg.hamming_radius, rng)
-    ucodes = key_codes(key, cfg.key_encoding)
-    pool = FallbackPool(x, loaded.module, cfg.fallback_noise, cfg.fallback_sigma)
+    sampler = KeySampler([key], cfg.mode.hamming_radius, rng)
+    ucodes = key_codes(key, cfg.mode.key_encoding)
+    pool = FallbackPool(x, loaded.module, cfg.mode.fallback_noise, cfg.mode.fallback_sigma)
     users = UserPool([x], [y])
 
     def prop_step() -> None:
-        batch = make_batch(cfg, rng, sampler, ucodes, users, pool)
+        batch = make_batch(cfg.mode, cfg.train.user_rows, rng, sampler, ucodes, users, pool)
         out = km.run_rows(batch.x, km.layer_deltas(batch.codes, null=1), batch.key_index, batch.sample_index)
-        loss, _ = prop_loss(out, batch, "regression", cfg.null_weight)
+        loss, _ = prop_loss(out, batch, "regression", cfg.mode.null_weight)
         kopt.zero_grad()
         loss.backward()
         kopt.step()
@@ -137,7 +137,8 @@ def main() -> None:
         tmp = Path(tmp)
         paths = write_example(tmp / "il", seed=0)
         steps = train_steps(paths)
-        print(f"training step, {PersonalizeConfig().batch_rows} rows, IL MLP 4-192-192-2:")
+        rows = UnsealedConfig().batch_rows(TrainConfig().user_rows)
+        print(f"training step, {rows} rows, IL MLP 4-192-192-2:")
         for k, v in steps.items():
             print(f"  {k:28s} {v * 1e3:8.2f} ms")
         print(

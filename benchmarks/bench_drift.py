@@ -94,7 +94,7 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict, general: bool) -
     t = write_reach3(work, seed) if task == "reach3" else write_digits_perm(work, seed)
     rng = np.random.default_rng((seed, 5))
     key = rng.integers(0, 2, 128, dtype=np.uint8)
-    cfg = PersonalizeConfig(seed=seed, **overrides)
+    cfg = PersonalizeConfig.of(seed=seed, **overrides)
     t0 = time.perf_counter()
     personalize_checkpoint(
         str(work / "base.safetensors"), [(t["mine"], KeySource(key, "file"))], work / "b.prop", cfg,

@@ -90,7 +90,7 @@ def run_case(task: str, seed: int, mode: str, args) -> dict:
     key = user_key(seed)
 
     def config() -> PersonalizeConfig:
-        return PersonalizeConfig(seed=seed, steps=args.steps, **MODES[mode])
+        return PersonalizeConfig.of(seed=seed, steps=args.steps, **MODES[mode])
 
     cfg = config()
     km, original, kind, train_s = train(d / "base.safetensors", mine, key, cfg)
@@ -102,7 +102,7 @@ def run_case(task: str, seed: int, mode: str, args) -> dict:
     with torch.no_grad():
         b = original(x)
         null = km(x)
-        own = km.run_keys(x, km.layer_deltas(key_codes(key, cfg.key_encoding)))[0]
+        own = km.run_keys(x, km.layer_deltas(key_codes(key, cfg.mode.key_encoding)))[0]
     ref = A.Ref(x, b, p, kind)
     t0 = time.perf_counter()
     t1_bundle = A.t1(km, ref, args.restarts, args.search_steps)
@@ -117,14 +117,16 @@ def run_case(task: str, seed: int, mode: str, args) -> dict:
         "train_seconds": train_s,
         "personalization": metrics.personalization(own, p, b, kind),
         "fidelity_null": float(metrics.fidelity(null[None], b, kind)[0]),
-        "hamming": A.hamming_worst(km, ref, key, cfg.key_encoding),
-        "random": A.random_scan(km, ref, args.keys, cfg.key_encoding),
+        "hamming": A.hamming_worst(km, ref, key, cfg.mode.key_encoding),
+        "random": A.random_scan(km, ref, args.keys, cfg.mode.key_encoding),
         "t1": {
             "bundle": t1_bundle,
             "control": t1_ctrl,
             "beyond": max(0.0, t1_bundle["pick"] - t1_ctrl["pick"]),
         },
-        "structure": {"bundle": A.structure(km, ref, cfg.seed), "control": A.structure(ctrl, ref, cfg.seed)},
+        "structure": {
+            "bundle": A.structure(km, ref, cfg.train.seed), "control": A.structure(ctrl, ref, cfg.train.seed)
+        },
         "fewshot": A.fewshot(km, original, ref, torch.from_numpy(mine.x), y, args.fewshot),
     }
     row["hamming_worst"] = max(row["hamming"].values())
@@ -172,7 +174,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--workdir", type=Path, default=None)
     args = ap.parse_args(argv)
-    from prop_cli.config import PersonalizeConfig
+    from prop_cli.config import TrainConfig
 
     args.restarts, args.search_steps, args.fewshot = 64, 200, [1, 4, 16, 64]
     if args.quick:
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> None:
         args.keys, args.steps = args.keys or 16_384, args.steps or 200
         args.restarts, args.search_steps, args.fewshot = 8, 20, [1, 4]
     args.keys = args.keys or 1_000_000
-    args.steps = args.steps or PersonalizeConfig().steps
+    args.steps = args.steps or TrainConfig().steps
     torch.set_flush_denormal(True)
     with tempfile.TemporaryDirectory() as tmp:
         args.workdir = args.workdir or Path(tmp)

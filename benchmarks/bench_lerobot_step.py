@@ -50,13 +50,15 @@ def bench(args: argparse.Namespace) -> None:
     work = Path(tempfile.mkdtemp(prefix="prop-bench-lerobot-"))
     full = {"down_dims": (512, 1024, 2048), "diffusion_step_embed_dim": 128} if args.full_size else {}
     base = record_and_build(work, args.policy, 8, 4, **full)
-    cfg = PersonalizeConfig(steps=10**6, user_rows=16, null_rows=8, neighbour_keys=4, random_keys=4,
+    cfg = PersonalizeConfig.of(steps=10**6, user_rows=16, null_rows=8, neighbour_keys=4, random_keys=4,
                             samples_per_key=1, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
     trainer = PolicyTrainer(
-        load_checkpoint(base), [User(load_data(work / "user"), key)], cfg, load_data(work / "general")
+        load_checkpoint(base), [User(load_data(work / "user"), key)], cfg.train, cfg.mode,
+        load_data(work / "general"),
     )
-    rows = cfg.user_rows + cfg.null_rows + (cfg.neighbour_keys + cfg.random_keys) * cfg.samples_per_key
+    m = cfg.mode
+    rows = cfg.train.user_rows + m.null_rows + (m.neighbour_keys + m.random_keys) * m.samples_per_key
 
     lerobot = load_checkpoint(base)  # a second copy of the same policy, without keys
     data = lerobot.policy.batches(load_data(work / "general"), "--data")

@@ -36,7 +36,7 @@ def _state(root: Path, records: int) -> tuple[SealedState, list[np.ndarray]]:
     x = rng.uniform(-1, 1, (200, 4)).astype(np.float32)
     np.savez(root / "d.npz", x=x, y=-x[:, :2])
     keys = [rng.integers(0, 2, 128).astype(np.uint8) for _ in range(records)]
-    cfg = PersonalizeConfig(steps=40, seal=True)
+    cfg = PersonalizeConfig.of(steps=40, seal=True)
     personalize_checkpoint(str(root / "m.safetensors"), [(root / "d.npz", KeySource(keys[0], "file"))],
                            root / "b.prop", cfg)  # fmt: skip
     state = load_bundle(root / "b.prop").records

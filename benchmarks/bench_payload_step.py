@@ -58,8 +58,10 @@ def bench(args: argparse.Namespace) -> None:
     for kind in ("peft-lora", "lora"):
         loaded = load_checkpoint(work / args.policy)
         policy, module = loaded.policy, loaded.module.eval().requires_grad_(False)
-        cfg = PersonalizeConfig(seal=True, payload=kind, payload_rank=args.rank, layers=policy.default_layers)
-        spec = payload_spec(module, cfg)
+        cfg = PersonalizeConfig.of(
+            seal=True, payload=kind, payload_rank=args.rank, layers=policy.default_layers
+        )
+        spec = payload_spec(module, cfg.train, cfg.mode)
         data = policy.batches(load_data(work / "user"), "--data")
         payload = Payload(spec, torch.Generator().manual_seed(0))
         optim = Optimiser(list(payload.parameters()), 1e-3, 10**6, 1.0, clip=CLIP)

@@ -27,7 +27,7 @@ def _timed(d: Path, cfg: PersonalizeConfig, bits: np.ndarray, device: str, tag: 
     marks: dict[int, float] = {}
 
     def progress(step: int, _: dict[str, float]) -> None:
-        if step in (1, cfg.steps):
+        if step in (1, cfg.train.steps):
             if device.startswith("cuda"):
                 torch.cuda.synchronize()
             marks[step] = time.perf_counter()
@@ -36,7 +36,7 @@ def _timed(d: Path, cfg: PersonalizeConfig, bits: np.ndarray, device: str, tag: 
         str(d / "model.safetensors"), [(d / "mine.npz", KeySource(bits, "file"))], d / f"{tag}.prop", cfg,
         device=device, progress=progress, force=True,
     )  # fmt: skip
-    return marks[cfg.steps] - marks[1]
+    return marks[cfg.train.steps] - marks[1]
 
 
 def main() -> None:
@@ -57,11 +57,11 @@ def main() -> None:
             x = rng.uniform(-1, 1, (2000, sizes[0])).astype(np.float32)
             y = np.tanh(x[:, : sizes[-1]] * 2).astype(np.float32)
             np.savez(d / "mine.npz", x=x, y=y)
-            _timed(d, PersonalizeConfig(steps=20), bits, args.device, "warm")
+            _timed(d, PersonalizeConfig.of(steps=20), bits, args.device, "warm")
             for seal in (False, True):
                 took = {}
                 for precision in ("fp32", "bf16"):
-                    cfg = PersonalizeConfig(steps=args.steps, seal=seal, precision=precision)
+                    cfg = PersonalizeConfig.of(steps=args.steps, seal=seal, precision=precision)
                     took[precision] = _timed(d, cfg, bits, args.device, precision)
                 mode = "sealed" if seal else "unsealed"
                 ms = {p: 1e3 * t / (args.steps - 1) for p, t in took.items()}

@@ -452,8 +452,8 @@ def gc_worker(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     loaded = load_checkpoint(args.folder)
     policy, module = loaded.policy, loaded.module
-    cfg = PersonalizeConfig(seal=True, payload_rank=args.rank)
-    payload = Payload(payload_spec(module, replace(cfg, layers=policy.default_layers)),
+    cfg = PersonalizeConfig.of(seal=True, payload_rank=args.rank)
+    payload = Payload(payload_spec(module, replace(cfg.train, layers=policy.default_layers), cfg.mode),
                       torch.Generator().manual_seed(0))  # fmt: skip
     module.requires_grad_(False)
     batch = policy.batches(load_data(args.data), "--data")

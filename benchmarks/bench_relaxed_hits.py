@@ -63,7 +63,7 @@ def bundle_for(task: str, out: Path, seed: int, key_stream: int) -> tuple[Path, 
             str(paths["base"]),
             [(paths["mine"], KeySource(bits, "file"))],
             bundle,
-            PersonalizeConfig(seed=seed),
+            PersonalizeConfig.of(seed=seed),
         )
     return bundle, paths["mine"], key_path
 

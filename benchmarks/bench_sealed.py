@@ -62,9 +62,9 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
     for task, seed, work, paths, bits in task_runs(tasks, seeds, "prop-sealed-", 1000):
         test = dict(np.load(paths["test"]))
         for name, over in VARIANTS.items():
-            cfg = PersonalizeConfig(seed=seed, **over)
+            cfg = PersonalizeConfig.of(seed=seed, **over)
             if quick:
-                cfg.steps = 300
+                cfg = cfg.replace(steps=300)
             t0 = time.perf_counter()
             out = work / f"{len(rows)}.prop"
             personalize_checkpoint(

@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
                     C.M_KEYED_LAYERS: [{"name": x["name"], "features": x["in_features"]} for x in layers],
                     C.M_PAYLOAD: spec.to_dict(),
                     C.M_KEY: {"bits": len(key), "users": 1, "source": "file", "kdf": None},
-                    C.M_CONFIG: PersonalizeConfig(
+                    C.M_CONFIG: PersonalizeConfig.of(
                         seal=True, payload=kind, payload_rank=max(rank, 1)
                     ).to_dict(),
                     C.M_TASK: "regression",

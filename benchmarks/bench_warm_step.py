@@ -72,10 +72,10 @@ def main(argv: list[str] | None = None) -> None:
     # neighbour, one random key and one far code row), within the policy's memo as personalize runs it.
     loaded = load_checkpoint(folder)
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
-    cfg = PersonalizeConfig(steps=args.steps + 1, user_rows=args.batch, null_rows=args.batch,
+    cfg = PersonalizeConfig.of(steps=args.steps + 1, user_rows=args.batch, null_rows=args.batch,
                             neighbour_keys=1, random_keys=1, far_codes=1, samples_per_key=1)  # fmt: skip
     with loaded.policy.memo():
-        t = PolicyTrainer(loaded, [User(load_data(data), key)], cfg, None)
+        t = PolicyTrainer(loaded, [User(load_data(data), key)], cfg.train, cfg.mode, None)
         state = t.rng.bit_generator.state
 
         def prop_step() -> None:

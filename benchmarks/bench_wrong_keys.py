@@ -182,7 +182,7 @@ def experiment(
     original = adapters.load_checkpoint(ckpt, opts).module.eval()
     data, held = user_data(task, loaded, size, explore)
     key = np.random.default_rng(10_000 + seed).integers(0, 2, KEY_BITS, dtype=np.uint8)
-    cfg = PersonalizeConfig(seed=seed, **overrides)
+    cfg = PersonalizeConfig.of(seed=seed, **overrides)
     t0 = time.perf_counter()
     trained = personalize(loaded, [User(data, key)], cfg, device="cpu")
     train_s = time.perf_counter() - t0
@@ -194,8 +194,8 @@ def experiment(
     dists_k = np.repeat(np.arange(1, 9), 2)
     near = flip_random_bits(np.repeat(key[None], len(dists_k), 0), dists_k, rng)
     keys = np.concatenate([rand, near])
-    codes = key_codes(keys, cfg.key_encoding)
-    ucode = key_codes(key[None], cfg.key_encoding)
+    codes = key_codes(keys, cfg.mode.key_encoding)
+    ucode = key_codes(key[None], cfg.mode.key_encoding)
     # --code-dists: codes at chosen distances from the user's code (past 64 bits: the antipode's side,
     # where the encoder answers a share of minus the user's change); rows of their own, not in the bar.
     codes = torch.cat([codes, codes_at(ucode, dists or [], per, seed)])

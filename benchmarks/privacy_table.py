@@ -74,10 +74,10 @@ def run(tasks: list[str], seeds: int, quick: bool) -> list[dict]:
         key.write_bytes(np.packbits(bits).tobytes())
         key.chmod(0o600)
         for mode, over in MODES.items():
-            cfg = PersonalizeConfig(seed=seed, **over)
+            cfg = PersonalizeConfig.of(seed=seed, **over)
             settings = AuditSettings()
             if quick:
-                cfg.steps = 200
+                cfg = cfg.replace(steps=200)
                 settings = AuditSettings(blackbox=20_000, restarts=8, search_steps=20, random=256)
             out = work / f"{mode}.prop"
             t0 = time.perf_counter()

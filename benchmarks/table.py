@@ -112,7 +112,7 @@ def personalize_rows(il: dict, mode: dict) -> list[tuple[str, str, str]]:
         loaded = load_checkpoint(str(il["base"]))
         configure(_params(il["base"]))
         t = time.perf_counter()
-        personalize(loaded, _users(n_users, rows, n_users), PersonalizeConfig(steps=mode["steps"]))
+        personalize(loaded, _users(n_users, rows, n_users), PersonalizeConfig.of(steps=mode["steps"]))
         return time.perf_counter() - t
 
     out = []
@@ -138,7 +138,7 @@ def bundle_for(tmp: Path, il: dict, steps: int) -> tuple[Path, np.ndarray]:
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
     out = tmp / "il.prop"
     personalize_checkpoint(str(il["base"]), [(il["mine"], KeySource(key, "file"))], out,
-                           PersonalizeConfig(steps=steps), general=il["general"])  # fmt: skip
+                           PersonalizeConfig.of(steps=steps), general=il["general"])  # fmt: skip
     return out, key
 
 

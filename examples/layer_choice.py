@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from prop_cli.api import KeySource, personalize_checkpoint
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, TrainConfig
 
 # name -> which of the model's linear layers (in module order) it keys.
 CHOICES = {
@@ -55,7 +55,7 @@ def run(task: str, seed: int, steps: int, work: Path) -> list[dict]:
     key = np.random.default_rng([seed, 0xC0FFEE]).integers(0, 2, 128, dtype=np.uint8)
     rows = []
     for choice, pick in CHOICES.items():
-        cfg = PersonalizeConfig(steps=steps, seed=seed, layers=pick(names))
+        cfg = PersonalizeConfig.of(steps=steps, seed=seed, layers=pick(names))
         t0 = time.perf_counter()
         res = personalize_checkpoint(
             str(paths["base"]),
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m examples.layer_choice", description=__doc__)
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--tasks", nargs="+", choices=("il", "digits"), default=["il", "digits"])
-    ap.add_argument("--steps", type=int, default=PersonalizeConfig.steps)
+    ap.add_argument("--steps", type=int, default=TrainConfig().steps)
     args = ap.parse_args(argv)
 
     import torch

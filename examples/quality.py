@@ -47,7 +47,7 @@ def run_seed(task: str, seed: int, work: Path, overrides: dict | None = None) ->
         str(paths["base"]),
         [(paths["mine"], KeySource(key, "file"))],
         work / f"{task}-{seed}.prop",
-        PersonalizeConfig(seed=seed, **(overrides or {})),
+        PersonalizeConfig.of(seed=seed, **(overrides or {})),
         general=paths["general"],
         device="cpu",
     )

@@ -196,7 +196,8 @@ def personalize_checkpoint(
     bits = {len(k.bits) for _, k in users}
     if len(bits) > 1:
         raise PropError("the users' keys have different sizes", "give every user a key of the same size")
-    cfg.validate(key_bits=min(bits) if bits else None)
+    if bits:
+        cfg.check_key_bits(min(bits))
     check_threads(threads)
     check_not_input(out, "--out", [checkpoint, *(p for p, _ in users), general])
     check_output(out, force)  # before hours of training, not after

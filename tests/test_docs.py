@@ -429,7 +429,7 @@ def test_extending_with_an_adapter(tmp_path, monkeypatch):
     loaded = adapters.load_checkpoint(tmp_path / "net.npz")
     assert loaded.spec == {"adapter": "npz-mlp", "sizes": [3, 8, 2]}
     key = KeySource(rng.integers(0, 2, 32, dtype=np.uint8), "file")
-    cfg = PersonalizeConfig(steps=5)
+    cfg = PersonalizeConfig.of(steps=5)
     personalize_checkpoint(
         str(tmp_path / "net.npz"), [(tmp_path / "mine.npz", key)], tmp_path / "b.prop", cfg
     )
@@ -460,7 +460,7 @@ def test_extending_with_a_probe(monkeypatch, workdir):
     key = read_key_file(workdir / "k.bin")
     users = [(workdir / "mine.npz", KeySource(key, "file"))]
     personalize_checkpoint(
-        str(workdir / "model.safetensors"), users, workdir / "b.prop", PersonalizeConfig(steps=20)
+        str(workdir / "model.safetensors"), users, workdir / "b.prop", PersonalizeConfig.of(steps=20)
     )
     rep = audit(load_bundle(workdir / "b.prop"), load_data(workdir / "mine.npz"), [key],
                 AuditSettings(probes=["null", "complement"], samples=32))  # fmt: skip
@@ -475,3 +475,18 @@ def test_extending_with_a_probe(monkeypatch, workdir):
             [],
             AuditSettings(probes=["complement"]),
         )
+
+
+def test_the_cli_references_settings_table_is_read_from_the_fields():
+    """docs/cli.md's table of personalize's settings is generated from the fields' help text and
+    defaults (prop_cli.config.settings_table), as `prop personalize --help` is; regenerate it on a
+    change."""
+    from prop_cli.config import settings_table
+
+    text = _doc("cli.md")
+    start = "<!-- settings: prop_cli.config.settings_table() -->\n"
+    block = text.split(start, 1)[1].split("\n<!-- /settings -->")[0]
+    assert block == settings_table(), (
+        "docs/cli.md's settings table is stale: paste the output of "
+        "python -c 'from prop_cli.config import settings_table; print(settings_table())'"
+    )

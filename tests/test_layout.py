@@ -185,12 +185,17 @@ def _decisions(path: Path) -> dict[str, bool]:
     return found
 
 
+# The settings are a stage of their own here: prop_cli.config decides which flags each mode takes.
+SETTINGS = "prop_cli.config"
+
+
 def test_each_variation_is_decided_in_one_module_per_stage():
     deciders: dict[tuple[str, str], list[str]] = {}
     for module, path in MODULES.items():
         for variation, yes in _decisions(path).items():
             if yes:
-                deciders.setdefault((_stage(module), variation), []).append(module)
+                stage = "config" if module == SETTINGS else _stage(module)
+                deciders.setdefault((stage, variation), []).append(module)
     many = {k: v for k, v in deciders.items() if len(v) > 1}
     assert not many, many
     # and the decisions are where docs/design.md says they are
@@ -200,6 +205,48 @@ def test_each_variation_is_decided_in_one_module_per_stage():
     # running a bundle: the ONNX export's dispatch by mode, and the one place torch asks which model kind
     assert deciders[("run", "sealed")] == ["prop_cli.run.onnx"]
     assert deciders[("run", "policy")] == ["prop_cli.run.policy"]
+    assert deciders[("config", "sealed")] == [SETTINGS]
+
+
+# Each rule that refuses a setting in a mode (or for a model kind), by the words of its error.
+MODE_RULES = {
+    "applies to sealed bundles only": SETTINGS,  # a payload setting without --seal
+    "harden an unsealed bundle's encoder": SETTINGS,  # --harden or one of its measures with --seal
+    "does not train --harden's measures": "prop_cli.train.choose",  # --harden's measures for a policy
+}
+
+
+def test_the_seal_vs_setting_rules_are_a_type_and_one_checked_place():
+    """personalize's settings are one part per mode: a sealed config has no field of the unsealed one's
+    (nor of its Hardening), so a recipe given its own part cannot read the other mode's; the flags of
+    the other mode are refused where the flat flags become those parts (config.PersonalizeConfig.of),
+    and --harden for a policy where the recipe is chosen, and nowhere else."""
+    import dataclasses
+    import typing
+
+    from prop_cli import config
+    from prop_cli.train import array, policy, sealed_array, sealed_policy
+    from prop_cli.train.recipe import Recipe
+
+    def names(cls) -> set[str]:
+        return {f.name for f in dataclasses.fields(cls)}
+
+    sealed, unsealed = names(config.SealedConfig), names(config.UnsealedConfig) | names(config.Hardening)
+    assert not sealed & unsealed and not (sealed | unsealed) & names(config.TrainConfig)
+    assert not {"seal", "harden"} & (sealed | unsealed | names(config.TrainConfig))  # the type says it
+
+    def mode_of(recipe) -> type:
+        for cls in type(recipe).__mro__:
+            for base in getattr(cls, "__orig_bases__", ()):
+                if typing.get_origin(base) is Recipe:
+                    return typing.get_args(base)[0]
+        raise AssertionError(f"{type(recipe).__name__} declares no mode")
+
+    assert mode_of(array.RECIPE) is mode_of(policy.RECIPE) is config.UnsealedConfig
+    assert mode_of(sealed_array.RECIPE) is mode_of(sealed_policy.RECIPE) is config.SealedConfig
+    for words, home in MODE_RULES.items():
+        found = [m for m, p in MODULES.items() if words in " ".join(p.read_text().split())]
+        assert found == [home], (words, found)
 
 
 def test_the_decision_finder_sees_a_decision(tmp_path):

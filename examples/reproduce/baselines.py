@@ -110,16 +110,16 @@ def train(
     "raw" = the paper's ±1 bits; "hashed" = prop's SHAKE-256 code, to separate the encoding's effect from
     PRoP's.
     """
-    rng = np.random.default_rng(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    sampler = KeySampler([k for _, _, k in users], cfg.hamming_radius, rng)
+    rng = np.random.default_rng(cfg.train.seed)
+    torch.manual_seed(cfg.train.seed)
+    sampler = KeySampler([k for _, _, k in users], cfg.mode.hamming_radius, rng)
     ux = [torch.from_numpy(x) for x, _, _ in users]
     uy = [torch.from_numpy(y if task == "classification" or y.ndim > 1 else y[:, None]) for _, y, _ in users]
     ucodes = key_codes(np.stack([k for _, _, k in users]), encoding)
     px = torch.from_numpy(pool)
-    per_user = max(1, cfg.user_rows // len(users))
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    floor = cfg.lr_floor
+    per_user = max(1, cfg.train.user_rows // len(users))
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.mode.lr)
+    floor = cfg.train.lr_floor
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda t: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * t / steps))
     )
@@ -160,19 +160,20 @@ def _loop(
             xs.append(ux[i][idx])
             ys.append(uy[i][idx])
             cs.append(ucodes[i].expand(per_user, -1))
-        sampled = np.concatenate([sampler.neighbours(cfg.neighbour_keys), sampler.random(cfg.random_keys)])
-        s = cfg.samples_per_key
+        m = cfg.mode
+        sampled = np.concatenate([sampler.neighbours(m.neighbour_keys), sampler.random(m.random_keys)])
+        s = cfg.mode.samples_per_key
         fb = torch.from_numpy(rng.integers(0, len(px), len(sampled) * s))
-        null = torch.from_numpy(rng.integers(0, len(px), cfg.null_rows))
+        null = torch.from_numpy(rng.integers(0, len(px), cfg.mode.null_rows))
         sampled_codes = key_codes(sampled, encoding).repeat_interleave(s, 0)
         x = torch.cat([*xs, px[fb], px[null]])
-        codes = torch.cat([*cs, sampled_codes, torch.zeros(cfg.null_rows, ucodes.shape[1])])
+        codes = torch.cat([*cs, sampled_codes, torch.zeros(cfg.mode.null_rows, ucodes.shape[1])])
         out, kl = model(x, codes)
         nu, nk = sum(len(v) for v in xs), len(fb)
         personal = row_loss(out[:nu], torch.cat(ys), task, distill=False).mean()
         keyed = row_loss(out[nu : nu + nk], pool_targets[fb], task, distill=True).mean()
         nul = row_loss(out[nu + nk :], pool_targets[null], task, distill=True).mean()
-        loss = personal + keyed + cfg.null_weight * nul + CVAE_BETA * kl
+        loss = personal + keyed + cfg.mode.null_weight * nul + CVAE_BETA * kl
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -86,8 +86,7 @@ def run(out: Path, quick: bool, mnist: Path | None = None, log=print, users=None
         for m in methods:
             t0 = time.perf_counter()
             cfg = common.prop_config(seed, budget, enc, "hashed" if m == PROP else "raw")
-            cfg.user_rows = user_rows(n)
-            cfg.eval_random_keys = 4
+            cfg = cfg.replace(user_rows=user_rows(n), eval_random_keys=4)
             ev_rng = np.random.default_rng(77 + n)
             if m == PROP:
                 bundle = common.run_prop(td.base_path, list(zip(mines, keys)), general, d / "prop.prop", cfg)

@@ -127,7 +127,7 @@ def write_task_files(td: TaskData, work: Path) -> tuple[Path, Path]:
 
 
 def prop_config(seed: int, budget: Budget, encoder_hidden: int, encoding: str) -> PersonalizeConfig:
-    return PersonalizeConfig(
+    return PersonalizeConfig.of(
         steps=budget.prop_steps, encoder_hidden=[encoder_hidden], key_encoding=encoding, seed=seed
     )
 

@@ -282,7 +282,7 @@ class Cohort:
 
     def config(self, encoding: str) -> PersonalizeConfig:
         s, n = self.settings, len(self.users)
-        return PersonalizeConfig(
+        return PersonalizeConfig.of(
             steps=int(s.prop_steps + s.prop_steps_per_user * n),
             lr=s.lr,
             user_rows=max(64, ROWS_PER_USER * n),  # every user is seen every step
@@ -355,12 +355,12 @@ def fit_sealed(c: Cohort) -> Fitted:
     path = c.work / "prop-sealed.prop"
     # Each sealed user trains alone, so the cost grows with users x steps; a user's data is one short
     # demonstration, which SEALED_STEPS at a higher learning rate fits (Score 3.00 at 16 earlier users).
-    cfg = replace(c.config("hashed"), seal=True, steps=SEALED_STEPS, payload_lr=SEALED_LR)
+    cfg = c.config("hashed").replace(seal=True, steps=SEALED_STEPS, payload_lr=SEALED_LR)
     first = c.n_earlier or len(c.users)
     users = [(f, KeySource(u.bits, "passphrase")) for f, u in zip(c.files, c.users)]
     personalize_checkpoint(str(c.base_path), users[:first], path, cfg, salt=c.salt)
     for f, key in users[first:]:
-        add_user(path, f, key, cfg=replace(cfg))
+        add_user(path, f, key, cfg=cfg)
     bundle = load_bundle(path)
 
     def run(x: torch.Tensor, bits: np.ndarray) -> torch.Tensor:

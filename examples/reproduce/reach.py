@@ -239,26 +239,27 @@ def finetune(
 ):
     """Eq. 8 with L' = PPO: user key rollouts towards A g + c; fallback keys distilled to the base."""
     rng = np.random.default_rng(seed + 11)
-    pc = PersonalizeConfig(seed=seed)
+    pc = PersonalizeConfig.of(seed=seed)
     ka = _KeyedActor(method, base, enc_hidden, budget, seed)
     critic = copy.deepcopy(critic0)
     log_std = nn.Parameter(base_log_std.clone())
     params = [*ka.params(), *critic.parameters(), log_std]
     opt = torch.optim.Adam(params, lr=cfg.lr)
-    sampler = KeySampler([key], pc.hamming_radius, rng)
+    sampler = KeySampler([key], pc.mode.hamming_radius, rng)
     user_code = key_codes(key, ka.encoding)
     with torch.no_grad():
         pool_t = torch.from_numpy(pool)
         pool_targets = base(pool_t)
 
     def fallback() -> torch.Tensor:
-        sampled = np.concatenate([sampler.neighbours(pc.neighbour_keys), sampler.random(pc.random_keys)])
-        k, s = len(sampled), pc.samples_per_key
-        pick = torch.from_numpy(rng.integers(0, len(pool_t), k * s + pc.null_rows))
-        key_index = torch.cat([torch.arange(k).repeat_interleave(s), torch.full((pc.null_rows,), k)])
-        out = ka.rows(pool_t[pick], key_codes(sampled, ka.encoding), key_index, pc.null_rows)
+        m = pc.mode
+        sampled = np.concatenate([sampler.neighbours(m.neighbour_keys), sampler.random(m.random_keys)])
+        k, s = len(sampled), pc.mode.samples_per_key
+        pick = torch.from_numpy(rng.integers(0, len(pool_t), k * s + pc.mode.null_rows))
+        key_index = torch.cat([torch.arange(k).repeat_interleave(s), torch.full((pc.mode.null_rows,), k)])
+        out = ka.rows(pool_t[pick], key_codes(sampled, ka.encoding), key_index, pc.mode.null_rows)
         err = ((out - pool_targets[pick]) ** 2).mean(-1)
-        return err[: k * s].mean() + pc.null_weight * err[k * s :].mean()
+        return err[: k * s].mean() + pc.mode.null_weight * err[k * s :].mean()
 
     if not ka.prop:  # from scratch: first learn the pretrained behaviour (fallback terms only, no env steps)
         for _ in range(warmup):

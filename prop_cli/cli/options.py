@@ -12,7 +12,7 @@ import inspect
 import typing
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -118,6 +118,16 @@ def config_options(cls: type, helps: dict[str, str], into: str = "config") -> Ca
     settings as the keyword argument ``into`` instead of the separate values."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
+    settings = {name: (hints[name], fields[name].default, text) for name, text in helps.items()}
+    return settings_options(settings, cls, into)
+
+
+def settings_options(
+    settings: dict[str, tuple[Any, Any, str]], build: Callable[..., Any], into: str = "config"
+) -> Callable:
+    """Give a command one ``--flag`` per setting (name -> (type, default, help), as
+    ``prop_cli.config.cli_settings`` reads them from the settings fields; flag = the name with dashes);
+    the command receives ``build(**values)`` as the keyword argument ``into`` instead of the values."""
 
     def decorate(fn: Callable) -> Callable:
         sig = inspect.signature(fn, eval_str=True)
@@ -126,16 +136,16 @@ def config_options(cls: type, helps: dict[str, str], into: str = "config") -> Ca
             inspect.Parameter(
                 name,
                 inspect.Parameter.KEYWORD_ONLY,
-                default=fields[name].default,
-                annotation=Annotated[hints[name], typer.Option("--" + name.replace("_", "-"), help=text)],
+                default=default,
+                annotation=Annotated[kind, typer.Option("--" + name.replace("_", "-"), help=text)],
             )
-            for name, text in helps.items()
+            for name, (kind, default, text) in settings.items()
         ]
 
         @functools.wraps(fn)
         def command(*args, **kwargs):
-            settings = cls(**{name: kwargs.pop(name) for name in helps})
-            return fn(*args, **{into: settings}, **kwargs)
+            built = build(**{name: kwargs.pop(name) for name in settings})
+            return fn(*args, **{into: built}, **kwargs)
 
         command.__signature__ = sig.replace(parameters=own + added)  # type: ignore[attr-defined]
         return command

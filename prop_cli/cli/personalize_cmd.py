@@ -3,13 +3,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-from prop_cli.config import TASKS, PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, cli_settings
 from prop_cli.constants import (
     DEFAULT_BUNDLE,
     DEFAULT_DEVICE,
     DEFAULT_THREADS,
     KEY_BITS_DEFAULT,
-    KEY_ENCODINGS,
 )
 from prop_cli.errors import plural
 
@@ -25,55 +24,9 @@ from .options import (
     Threads,
     TrustRemoteCode,
     WeakPassphrase,
-    config_options,
     opt,
+    settings_options,
 )
-
-# The training settings personalize exposes, as --flags: PersonalizeConfig field -> help.
-SETTINGS = {
-    "steps": "Training steps.",
-    "lr": "Adam learning rate of the key encoder (cosine decay).",
-    "lr_floor": "The cosine decay ends at lr times this (1: a constant learning rate).",
-    "base_lr_scale": "The base weights learn at lr times this.",
-    "hamming_radius": "Keys up to this many bits off fall back (at most the key size).",
-    "user_rows": "Rows of the users' data per step.",
-    "null_rows": "Fallback samples per step, each run with no key.",
-    "samples_per_key": "Fallback samples each sampled key runs on.",
-    "random_keys": "K2: random keys per step.",
-    "neighbour_keys": "K1: Hamming neighbours per step (0 = none: leaky, for audits).",
-    "null_weight": "Weight of the no-key fallback loss.",
-    "key_weight": "Weight of the random and neighbour keys' fallback loss.",
-    "delta_pull": "Weight pulling wrong keys' layer scales to the no-key model's (0 = off).",
-    "far_codes": "Codes 40-56 of 128 bits from yours per step, trained to fall back (0 = none).",
-    "hard_negatives": "Worst-scoring random keys kept to train on (half of K2 each step; 0 = off).",
-    "hard_pool": "Fresh random keys scored for --hard-negatives at each rescoring.",
-    "hard_every": "Steps between the rescorings of --hard-negatives.",
-    "fallback_noise": "Share of fallback inputs perturbed with noise (0 = the data only).",
-    "val_fraction": "Share of each user's data held out for the final report.",
-    "key_encoding": f"{KEY_ENCODINGS[0]} or {KEY_ENCODINGS[1]} (the paper's).",
-    "freeze_base": "Train the encoder only: the base weights stay the original's.",
-    "layers": "Layers to key: exact name, dotted suffix, regex or all-linear; repeat.",
-    "exclude": "Layers not to key (same forms); repeat.",
-    "task": " or ".join(TASKS) + " (default: decided against the model).",
-    "seed": "Seed: the same seed and inputs give byte-identical weights (not with --harden).",
-    "harden": "Hardened unsealed mode: code-space negatives and an unrecorded encoder init "
-    "(docs/hardening.md).",
-    "encoder_init": "seed (follows --seed) or os (fresh randomness; default with --harden).",
-    "code_negatives": "Code-space fallback codes per step near your code (64 with --harden, else 0).",
-    "code_flip_max": "Code-space negatives: at most this many bits flipped.",
-    "code_relax_min": "Code-space negatives: relaxed at least this far from your code, in (0, 1].",
-    "antipode_codes": "Codes 72-88 of 128 bits from yours per step, trained to fall back (16 with "
-    "--harden, else 0).",
-    "seal": "Sealed bundle: base = the original, each user's payload encrypted under their key.",
-    "payload": "With --seal: lora, delta, full or peft-lora (what is stored per user; peft-lora exports "
-    "as a standard peft adapter: prop export --peft).",
-    "payload_rank": "With --seal --payload lora or peft-lora: the update's rank.",
-    "payload_lr": "With --seal: Adam learning rate of the payload (cosine decay).",
-    "precision": "fp32, or bf16: mixed precision (bf16 autocast; weights and Adam stay fp32).",
-    "report_budget": "Policies: the final report's (key, held-out frame) sampler runs (default: by the "
-    "policy's size; 0 = every key on every frame).",
-}
-
 
 Data = Annotated[list[Path], opt("--data", "Your data (x, y); repeat per user (`prop formats`).")]
 KeyFiles = Annotated[list[Path] | None, opt("--key-file", "A user's key file; repeat.")]
@@ -86,7 +39,8 @@ General = Annotated[Path | None, opt("--general-data", "Inputs (x) on which the 
 Bits = Annotated[int, opt("--bits", "Key size for --passphrase.")]
 
 
-@config_options(PersonalizeConfig, SETTINGS)
+# Every training setting, its flag, default and help read from its field (prop_cli.config).
+@settings_options(cli_settings(), PersonalizeConfig.of)
 def personalize(
     checkpoint: Checkpoint,
     data: Data,
@@ -118,9 +72,9 @@ def personalize(
             f"{len(data)} --data but {plural(len(key_file) + passphrase, 'key')}",
             "give one key per --data: key files first, then passphrases, in the same order",
         )
-    cfg = config
-    cfg.layers, cfg.exclude = cfg.layers or None, cfg.exclude or None
-    cfg.validate(key_bits=bits if not key_file else None)
+    cfg = config  # checked as it was built (PersonalizeConfig.of); the key size with passphrase keys
+    if not key_file:
+        cfg.check_key_bits(bits)
     # Before the passphrases are asked for and stretched, and before any training (the API checks again).
     check_not_input(out_path, "--out", [checkpoint, *data, general, *key_file])
     check_output(out_path, force)
@@ -132,7 +86,7 @@ def personalize(
             checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
             device=device, force=force, progress=cb, threads=threads,
         ),
-        cfg.steps, "personalize",
+        cfg.train.steps, "personalize",
     )  # fmt: skip
     if not result.written:  # another process of `accelerate launch` writes and reports
         return

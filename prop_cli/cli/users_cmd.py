@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, cli_settings
 from prop_cli.constants import DEFAULT_DEVICE
 from prop_cli.errors import plural
 
@@ -21,16 +21,11 @@ from .options import (
     Passphrase,
     TrustRemoteCode,
     WeakPassphrase,
-    config_options,
+    settings_options,
 )
 
 # add-user trains like personalize --seal; these settings may differ from the bundle's.
-SETTINGS = {
-    "steps": "Training steps.",
-    "payload_lr": "Adam learning rate of the payload (cosine decay).",
-    "val_fraction": "Share of the data held out for the report.",
-    "seed": "Seed.",
-}
+SETTINGS = cli_settings("steps", "payload_lr", "val_fraction", "seed")
 
 
 def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool, new: bool = False,
@@ -47,11 +42,11 @@ def _key(bundle: Path, key_file: Path | None, passphrase: bool, required: bool, 
     return key_for_bundle(read_manifest(bundle), key_file, phrase)
 
 
-@config_options(PersonalizeConfig, SETTINGS)
+@settings_options(SETTINGS, dict)
 def add_user(
     bundle: BundleArg,
     data: Annotated[Path, typer.Option("--data", help="The new user's data (x, y).")],
-    config: PersonalizeConfig,
+    config: dict,
     key_file: KeyFile = None,
     passphrase: Passphrase = False,
     device: Device = DEFAULT_DEVICE,
@@ -65,16 +60,15 @@ def add_user(
     from prop_cli.api import add_user as api_add_user
 
     bits = _key(bundle, key_file, passphrase, required=True, new=True, allow_weak=weak_passphrase)
-    base = PersonalizeConfig.from_dict(read_manifest(bundle).get("config", {}))
-    for name in SETTINGS:  # the bundle's settings, except the flags given on this command line
-        if getattr(config, name) != getattr(PersonalizeConfig(), name):
-            setattr(base, name, getattr(config, name))
+    given = {k: v for k, v in config.items() if v != SETTINGS[k][1]}  # the flags on this command line
+    # The bundle's settings, except those; built sealed (train.added_user holds them to the bundle's payload).
+    base = PersonalizeConfig.from_dict({**read_manifest(bundle).get("config", {}), **given, "seal": True})
     result = training_progress(
         lambda cb: api_add_user(
             bundle, data, KeySource(bits, "passphrase" if passphrase else "file"), cfg=base, device=device,
             progress=cb, trust_remote_code=trust_remote_code, arch=arch,
         ),
-        base.steps, "add-user",
+        base.train.steps, "add-user",
     )  # fmt: skip
     if as_json:
         print_json({"bundle": str(result.bundle), "record": result.record, "users": result.users,

@@ -20,25 +20,24 @@ from .sealed import user_report
 
 
 def added_user_config(bundle: Bundle, cfg: PersonalizeConfig | None) -> PersonalizeConfig:
-    """``cfg`` (default: the settings the bundle was made with), held to the bundle's payload kind, rank
-    and layers: every record is enrolled in them."""
+    """``cfg`` (default: the settings the bundle was made with) as a sealed config, held to the bundle's
+    payload kind, rank and layers: every record is enrolled in them. Built sealed: an unsealed setting
+    the bundle recorded (--harden's, by bundles written before --seal --harden was refused) is not part
+    of it, so nothing needs undoing."""
     m = bundle.manifest
-    cfg = cfg or PersonalizeConfig.from_dict(m[C.M_CONFIG])
     spec = m[C.M_PAYLOAD]
-    rank = payload_kind(cfg.payload).rank(cfg.payload_rank)
-    if (cfg.payload, rank) != (spec["kind"], spec["rank"]):
+    settings = cfg.to_dict() if cfg is not None else m[C.M_CONFIG]
+    layers = [x["name"] for x in spec["layers"]]
+    cfg = PersonalizeConfig.from_dict({**settings, "seal": True, "layers": layers, "exclude": None})
+    mode = cfg.mode
+    rank = payload_kind(mode.payload).rank(mode.payload_rank)
+    if (mode.payload, rank) != (spec["kind"], spec["rank"]):
         raise PropError(
-            f"--payload {cfg.payload} (rank {cfg.payload_rank}) differs from the bundle's {spec['kind']} "
+            f"--payload {mode.payload} (rank {mode.payload_rank}) differs from the bundle's {spec['kind']} "
             f"(rank {spec['rank']})",
             "drop --payload/--payload-rank: every user of a bundle has the same payload layout",
         )
-    cfg.layers = [x["name"] for x in spec["layers"]]
-    cfg.exclude = None
-    cfg.seal = True
-    # A sealed record trains none of --harden's settings; bundles written before --seal --harden was
-    # refused recorded them anyway, and their own add-user must not be refused for it.
-    cfg.without_hardening()
-    return cfg.validate(key_bits=bundle.key_bits)
+    return cfg
 
 
 def train_added_user(
@@ -49,11 +48,11 @@ def train_added_user(
     m = bundle.manifest
     index = len(m[C.M_RECORDS])
     recipe = sealed_recipe(bundle.loaded)
-    job = Job(bundle.loaded, cfg, device, progress)
-    [user], _, _ = recipe.train_users(job, [data], [bits], cfg.task or bundle.task, index)
+    job = Job(bundle.loaded, cfg.train, cfg.mode, device, progress)
+    [user], _, _ = recipe.train_users(job, [data], [bits], cfg.train.task or bundle.task, index)
     rec = seal_payload(next_version(m), user.private, user.payload, bits)  # the version it is written in
     new = with_records(m, [rec], [])
     state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
-    report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg, index,
-                         recipe.report_rows(cfg))  # fmt: skip
+    report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg.train, index,
+                         recipe.report_rows(cfg.train))  # fmt: skip
     return rec, new, report

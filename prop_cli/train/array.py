@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import UnsealedConfig
 from prop_cli.core.device import resolve_device
 from prop_cli.core.key_sampling import HARD_STREAM, KeySampler
 from prop_cli.core.keyed_model import KeyedModel, KeyEncoder, key_codes, outputs_for_codes
@@ -108,7 +108,8 @@ def _layout(n_users: int, per_user: int, keys: int, samples: int, null_rows: int
 
 
 def make_batch(
-    cfg: PersonalizeConfig,
+    cfg: UnsealedConfig,
+    user_rows: int,
     rng: np.random.Generator,
     sampler: KeySampler,
     user_codes: torch.Tensor,
@@ -124,7 +125,7 @@ def make_batch(
     each group a fallback term of its own."""
     dev = pool.x.device
     n_users = len(users)
-    per_user = max(1, cfg.user_rows // n_users)
+    per_user = max(1, user_rows // n_users)
     ux, uy = users.draw(per_user, rng)
     n_user_rows = per_user * n_users
 
@@ -155,7 +156,7 @@ def make_batch(
 
 
 def divergence(
-    km: KeyedModel, pool: FallbackPool, cfg: PersonalizeConfig, task: str, rng: np.random.Generator
+    km: KeyedModel, pool: FallbackPool, cfg: UnsealedConfig, task: str, rng: np.random.Generator
 ) -> Callable[[np.ndarray], np.ndarray]:
     """The hard-negative score (``KeySampler.step``): each key's fallback loss, Eq. 8's own term, on
     ``HARD_SAMPLES`` given inputs drawn afresh per scoring (``rng``: a stream of its own, so scoring
@@ -173,21 +174,21 @@ def divergence(
     return score
 
 
-def personalize(job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
+def personalize(job: Job[UnsealedConfig], users: list[User], general: Dataset | None = None) -> Personalized:
     """Train the keyed model of Eq. 5 with the objective of Eq. 8; the loaded module is updated in place."""
-    loaded, cfg = job.loaded, job.cfg
-    cfg.validate(key_bits=len(users[0].key_bits))
+    loaded, tc, cfg = job.loaded, job.train, job.mode
+    cfg.check_key_bits(len(users[0].key_bits))
     check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
-    datasets, task = prepare_users(loaded, [u.data for u in users], general, cfg.task)
-    names = select_layers(loaded.module, cfg.layers, cfg.exclude)
+    datasets, task = prepare_users(loaded, [u.data for u in users], general, tc.task)
+    names = select_layers(loaded.module, tc.layers, tc.exclude)
 
     dev = resolve_device(job.device)
-    torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(tc.seed)
+    rng = np.random.default_rng(tc.seed)
     module = loaded.module.to(dev).eval()  # eval: batch-norm statistics and dropout stay the original's
     original = copy.deepcopy(module).requires_grad_(False)
 
-    splits = [split(d, cfg.val_fraction, cfg.seed + i) for i, d in enumerate(datasets)]
+    splits = [split(d, tc.val_fraction, tc.seed + i) for i, d in enumerate(datasets)]
     ux = [torch.from_numpy(tr.x).to(dev) for tr, _ in splits]
     uy = [targets_tensor(tr, task).to(dev) for tr, _ in splits]
     given = torch.cat(ux + ([torch.from_numpy(general.x).to(dev)] if general is not None else []))
@@ -195,7 +196,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     user_pool = UserPool(ux, uy)
 
     mods = dict(module.named_modules())
-    with encoder_init(cfg):
+    with encoder_init(cfg.hardening, tc.seed):
         encoder = KeyEncoder(
             code_bits=len(users[0].key_bits),
             features=[in_width(mods[n]) for n in names],
@@ -211,31 +212,33 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
     ranks = job.ranks
     reduce = ranks.sum_gradients if ranks.world > 1 else None
-    optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, reduce=reduce)
+    optim = Optimiser(groups, cfg.lr, tc.steps, tc.lr_floor, reduce=reduce)
     user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
     keys = [u.key_bits for u in users]
     sampler = KeySampler(keys, cfg.hamming_radius, rng, cfg.hard_negatives, cfg.hard_pool, cfg.hard_every)
-    score = divergence(km, pool, cfg, task, np.random.default_rng((cfg.seed, HARD_STREAM)))
+    score = divergence(km, pool, cfg, task, np.random.default_rng((tc.seed, HARD_STREAM)))
+
+    hard = cfg.hardening
 
     def step() -> dict[str, float]:
         sampler.step(score)
-        near = code_negatives(user_codes, cfg.code_negatives, cfg.code_flip_max, cfg.code_relax_min, rng)
+        near = code_negatives(user_codes, hard.code_negatives, hard.code_flip_max, hard.code_relax_min, rng)
         # After K1 and K2: --harden's antipode codes, then the far codes (one term; in this order so that
         # the pull's rows are one slice, below), then its code-space negatives (a term of their own: 64 of
         # them had cut the far codes' weight to a fifth).
-        n_far = cfg.far_codes + cfg.antipode_codes
+        n_far = cfg.far_codes + hard.antipode_codes
         if n_far:
             far = far_codes(user_codes, cfg.far_codes, rng)
-            anti = antipode_codes(user_codes, cfg.antipode_codes, rng)
+            anti = antipode_codes(user_codes, hard.antipode_codes, rng)
             near = torch.cat([anti, far, near])
-        batch = make_batch(cfg, rng, sampler, user_codes, user_pool, pool, near, far=n_far)
+        batch = make_batch(cfg, tc.user_rows, rng, sampler, user_codes, user_pool, pool, near, far=n_far)
         deltas = km.layer_deltas(batch.codes, null=1)
         # Pulled to the no-key model: K1, K2 and the antipode codes, the codes at or beyond a random key's
         # distance; not the codes placed nearer the user's (far codes, --harden's code-space negatives):
         # pulled, they flatten the encoder next to the user's code and drag the user's own scales along
         # (objective.delta_pull).
         n_keys = cfg.neighbour_keys + cfg.random_keys
-        sampled = slice(len(users), len(users) + n_keys + cfg.antipode_codes)
+        sampled = slice(len(users), len(users) + n_keys + hard.antipode_codes)
         pull = cfg.delta_pull * delta_pull(deltas, sampled, of=n_keys + n_far) if cfg.delta_pull else 0.0
         if ranks.world == 1:
             out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
@@ -250,7 +253,7 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 
-    losses = run_steps(step, cfg.steps, job.progress, cfg.precision, dev)
+    losses = run_steps(step, tc.steps, job.progress, tc.precision, dev)
     reports = [
         user_report(
             km,
@@ -260,8 +263,8 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
             u.key_bits,
             cfg.key_encoding,
             task,
-            cfg.eval_random_keys,
-            eval_rng(cfg.seed, i),
+            tc.eval_random_keys,
+            eval_rng(tc.seed, i),
         )
         for i, (u, (_, val)) in enumerate(zip(users, splits))
     ]
@@ -271,8 +274,10 @@ def personalize(job: Job, users: list[User], general: Dataset | None = None) -> 
     )  # fmt: skip
 
 
-class ArrayRecipe(Recipe):
-    def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
+class ArrayRecipe(Recipe[UnsealedConfig]):
+    def personalize(
+        self, job: Job[UnsealedConfig], users: list[User], general: Dataset | None = None
+    ) -> Personalized:
         return personalize(job, users, general)
 
 

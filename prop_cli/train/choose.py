@@ -1,10 +1,10 @@
 """Which recipe trains a model: {array model, policy with its own loss} x {unsealed, sealed}, decided
-here and nowhere else."""
+here and nowhere else. Each recipe receives its own mode's settings (``Job.mode``) and no other's."""
 
 from __future__ import annotations
 
 from prop_adapters import LoadedModel
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, SealedConfig, UnsealedConfig
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
@@ -17,10 +17,24 @@ def sealed_recipe(loaded: LoadedModel) -> SealedRecipe:
     return sealed_policy.RECIPE if loaded.policy is not None else sealed_array.RECIPE
 
 
-def choose(loaded: LoadedModel, sealed: bool) -> Recipe:
-    if sealed:
+def unsealed_recipe(loaded: LoadedModel, mode: UnsealedConfig) -> Recipe[UnsealedConfig]:
+    if loaded.policy is None:
+        return array.RECIPE
+    if given := mode.hardening.flags():
+        # --harden's measures (train.hardening) are the array trainer's. A policy bundle recorded them in
+        # its manifest without having trained any of them, so a policy refuses them instead.
+        raise PropError(
+            f"{', '.join(given)}: the LeRobot policy trainer does not train --harden's measures yet (a "
+            "policy bundle would record them without having them)",
+            "drop them (the default unsealed mode), or --seal for a bundle whose payload stays encrypted",
+        )
+    return policy.RECIPE
+
+
+def choose(loaded: LoadedModel, mode: UnsealedConfig | SealedConfig) -> Recipe:
+    if isinstance(mode, SealedConfig):
         return sealed_recipe(loaded)
-    return policy.RECIPE if loaded.policy is not None else array.RECIPE
+    return unsealed_recipe(loaded, mode)
 
 
 def personalize(
@@ -32,10 +46,11 @@ def personalize(
     progress: Progress | None = None,
     ranks: Ranks | None = None,
 ) -> Trained:
-    """Train ``loaded`` for ``users`` with the recipe for its kind and ``cfg.seal``; the loaded module is
+    """Train ``loaded`` for ``users`` with the recipe for its kind and ``cfg``'s mode; the loaded module is
     updated in place (unsealed) or stays the original (sealed). ``ranks``: the processes `accelerate
     launch` started (``distributed``), every recipe data parallel."""
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
-    recipe = choose(loaded, cfg.seal)
-    return recipe.personalize(Job(loaded, cfg, device, progress, ranks or Ranks()), users, general)
+    recipe = choose(loaded, cfg.mode)
+    job = Job(loaded, cfg.train, cfg.mode, device, progress, ranks or Ranks())
+    return recipe.personalize(job, users, general)

@@ -30,15 +30,15 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import Hardening
 
 
 @contextlib.contextmanager
-def encoder_init(cfg: PersonalizeConfig) -> Iterator[None]:
-    """Build the key encoder inside this block: seeded by ``cfg.seed`` (the default, reproducible),
-    or, with ``encoder_init == "os"``, from fresh OS randomness that nothing in the bundle records.
-    The global torch RNG is restored afterwards, so the rest of training still follows the seed."""
-    if cfg.encoder_init != "os":
+def encoder_init(hardening: Hardening, seed: int) -> Iterator[None]:
+    """Build the key encoder inside this block: seeded by ``seed`` (set before; the default,
+    reproducible), or, with ``encoder_init == "os"``, from fresh OS randomness that nothing in the bundle
+    records. The global torch RNG is restored afterwards, so the rest of training still follows the seed."""
+    if hardening.encoder_init != "os":
         yield
         return
     with torch.random.fork_rng(devices=[]):

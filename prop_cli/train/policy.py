@@ -33,7 +33,7 @@ from prop_adapters import LoadedModel
 from prop_adapters.base import FRAME
 from prop_adapters.folder import WEIGHTS
 from prop_adapters.weights import safetensors_shapes, sniff
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import TrainConfig, UnsealedConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
 from prop_cli.core.key_sampling import HARD_STREAM, KeySampler, one_bit_neighbours, random_keys
@@ -78,7 +78,7 @@ def chunks(policy, batch: dict[str, torch.Tensor], per_forward: int = _CHUNK) ->
     return torch.cat([policy.chunk(rows(batch, idx[i : i + per_forward])) for i in range(0, n, per_forward)])
 
 
-def forward_rows(cfg: PersonalizeConfig, step_rows: int) -> int:
+def forward_rows(step_rows: int) -> int:
     """Rows per forward outside the step (the original's chunks and targets, the report): no more than a
     step holds with its gradients, so their memory stays within the step's at any data size."""
     return max(1, min(_CHUNK, step_rows))
@@ -226,40 +226,27 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device) for k, v in batch.items()}
 
 
-def refuse_harden(cfg: PersonalizeConfig) -> None:
-    """--harden's measures (train.hardening: code-space negatives, antipode codes, an encoder initialised
-    from the OS) are the array trainer's. A policy bundle recorded them in its manifest without having
-    trained any of them, so a policy refuses them instead."""
-    if given := cfg.hardening():
-        raise PropError(
-            f"{', '.join(given)}: the LeRobot policy trainer does not train --harden's measures yet (a "
-            "policy bundle would record them without having them)",
-            "drop them (the default unsealed mode), or --seal for a bundle whose payload stays encrypted",
-        )
-
-
 class PolicyTrainer:
     """The state of one personalize run and its step (kept apart so benchmarks time exactly this step)."""
 
     def __init__(
-        self, loaded: LoadedModel, users: list[User], cfg: PersonalizeConfig, general: Dataset | None,
-        device: torch.device | None = None, ranks: Ranks | None = None,
+        self, loaded: LoadedModel, users: list[User], tc: TrainConfig, cfg: UnsealedConfig,
+        general: Dataset | None, device: torch.device | None = None, ranks: Ranks | None = None,
     ) -> None:  # fmt: skip
         policy = self.policy = loaded.policy
         ranks = self.ranks = ranks or Ranks()
-        cfg.validate(key_bits=len(users[0].key_bits))
+        cfg.check_key_bits(len(users[0].key_bits))
         check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
-        refuse_harden(cfg)
-        self.cfg, self.users = cfg, users
+        self.tc, self.cfg, self.users = tc, cfg, users
         # The policy's processors run on the CPU (its DeviceProcessorStep says cpu); batches move after.
         dev = self.device = device or torch.device("cpu")
         module = self.module = loaded.module.to(dev)
-        names = select_layers(module, cfg.layers or policy.default_layers, cfg.exclude)
-        torch.manual_seed(cfg.seed)
-        self.rng = rng = np.random.default_rng(cfg.seed)
+        names = select_layers(module, tc.layers or policy.default_layers, tc.exclude)
+        torch.manual_seed(tc.seed)
+        self.rng = rng = np.random.default_rng(tc.seed)
 
         self.splits = [
-            split_episodes(to_device(policy.batches(u.data, "--data"), dev), cfg.val_fraction) for u in users
+            split_episodes(to_device(policy.batches(u.data, "--data"), dev), tc.val_fraction) for u in users
         ]
         self.pool = [tr for tr, _ in self.splits]
         fb_parts = list(self.pool)
@@ -275,9 +262,9 @@ class PolicyTrainer:
         # The fallback term's rows and the original's output on each, computed as steps draw them (the
         # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
         # and the original's denoiser output).
-        self.per_forward = forward_rows(cfg, cfg.batch_rows)
+        self.per_forward = forward_rows(cfg.batch_rows(tc.user_rows))
         self.fallback = FallbackPool(
-            policy, self.original_policy, self.fb, torch.Generator().manual_seed(cfg.seed), self.per_forward
+            policy, self.original_policy, self.fb, torch.Generator().manual_seed(tc.seed), self.per_forward
         )
 
         mods = dict(module.named_modules())
@@ -294,20 +281,20 @@ class PolicyTrainer:
         if base:
             groups.append({"params": base, "lr": cfg.lr * cfg.base_lr_scale})
         reduce = ranks.sum_gradients if ranks.world > 1 else None
-        self.optim = Optimiser(groups, cfg.lr, cfg.steps, cfg.lr_floor, clip=CLIP, reduce=reduce)
+        self.optim = Optimiser(groups, cfg.lr, tc.steps, tc.lr_floor, clip=CLIP, reduce=reduce)
         self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
         # After the probe: from here to ``finish`` the frozen weights may be bf16 (shared with the original).
-        self.restore = frozen_in_bf16(module, str(loaded.source)) if cfg.precision == "bf16" else None
+        self.restore = frozen_in_bf16(module, str(loaded.source)) if tc.precision == "bf16" else None
         self.sampler = KeySampler(
             [u.key_bits for u in users], cfg.hamming_radius, rng,
             cfg.hard_negatives, cfg.hard_pool, cfg.hard_every,
         )  # fmt: skip
-        self.hard_rng = np.random.default_rng((cfg.seed, HARD_STREAM))
-        self.per_user = max(1, cfg.user_rows // len(users))
+        self.hard_rng = np.random.default_rng((tc.seed, HARD_STREAM))
+        self.per_user = max(1, tc.user_rows // len(users))
         sampled = (cfg.neighbour_keys + cfg.random_keys + cfg.far_codes) * cfg.samples_per_key
         ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
-        amp = mixed_precision(cfg.precision, dev)
-        self.noise = row_noise(policy, self._probe, (cfg.seed,), module, ranks, amp)
+        amp = mixed_precision(tc.precision, dev)
+        self.noise = row_noise(policy, self._probe, (tc.seed,), module, ranks, amp)
         self.t = 0
 
     def _probe(self, n_user: int, n_fallback: int) -> None:
@@ -421,10 +408,10 @@ REPORT_WORK = 1e10
 REPORT_MIN_FRAMES = 2  # frames kept before keys are cut
 
 
-def report_budget(cfg: PersonalizeConfig, module: torch.nn.Module) -> int | None:
+def report_budget(tc: TrainConfig, module: torch.nn.Module) -> int | None:
     """The report's budget in chunks (None: every key condition on every held-out frame)."""
-    if cfg.report_budget is not None:
-        return cfg.report_budget or None
+    if tc.report_budget is not None:
+        return tc.report_budget or None
     params = sum(p.numel() for p in module.parameters())
     return max(1, int(REPORT_WORK // max(params, 1)))
 
@@ -467,7 +454,7 @@ def keyed_chunks(km, policy, val: dict, deltas: list[torch.Tensor], per_forward:
 
 @torch.no_grad()
 def chunk_report(
-    km, policy, original, val: dict, bits: np.ndarray, cfg: PersonalizeConfig, rng,
+    km, policy, original, val: dict, bits: np.ndarray, cfg: UnsealedConfig, n_random: int, rng,
     budget: int | None = None, per_forward: int = _CHUNK,
 ) -> dict:  # fmt: skip
     """personalization, leakage and fidelity (docs/metrics.md) on held-out frames' action chunks.
@@ -478,7 +465,7 @@ def chunk_report(
     a random share of the 1-bit neighbours; ``coverage`` says what ran of what a full report runs.
     """
     enc = cfg.key_encoding
-    rand = random_keys(cfg.eval_random_keys, len(bits), rng, exclude=bits)
+    rand = random_keys(n_random, len(bits), rng, exclude=bits)
     ham = one_bit_neighbours(bits)
     n = len(val["episode_index"])
     f, r, h = report_plan(n, len(rand), len(ham), budget)
@@ -497,26 +484,29 @@ def chunk_report(
     o_user = under(key_codes(bits, enc))
     report = outputs_report(b, p, "regression", o_user[0], under(None), under(key_codes(rand, enc)),
                             under(key_codes(ham, enc)))  # fmt: skip
-    full = {"frames": n, "random": cfg.eval_random_keys, "hamming1": len(bits)}
+    full = {"frames": n, "random": n_random, "hamming1": len(bits)}
     ran = {"frames": len(p), "random": len(rand), "hamming1": len(ham)}
     if ran != full:
         report["coverage"] = {"ran": ran, "of": full, "budget": budget}
     return report
 
 
-class PolicyRecipe(Recipe):
-    def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> Personalized:
+class PolicyRecipe(Recipe[UnsealedConfig]):
+    def personalize(
+        self, job: Job[UnsealedConfig], users: list[User], general: Dataset | None = None
+    ) -> Personalized:
         """Train the keyed policy (Eq. 5) with Eq. 8 on ``job.device``; the result comes back to the CPU
         (the bundle is written, and runs, there)."""
-        loaded, cfg = job.loaded, job.cfg
+        loaded, tc, cfg = job.loaded, job.train, job.mode
         dev = resolve_device(job.device)
         with loaded.policy.memo():  # what the policy computes once for every key and step (SmolVLA)
-            t = PolicyTrainer(loaded, users, cfg, general, dev, job.ranks)
-            losses = run_steps(t.step, cfg.steps, job.progress, cfg.precision, dev)
+            t = PolicyTrainer(loaded, users, tc, cfg, general, dev, job.ranks)
+            losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)
             t.finish()
-            budget = report_budget(cfg, t.module)
+            budget = report_budget(tc, t.module)
             reports = [  # by the process that writes the bundle (the others trained the same model)
-                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, eval_rng(cfg.seed, i),
+                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
+                             eval_rng(tc.seed, i),
                              budget, t.per_forward)
                 for i, (u, (_, val)) in enumerate(zip(users, t.splits))
             ] if job.ranks.is_main else []  # fmt: skip

@@ -11,25 +11,29 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Generic, TypeVar
 
 import numpy as np
 from torch import nn
 
 from prop_adapters import LoadedModel
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import Mode, SealedConfig, TrainConfig
 from prop_cli.datasources import Dataset
 
 from .distributed import Ranks
 
 Progress = Callable[[int, dict[str, float]], None]  # (step, latest losses)
+M = TypeVar("M", bound=Mode)  # the mode's own settings: a recipe sees its own part and no other's
 
 
 @dataclass
-class Job:
-    """One training run: the model, its settings, where it computes, and who hears of its progress."""
+class Job(Generic[M]):
+    """One training run: the model, its settings (every mode's, and its own mode's), where it computes,
+    and who hears of its progress."""
 
     loaded: LoadedModel
-    cfg: PersonalizeConfig
+    train: TrainConfig
+    mode: M
     device: str = "cpu"
     progress: Progress | None = None
     ranks: Ranks = field(default_factory=Ranks)  # the processes training together (``distributed``)
@@ -61,9 +65,9 @@ class Trained(ABC):
         and passphrase salt, config, io.checkpoint); the recipe adds its own."""
 
 
-class Recipe(ABC):
+class Recipe(ABC, Generic[M]):
     @abstractmethod
-    def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> Trained:
+    def personalize(self, job: Job[M], users: list[User], general: Dataset | None = None) -> Trained:
         """Train ``job.loaded`` (in place) for ``users``; ``general``: inputs where the original is kept."""
 
 
@@ -75,12 +79,12 @@ class SealedUser:
     val: Dataset  # held-out rows, as the report view takes them
 
 
-class SealedRecipe(Recipe):
+class SealedRecipe(Recipe[SealedConfig]):
     """A sealed recipe trains each user alone, so one more user can be added to a bundle later."""
 
     @abstractmethod
     def train_users(
-        self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
+        self, job: Job[SealedConfig], datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
         first_index: int = 0,
     ) -> tuple[list[SealedUser], str, dict[str, int]]:
         """Each user's payload on their own data (users numbered from ``first_index``); returns the users,

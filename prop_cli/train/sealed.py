@@ -22,7 +22,7 @@ from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.bundle import write_sealed
 from prop_cli.bundle.records import SealedState
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, SealedConfig, TrainConfig
 from prop_cli.core import metrics
 from prop_cli.core.key_files import kdf_record, new_salt
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
@@ -36,9 +36,9 @@ from .recipe import Job, SealedRecipe, SealedUser, Trained, User, Written
 from .report import eval_rng, outputs_report
 
 
-def payload_spec(module: nn.Module, cfg: PersonalizeConfig) -> PayloadSpec:
+def payload_spec(module: nn.Module, tc: TrainConfig, cfg: SealedConfig) -> PayloadSpec:
     mods = dict(module.named_modules())
-    layers = [describe_layer(n, mods[n]) for n in select_layers(module, cfg.layers, cfg.exclude)]
+    layers = [describe_layer(n, mods[n]) for n in select_layers(module, tc.layers, tc.exclude)]
     return PayloadSpec(cfg.payload, layers, payload_kind(cfg.payload).rank(cfg.payload_rank)).validate()
 
 
@@ -53,7 +53,7 @@ def check_distinct(keys: list[np.ndarray]) -> None:
 
 
 def private_report(
-    o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str, losses: dict, cfg: PersonalizeConfig
+    o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str, losses: dict, job: Job[SealedConfig]
 ) -> dict:
     """What is sealed beside a user's payload: their validation figures and training settings."""
     return {
@@ -61,7 +61,7 @@ def private_report(
         "user_leakage": metrics.leakage(o[None], p, b, task).item(),
         "samples": int(len(p)),
         "final_losses": losses,
-        "config": cfg.to_dict(),
+        "config": PersonalizeConfig(job.train, job.mode).to_dict(),
     }
 
 
@@ -99,7 +99,7 @@ def sealed_report(
 
 
 def user_report(
-    state: SealedState, view: nn.Module, user: SealedUser, task: str, cfg: PersonalizeConfig, index: int,
+    state: SealedState, view: nn.Module, user: SealedUser, task: str, tc: TrainConfig, index: int,
     per_forward: int | None = None,
 ) -> dict:  # fmt: skip
     """The report personalize and add-user print for one sealed user: their validation figures, and
@@ -107,8 +107,8 @@ def user_report(
     training settings stay out (they are sealed with the payload); ``final_losses`` stays in."""
     x = torch.from_numpy(user.val.x)
     p = targets_tensor(user.val, task)
-    rng = eval_rng(cfg.seed, index)
-    keys = sealed_report(state, view.eval(), x, p, user.bits, task, cfg.eval_random_keys, rng, per_forward)
+    rng = eval_rng(tc.seed, index)
+    keys = sealed_report(state, view.eval(), x, p, user.bits, task, tc.eval_random_keys, rng, per_forward)
     return {**{k: v for k, v in user.private.items() if k != "config"}, **keys}
 
 
@@ -130,7 +130,7 @@ class SealedResult(Trained):
     users: list[SealedUser]
     task: str
     axes: dict[str, int]
-    cfg: PersonalizeConfig
+    tc: TrainConfig
     view: nn.Module  # what the reports run keys through
     input_shape: list | dict
     per_forward: int | None = None  # rows per forward of the report (None: all at once)
@@ -158,7 +158,7 @@ class SealedResult(Trained):
             policy = self.loaded.policy
             with policy.memo() if policy is not None else contextlib.nullcontext():
                 for i, u in enumerate(self.users):
-                    reports.append(user_report(state, self.view, u, self.task, self.cfg, i, self.per_forward))
+                    reports.append(user_report(state, self.view, u, self.task, self.tc, i, self.per_forward))
 
         users = [(u.payload, u.private, u.bits) for u in self.users]
         written = write_sealed(
@@ -176,19 +176,21 @@ class SealedRecipeBase(SealedRecipe):
     @abstractmethod
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> list | dict: ...
 
-    def report_rows(self, cfg: PersonalizeConfig) -> int | None:
+    def report_rows(self, tc: TrainConfig) -> int | None:
         """Rows per forward of the report (None: every held-out row at once)."""
         return None
 
-    def personalize(self, job: Job, users: list[User], general: Dataset | None = None) -> SealedResult:
+    def personalize(
+        self, job: Job[SealedConfig], users: list[User], general: Dataset | None = None
+    ) -> SealedResult:
         if general is not None:
             raise PropError(
                 "--general-data does nothing with --seal (the base stays the original)", "drop --general-data"
             )
         keys = [u.key_bits for u in users]
         check_distinct(keys)
-        trained, task, axes = self.train_users(job, [u.data for u in users], keys, job.cfg.task)
+        trained, task, axes = self.train_users(job, [u.data for u in users], keys, job.train.task)
         loaded = job.loaded
         view = self.report_view(loaded)
         shape = self.input_shape(loaded, trained[0].val)
-        return SealedResult(loaded, trained, task, axes, job.cfg, view, shape, self.report_rows(job.cfg))
+        return SealedResult(loaded, trained, task, axes, job.train, view, shape, self.report_rows(job.train))

@@ -18,7 +18,7 @@ import torch
 
 from prop_adapters import LoadedModel
 from prop_adapters.lerobot.flat import flat_module
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import SealedConfig, TrainConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
 from prop_cli.core.payload import Payload, PayloadSpec
@@ -44,39 +44,39 @@ from .sealed import SealedRecipeBase, payload_spec, private_report
 
 
 def train_payload(
-    loaded: LoadedModel, spec: PayloadSpec, train: dict, cfg: PersonalizeConfig, index: int,
+    loaded: LoadedModel, spec: PayloadSpec, train: dict, tc: TrainConfig, cfg: SealedConfig, index: int,
     progress: Progress | None = None, device: torch.device | None = None, ranks: Ranks | None = None,
 ) -> tuple[Payload, dict[str, float]]:  # fmt: skip
     """Fit user ``index``'s payload on their frames (on ``device``, as ``loaded.module`` and ``train``)
     with the policy's own loss, the base frozen."""
     policy, module = loaded.policy, loaded.module
     dev, ranks = device or torch.device("cpu"), ranks or Ranks()
-    torch.manual_seed(cfg.seed + index)
-    rng = np.random.default_rng((cfg.seed, index))
-    payload = Payload(spec, torch.Generator().manual_seed(cfg.seed + index)).to(dev)
+    torch.manual_seed(tc.seed + index)
+    rng = np.random.default_rng((tc.seed, index))
+    payload = Payload(spec, torch.Generator().manual_seed(tc.seed + index)).to(dev)
     reduce = ranks.sum_gradients if ranks.world > 1 else None
-    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, cfg.steps, cfg.lr_floor, clip=CLIP,
+    optim = Optimiser(list(payload.parameters()), cfg.payload_lr, tc.steps, tc.lr_floor, clip=CLIP,
                       reduce=reduce)  # fmt: skip
     n = len(train["episode_index"])
-    ranks.check_rows({"--user-rows": cfg.user_rows})
+    ranks.check_rows({"--user-rows": tc.user_rows})
     with payload.attached(module):
         noise = row_noise(
             policy, lambda r, _: policy.loss_parts(rows(train, torch.arange(r, device=dev) % n)),
-            (cfg.seed, index), module, ranks, mixed_precision(cfg.precision, dev),
+            (tc.seed, index), module, ranks, mixed_precision(tc.precision, dev),
         )  # fmt: skip
         t = 0
 
         def step() -> dict[str, float]:
             nonlocal t
-            picks = torch.from_numpy(rng.integers(0, n, cfg.user_rows)).to(dev)
-            mine = ranks.share(cfg.user_rows).to(dev)  # this process's share of the step's rows
-            with drawn(noise, t, mine, cfg.user_rows):
+            picks = torch.from_numpy(rng.integers(0, n, tc.user_rows)).to(dev)
+            mine = ranks.share(tc.user_rows).to(dev)  # this process's share of the step's rows
+            with drawn(noise, t, mine, tc.user_rows):
                 loss = weighted(policy.loss_parts(rows(train, picks[mine])), ranks)
             optim.update(loss)
             t += 1
             return {"personal": (ranks.sum_tensor(loss.detach()) if ranks.world > 1 else loss).item()}
 
-        losses = run_steps(step, cfg.steps, progress, cfg.precision, dev)
+        losses = run_steps(step, tc.steps, progress, tc.precision, dev)
     module.eval()
     return payload.eval(), losses
 
@@ -88,21 +88,21 @@ class SealedPolicyRecipe(SealedRecipeBase):
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> dict:
         return {k: list(v) for k, v in loaded.policy.input_features.items()}
 
-    def report_rows(self, cfg: PersonalizeConfig) -> int:
-        return forward_rows(cfg, cfg.user_rows)
+    def report_rows(self, tc: TrainConfig) -> int:
+        return forward_rows(tc.user_rows)
 
     def train_users(
-        self, job: Job, datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
+        self, job: Job[SealedConfig], datasets: list[Dataset], keys: list[np.ndarray], task: str | None,
         first_index: int = 0,
     ) -> tuple[list[SealedUser], str, dict[str, int]]:
         """Validation rows are kept as the flat view's (``prop_cli.fit.flat_chunks``); the
         keyed layers' batch axes are returned too (the audit keys the public base at those layers)."""
-        loaded, cfg = job.loaded, job.cfg
+        loaded, tc = job.loaded, job.train
         policy, module = loaded.policy, loaded.module.eval()
-        spec = payload_spec(module, replace(cfg, layers=cfg.layers or policy.default_layers))
+        spec = payload_spec(module, replace(tc, layers=tc.layers or policy.default_layers), job.mode)
         # The policy's processors run on the CPU; the splits stay there (the flat view's rows) and a copy
         # goes to the device.
-        splits = [split_episodes(policy.batches(d, "--data"), cfg.val_fraction) for d in datasets]
+        splits = [split_episodes(policy.batches(d, "--data"), tc.val_fraction) for d in datasets]
         with policy.memo():  # what the policy computes once for every key and step (SmolVLA)
             return self._train(job, spec, splits, keys, datasets, first_index)
 
@@ -110,7 +110,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
         self, job: Job, spec: PayloadSpec, splits: list, keys: list[np.ndarray], datasets: list[Dataset],
         first_index: int,
     ) -> tuple[list[SealedUser], str, dict[str, int]]:  # fmt: skip
-        loaded, cfg = job.loaded, job.cfg
+        loaded, tc = job.loaded, job.train
         dev = resolve_device(job.device)
         policy, module = loaded.policy, loaded.module
         names = [x["name"] for x in spec.layers]
@@ -122,14 +122,14 @@ class SealedPolicyRecipe(SealedRecipeBase):
         out = []
         try:
             module.to(dev)
-            per = self.report_rows(cfg)
+            per = self.report_rows(tc)
             for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
                 # Under --precision bf16 the frozen base is held bf16 while the payload trains, then read
                 # back exactly from the checkpoint: the report and the bundle see the original's weights.
-                restore = frozen_in_bf16(module, str(loaded.source)) if cfg.precision == "bf16" else None
+                restore = frozen_in_bf16(module, str(loaded.source)) if tc.precision == "bf16" else None
                 try:
                     payload, losses = train_payload(
-                        loaded, spec, to_device(tr, dev), cfg, i, job.progress, dev, job.ranks
+                        loaded, spec, to_device(tr, dev), tc, job.mode, i, job.progress, dev, job.ranks
                     )  # fmt: skip
                 finally:
                     if restore is not None:
@@ -137,7 +137,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
                 b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)
-                private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, cfg)
+                private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, job)
                 flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
                 out.append(SealedUser(payload.to("cpu"), private, bits, flat_val))
         finally:

@@ -11,7 +11,7 @@ import torch
 from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.bundle import describe_layers, write_unsealed
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import UnsealedConfig
 from prop_cli.core.keyed_model import KeyedModel
 
 from .recipe import Trained, Written
@@ -25,7 +25,7 @@ class Personalized(Trained):
     metrics: list[dict]  # one report per user (report.user_report, or a policy's chunk report)
     final_losses: dict[str, float]
     loaded: LoadedModel | None = field(default=None, repr=False)
-    cfg: PersonalizeConfig | None = field(default=None, repr=False)
+    cfg: UnsealedConfig | None = field(default=None, repr=False)
     input_shape: list | dict | None = None  # per sample; per feature name for policies
     users: int = 1
     keys: list = field(default_factory=list, repr=False)  # the users' key bits: enrolled, never written

@@ -48,7 +48,7 @@ def key(seed: int = 1) -> np.ndarray:
 def bundle(work):
     out = work / "bundle"
     api.personalize_checkpoint(
-        str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig.of(**TINY),
         general=work / "general",
     )  # fmt: skip
     return out
@@ -214,7 +214,7 @@ def test_eval_video_writes_one_mp4_per_condition_and_never_overwrites(bundle, wo
     "layer", ["model.encoder.layers.0.self_attn.out_proj", "model.vae_encoder.layers.0.linear1"]
 )
 def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer):
-    cfg = PersonalizeConfig(**(TINY | {"layers": [layer], "steps": 1}))
+    cfg = PersonalizeConfig.of(**(TINY | {"layers": [layer], "steps": 1}))
     with pytest.raises(PropError, match="not called when the policy acts"):
         api.personalize_checkpoint(
             str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg
@@ -226,7 +226,7 @@ def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer)
 def test_harden_is_refused_for_a_policy_not_recorded_untrained(work, tmp_path, flags):
     """The policy trainer has none of --harden's measures; a bundle recorded harden: true, 64 code-space
     negatives and 16 antipode codes without having trained them. Refused before anything is written."""
-    cfg = PersonalizeConfig(**(TINY | flags | {"steps": 1}))
+    cfg = PersonalizeConfig.of(**(TINY | flags | {"steps": 1}))
     with pytest.raises(PropError, match="does not train --harden's measures") as e:
         api.personalize_checkpoint(
             str(work / "act"), [(work / "user", KeySource(key(), "file"))], tmp_path / "b", cfg
@@ -333,7 +333,7 @@ def tmp_key(work):
 def test_same_seed_same_bundle(bundle, work):
     again = work / "again"
     api.personalize_checkpoint(
-        str(work / "act"), [(work / "user", KeySource(key(), "file"))], again, PersonalizeConfig(**TINY),
+        str(work / "act"), [(work / "user", KeySource(key(), "file"))], again, PersonalizeConfig.of(**TINY),
         general=work / "general",
     )  # fmt: skip
     for name in ("base.safetensors", "encoder.safetensors"):
@@ -343,7 +343,7 @@ def test_same_seed_same_bundle(bundle, work):
 @pytest.fixture(scope="module")
 def sealed(work):
     out = work / "sealed"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 30}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 30}))
     api.personalize_checkpoint(str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, cfg)
     return out
 
@@ -384,7 +384,7 @@ def test_sealed_policy_trains_on_the_device_and_runs_the_original_on_the_cpu(wor
     from prop_cli.run.policy import WrongKeyWarning, run_policy
 
     out = tmp_path / f"sealed-{device}-{precision}"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "precision": precision}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "precision": precision}))
     result = api.personalize_checkpoint(
         str(work / "act"), [(work / "user", KeySource(key(), "file"))], out, cfg, device=device
     )  # fmt: skip
@@ -647,8 +647,9 @@ def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_n
     from prop_cli.train.recipe import User
 
     users = [User(load_data(work / "user"), key())]
-    cfg = PersonalizeConfig(**(TINY | {"steps": 6, "hard_negatives": 2, "hard_pool": 3, "hard_every": 3}))
-    trainer = PolicyTrainer(load_checkpoint(work / "act"), users, cfg, load_data(work / "general"))
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 6, "hard_negatives": 2, "hard_pool": 3, "hard_every": 3}))
+    general = load_data(work / "general")
+    trainer = PolicyTrainer(load_checkpoint(work / "act"), users, cfg.train, cfg.mode, general)
     scores = trainer.divergence(key(2)[None].repeat(3, 0) ^ np.eye(3, 128, dtype=np.uint8))
     assert scores.shape == (3,) and np.isfinite(scores).all() and (scores >= 0).all()
     for _ in range(3):
@@ -657,8 +658,8 @@ def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_n
     codes = torch.from_numpy(np.random.default_rng(3).integers(0, 2, (16, 128)) * 2.0 - 1).float()
 
     def spread(pull: float) -> float:
-        c = PersonalizeConfig(**(TINY | {"steps": 20, "lr": 0.01, "delta_pull": pull}))
-        t = PolicyTrainer(load_checkpoint(work / "act"), users, c, load_data(work / "general"))
+        c = PersonalizeConfig.of(**(TINY | {"steps": 20, "lr": 0.01, "delta_pull": pull}))
+        t = PolicyTrainer(load_checkpoint(work / "act"), users, c.train, c.mode, load_data(work / "general"))
         for _ in range(20):
             t.step()
         with torch.no_grad():
@@ -682,10 +683,11 @@ def test_policy_trainer_pulls_the_sampled_keys_but_not_the_far_codes(work, monke
         return real(deltas, keys, of)
 
     monkeypatch.setattr(policy, "delta_pull", pull)
-    cfg = PersonalizeConfig(**(TINY | {"steps": 1, "delta_pull": 10.0, "far_codes": 3}))
-    t = policy.PolicyTrainer(load_checkpoint(work / "act"), [User(load_data(work / "user"), key())], cfg,
-                             load_data(work / "general"))
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 1, "delta_pull": 10.0, "far_codes": 3}))
+    users = [User(load_data(work / "user"), key())]
+    general = load_data(work / "general")
+    t = policy.PolicyTrainer(load_checkpoint(work / "act"), users, cfg.train, cfg.mode, general)
     t.step()
-    (keys, rows, of), k = seen[0], cfg.neighbour_keys + cfg.random_keys
+    (keys, rows, of), k = seen[0], cfg.mode.neighbour_keys + cfg.mode.random_keys
     assert (keys.start, keys.stop) == (0, k) and rows == k + 3 + 1  # K1, K2 | 3 far codes | null
     assert of == k + 3  # each pulled key keeps its weight among the far codes

@@ -50,8 +50,8 @@ def work(tmp_path_factory):
 def bundle(work):
     out = work / "bundle"
     api.personalize_checkpoint(
-        str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
-        general=work / "general",
+        str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out,
+        PersonalizeConfig.of(**TINY), general=work / "general",
     )  # fmt: skip
     return out
 
@@ -59,7 +59,7 @@ def bundle(work):
 @pytest.fixture(scope="module")
 def sealed(work):
     out = work / "sealed"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 20}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 20}))
     api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg)
     return out
 
@@ -214,7 +214,7 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
     task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
     task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
     task.train_base(d / "general", d / "diffusion", steps=2, kind="diffusion", camera=True)
-    cfg = PersonalizeConfig(**(TINY | {"steps": 3}))
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 3}))
     api.personalize_checkpoint(
         str(d / "diffusion"), [(d / "user", KeySource(key(), "file"))], d / "b", cfg, general=d / "general"
     )
@@ -240,7 +240,7 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
     s = AuditSettings(probes=["null", "random"], random=2, samples=1000)
     audit = api.audit_bundle(d / "b", d / "user", s, key_files=[path], original=str(d / "diffusion"))
     assert {"null", "random"} <= {g["name"] for g in audit["groups"]}
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 3}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 3}))
     api.personalize_checkpoint(str(d / "diffusion"), [(d / "user", KeySource(key(), "file"))], d / "s", cfg)
     from prop_cli.run.policy import WrongKeyWarning, run_policy
 

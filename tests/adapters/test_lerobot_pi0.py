@@ -92,7 +92,7 @@ def work(request, data, tmp_path_factory) -> Work:
 def bundle(work):
     out = work.root / "bundle"
     api.personalize_checkpoint(
-        str(work.policy), [(work.user, KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        str(work.policy), [(work.user, KeySource(key(), "file"))], out, PersonalizeConfig.of(**TINY),
         general=work.general,
     )  # fmt: skip
     return out
@@ -102,7 +102,7 @@ def bundle(work):
 def sealed(work):
     """Sealed, with the payload peft takes (`export --peft`): one sealed personalize per policy."""
     out = work.root / "sealed"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))
     api.personalize_checkpoint(str(work.policy), [(work.user, KeySource(key(), "file"))], out, cfg)
     return out
 
@@ -454,7 +454,7 @@ def test_pi0_sealed_bf16_keeps_the_original_bit_for_bit(work, tmp_path):
     original = load_file(str(work.policy / "model.safetensors"))
     assert any(v.dtype == torch.float32 for v in original.values())  # there is something to cast
     out = tmp_path / "sealed-bf16"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 4, "precision": "bf16"}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 4, "precision": "bf16"}))
     api.personalize_checkpoint(str(work.policy), [(work.user, KeySource(key(), "file"))], out, cfg)
     base = load_file(str(out / "lerobot" / "model.safetensors"))
     assert base.keys() == original.keys()
@@ -490,14 +490,14 @@ def test_pi0_gradient_checkpointing_trains_the_same_model(work, bundle, sealed, 
     counted = lambda *a, **k: calls.append(1) or checkpoint(*a, **k)  # noqa: E731
     monkeypatch.setattr(torch.utils.checkpoint, "checkpoint", counted)
     users = [(work.user, KeySource(key(), "file"))]
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))  # as ``sealed``
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 8, "payload": "peft-lora"}))  # as ``sealed``
     api.personalize_checkpoint(str(folder), users, tmp_path / "sealed", cfg)
-    assert len(calls) >= cfg.steps * 2  # every step's layers (2 per tiny Gemma), at least
+    assert len(calls) >= cfg.train.steps * 2  # every step's layers (2 per tiny Gemma), at least
     data = load_data(work.user)
     ours, theirs = (run_policy(load_bundle(b), data, key()) for b in (tmp_path / "sealed", sealed))
     assert np.allclose(ours, theirs, atol=1e-5)
     out = tmp_path / "bundle"
-    api.personalize_checkpoint(str(folder), users, out, PersonalizeConfig(**TINY), general=work.general)
+    api.personalize_checkpoint(str(folder), users, out, PersonalizeConfig.of(**TINY), general=work.general)
     files = sorted(p.relative_to(bundle) for p in bundle.rglob("*.safetensors"))
     assert files and files == sorted(p.relative_to(out) for p in out.rglob("*.safetensors"))
     for f in files:

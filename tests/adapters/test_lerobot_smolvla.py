@@ -57,7 +57,7 @@ def work(tmp_path_factory):
 def bundle(work):
     out = work / "bundle"
     api.personalize_checkpoint(
-        str(work / "smolvla"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig(**TINY),
+        str(work / "smolvla"), [(work / "user", KeySource(key(), "file"))], out, PersonalizeConfig.of(**TINY),
         general=work / "general",
     )  # fmt: skip
     return out
@@ -66,7 +66,7 @@ def bundle(work):
 @pytest.fixture(scope="module")
 def sealed(work):
     out = work / "sealed"
-    cfg = PersonalizeConfig(**(TINY | {"seal": True, "steps": 10}))
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 10}))
     api.personalize_checkpoint(str(work / "smolvla"), [(work / "user", KeySource(key(), "file"))], out, cfg)
     return out
 
@@ -222,7 +222,8 @@ def test_the_original_shares_what_does_not_train_and_the_pool_fills_as_steps_dra
     loaded = load_checkpoint(work / "smolvla")
     own = {n for n, p in loaded.module.named_parameters() if p.requires_grad}  # LeRobot's own freezing
     assert own and len(own) < len(list(loaded.module.parameters()))
-    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], PersonalizeConfig(**TINY), None)
+    cfg = PersonalizeConfig.of(**TINY)
+    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], cfg.train, cfg.mode, None)
     assert {n for n, p in t.module.named_parameters() if p.requires_grad} == own  # what LeRobot trains
     twin = dict(t.original.named_parameters())
     for n, p in t.module.named_parameters():  # one copy of every frozen tensor; the trained ones apart
@@ -247,8 +248,8 @@ def test_under_bf16_frozen_weights_step_as_bf16_and_come_back_exactly(work):
 
     loaded = load_checkpoint(work / "smolvla")
     before = {n: p.detach().clone() for n, p in loaded.module.named_parameters() if not p.requires_grad}
-    cfg = PersonalizeConfig(**(TINY | {"precision": "bf16"}))
-    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], cfg, None)
+    cfg = PersonalizeConfig.of(**(TINY | {"precision": "bf16"}))
+    t = PolicyTrainer(loaded, [User(load_data(work / "user"), key())], cfg.train, cfg.mode, None)
     params = dict(t.module.named_parameters())
     assert before and all(params[n].dtype == torch.bfloat16 for n in before)  # frozen: bf16, shared
     assert all(p.dtype == torch.float32 for n, p in params.items() if n not in before)  # trained: fp32

@@ -51,9 +51,9 @@ def bundles(tmp_path_factory) -> Path:
     write_keys(d, ("k.bin", "k2.bin"), rng)
     key = KeySource(read_key_file(d / "k.bin"), "file")
     ckpt = str(d / "model.safetensors")
-    leaky = PersonalizeConfig(steps=60, key_encoding="raw", neighbour_keys=0, delta_pull=0, far_codes=0)
+    leaky = PersonalizeConfig.of(steps=60, key_encoding="raw", neighbour_keys=0, delta_pull=0, far_codes=0)
     personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "leaky.prop", leaky)
-    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "good.prop", PersonalizeConfig(steps=300))
+    personalize_checkpoint(ckpt, [(d / "mine.npz", key)], d / "good.prop", PersonalizeConfig.of(steps=300))
     return d
 
 
@@ -308,7 +308,7 @@ def test_latent_control_runs_on_the_original_and_the_gate_uses_leakage_beyond_it
 def test_frozen_base_is_its_own_control(tmp_path, bundles):
     d = bundles
     key = KeySource(read_key_file(d / "k.bin"), "file")
-    cfg = PersonalizeConfig(steps=30, freeze_base=True)
+    cfg = PersonalizeConfig.of(steps=30, freeze_base=True)
     personalize_checkpoint(str(d / "model.safetensors"), [(d / "mine.npz", key)], tmp_path / "f.prop", cfg)
     s = AuditSettings(probes=["latent"], restarts=2, search_steps=10, samples=32)
     rep = audit(load_bundle(tmp_path / "f.prop"), load_data(d / "mine.npz"), [key.bits], s)

@@ -27,10 +27,10 @@ def two_users(tmp_path_factory) -> Path:
     write_keys(d, ("k.bin", "bob.bin", "stranger.bin"), rng)
     me, bob = (KeySource(read_key_file(d / n), "file") for n in ("k.bin", "bob.bin"))
     ckpt = str(d / "model.safetensors")
-    sealed = PersonalizeConfig(steps=300, seal=True)
+    sealed = PersonalizeConfig.of(steps=300, seal=True)
     personalize_checkpoint(ckpt, [(d / "mine.npz", me)], d / "sealed.prop", sealed)
-    add_user(d / "sealed.prop", d / "bob.npz", bob, cfg=PersonalizeConfig(steps=300, seal=True))
-    cfg = PersonalizeConfig(steps=300)
+    add_user(d / "sealed.prop", d / "bob.npz", bob, cfg=PersonalizeConfig.of(steps=300, seal=True))
+    cfg = PersonalizeConfig.of(steps=300)
     personalize_checkpoint(ckpt, [(d / "mine.npz", me), (d / "bob.npz", bob)], d / "two.prop", cfg)
     return d
 

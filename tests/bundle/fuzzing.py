@@ -154,10 +154,12 @@ def make_seeds(work: Path, steps: int = 5) -> dict[str, list[Seed]]:
     x = rng.uniform(-1, 1, (40, 4)).astype(np.float32)
     np.savez(work / "mine.npz", x=x, y=(-x[:, :2] * 0.5).astype(np.float32))
     key = rng.integers(0, 2, 128, dtype=np.uint8)
-    cfg = PersonalizeConfig(steps=steps, encoder_hidden=[32], eval_random_keys=2)
+    cfg = PersonalizeConfig.of(steps=steps, encoder_hidden=[32], eval_random_keys=2)
     users = [(work / "mine.npz", KeySource(key, "file"))]
     personalize_checkpoint(str(work / "model.safetensors"), users, work / "b.prop", cfg)
-    sealed_cfg = PersonalizeConfig(steps=steps, seal=True, payload="lora", payload_rank=2, eval_random_keys=2)
+    sealed_cfg = PersonalizeConfig.of(
+        steps=steps, seal=True, payload="lora", payload_rank=2, eval_random_keys=2
+    )
     personalize_checkpoint(str(work / "model.safetensors"), users, work / "s.prop", sealed_cfg)
 
     def one(kind: str, name: str, load: Callable, checksummed: bool, data: bytes | None = None) -> Seed:

@@ -38,7 +38,7 @@ def _bundle(root: Path, name: str, seal: bool, key: str = "k.bin", seed: int = 0
     ckpt = root / f"model{ckpt_seed}.safetensors"
     if not ckpt.exists():
         make_mlp_checkpoint(ckpt, seed=ckpt_seed)
-    cfg = PersonalizeConfig(steps=150 if seal else 80, seed=seed, seal=seal)
+    cfg = PersonalizeConfig.of(steps=150 if seal else 80, seed=seed, seal=seal)
     bits = read_key_file(root / key)
     personalize_checkpoint(str(ckpt), [(root / "mine.npz", KeySource(bits, "file"))], root / name, cfg)
     return root / name

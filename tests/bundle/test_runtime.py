@@ -23,7 +23,7 @@ def bundles(tmp_path_factory):
     key = KeySource(read_key_file(d / "k.bin"), "file")
     np.savez(d / "box.npz", x=x, y=np.clip(-x[:, :2], -2, 2).astype(np.float32))
     np.savez(d / "discrete.npz", x=x, y=(x[:, 0] > 0).astype(np.int64) * 3)
-    cfg = PersonalizeConfig(steps=30)
+    cfg = PersonalizeConfig.of(steps=30)
     for name, data, kw in (
         ("ppo", "box.npz", {}),
         ("cartpole", "discrete.npz", {"discrete": True, "act": 4}),
@@ -92,7 +92,7 @@ def test_predict_drives_a_gymnasium_loop_the_sb3_way(tmp_path):
     np.savez(tmp_path / "d.npz", x=x, y=np.clip(x[:, :1], -2, 2).astype(np.float32))
     make_zip(tmp_path / "pendulum.zip", state=sb3_state("actor_critic", act=1), act=1)
     key = KeySource(rng.integers(0, 2, 128).astype(np.uint8), "file")
-    cfg = PersonalizeConfig(steps=5)
+    cfg = PersonalizeConfig.of(steps=5)
     personalize_checkpoint(str(tmp_path / "pendulum.zip"), [(tmp_path / "d.npz", key)], tmp_path / "b", cfg)
     policy = KeyedPolicy(load_bundle(tmp_path / "b"), key.bits)
     env = gym.make("Pendulum-v1")

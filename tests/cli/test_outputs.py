@@ -100,7 +100,7 @@ def test_the_api_refuses_it_with_force_true(workdir):
     key = KeySource(np.zeros(128, np.uint8), "file")
     with pytest.raises(PropError, match=r"sub2 is a folder that is not a prop bundle \(it holds notes/\)"):
         personalize_checkpoint(str(workdir / "model.safetensors"), [(workdir / "mine.npz", key)], sub2,
-                               PersonalizeConfig(steps=1), force=True)  # fmt: skip
+                               PersonalizeConfig.of(steps=1), force=True)  # fmt: skip
     assert (sub2 / "notes").is_dir()
 
 

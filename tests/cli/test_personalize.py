@@ -256,9 +256,9 @@ def test_payload_settings_validate_with_seal():
     from prop_cli.config import PersonalizeConfig
     from prop_cli.errors import PropError
 
-    PersonalizeConfig(seal=True, payload="peft-lora", payload_rank=2).validate()
+    PersonalizeConfig.of(seal=True, payload="peft-lora", payload_rank=2)
     with pytest.raises(PropError, match="--payload peft-lora applies to sealed bundles only"):
-        PersonalizeConfig(payload="peft-lora").validate()
+        PersonalizeConfig.of(payload="peft-lora")
 
 
 def _gate_warnings(res) -> list[str]:

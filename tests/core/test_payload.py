@@ -25,7 +25,7 @@ def test_an_unknown_kind_is_one_line():
     with pytest.raises(PropError, match="--payload 'qlora' is unknown"):
         payload_kind("qlora")
     with pytest.raises(PropError, match="--payload"):
-        PersonalizeConfig(payload="qlora").validate()
+        PersonalizeConfig.of(seal=True, payload="qlora")
 
 
 @pytest.mark.parametrize("name", PAYLOAD_KINDS)

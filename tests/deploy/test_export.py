@@ -40,7 +40,7 @@ def _make_bundle(root: Path, seed: int = 0) -> Path:
         str(root / "model.safetensors"),
         [(root / "mine.npz", KeySource(bits, "file"))],
         out,
-        PersonalizeConfig(steps=40, seed=seed),
+        PersonalizeConfig.of(steps=40, seed=seed),
     )
     return out
 
@@ -249,7 +249,7 @@ def test_cnn_bundle_with_image_inputs_exports(tmp_path):
         str(tmp_path / "cnn.safetensors"),
         [(tmp_path / "d.npz", KeySource(bits, "file"))],
         tmp_path / "cnn.prop",
-        PersonalizeConfig(steps=20),
+        PersonalizeConfig.of(steps=20),
         opts=CheckpointOptions(arch="tests.fixtures_arch:make_cnn"),
     )
     res = ex.export_onnx(load_bundle(tmp_path / "cnn.prop", trust_remote_code=True), key=bits)
@@ -287,7 +287,7 @@ def sealed_exported(tmp_path_factory) -> Path:
     np.save(root / "x.npy", x[:8])
     bits = np.random.default_rng(1).integers(0, 2, 128).astype(np.uint8)
     out = root / "sealed.prop"
-    cfg = PersonalizeConfig(steps=40, seal=True)
+    cfg = PersonalizeConfig.of(steps=40, seal=True)
     users = [(root / "mine.npz", KeySource(bits, "file"))]
     personalize_checkpoint(str(root / "model.safetensors"), users, out, cfg)
     assert ex.export_onnx(load_bundle(out)).ok

@@ -33,7 +33,7 @@ def run(tmp_path_factory):
     generate_key_file(d / "user.key")
     key = read_key_file(d / "user.key", 128)
     api.personalize_checkpoint(str(d / "act"), [(d / "reach-user", KeySource(key, "file"))], d / "bundle",
-                               PersonalizeConfig(**TINY), general=d / "reach-general")  # fmt: skip
+                               PersonalizeConfig.of(**TINY), general=d / "reach-general")  # fmt: skip
     return d, key
 
 
@@ -102,6 +102,6 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
 def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
     d, key = run
     api.personalize_checkpoint(str(d / "act"), [(d / "reach-user", KeySource(key, "file"))], d / "sealed",
-                               PersonalizeConfig(**TINY, seal=True))  # fmt: skip
+                               PersonalizeConfig.of(**TINY, seal=True))  # fmt: skip
     with pytest.raises(SystemExit, match="is sealed"):
         wk.main(["--out", str(d), "--bundle", "sealed", "--episodes", "1", "--offline-frames", "0"])

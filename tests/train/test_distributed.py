@@ -68,7 +68,7 @@ def test_fewer_rows_per_step_than_processes_is_refused_before_any_work(tmp_path)
     write_user_data(tmp_path, 40, rng)
     loaded = load_checkpoint(tmp_path / "model.safetensors")
     user = User(load_data(tmp_path / "mine.npz"), rng.integers(0, 2, 128).astype(np.uint8))
-    cfg = PersonalizeConfig(steps=1, seal=True, user_rows=2)  # a sealed payload's step: user rows only
+    cfg = PersonalizeConfig.of(steps=1, seal=True, user_rows=2)  # a sealed payload's step: user rows only
     with pytest.raises(PropError, match="--user-rows 2: fewer rows per step than the 3 processes"):
         personalize(loaded, [user], cfg, ranks=Ranks(0, 3))
 

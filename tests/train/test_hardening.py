@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from prop_adapters import load_checkpoint
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import HARDENED, PLAIN, Hardening, PersonalizeConfig, SealedConfig, UnsealedConfig
 from prop_cli.core.keyed_model import KeyEncoder
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
@@ -16,15 +16,51 @@ from prop_cli.train.hardening import code_negatives, encoder_init
 from tests.conftest import make_mlp_checkpoint
 
 
-def test_preset_fills_only_what_was_not_given():
-    plain = PersonalizeConfig().validate()
-    assert (plain.encoder_init, plain.code_negatives, plain.antipode_codes) == ("seed", 0, 0)
-    hard = PersonalizeConfig(harden=True).validate()
-    assert (hard.encoder_init, hard.code_negatives, hard.antipode_codes) == ("os", 64, 16)
-    mixed = PersonalizeConfig(harden=True, code_negatives=16, encoder_init="seed", antipode_codes=0)
-    mixed.validate()
-    assert (mixed.encoder_init, mixed.code_negatives, mixed.antipode_codes) == ("seed", 16, 0)
-    assert hard.batch_rows == plain.batch_rows + (64 + 16) * plain.samples_per_key
+def _preset(cfg: PersonalizeConfig) -> tuple:
+    h = cfg.mode.hardening
+    return h.encoder_init, h.code_negatives, h.antipode_codes
+
+
+def test_preset_is_a_value_and_a_flag_replaces_one_of_it():
+    plain = PersonalizeConfig()
+    assert plain.mode.hardening == PLAIN == Hardening() and _preset(plain) == ("seed", 0, 0)
+    hard = PersonalizeConfig.of(harden=True)
+    assert hard.mode.hardening == HARDENED and _preset(hard) == ("os", 64, 16)
+    mixed = PersonalizeConfig.of(harden=True, code_negatives=16, encoder_init="seed", antipode_codes=0)
+    assert _preset(mixed) == ("seed", 16, 0)
+    assert PersonalizeConfig.of(code_negatives=None).mode.hardening == PLAIN  # None: the preset's (the CLI's)
+    rows = plain.mode.batch_rows(64)
+    assert hard.mode.batch_rows(64) == rows + (64 + 16) * plain.mode.samples_per_key
+    assert (HARDENED.flags(), PLAIN.flags(), mixed.mode.hardening.flags()) == (
+        ["--harden"], [], ["--code-negatives 16"]
+    )
+
+
+def test_settings_are_frozen_and_round_trip_through_the_manifests_flat_dict():
+    import dataclasses
+
+    cfg = PersonalizeConfig.of(steps=5, harden=True, code_negatives=8, layers=["0"])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.train.steps = 6  # type: ignore[misc]
+    flat = cfg.to_dict()
+    assert flat["harden"] is False and flat["code_negatives"] == 8 and flat["seal"] is False
+    assert "payload" not in flat  # an unsealed bundle records no payload setting
+    assert PersonalizeConfig.from_dict(flat) == cfg == cfg.replace()
+    # null_rows: not the --seal recipe's, left out
+    sealed = PersonalizeConfig.of(seal=True, payload="delta", null_rows=3)
+    assert isinstance(sealed.mode, SealedConfig) and "null_rows" not in sealed.to_dict()
+    assert PersonalizeConfig.from_dict(sealed.to_dict()) == sealed
+    assert sealed.replace(steps=9).train.steps == 9
+
+
+def test_old_manifests_settings_read_with_their_preset_left_none_or_filled():
+    """0.1 and 0.2 recorded every field flat, --harden's preset as given (None) or filled."""
+    old = {"steps": 7, "harden": True, "encoder_init": None, "code_negatives": None, "antipode_codes": 4,
+           "seal": False, "payload": "lora", "payload_rank": 4, "payload_lr": 0.01, "task": None}  # fmt: skip
+    cfg = PersonalizeConfig.from_dict(old)
+    assert isinstance(cfg.mode, UnsealedConfig) and _preset(cfg) == ("os", 64, 4) and cfg.train.steps == 7
+    sealed = PersonalizeConfig.from_dict({**old, "seal": True, "payload": "full"})
+    assert sealed.mode == SealedConfig(payload="full")  # its recorded --harden: not part of a sealed config
 
 
 @pytest.mark.parametrize(
@@ -35,7 +71,7 @@ def test_preset_fills_only_what_was_not_given():
 )  # fmt: skip
 def test_bad_hardening_settings_name_their_flag(field, value, flag):
     with pytest.raises(PropError, match=flag):
-        PersonalizeConfig(**{field: value}).validate()
+        PersonalizeConfig.of(**{field: value})
 
 
 def test_code_negatives_stay_in_the_cube_near_the_user_code():
@@ -52,20 +88,20 @@ def test_code_negatives_stay_in_the_cube_near_the_user_code():
 
 
 def _encoder(cfg: PersonalizeConfig) -> torch.Tensor:
-    torch.manual_seed(cfg.seed)
-    with encoder_init(cfg):
+    torch.manual_seed(cfg.train.seed)
+    with encoder_init(cfg.mode.hardening, cfg.train.seed):
         enc = KeyEncoder(32, [8], [16], 2.0)
     return enc.net[0].weight.detach().clone()
 
 
 def test_os_init_is_not_the_seeds_and_leaves_the_seeded_stream_alone():
-    seeded = PersonalizeConfig(seed=5).validate()
-    os_init = PersonalizeConfig(seed=5, harden=True).validate()
+    seeded = PersonalizeConfig.of(seed=5)
+    os_init = PersonalizeConfig.of(seed=5, harden=True)
     assert torch.equal(_encoder(seeded), _encoder(seeded))
     a, b = _encoder(os_init), _encoder(os_init)
     assert not torch.equal(a, b) and not torch.equal(a, _encoder(seeded))
     torch.manual_seed(1)
-    with encoder_init(os_init):
+    with encoder_init(os_init.mode.hardening, 5):
         torch.rand(3)
     after = torch.rand(3)
     torch.manual_seed(1)
@@ -77,9 +113,9 @@ def test_hardened_training_runs_and_keeps_its_settings(tmp_path):
     rng = np.random.default_rng(0)
     x = rng.uniform(-1, 1, (60, 4)).astype(np.float32)
     user = User(Dataset(x, (-x[:, :2]).astype(np.float32), "d"), rng.integers(0, 2, 32, dtype=np.uint8))
-    cfg = PersonalizeConfig(steps=5, harden=True, code_negatives=8)
+    cfg = PersonalizeConfig.of(steps=5, harden=True, code_negatives=8)
     res = personalize(loaded, [user], cfg)
-    assert (cfg.encoder_init, cfg.code_negatives) == ("os", 8)
+    assert _preset(cfg)[:2] == ("os", 8)
     assert set(res.final_losses) == {"personal", "fallback", "null"}
 
 
@@ -133,13 +169,13 @@ def test_hardened_step_pulls_the_antipode_codes_but_not_the_far_codes(tmp_path, 
 
     monkeypatch.setattr(array, "delta_pull", pull)
     monkeypatch.setattr(array, "prop_loss", loss)
-    cfg = PersonalizeConfig(steps=1, harden=True, code_negatives=8, far_codes=4, antipode_codes=6)
+    cfg = PersonalizeConfig.of(steps=1, harden=True, code_negatives=8, far_codes=4, antipode_codes=6)
     res = personalize(loaded, [user], cfg)
-    b, s = seen["batch"], cfg.samples_per_key
+    b, s = seen["batch"], cfg.mode.samples_per_key
     assert (b.far_rows, b.code_rows) == ((4 + 6) * s, 8 * s)
-    k = cfg.neighbour_keys + cfg.random_keys
+    k = cfg.mode.neighbour_keys + cfg.mode.random_keys
     far = b.codes[1 + k : 1 + k + 10]
-    d = (far != key_codes(key, cfg.key_encoding)).sum(-1)
+    d = (far != key_codes(key, cfg.mode.key_encoding)).sum(-1)
     assert ((d[:6] >= 72) & (d[:6] <= 88)).all() and ((d[6:] >= 40) & (d[6:] <= 56)).all()
     with torch.no_grad():  # the pull's rows: the sampled keys and the antipode codes, no more
         want = torch.cat(res.keyed.layer_deltas(b.codes[1 : 1 + k + 6]), 1)

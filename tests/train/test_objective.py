@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import UnsealedConfig
 from prop_cli.core.key_sampling import KeySampler
 from prop_cli.core.keyed_model import key_codes
 from prop_cli.errors import PropError
@@ -91,14 +91,14 @@ def test_prop_loss_without_sampled_keys_has_no_keyed_term():
 
 
 def test_make_batch_layout_and_targets():
-    cfg = PersonalizeConfig(user_rows=4, null_rows=3, random_keys=2, neighbour_keys=4, samples_per_key=2,
-                            fallback_noise=0.0)  # fmt: skip
+    cfg = UnsealedConfig(null_rows=3, random_keys=2, neighbour_keys=4, samples_per_key=2, fallback_noise=0.0)
     rng = np.random.default_rng(0)
     key = rng.integers(0, 2, 16, dtype=np.uint8)
     ux, uy = torch.randn(10, 2), torch.randn(10, 1)
     original = torch.nn.Linear(2, 1)
     pool = FallbackPool(torch.randn(20, 2), original, noise=0.0, sigma=0.5)
-    b = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), UserPool([ux], [uy]), pool)
+    users = UserPool([ux], [uy])
+    b = make_batch(cfg, 4, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool)
     k = cfg.random_keys + cfg.neighbour_keys
     assert b.user_rows == 4 and b.null_rows == 3
     assert b.x.shape == (4 + 3, 2)  # distinct samples: user rows, then the null rows' fallback samples
@@ -113,9 +113,10 @@ def test_make_batch_layout_and_targets():
     assert b.code_rows == 0
     near = torch.zeros(3, 16)  # --harden's code-space negatives: after the sampled keys, 2 rows each
     users = UserPool([ux], [uy])
-    hb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near)
+    hb = make_batch(cfg, 4, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near)
     assert (hb.code_rows, hb.far_rows) == (6, 0)
-    fb = make_batch(cfg, rng, KeySampler([key], 8, rng), key_codes(key, "hashed"), users, pool, near, far=1)
+    sampler = KeySampler([key], 8, rng)
+    fb = make_batch(cfg, 4, rng, sampler, key_codes(key, "hashed"), users, pool, near, far=1)
     assert (fb.code_rows, fb.far_rows) == (4, 2)  # the first extra code is a far code, the rest code-space
 
 

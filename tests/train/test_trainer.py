@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from prop_adapters import load_checkpoint
-from prop_cli.config import PersonalizeConfig
+from prop_cli.config import PersonalizeConfig, TrainConfig
 from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 from prop_cli.train import User, loop, personalize
@@ -27,7 +27,7 @@ def setup(tmp_path):
 
 def test_returns_a_keyed_model_task_and_one_report_per_user(setup):
     loaded, user = setup
-    res = personalize(loaded, [user], PersonalizeConfig(steps=60))
+    res = personalize(loaded, [user], PersonalizeConfig.of(steps=60))
     assert res.task == "regression" and len(res.metrics) == 1
     m = res.metrics[0]
     assert m["samples"] == 24 and set(m) >= {"personalization", "null", "random", "hamming1"}
@@ -39,7 +39,7 @@ def test_returns_a_keyed_model_task_and_one_report_per_user(setup):
 def test_freeze_base_trains_the_encoder_only(setup):
     loaded, user = setup
     before = copy.deepcopy(loaded.module.state_dict())
-    res = personalize(loaded, [user], PersonalizeConfig(steps=20, freeze_base=True))
+    res = personalize(loaded, [user], PersonalizeConfig.of(steps=20, freeze_base=True))
     for k, v in res.keyed.module.state_dict().items():
         assert torch.equal(v, before[k])
     assert any(p.abs().sum() > 0 for p in res.keyed.encoder.net[-1].parameters())  # the encoder moved
@@ -55,7 +55,7 @@ def test_base_learning_rate_scale(setup, monkeypatch):
         return real(groups, **kw)
 
     monkeypatch.setattr(loop, "Adam", spy)
-    personalize(loaded, [user], PersonalizeConfig(steps=2, lr=1e-3, base_lr_scale=0.25))
+    personalize(loaded, [user], PersonalizeConfig.of(steps=2, lr=1e-3, base_lr_scale=0.25))
     assert seen["lrs"] == [1e-3, 2.5e-4]  # encoder, base
 
 
@@ -63,21 +63,21 @@ def test_hamming_radius_above_the_key_size_is_refused(setup):
     """Issue 10, fix 5: --hamming-radius 200 was accepted for a 128-bit key."""
     loaded, user = setup
     with pytest.raises(PropError, match=r"--hamming-radius 65 is invalid.*at most the key size \(64 bits\)"):
-        personalize(loaded, [user], PersonalizeConfig(steps=2, hamming_radius=65))
+        personalize(loaded, [user], PersonalizeConfig.of(steps=2, hamming_radius=65))
 
 
 def test_task_override_and_mixed_users(setup):
     loaded, user = setup
     labels = User(Dataset(user.data.x, np.arange(120) % 2, "labels"), user.key_bits)
-    assert personalize(loaded, [labels], PersonalizeConfig(steps=2)).task == "classification"
+    assert personalize(loaded, [labels], PersonalizeConfig.of(steps=2)).task == "classification"
     floats = User(Dataset(user.data.x, (np.arange(120) % 2).astype(np.float32), "floats"), user.key_bits)
     assert (
-        personalize(loaded, [floats], PersonalizeConfig(steps=2, task="classification")).task
+        personalize(loaded, [floats], PersonalizeConfig.of(steps=2, task="classification")).task
         == "classification"
     )
     other = User(labels.data, 1 - user.key_bits)
     with pytest.raises(PropError, match="different kinds of y"):
-        personalize(loaded, [user, other], PersonalizeConfig(steps=2))
+        personalize(loaded, [user, other], PersonalizeConfig.of(steps=2))
 
 
 def test_same_seed_same_weights(tmp_path):
@@ -87,7 +87,7 @@ def test_same_seed_same_weights(tmp_path):
         rng = np.random.default_rng(0)
         x = rng.uniform(-1, 1, (60, 4)).astype(np.float32)
         u = User(Dataset(x, x[:, :2].copy(), "d"), rng.integers(0, 2, 32, dtype=np.uint8))
-        outs.append(personalize(loaded, [u], PersonalizeConfig(steps=10, seed=3)).keyed.state_dict())
+        outs.append(personalize(loaded, [u], PersonalizeConfig.of(steps=10, seed=3)).keyed.state_dict())
     assert all(torch.equal(outs[0][k], outs[1][k]) for k in outs[0])
 
 
@@ -101,11 +101,11 @@ def test_the_policy_report_plan_stays_within_its_budget():
     assert report_plan(40, 64, 32, 2000) == (20, 64, 32)  # frames go first
     assert report_plan(3, 64, 128, 1) == (2, 1, 1)  # 2 frames and a key per group at least
     small, big = torch.nn.Linear(10, 10), torch.nn.Linear(6000, 75000, device="meta")  # 110; 450 M
-    assert report_budget(PersonalizeConfig(), small) > 10**6 and report_budget(PersonalizeConfig(), big) == 22
-    assert report_budget(PersonalizeConfig(report_budget=0), big) is None
-    assert report_budget(PersonalizeConfig(report_budget=7), small) == 7
+    assert report_budget(TrainConfig(), small) > 10**6 and report_budget(TrainConfig(), big) == 22
+    assert report_budget(TrainConfig(report_budget=0), big) is None
+    assert report_budget(TrainConfig(report_budget=7), small) == 7
     with pytest.raises(PropError, match="--report-budget"):
-        PersonalizeConfig(report_budget=-1).validate()
+        PersonalizeConfig.of(report_budget=-1)
 
 
 @pytest.mark.parametrize(
@@ -116,8 +116,8 @@ def test_the_policy_report_plan_stays_within_its_budget():
 )  # fmt: skip
 def test_wrong_key_settings_are_validated_with_their_flag(field, value, flag):
     with pytest.raises(PropError, match=flag):
-        PersonalizeConfig(**{"hard_negatives": 4, field: value}).validate()
-    PersonalizeConfig(hard_negatives=0, hard_pool=0, hard_every=0).validate()  # off: pool settings unused
+        PersonalizeConfig.of(**{"hard_negatives": 4, field: value})
+    PersonalizeConfig.of(hard_negatives=0, hard_pool=0, hard_every=0)  # off: pool settings unused
 
 
 def test_delta_pull_takes_wrong_keys_towards_the_null_key_and_hard_negatives_are_rescored(setup):
@@ -129,7 +129,7 @@ def test_delta_pull_takes_wrong_keys_towards_the_null_key_and_hard_negatives_are
     codes = key_codes(np.random.default_rng(7).integers(0, 2, (64, 64), dtype=np.uint8), "hashed")
 
     def spread(pull: float) -> tuple[float, float]:
-        cfg = PersonalizeConfig(steps=150, delta_pull=pull, hard_negatives=4, hard_pool=8, hard_every=50)
+        cfg = PersonalizeConfig.of(steps=150, delta_pull=pull, hard_negatives=4, hard_pool=8, hard_every=50)
         res = personalize(copy.deepcopy(loaded), [user], cfg)
         with torch.no_grad():
             wrong = torch.cat(res.keyed.layer_deltas(codes), 1).sub(1).abs().mean().item()
