@@ -56,7 +56,9 @@ def is_weights_file(path: Path) -> bool:
     return path.is_file() and (path.suffix.lower() in WEIGHT_EXTS or sniff(path) is not None)
 
 
-WEIGHTS_ARE = "the checkpoint is the model you start from (.safetensors, .pt, .pth, .bin or a folder: `prop formats`)"
+WEIGHTS_ARE = (
+    "the checkpoint is the model you start from (.safetensors, .pt, .pth, .bin or a folder: `prop formats`)"
+)
 
 
 def other_kind(path: Path) -> tuple[str, str] | None:
