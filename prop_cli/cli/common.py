@@ -10,21 +10,37 @@ from collections.abc import Callable
 from pathlib import Path
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 
 # Where output is not a terminal (a pipe, a log file), rich would wrap at 80 columns and split table
-# cells; there the console is as wide as any line and never wraps.
+# cells; there the console is as wide as any line and never wraps, unless COLUMNS asks for a width
+# (then tables wrap their cells to it, as on a terminal).
 _WIDE = 100_000
 
 
 class _Stream(Console):
-    """A console on stdout or stderr that, when it is not a terminal, never wraps or splits a line."""
+    """A console on stdout or stderr that, when it is not a terminal and COLUMNS is not set, never wraps
+    or splits a line. Decided at each print (the stream or COLUMNS may change after import)."""
 
-    def __init__(self, stderr: bool = False) -> None:
-        super().__init__(stderr=stderr)
-        if not self.is_terminal:
-            self.width = _WIDE
-            self.soft_wrap = True
+    def _unbounded(self) -> bool:
+        return not self.is_terminal and not self._environ.get("COLUMNS", "").isdigit()
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        dims = Console.size.fget(self)
+        return ConsoleDimensions(_WIDE, dims.height) if self._unbounded() else dims
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        Console.size.fset(self, new_size)
+
+    @property
+    def soft_wrap(self) -> bool:
+        return self._soft_wrap or self._unbounded()
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        self._soft_wrap = value
 
 
 out = _Stream()  # results
