@@ -146,6 +146,24 @@ def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     return out
 
 
+def check_observation(env, seed: int, features: list[str] | None, obs_map: dict[str, str], prepare) -> None:
+    """The first observation taken as the policy takes it, before any rollout: a missing --obs-map, or
+    one naming a feature the policy does not take, is reported before the first episode starts."""
+    if features is not None:
+        unknown = sorted(set(obs_map) - set(features))
+        if unknown:
+            raise PropError(
+                f"--obs-map names {', '.join(map(repr, unknown))}, which the policy does not take (it takes "
+                f"{features})",
+                "map the policy's own features: --obs-map feature=key",
+            )
+    obs, _ = env.reset(seed=int(seed))
+    if features is None:
+        prepare(obs)
+    else:
+        _observation(obs, features, obs_map)
+
+
 def _episodes(
     env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric, frames=None
 ) -> list:
@@ -302,6 +320,7 @@ def evaluate_bundle(
     env = make_env(env_id, render=video is not None, seed=settings.seed)
     features = list(policy.input_features) if policy is not None else None
     obs_map = obs_map or {}
+    check_observation(env, settings.seed, features, obs_map, prepare)
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
 
