@@ -99,19 +99,42 @@ def warn(message: str) -> None:
     print(f"prop: warning: {message}", file=sys.stderr)
 
 
+PLAIN_EVERY_S = 60.0  # the longest a plain progress display stays silent
+
+
+def duration(seconds: float) -> str:
+    """A rough duration for people: 40 s, 3 min 20 s, 2 h 05 min."""
+    s = round(seconds)
+    if s < 1:
+        return "under 1 s"
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
 def step_progress(fn: Callable, total: int, label: str, fields: Callable[[dict], str]):
     """Run ``fn(callback)`` with a progress display on stderr: a bar on a terminal, else a plain line
     every tenth of the way (logs, nohup)."""
     if not err.is_terminal:
         every = max(1, total // 10)
         t0 = time.perf_counter()
+        first: list[tuple[int, float]] = []  # the first step reported: set-up ends there, steps are timed
+        shown = [t0]
 
         def plain(step: int, info: dict) -> None:
-            if step % every == 0 or step == total:
-                took = time.perf_counter() - t0
-                print(
-                    f"{label}: step {step}/{total} ({took:.1f} s) {fields(info)}", file=sys.stderr, flush=True
-                )
+            now = time.perf_counter()
+            if not first:
+                first.append((step, now))
+            # A line every tenth of the way, and at least once a minute (a long policy run's tenth is long).
+            if step % every == 0 or step == total or now - shown[0] >= PLAIN_EVERY_S:
+                shown[0] = now
+                (s0, t1), eta = first[0], ""
+                if s0 < step < total:  # steps left x the mean step time so far
+                    eta = f", about {duration((total - step) * (now - t1) / (step - s0))} left"
+                print(f"{label}: step {step}/{total} ({now - t0:.1f} s{eta}) {fields(info)}", file=sys.stderr,
+                      flush=True)  # fmt: skip
 
         return fn(plain)
 

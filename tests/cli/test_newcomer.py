@@ -78,3 +78,51 @@ def test_the_library_names_the_folder_to_give(workdir, cli):
     assert r.code == 0, r.err
     with pytest.raises(PropError, match="give the bundle folder .*mine.prop"):
         load_bundle(workdir / "mine.prop" / "manifest.json")
+
+
+class _Clock:
+    """time as prop_cli.cli.common reads it, moved by hand."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def _plain_lines(monkeypatch, capsys, total: int, setup: float, step_s: float) -> list[str]:
+    from prop_cli.cli import common
+
+    clock = _Clock()
+    monkeypatch.setattr(common, "time", clock)
+
+    def train(callback):
+        clock.now = setup
+        for step in range(1, total + 1):
+            callback(step, {"loss": 1.0})
+            clock.now += step_s
+
+    capsys.readouterr()
+    common.step_progress(train, total, "personalize", lambda info: f"loss {info['loss']:.1f}")
+    return capsys.readouterr().err.splitlines()
+
+
+def test_progress_lines_say_how_long_is_left(monkeypatch, capsys):
+    """Steps left x the mean step time since the first step (the set-up before it not counted)."""
+    lines = _plain_lines(monkeypatch, capsys, total=100, setup=30.0, step_s=2.0)
+    assert lines[0] == "personalize: step 10/100 (48.0 s, about 3 min 00 s left) loss 1.0"
+    assert lines[-1] == "personalize: step 100/100 (228.0 s) loss 1.0"  # done: no estimate
+    assert len(lines) == 10
+
+
+def test_a_slow_run_prints_at_least_once_a_minute(monkeypatch, capsys):
+    lines = _plain_lines(monkeypatch, capsys, total=1000, setup=0.0, step_s=30.0)
+    assert lines[0].startswith("personalize: step 3/1000 (60.0 s, about 8 h 18 min left)")
+    assert len(lines) > 400  # every other step, not only every hundredth
+
+
+def test_a_real_run_prints_its_estimate(workdir, cli):
+    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz", "--key-file",
+            workdir / "k.bin", "--out", workdir / "mine.prop", *FAST)  # fmt: skip
+    steps = [line for line in r.err.splitlines() if line.startswith("personalize: step ")]
+    assert r.code == 0 and len(steps) == 10 and all(" left) " in line for line in steps[:-1]), r.err
