@@ -27,6 +27,8 @@ from prop_cli.bundle import Bundle
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, staged_dir
 
+# Only a peft-lora payload is a peft adapter, and that is chosen before training.
+PEFT_FIX = "personalize again with --seal --payload peft-lora, the one payload export --peft takes"
 PEFT_PREFIX = "base_model.model."  # peft's saved state-dict names: the wrapped model's module paths
 
 
@@ -81,6 +83,12 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
     """Write the adapter ``bits`` opens in ``bundle`` to the new folder ``out`` (checked by the caller)."""
     from safetensors.torch import save_file
 
+    if not bundle.is_sealed:
+        raise PropError(
+            f"--peft: {bundle.path} is unsealed: its users' behaviour is in its base and key encoder, "
+            "which no peft LoRA adapter can hold",
+            PEFT_FIX,
+        )
     payload = bundle.mode.payload_for(bits)
     if payload is None:
         raise PropError(
@@ -89,7 +97,7 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
     if not payload.spec.variant.peft_lora:
         raise PropError(
             f"--peft: {bundle.path} holds {payload.spec.kind} payloads, which no peft LoRA adapter can hold",
-            "personalize with --seal --payload peft-lora",
+            PEFT_FIX,
         )
     lerobot = bundle.path / C.LEROBOT_DIR
     base = str((lerobot if lerobot.is_dir() else bundle.path).resolve())

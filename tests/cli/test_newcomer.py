@@ -126,3 +126,16 @@ def test_a_real_run_prints_its_estimate(workdir, cli):
             workdir / "k.bin", "--out", workdir / "mine.prop", *FAST)  # fmt: skip
     steps = [line for line in r.err.splitlines() if line.startswith("personalize: step ")]
     assert r.code == 0 and len(steps) == 10 and all(" left) " in line for line in steps[:-1]), r.err
+
+
+def test_export_peft_names_the_payload_it_needs(workdir, cli):
+    """--peft takes a --seal --payload peft-lora bundle only: said before training and in the error."""
+    r = cli("personalize", "--help")
+    assert "--seal --payload peft-lora" in " ".join(r.out.split()) and "export --peft" in r.out
+    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz", "--key-file",
+            workdir / "k.bin", "--out", workdir / "mine.prop", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    r = cli("export", workdir / "mine.prop", "--peft", workdir / "adapter", "--key-file", workdir / "k.bin")
+    assert r.code == 2 and len(r.err.strip().splitlines()) == 1, r.err
+    assert "is unsealed" in r.err and "personalize again with --seal --payload peft-lora" in r.err
+    assert not (workdir / "adapter").exists()
