@@ -147,21 +147,21 @@ def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
 
 
 def check_observation(env, seed: int, features: list[str] | None, obs_map: dict[str, str], prepare) -> None:
-    """The first observation taken as the policy takes it, before any rollout: a missing --obs-map, or
-    one naming a feature the policy does not take, is reported before the first episode starts."""
-    if features is not None:
-        unknown = sorted(set(obs_map) - set(features))
-        if unknown:
-            raise PropError(
-                f"--obs-map names {', '.join(map(repr, unknown))}, which the policy does not take (it takes "
-                f"{features})",
-                "map the policy's own features: --obs-map feature=key",
-            )
+    """The first observation taken as the policy takes it, before any rollout: a missing --obs-map is
+    reported before the first episode starts (with the names it gives that the policy does not take:
+    a mistyped feature; others are fine, one map may serve several policies)."""
     obs, _ = env.reset(seed=int(seed))
     if features is None:
         prepare(obs)
-    else:
+        return
+    try:
         _observation(obs, features, obs_map)
+    except PropError as e:
+        unknown = sorted(set(obs_map) - set(features))
+        if not unknown:
+            raise
+        names = ", ".join(map(repr, unknown))
+        raise PropError(f"{e.what} (--obs-map's {names}: not a feature the policy takes)", e.fix) from None
 
 
 def _episodes(
