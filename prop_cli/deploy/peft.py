@@ -27,7 +27,7 @@ from prop_cli.bundle import Bundle
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, staged_dir
 
-# Only a peft-lora payload is a peft adapter, and that is chosen before training.
+# Only a peft-lora payload is a peft adapter, and that is chosen before training (bundle.modes says it too).
 PEFT_FIX = "personalize again with --seal --payload peft-lora, the one payload export --peft takes"
 PEFT_PREFIX = "base_model.model."  # peft's saved state-dict names: the wrapped model's module paths
 
@@ -83,13 +83,7 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
     """Write the adapter ``bits`` opens in ``bundle`` to the new folder ``out`` (checked by the caller)."""
     from safetensors.torch import save_file
 
-    if not bundle.is_sealed:
-        raise PropError(
-            f"--peft: {bundle.path} is unsealed: its users' behaviour is in its base and key encoder, "
-            "which no peft LoRA adapter can hold",
-            PEFT_FIX,
-        )
-    payload = bundle.mode.payload_for(bits)
+    payload = bundle.mode.payload_for(bits)  # an unsealed bundle's mode refuses, naming PEFT_FIX
     if payload is None:
         raise PropError(
             f"--peft: the key opens no record of {bundle.path}", "pass the key this bundle was sealed for"
