@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from prop_cli.constants import KEY_BITS_MAX, KEY_BITS_MIN
 from prop_cli.errors import PropError
 
 SAFETENSORS_EXTS = (".safetensors",)
@@ -23,6 +24,7 @@ STATE_DICT_ENTRIES = ("state_dict", "model_state_dict")
 _ZIP_MAGIC = b"PK\x03\x04"  # torch.save's format since 1.6 is a zip archive
 # torch.save's legacy format starts by pickling its magic number 0x1950a86a20f9469cfc6c (as LONG1).
 _LEGACY_MAGIC = b"\x8a\nl\xfc\x9cF\xf9 j\xa8P\x19"
+_NPY_MAGIC = b"\x93NUMPY"  # numpy's .npy header (an .npz is a zip of them)
 _MAX_HEADER = 100 << 20  # safetensors caps its JSON header at 100 MB
 _DOS_DIRECTORY = 0x10  # the MS-DOS "directory" bit of a zip entry's external attributes
 # What zipfile raises on a damaged archive: bad CRC or headers (BadZipFile), a broken deflate stream
@@ -52,6 +54,47 @@ def sniff(path: Path) -> str | None:
 def is_weights_file(path: Path) -> bool:
     """A file with a weights suffix, or one whose first bytes say safetensors or torch."""
     return path.is_file() and (path.suffix.lower() in WEIGHT_EXTS or sniff(path) is not None)
+
+
+WEIGHTS_ARE = (
+    "the checkpoint is the model you start from (.safetensors, .pt, .pth, .bin or a folder: `prop formats`)"
+)
+
+
+def other_kind(path: Path) -> tuple[str, str] | None:
+    """(what it is, where it goes) for a file prop reads in another role, given as a checkpoint: a data
+    file (.npz, which is a zip archive as torch files are), an array (.npy), an ONNX graph, a key file.
+    None for anything else (it is then read as weights and any error is about that)."""
+    head = _head(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz" or (head.startswith(_ZIP_MAGIC) and _npy_members(path)):
+        return "a data file (.npz)", f"{WEIGHTS_ARE}; the data goes in --data"
+    if head.startswith(_NPY_MAGIC):
+        return "an array file (.npy)", f"{WEIGHTS_ARE}; arrays go in prop run --input"
+    if suffix == ".onnx":
+        return "an ONNX graph (.onnx)", f"{WEIGHTS_ARE}: the torch checkpoint the graph was exported from"
+    size = path.stat().st_size
+    if sniff(path) is None and suffix in ("", ".bin", ".key") and KEY_BITS_MIN <= 8 * size <= KEY_BITS_MAX:
+        return f"a key file ({size} bytes, as prop keygen writes)", f"{WEIGHTS_ARE}; keys go in --key-file"
+    return None
+
+
+def _head(path: Path, n: int = 8) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(n)
+    except OSError:
+        return b""
+
+
+def _npy_members(path: Path) -> bool:
+    """Whether the zip archive at ``path`` holds numpy arrays only (np.savez's layout)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except ZIP_ERRORS:
+        return False
+    return bool(names) and all(n.endswith(".npy") for n in names)
 
 
 def _check_file(path: Path) -> None:
@@ -231,6 +274,9 @@ def read_weights(
     lie on disk, so memory stays within the file's size); anything else there is refused."""
     path = Path(path)
     _check_file(path)
+    known = None if safetensors_only else other_kind(path)
+    if known is not None:
+        raise PropError(f"checkpoint {path} is {known[0]}, not a model's weights", known[1])
     kind = sniff(path)
     if safetensors_only and kind != "safetensors":
         raise PropError(

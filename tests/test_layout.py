@@ -140,6 +140,7 @@ def test_every_package_is_installed():
 
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {m for m, p in MODULES.items() if p.name == "__init__.py"}
+    found |= {_name(p) for p in (ROOT / "examples").rglob("__init__.py")}  # installed too (README)
     assert listed == found
 
 

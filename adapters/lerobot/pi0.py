@@ -149,6 +149,43 @@ def meta_ready(policy_class):
     return build
 
 
+# The tensors whose width is a Gemma's (config.json's variants): the language model's, the expert's.
+GEMMA_WIDTHS = (
+    ("paligemma_variant", "language model", "model.paligemma_with_expert.paligemma.model.language_model."
+     "embed_tokens.weight"),
+    ("action_expert_variant", "action expert", "model.paligemma_with_expert.gemma_expert.model.layers.0."
+     "self_attn.q_proj.weight"),
+)  # fmt: skip
+
+
+def check_sizes(policy_class, config, weights: dict, where: str, label: str) -> None:
+    """Refuse, in a line that says so, weights at a width config.json's Gemma variants do not build
+    (LeRobot builds pi0 and pi0.5 at PaliGemma's sizes only: a tiny one from examples/pi_tiny.py loads
+    only under its patch), rather than as a bundle or folder whose files do not belong together."""
+    gemma = getattr(importlib.import_module(policy_class.__module__), "get_gemma_config", None)
+    for field, part, name in GEMMA_WIDTHS:
+        tensor = weights.get(name)
+        variant = getattr(config, field, None)
+        if tensor is None or gemma is None or not isinstance(variant, str):
+            continue
+        shape = tuple(tensor.shape) if isinstance(tensor, torch.Tensor) else tuple(tensor)
+        try:
+            want, sizes = gemma(variant).width, {v: gemma(v).width for v in ("gemma_300m", "gemma_2b")}
+        except (ValueError, TypeError, AttributeError):  # a variant LeRobot does not know: construct says
+            continue
+        if len(shape) != 2 or shape[1] == want:
+            continue
+        fit = [v for v, w in sizes.items() if w == shape[1]]
+        raise PropError(
+            f"{where}: the {label}'s {part} is {shape[1]} wide, config.json's {field} {variant} {want} wide: "
+            f"LeRobot builds {label} at PaliGemma's sizes only "
+            f"({', '.join(f'{v}: {w}' for v, w in sizes.items())}); nothing was built",
+            f"set {field} to {fit[0]} in config.json" if fit else
+            f"a tiny {label} made by examples/pi_tiny.py loads only under its patch: python -m "
+            "examples.pi_tiny ARGS is prop ARGS with it",
+        )  # fmt: skip
+
+
 def lerobot_keys(policy_class, config, weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """``weights`` with the key fixes ``from_pretrained`` applies (openpi's old names, the ``model.``
     prefix), computed on a policy built on the meta device (shapes only)."""
@@ -198,11 +235,13 @@ class PI0Protocol(SmolVLAProtocol):
             # LeRobot's own names: built, then filled one tensor at a time from the file (pi0 at its
             # published size: its 7 GB of weights never held beside the model).
             shapes = safetensors_shapes(folder / WEIGHTS)
+            check_sizes(policy_class, config, shapes, where, cls.label)
             policy = construct(meta_ready(policy_class), config, shapes, where)
             load_into(policy, folder / WEIGHTS)
         else:
             if weights is None:
                 weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
+            check_sizes(policy_class, config, weights, where, cls.label)
             policy = construct(meta_ready(policy_class), config, weights, where)
             policy.load_state_dict(weights, strict=True)
         files = {f"{LEROBOT_TOKENIZER_DIR}/{n}": (tokenizer / n).read_bytes()

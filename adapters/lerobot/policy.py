@@ -11,7 +11,10 @@ the policy, preprocessor and postprocessor objects come from ``adapter``.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping
+import io
+import os
+import sys
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -20,7 +23,7 @@ import numpy as np
 import torch
 
 from prop_adapters.base import FRAME, PolicyProtocol
-from prop_cli.constants import TASK
+from prop_cli.constants import ENV_DEBUG, TASK
 from prop_cli.errors import PropError
 
 ACTION, PAD = "action", "action_is_pad"
@@ -83,6 +86,25 @@ def construct(
         return policy_class(config)
 
 
+# What LeRobot's from_pretrained prints on stdout at every local load (prop's own results go there).
+LEROBOT_CHATTER = ("Loading weights from local directory",)
+
+
+@contextlib.contextmanager
+def lerobot_quiet() -> Iterator[None]:
+    """Within: LeRobot's own prints (``LEROBOT_CHATTER``) dropped, any other print moved to stderr;
+    ``PROP_DEBUG`` set, every line kept (on stderr)."""
+    buffer = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buffer):
+            yield
+    finally:
+        keep = bool(os.environ.get(ENV_DEBUG))
+        for line in buffer.getvalue().splitlines():
+            if keep or line.strip() not in LEROBOT_CHATTER:
+                print(line, file=sys.stderr)
+
+
 def no_init() -> contextlib.AbstractContextManager:
     """transformers' ``no_init_weights`` (torch's and transformers' initialisers made no-ops), where
     this transformers has it."""
@@ -119,7 +141,8 @@ class LeRobotProtocol(PolicyProtocol):
         is a bundle's, and the policy reads nothing outside it. ``made_with``: the lerobot version a
         bundle was made under, where a policy runs differently under today's (``smolvla``)."""
         if weights is None:
-            return Built(policy_class.from_pretrained(str(folder)))
+            with lerobot_quiet():
+                return Built(policy_class.from_pretrained(str(folder)))
         from lerobot.configs.policies import PreTrainedConfig
 
         config = PreTrainedConfig.from_pretrained(str(folder))

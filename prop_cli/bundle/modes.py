@@ -154,7 +154,7 @@ class Mode(ABC):
         the key opens nothing. Only sealed bundles keep payloads."""
         raise PropError(
             "this bundle is unsealed: its users' behaviour is in its base and encoder, not in a payload",
-            "personalize with --seal (--payload peft-lora) to get a payload a key opens",
+            "personalize again with --seal --payload peft-lora, the one payload export --peft takes",
         )
 
 

@@ -33,6 +33,10 @@ def read_manifest(path: Path) -> dict:
     mpath = path / C.MANIFEST
     if mpath.is_symlink():
         raise link_error(path, mpath)
+    if path.name == C.MANIFEST and path.is_file():
+        raise PropError(
+            f"{path} is a bundle's {C.MANIFEST}, not the bundle", f"give the bundle folder {path.parent}"
+        )
     if not path.is_dir() or not mpath.is_file():
         raise PropError(
             f"{path} is not a prop bundle (no {C.MANIFEST})",

@@ -10,21 +10,37 @@ from collections.abc import Callable
 from pathlib import Path
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 
 # Where output is not a terminal (a pipe, a log file), rich would wrap at 80 columns and split table
-# cells; there the console is as wide as any line and never wraps.
+# cells; there the console is as wide as any line and never wraps, unless COLUMNS asks for a width
+# (then tables wrap their cells to it, as on a terminal).
 _WIDE = 100_000
 
 
 class _Stream(Console):
-    """A console on stdout or stderr that, when it is not a terminal, never wraps or splits a line."""
+    """A console on stdout or stderr that, when it is not a terminal and COLUMNS is not set, never wraps
+    or splits a line. Decided at each print (the stream or COLUMNS may change after import)."""
 
-    def __init__(self, stderr: bool = False) -> None:
-        super().__init__(stderr=stderr)
-        if not self.is_terminal:
-            self.width = _WIDE
-            self.soft_wrap = True
+    def _unbounded(self) -> bool:
+        return not self.is_terminal and not self._environ.get("COLUMNS", "").isdigit()
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        dims = Console.size.fget(self)
+        return ConsoleDimensions(_WIDE, dims.height) if self._unbounded() else dims
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        Console.size.fset(self, new_size)
+
+    @property
+    def soft_wrap(self) -> bool:
+        return self._soft_wrap or self._unbounded()
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        self._soft_wrap = value
 
 
 out = _Stream()  # results
@@ -83,19 +99,42 @@ def warn(message: str) -> None:
     print(f"prop: warning: {message}", file=sys.stderr)
 
 
+PLAIN_EVERY_S = 60.0  # the longest a plain progress display stays silent
+
+
+def duration(seconds: float) -> str:
+    """A rough duration for people: 40 s, 3 min 20 s, 2 h 05 min."""
+    s = round(seconds)
+    if s < 1:
+        return "under 1 s"
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
 def step_progress(fn: Callable, total: int, label: str, fields: Callable[[dict], str]):
     """Run ``fn(callback)`` with a progress display on stderr: a bar on a terminal, else a plain line
     every tenth of the way (logs, nohup)."""
     if not err.is_terminal:
         every = max(1, total // 10)
         t0 = time.perf_counter()
+        first: list[tuple[int, float]] = []  # the first step reported: set-up ends there, steps are timed
+        shown = [t0]
 
         def plain(step: int, info: dict) -> None:
-            if step % every == 0 or step == total:
-                took = time.perf_counter() - t0
-                print(
-                    f"{label}: step {step}/{total} ({took:.1f} s) {fields(info)}", file=sys.stderr, flush=True
-                )
+            now = time.perf_counter()
+            if not first:
+                first.append((step, now))
+            # A line every tenth of the way, and at least once a minute (a long policy run's tenth is long).
+            if step % every == 0 or step == total or now - shown[0] >= PLAIN_EVERY_S:
+                shown[0] = now
+                (s0, t1), eta = first[0], ""
+                if s0 < step < total:  # steps left x the mean step time so far
+                    eta = f", about {duration((total - step) * (now - t1) / (step - s0))} left"
+                print(f"{label}: step {step}/{total} ({now - t0:.1f} s{eta}) {fields(info)}", file=sys.stderr,
+                      flush=True)  # fmt: skip
 
         return fn(plain)
 

@@ -5,7 +5,17 @@ from pathlib import Path
 from prop_cli.errors import plural
 
 from .common import checkpoint_options, out, print_json
-from .options import Activation, Arch, ArchKwargs, Checkpoint, Exclude, Json, Layers, TrustRemoteCode
+from .options import (
+    Activation,
+    Arch,
+    ArchKwargs,
+    Checkpoint,
+    Exclude,
+    Json,
+    Layers,
+    TrustRemoteCode,
+    bundle_folder,
+)
 
 
 def inspect(
@@ -20,8 +30,8 @@ def inspect(
 
     from prop_cli.api import describe_bundle, inspect_checkpoint, is_bundle
 
-    if is_bundle(checkpoint):
-        info = describe_bundle(checkpoint)
+    if is_bundle(str(bundle_folder(Path(checkpoint)))):
+        info = describe_bundle(str(bundle_folder(Path(checkpoint))))
         print_json(info) if as_json else out.print(_bundle_table(info))
         return
 
@@ -39,7 +49,7 @@ def inspect(
         title_justify="left",
     )
     for col in ("layer", "kind", "in", "out", "parameters", "keyed"):
-        table.add_column(col)
+        table.add_column(col, overflow="fold")  # narrow: a long name folds onto more lines, never cut
     for layer in info["layers"]:
         table.add_row(
             layer["name"],
@@ -60,6 +70,8 @@ def _bundle_table(info: dict):
     who = plural(n, "record") if "records" in info else plural(n, "enrolled user")
     table = Table(title=f"{info['bundle']}: {info['mode']} bundle, format {info['format_version']}",
                   title_justify="left", show_header=False)  # fmt: skip
+    table.add_column()
+    table.add_column(overflow="fold")  # the keyed layers wrap at their commas, a long name folds
     a = info["audit"]
     audit = "none recorded (prop attack --record)" if a is None else _audit(a)
     layers = ", ".join(x["name"] for x in info["keyed_layers"])

@@ -30,9 +30,24 @@ Checkpoint = Annotated[
         metavar="CHECKPOINT", help=f"Checkpoint file or folder, or hf://org/name[@rev]/path ({FORMATS})."
     ),
 ]
+
+
+def bundle_folder(value: Path) -> Path:
+    """A bundle's manifest.json names its bundle: ``mine.prop/manifest.json`` is read as ``mine.prop``
+    (only that file name, and only where it is a file: anything else is checked as given)."""
+    from prop_cli.constants import MANIFEST
+
+    path = Path(value)
+    return path.parent if path.name == MANIFEST and path.is_file() else path
+
+
 BundleArg = Annotated[
-    Path, typer.Argument(metavar="BUNDLE", help="Bundle directory written by prop personalize.")
-]
+    Path,
+    typer.Argument(
+        metavar="BUNDLE", help="Bundle directory written by prop personalize (or its manifest.json).",
+        callback=bundle_folder,
+    ),
+]  # fmt: skip
 
 Arch = Annotated[str | None, typer.Option("--arch", help="Your module: package.module:factory.")]
 BundleArch = Annotated[

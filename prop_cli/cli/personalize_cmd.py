@@ -60,7 +60,10 @@ def personalize(
     trust_remote_code: TrustRemoteCode = False,
     weak_passphrase: WeakPassphrase = False,
 ) -> None:
-    """Fine-tune CHECKPOINT so it behaves the users' way with their key, and like the original without."""
+    """Fine-tune CHECKPOINT so it behaves the users' way with their key, and like the original without.
+
+    To export your behaviour later as a peft LoRA adapter (prop export --peft), personalize with --seal
+    --payload peft-lora: no other bundle exports one."""
     from prop_cli.api import personalize_checkpoint, user_keys
     from prop_cli.files import check_not_input, check_output
 

@@ -27,6 +27,8 @@ from prop_cli.bundle import Bundle
 from prop_cli.errors import PropError
 from prop_cli.files import dump_json, staged_dir
 
+# Only a peft-lora payload is a peft adapter, and that is chosen before training (bundle.modes says it too).
+PEFT_FIX = "personalize again with --seal --payload peft-lora, the one payload export --peft takes"
 PEFT_PREFIX = "base_model.model."  # peft's saved state-dict names: the wrapped model's module paths
 
 
@@ -81,7 +83,7 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
     """Write the adapter ``bits`` opens in ``bundle`` to the new folder ``out`` (checked by the caller)."""
     from safetensors.torch import save_file
 
-    payload = bundle.mode.payload_for(bits)
+    payload = bundle.mode.payload_for(bits)  # an unsealed bundle's mode refuses, naming PEFT_FIX
     if payload is None:
         raise PropError(
             f"--peft: the key opens no record of {bundle.path}", "pass the key this bundle was sealed for"
@@ -89,7 +91,7 @@ def export_peft(bundle: Bundle, bits: np.ndarray, out: Path) -> PeftExport:
     if not payload.spec.variant.peft_lora:
         raise PropError(
             f"--peft: {bundle.path} holds {payload.spec.kind} payloads, which no peft LoRA adapter can hold",
-            "personalize with --seal --payload peft-lora",
+            PEFT_FIX,
         )
     lerobot = bundle.path / C.LEROBOT_DIR
     base = str((lerobot if lerobot.is_dir() else bundle.path).resolve())

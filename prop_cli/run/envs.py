@@ -64,12 +64,28 @@ def env_factory(env_id: str, registry) -> Callable | None:
         return None  # the module registered it: gymnasium.make, with the registration's wrappers
     factory = code_attribute(module, attr)
     if factory is None:
+        near = _near(attr, module, registry)
+        if near is not None:  # a typo: name the module's own names, not gymnasium's registry
+            ids = "" if mod_name.endswith(".py") else f" and registers no gymnasium id {attr!r}"
+            raise PropError(
+                f"{what}: {mod_name} has no {attr!r}{ids}", f"did you mean --env {mod_name}:{near}?"
+            )
         if mod_name.endswith(".py"):
             raise PropError(f"{what}: {mod_name} has no attribute '{attr}'", "check the name after the ':'")
         return None  # not an attribute: gymnasium.make says what is wrong with the id
     if not callable(factory):
         raise PropError(f"{what}: '{attr}' is a {type(factory).__name__}, not callable", ENV_FORMS)
     return factory
+
+
+def _near(attr: str, module, registry) -> str | None:
+    """The module's public callable or the registered id closest to ``attr`` (difflib), if any is
+    close: what a mistyped ``module:attr`` most likely meant."""
+    import difflib
+
+    names = [n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n, None))]
+    close = difflib.get_close_matches(attr, [*names, *registry], n=1, cutoff=0.7)
+    return close[0] if close else None
 
 
 def _gym_make(gym, env_id: str, render: bool):

@@ -94,6 +94,24 @@ def _observation(obs, features: list[str] | None, obs_map: dict[str, str]):
     return out
 
 
+def check_observation(env, seed: int, features: list[str] | None, obs_map: dict[str, str], prepare) -> None:
+    """The first observation taken as the policy takes it, before any rollout: a missing --obs-map is
+    reported before the first episode starts (with the names it gives that the policy does not take:
+    a mistyped feature; others are fine, one map may serve several policies)."""
+    obs, _ = env.reset(seed=int(seed))
+    if features is None:
+        prepare(obs)
+        return
+    try:
+        _observation(obs, features, obs_map)
+    except PropError as e:
+        unknown = sorted(set(obs_map) - set(features))
+        if not unknown:
+            raise
+        names = ", ".join(map(repr, unknown))
+        raise PropError(f"{e.what} (--obs-map's {names}: not a feature the policy takes)", e.fix) from None
+
+
 def _episodes(
     env, controller, seeds: list[int], features, obs_map, settings: EvalSettings, metric, frames=None
 ) -> list:
@@ -244,6 +262,7 @@ def evaluate_bundle(
     env = make_env(env_id, render=video is not None, seed=settings.seed)
     features = input_features(bundle.loaded)
     obs_map = obs_map or {}
+    check_observation(env, settings.seed, features, obs_map, prepare)
     first = [settings.seed + i for i in range(settings.episodes)]
     rng = np.random.default_rng((settings.seed, 0x5EED))
 

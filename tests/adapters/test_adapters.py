@@ -252,9 +252,9 @@ def test_truncated_pt(tmp_path):
 
 
 def test_unsupported_extension(tmp_path):
-    (tmp_path / "m.onnx").write_bytes(b"xx")
-    with pytest.raises(PropError, match=r"m\.onnx has unsupported extension.*\.safetensors"):
-        load_checkpoint(tmp_path / "m.onnx")
+    (tmp_path / "m.h5").write_bytes(b"xx")
+    with pytest.raises(PropError, match=r"m\.h5 has unsupported extension.*\.safetensors"):
+        load_checkpoint(tmp_path / "m.h5")
 
 
 def test_directory_refused(tmp_path):
