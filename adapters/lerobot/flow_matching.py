@@ -28,10 +28,11 @@ import contextlib
 import hashlib
 import inspect
 import json
+from abc import ABC, abstractmethod
 from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Protocol
+from typing import ClassVar
 
 import torch
 
@@ -44,27 +45,36 @@ PREFIX_BYTES = 512 << 20  # the prefix block's keys and values kept by ``memo`` 
 TOKENIZER_STEP = "tokenizer_processor"  # the processor step that reads a VLA's tokenizer by name
 
 
-class Expert(Protocol):
-    """A flow-matching VLA's model as ``FlowMatching`` calls it (one class in the VLA's file)."""
+class Expert(ABC):
+    """A flow-matching VLA's model as ``FlowMatching`` calls it: one class in the VLA's file, over the
+    VLA's protocol (``owner``: its LeRobot policy, model and config). It implements ``inputs`` and
+    ``velocity``; the rest has defaults."""
 
-    masks_padding: bool  # the policy's own loss leaves padded chunk steps out
+    masks_padding: ClassVar[bool] = False  # the policy's own loss leaves padded chunk steps out
+    # Training and eval compute the same (no dropout): one forward may serve both terms (a property
+    # where the model's config decides).
+    joins_terms: bool = False
 
+    def __init__(self, owner: LeRobotProtocol) -> None:
+        self.owner = owner
+
+    @abstractmethod
     def inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
         """The rows as the model's ``sample_actions`` takes them (images, masks, tokens, ...); tokens may
         come as floats (the flat view)."""
 
+    @abstractmethod
     def velocity(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """The expert's velocity on (inputs, x_t, t): the model's forward up to its loss."""
-
-    @property
-    def joins_terms(self) -> bool:
-        """Training and eval compute the same (no dropout): one forward may serve both terms."""
+        """The expert's velocity on (inputs, x_t, t): the model's forward up to its loss, differentiable."""
 
     def memo(self) -> contextlib.AbstractContextManager:
         """``PolicyProtocol.memo``: what the model computes the same for every key, kept within."""
+        return contextlib.nullcontext()
 
     def describe(self) -> dict:
-        """What `prop inspect` shows of the model (chunk, flow steps, layers)."""
+        """What `prop inspect` shows of the model."""
+        c = self.owner.config
+        return {"chunk_size": c.chunk_size, "n_action_steps": c.n_action_steps}
 
 
 class FlowMatching(Denoiser):

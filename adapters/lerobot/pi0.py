@@ -45,7 +45,15 @@ from prop_cli.constants import LEROBOT_TOKENIZER_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .flow_matching import TOKENIZER_STEP, FlowMatching, PrefixMemo, file_naming_code, local_folder, unhooked
+from .flow_matching import (
+    TOKENIZER_STEP,
+    Expert,
+    FlowMatching,
+    PrefixMemo,
+    file_naming_code,
+    local_folder,
+    unhooked,
+)
 from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct
 
 NEVER = -1e30  # below it, a float attention mask blocks (LeRobot's OPENPI_ATTENTION_MASK_VALUE: -2.4e38)
@@ -189,16 +197,17 @@ def build_paligemma(
 
 
 
-class PaliGemma:
+class PaliGemma(Expert):
     """pi0's and pi0.5's model (PaliGemma + a Gemma action expert, openpi's layout) as ``FlowMatching``
-    calls it (``flow_matching.Expert``); ``owner`` is the policy's protocol. pi0.5's state is in its
+    calls it. pi0.5's state is in its
     prompt (``state_in_prompt``: its preprocessor writes it into the tokens) and its expert takes no state
     token (the time enters through adaptive RMS norms)."""
 
     masks_padding = False  # LeRobot 0.6's PI0Policy/PI05Policy.forward count padded steps in their loss
 
     def __init__(self, owner: LeRobotProtocol, state_in_prompt: bool = False) -> None:
-        self.owner, self.state_in_prompt = owner, state_in_prompt
+        super().__init__(owner)
+        self.state_in_prompt = state_in_prompt
 
     def inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
         """(images, image masks, tokens, token mask[, state]) as PI0Pytorch (PI05Pytorch: no state)

@@ -57,7 +57,15 @@ from prop_cli.constants import LEROBOT_VLM_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .flow_matching import TOKENIZER_STEP, FlowMatching, PrefixMemo, file_naming_code, local_folder, unhooked
+from .flow_matching import (
+    TOKENIZER_STEP,
+    Expert,
+    FlowMatching,
+    PrefixMemo,
+    file_naming_code,
+    local_folder,
+    unhooked,
+)
 from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct, older_than
 
 # LeRobot's SmolVLA PEFT targets (SmolVLAPolicy._get_default_peft_targets), as prop's layer regexes.
@@ -263,14 +271,10 @@ def legacy_positions(embeddings: torch.nn.Module) -> None:
     embeddings.forward = types.MethodType(forward, embeddings)
 
 
-class SmolVLM:
-    """SmolVLA's model (SmolVLM + its action expert) as ``FlowMatching`` calls it
-    (``flow_matching.Expert``); ``owner`` is the policy's protocol."""
+class SmolVLM(Expert):
+    """SmolVLA's model (SmolVLM + its action expert) as ``FlowMatching`` calls it."""
 
     masks_padding = True  # LeRobot 0.6's SmolVLAPolicy.forward leaves padded steps out of its loss
-
-    def __init__(self, owner: LeRobotProtocol) -> None:
-        self.owner = owner
 
     def inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
         """(images, image masks, tokens, token mask, state) as SmolVLA's model takes them."""
