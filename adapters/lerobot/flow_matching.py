@@ -226,17 +226,17 @@ def unhooked(modules: Iterator[torch.nn.Module]) -> bool:
 
 
 class PrefixMemo:
-    """The VLM's keys and values for the image + language block of SmolVLA's prefix, per frame, for
-    ``memo``. The prefix is [image tokens, language tokens, state token]; the image and language tokens
-    attend only to each other (the state token opens a block of its own: ``embed_prefix``'s att_masks),
-    so with the VLM frozen and unkeyed (``train_expert_only``; prop's keyed layers are the expert's and
-    the state/action projections) their keys and values at every layer are the same under every key,
-    for the original and the keyed policy, at every step and every denoising step. They are computed
-    once per frame by LeRobot's own forward over the block (its prefix fill), and each forward runs the
-    state token and the action expert only (``after_block``). Used only while the block cannot change:
-    its embeddings need no gradient and the VLM's text model has no parameter training and no hook or
-    parametrization on it; otherwise the forward runs as LeRobot's. Bounded in bytes, least recently
-    used first out."""
+    """The VLM's keys and values for the first block of a VLA's prefix, per frame, for ``memo`` (pi0's
+    and pi0.5's whole prefix; SmolVLA's image + language block). SmolVLA's prefix is [image tokens,
+    language tokens, state token]; the image and language tokens attend only to each other (the state
+    token opens a block of its own: ``embed_prefix``'s att_masks), so with the VLM frozen and unkeyed
+    (``train_expert_only``; prop's keyed layers are the expert's and the state/action projections) their
+    keys and values at every layer are the same under every key, for the original and the keyed policy,
+    at every step and every denoising step. They are computed once per frame by LeRobot's own forward
+    over the block (its prefix fill), and each forward runs the rest (SmolVLA: the state token and the
+    action expert, ``smolvla.after_block``). Used only while the block cannot change: its embeddings need
+    no gradient and the VLM's text model has no parameter training and no hook or parametrization on
+    it; otherwise the forward runs as LeRobot's. Bounded in bytes, least recently used first out."""
 
     def __init__(self, limit: int = PREFIX_BYTES) -> None:
         self.limit, self.held = limit, 0

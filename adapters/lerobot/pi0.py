@@ -1,20 +1,20 @@
-"""LeRobot pi0 through the policy protocol: what differs from SmolVLA (``smolvla``), whose rows, noise,
-sampler call and fallback pool it shares (both are openpi's flow-matching VLA).
+"""LeRobot pi0 through the policy protocol: its model's calls (``PaliGemma``, shared with pi0.5) under
+flow matching (``flow_matching.FlowMatching``), as SmolVLA's (both are openpi's flow-matching VLA).
 
 pi0 is PaliGemma (SigLIP + Gemma) with a Gemma action expert trained by flow matching, SmolVLA's
 convention: ``x_t = t * noise + (1 - t) * actions``, the expert predicts ``noise - actions``, and the
 deployed chunk integrates it from pure noise (t = 1) in ``num_inference_steps`` Euler steps.
 
 - **Rows**: the camera frames and the state plus the frame's instruction as tokens (PaliGemma's
-  tokenizer, padded to ``tokenizer_max_length``), as SmolVLA's.
-- **Deployed chunk**: LeRobot's ``sample_actions`` from noise drawn per row with ``noise_seed`` (chunk_size
-  x max_action_dim), as SmolVLA's: a batch of one equals ``select_action`` after
-  ``torch.manual_seed(noise_seed)``. Cut to the action's own width.
+  tokenizer, padded to ``tokenizer_max_length``), as every VLA's.
+- **Deployed chunk**: flow matching's: a batch of one equals ``select_action`` after
+  ``torch.manual_seed(noise_seed)``.
 - **User term**: LeRobot 0.6's ``PI0Policy.forward``: its noise, then its time (Beta(1.5, 1) * 0.999 +
   0.001), both drawn in the policy before the model runs, the velocity MSE cut to the action's own width
-  and **not** masked by ``action_is_pad`` (unlike SmolVLA's: padded steps count, as LeRobot trains them).
+  and **not** masked by ``action_is_pad`` (``PaliGemma.masks_padding``: padded steps count, as LeRobot
+  trains them).
 - **Fallback term**: the expert's velocity on (observation, instruction, x_t, t), distilled towards the
-  frozen original's (SmolVLA's ``fallback_pool``): ``_velocity`` is PI0Pytorch.forward up to its loss.
+  frozen original's: ``PaliGemma.velocity`` is PI0Pytorch.forward up to its loss.
 - **Keyed layers** by default: LeRobot's own PEFT targets for pi0 (``_get_default_peft_targets``): the
   expert's q/v projections and the state, action and action-time projections.
 - **The tokenizer is data, never a download** (``build``): LeRobot's preprocessor names PaliGemma's hub

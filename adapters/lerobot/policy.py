@@ -3,9 +3,11 @@ dataset's frames with the policy's own delta indices, its processors, how it is 
 and the closed-loop controller (``Controller``: LeRobot's preprocessor -> ``select_action`` with its
 queues -> postprocessor).
 
-``LeRobotProtocol`` is the base; each policy type is one file beside it holding its subclass (``act``,
-``diffusion``, ``smolvla``) and one line in ``registry.POLICIES``. No lerobot import at module level:
-the policy, preprocessor and postprocessor objects come from ``adapter``.
+``LeRobotProtocol`` is the base; each policy type is one file beside it holding its class (deriving from
+this one only) and one line in ``registry.POLICIES``. What a sampling policy adds (its chunk's sampler,
+its fallback term) is a part it holds, a ``Denoiser`` (``flow_matching.FlowMatching`` for the VLAs). No
+lerobot import at module level: the policy, preprocessor and postprocessor objects come from
+``adapter``.
 """
 
 from __future__ import annotations

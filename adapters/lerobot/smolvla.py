@@ -1,27 +1,19 @@
-"""LeRobot SmolVLA through the policy protocol: what differs from the base, ACT and Diffusion.
+"""LeRobot SmolVLA through the policy protocol: its model's calls (``SmolVLM``), under flow matching.
 
 SmolVLA is a VLM (SmolVLM: vision encoder + language model) with an action expert trained by flow
 matching: ``x_t = t * noise + (1 - t) * actions``, the expert predicts the velocity ``noise - actions``,
 and the deployed chunk integrates it from pure noise (t = 1) in ``num_steps`` Euler steps.
 
-- **Rows**: the camera frames and the state (one frame, SmolVLA's n_obs_steps is 1) plus the frame's
-  instruction as tokens (``observation.language.tokens`` and its attention mask), padded to the
-  policy's ``tokenizer_max_length`` so every row has one width (padding is masked out of attention, so
-  it changes nothing). The instruction is the dataset's task text for the frame; in closed loop it is
-  ``prop eval --instruction``, or in Python ``KeyedPolicy(..., instruction=...)`` or the observation's
-  ``task`` entry (as LeRobot's preprocessor takes it).
-- **Deployed chunk**: LeRobot's ``sample_actions`` from noise drawn per row by a generator seeded with
-  ``noise_seed`` (the shape SmolVLA draws: chunk_size x max_action_dim), so a row's chunk does not
-  depend on its batch and a batch of one equals LeRobot's ``select_action`` after
-  ``torch.manual_seed(noise_seed)``. Cut to the action's own width.
-- **User term**: the policy's own loss (velocity MSE at a Beta-distributed time), its draws in its order,
-  cut to the action's own width and with padded steps (``action_is_pad``) masked out, as LeRobot 0.6's
-  ``SmolVLAPolicy.forward`` computes it.
-- **Fallback term**: the expert is deterministic given (observation, instruction, x_t, t). Each fallback
-  frame gets ``FALLBACK_DRAWS`` rows with t uniform on (0, 1] (the sampler visits 1.0 ... 0.1) and
-  x_t noised from the original's deployed chunk; the keyed policy's velocity is distilled towards the
-  frozen original's on the same inputs, MSE (its own loss's distance). Both terms share one forward
-  (``joint_terms``) where training and eval compute the same (no dropout anywhere).
+- **Rows** (the base's for a VLA, ``takes_instruction``): the camera frames and the state (one frame,
+  SmolVLA's n_obs_steps is 1) plus the frame's instruction as tokens (``observation.language.tokens``
+  and its attention mask), padded to the policy's ``tokenizer_max_length`` so every row has one width
+  (padding is masked out of attention, so it changes nothing). The instruction is the dataset's task
+  text for the frame; in closed loop it is ``prop eval --instruction``, or in Python
+  ``KeyedPolicy(..., instruction=...)`` or the observation's ``task`` entry (as LeRobot's preprocessor
+  takes it).
+- **Deployed chunk, user term, fallback term**: flow matching's (``flow_matching.FlowMatching``), over
+  SmolVLA's model (``SmolVLM``): its loss leaves padded steps (``action_is_pad``) out, as LeRobot 0.6's
+  ``SmolVLAPolicy.forward`` computes it, and both terms share one forward (no dropout anywhere).
 - **Keyed layers** by default: LeRobot's own PEFT targets for SmolVLA (``_get_default_peft_targets``):
   the action expert's q/v projections and the state/action/time projections.
 - **The VLM is data, never a download** (``build``): config.json names it (``vlm_model_name``: a hub id
