@@ -18,7 +18,7 @@
     towards the frozen original's on the same inputs, MSE. Both terms share one forward
     (``joint_terms``) where training and eval compute the same (``Expert.joins_terms``: no dropout).
 - ``PrefixMemo``: the VLM's keys and values for each frame's prefix, computed once (``memo``).
-- ``local_folder`` and ``file_naming_code``: the files a VLA's processors read by name (a tokenizer, a
+- ``local_folder`` and ``code_file``: the files a VLA's processors read by name (a tokenizer, a
   VLM's config) from a local folder, never a download, and none that names code.
 """
 
@@ -185,7 +185,7 @@ def local_folder(name: object, marker: str, patterns: list[str]) -> Path | None:
     return cached if (cached / marker).is_file() else None
 
 
-def file_naming_code(folder: Path, names: tuple[str, ...]) -> Path | None:
+def code_file(folder: Path, names: tuple[str, ...]) -> Path | None:
     """The first JSON file of ``names`` in ``folder`` that names code (an ``auto_map``: transformers would
     import a module from the folder, or ask at the terminal whether to); None if none does."""
     for n in names:
@@ -225,6 +225,27 @@ def unhooked(modules: Iterator[torch.nn.Module]) -> bool:
     )  # fmt: skip
 
 
+class Bounded(OrderedDict):
+    """A memo's tensors by key, bounded in bytes: least recently used first out."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__()
+        self.limit, self.held = limit, 0
+
+    def keep(self, key: tuple, t: torch.Tensor) -> None:
+        self[key] = t
+        self.held += t.numel() * t.element_size()
+        while self.held > self.limit and len(self) > 1:
+            _, old = self.popitem(last=False)
+            self.held -= old.numel() * old.element_size()
+
+    def rows(self, keys: list[tuple]) -> list[torch.Tensor]:
+        """The tensors of ``keys`` (each held), now the most recently used."""
+        for k in keys:
+            self.move_to_end(k)
+        return [self[k] for k in keys]
+
+
 class PrefixMemo:
     """The VLM's keys and values for the first block of a VLA's prefix, per frame, for ``memo`` (pi0's
     and pi0.5's whole prefix; SmolVLA's image + language block). SmolVLA's prefix is [image tokens,
@@ -239,8 +260,7 @@ class PrefixMemo:
     it; otherwise the forward runs as LeRobot's. Bounded in bytes, least recently used first out."""
 
     def __init__(self, limit: int = PREFIX_BYTES) -> None:
-        self.limit, self.held = limit, 0
-        self.kv: OrderedDict[tuple, torch.Tensor] = OrderedDict()  # (layers, 2, tokens, heads, head dim)
+        self.kv = Bounded(limit)  # (layers, 2, tokens, heads, head dim) per frame
         self.owners: dict[int, torch.Tensor] = {}  # held, so no id is reused while the memo lives
         self.last: tuple[torch.Tensor, int] | None = None  # embed_prefix's last prefix, its block's length
 
@@ -283,17 +303,8 @@ class PrefixMemo:
                 cache = fill([first[k] for k in todo])
             new = torch.stack([torch.stack([x.keys, x.values]) for x in cache.layers])
             for j, k in enumerate(todo):  # (layers, 2, B, heads, n, dim): each row's slice
-                self._keep(k, new[:, :, j].clone())
-        for k in keys:
-            self.kv.move_to_end(k)
-        rows = torch.stack([self.kv[k] for k in keys], dim=2)  # (layers, 2, B, heads, n, dim)
+                self.kv.keep(k, new[:, :, j].clone())
+        rows = torch.stack(self.kv.rows(keys), dim=2)  # (layers, 2, B, heads, n, dim)
         return [(layer[0], layer[1]) for layer in rows]
-
-    def _keep(self, key: tuple, kv: torch.Tensor) -> None:
-        self.kv[key] = kv
-        self.held += kv.numel() * kv.element_size()
-        while self.held > self.limit and len(self.kv) > 1:
-            _, old = self.kv.popitem(last=False)
-            self.held -= old.numel() * old.element_size()
 
 

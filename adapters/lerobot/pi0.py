@@ -45,15 +45,7 @@ from prop_cli.constants import LEROBOT_TOKENIZER_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .flow_matching import (
-    TOKENIZER_STEP,
-    Expert,
-    FlowMatching,
-    PrefixMemo,
-    file_naming_code,
-    local_folder,
-    unhooked,
-)
+from .flow_matching import TOKENIZER_STEP, Expert, FlowMatching, PrefixMemo, code_file, local_folder, unhooked
 from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct
 
 NEVER = -1e30  # below it, a float attention mask blocks (LeRobot's OPENPI_ATTENTION_MASK_VALUE: -2.4e38)
@@ -118,7 +110,7 @@ def tokenizer_folder(folder: Path, kind: str, where: str, contained: bool = Fals
 def check_tokenizer(tokenizer: Path, kind: str, where: str) -> Path:
     """``tokenizer`` once none of the files transformers reads from it names code (an ``auto_map``:
     transformers would import a module from the folder, or ask at the terminal whether to)."""
-    bad = file_naming_code(tokenizer, (*TOKENIZER_FILES, CONFIG))
+    bad = code_file(tokenizer, (*TOKENIZER_FILES, CONFIG))
     if bad is not None:
         raise PropError(
             f"{where}: {kind}'s tokenizer file {bad} has an auto_map (code for transformers to import); "

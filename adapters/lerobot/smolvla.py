@@ -37,7 +37,6 @@ import contextlib
 import hashlib
 import importlib
 import types
-from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -51,10 +50,11 @@ from prop_cli.files import RESTORE, TAMPERED, shown
 
 from .flow_matching import (
     TOKENIZER_STEP,
+    Bounded,
     Expert,
     FlowMatching,
     PrefixMemo,
-    file_naming_code,
+    code_file,
     local_folder,
     unhooked,
 )
@@ -101,7 +101,7 @@ def check_vlm(vlm: Path, where: str) -> Path:
     """``vlm`` once none of the files SmolVLA reads from it names code: an ``auto_map`` makes
     transformers import a module from the folder (or ask at the terminal whether to). SmolVLM is
     transformers' own; prop runs no VLM code, --trust-remote-code or not, and carries none."""
-    bad = file_naming_code(vlm, VLM_FILES)
+    bad = code_file(vlm, VLM_FILES)
     if bad is not None:
         raise PropError(
             f"{where}: SmolVLA's VLM file {bad} has an auto_map (code for transformers to import); "
@@ -121,8 +121,7 @@ class ImageMemo:
     the keyed policy, a folded payload) share entries. Bounded in bytes, least recently used first out."""
 
     def __init__(self, limit: int = MEMO_BYTES) -> None:
-        self.limit, self.held = limit, 0
-        self.embeddings: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self.embeddings = Bounded(limit)
         self.owners: dict[int, torch.Tensor] = {}  # held, so no id is reused while the memo lives
 
     @staticmethod
@@ -146,17 +145,8 @@ class ImageMemo:
             first = {k: i for i, k in reversed(list(enumerate(keys)))}
             new = compute(image[[first[k] for k in todo]]).detach()
             for k, e in zip(todo, new):
-                self._keep(k, e.clone())
-        for k in keys:
-            self.embeddings.move_to_end(k)
-        return torch.stack([self.embeddings[k] for k in keys])
-
-    def _keep(self, key: tuple, emb: torch.Tensor) -> None:
-        self.embeddings[key] = emb
-        self.held += emb.numel() * emb.element_size()
-        while self.held > self.limit and len(self.embeddings) > 1:
-            _, old = self.embeddings.popitem(last=False)
-            self.held -= old.numel() * old.element_size()
+                self.embeddings.keep(k, e.clone())
+        return torch.stack(self.embeddings.rows(keys))
 
 
 def after_block(vwe, kv: list, attention_mask, position_ids, inputs_embeds: list, use_cache: bool) -> tuple:
