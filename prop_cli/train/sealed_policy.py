@@ -1,4 +1,4 @@
-"""Recipe: a policy with its own loss (LeRobot ACT, Diffusion), sealed: each user's payload trained on
+"""Recipe: a policy with its own loss (a LeRobot policy), sealed: each user's payload trained on
 their frames alone with the policy's own loss, the base frozen (it stays the original). No fallback
 terms: a wrong key opens no record and the original runs.
 
