@@ -17,7 +17,8 @@
     ... 0.1) and x_t noised from the original's deployed chunk; the keyed policy's velocity is distilled
     towards the frozen original's on the same inputs, MSE. Both terms share one forward
     (``joint_terms``) where training and eval compute the same (``Expert.joins_terms``: no dropout).
-- ``PrefixMemo``: the VLM's keys and values for each frame's prefix, computed once (``memo``).
+- ``PrefixMemo``: the VLM's keys and values for each frame's prefix, computed once (``memo``), kept in a
+  store bounded in bytes (``Bounded``, SmolVLA's image memo's too).
 - ``local_folder`` and ``code_file``: the files a VLA's processors read by name (a tokenizer, a
   VLM's config) from a local folder, never a download, and none that names code.
 """
