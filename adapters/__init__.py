@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from prop_cli.core.layers import keyable_layers
+from prop_cli.core.rules import declare_model_fields
 from prop_cli.errors import PropError, brief
 
 from .base import (
@@ -40,6 +41,8 @@ ADAPTERS: list[Adapter] = [
     ModuleAdapter(),
     MLPAdapter(),
 ]
+for _adapter in ADAPTERS:  # what each one's model spec holds, for the bundle format's checks
+    declare_model_fields(_adapter.name, _adapter.manifest_fields, _adapter.check_spec)
 
 __all__ = [
     "ADAPTERS",

@@ -18,6 +18,7 @@ from typing import ClassVar
 
 import torch
 
+from prop_cli.core.rules import Rule
 from prop_cli.errors import PropError
 
 
@@ -203,6 +204,30 @@ class PolicyProtocol(ABC):
     def input_features(self) -> dict[str, tuple[int, ...]]:
         """Observation feature name -> per-frame shape, as the environment must provide them."""
 
+    @abstractmethod
+    def flat(self) -> FlatView:
+        """This policy as an array model (the audit's view, a sealed policy's reports): ``x`` (B, F), the
+        rows of ``flat_rows``, -> the deployed chunk flattened; the same layers run."""
+
+    @abstractmethod
+    def flat_rows(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """A batch's row features (``row_shapes``) flattened and concatenated, as ``flat`` takes them."""
+
+
+class FlatView(torch.nn.Module):
+    """A policy seen as an array model (``PolicyProtocol.flat``): ``protocol`` is the policy it runs,
+    ``width`` its input's width. What decides between an array model and a policy treats this as the
+    array model it is."""
+
+    protocol: PolicyProtocol
+    width: int
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "protocol":  # the policy object stays out of _modules (its children are the view's)
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
 
 class Adapter(ABC):
     """One checkpoint format. Subclasses set ``name``, ``summary`` and ``options`` and implement
@@ -211,6 +236,15 @@ class Adapter(ABC):
     name: ClassVar[str]  # stored in the manifest as model.adapter: never rename
     summary: ClassVar[str]  # one line for `prop formats`, help texts and docs/formats.md
     options: ClassVar[tuple[str, ...]] = ()  # the CheckpointOptions fields this format uses
+    # What this adapter's model spec holds besides "adapter" (a manifest's ``model``), checked by the
+    # bundle format (``prop_cli.core.rules.MODEL_FIELDS``). An empty table: any fields (an extension's).
+    manifest_fields: ClassVar[dict[str, Rule]] = {}
+
+    @staticmethod
+    def check_spec(spec: dict) -> tuple[str, str] | None:
+        """What ``manifest_fields`` cannot say: how a spec's fields fit together (the spec passed them).
+        None, or (the field, what is wrong with it)."""
+        return None
 
     @abstractmethod
     def recognise(self, path: Path, options: CheckpointOptions) -> bool:

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from prop_cli.core.rules import RECORD, text
 from prop_cli.errors import PropError
 
 from .base import Adapter, CheckpointOptions, LoadedModel
@@ -141,6 +142,7 @@ def build(
 class FolderAdapter(Adapter):
     name = "folder"
     options = ("arch", "arch_kwargs")
+    manifest_fields = {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD}
     summary = (
         "a model folder: config.json + model.safetensors (Hugging Face / LeRobot layout, sharded too), "
         "built by factory(config, **arch_kwargs) from --arch or a package's 'prop.architectures' entry point"

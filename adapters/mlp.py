@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from prop_cli.core.rules import BOOL, DIM, Rule, list_of, text
 from prop_cli.errors import PropError, plural
 
 from . import activations
@@ -234,6 +235,18 @@ class MLPAdapter(Adapter):
         "activation from --activation or the file's metadata (default relu)"
     )
     options = ("activation",)
+    manifest_fields = {
+        "layers": list_of(text(), 1),
+        "sizes": list_of(DIM, 2),
+        "bias": Rule((dict,), "an object of layer name -> true/false", values=BOOL, key_ok=bool),
+        "activation": text(),
+    }
+
+    @staticmethod
+    def check_spec(spec: dict) -> tuple[str, str] | None:
+        if len(spec["sizes"]) != len(spec["layers"]) + 1:
+            return "sizes", "must have one entry more than model.layers"
+        return None
 
     def recognise(self, path: Path, options: CheckpointOptions) -> bool:
         return options.arch is None and is_weights_file(path)

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from prop_cli.core.rules import RECORD, text
 from prop_cli.errors import PropError
 
 from .base import Adapter, CheckpointOptions, LoadedModel, finish
@@ -238,6 +239,7 @@ class ModuleAdapter(Adapter):
         "--arch package.module:factory or file.py:factory [--arch-kwargs JSON]"
     )
     options = ("arch", "arch_kwargs")
+    manifest_fields = {"arch": text(), "arch_kwargs": RECORD}
 
     def recognise(self, path: Path, options: CheckpointOptions) -> bool:
         return options.arch is not None and is_weights_file(path)

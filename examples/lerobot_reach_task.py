@@ -140,6 +140,19 @@ def record(
     env.close()
 
 
+def vla_features(features: dict | None = None) -> dict:
+    """A tiny VLA's features (``features``, else the arm's state and the camera; the 3-d action) on the
+    CPU, as its config takes them (examples/smolvla_tiny.py, examples/pi_tiny.py)."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    inputs = features or {
+        STATE: PolicyFeature(FeatureType.STATE, (6,)),
+        CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE)),
+    }  # fmt: skip
+    outputs = {ACTION: PolicyFeature(FeatureType.ACTION, (3,))}
+    return dict(input_features=inputs, output_features=outputs, device="cpu")
+
+
 def build_act(stats: dict | None = None, **overrides):
     """A small ACT (dim 64; 2 encoder, 1 decoder, 2 VAE layers; chunk 10) with its processors."""
     from lerobot.configs.types import FeatureType, PolicyFeature

@@ -121,21 +121,16 @@ def build_pi(
 ):
     """A tiny ``kind`` (pi0 or pi05) with its processors, the tokenizer step reading ``tokenizer`` (a
     folder ``build_tokenizer`` wrote): (policy, preprocessor, postprocessor)."""
-    from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+    from lerobot.configs.types import NormalizationMode
 
-    from examples.lerobot_reach_task import ACTION, CAMERA, STATE
+    from examples.lerobot_reach_task import vla_features
 
     package, config_name, policy_name = KINDS[kind]
     lerobot = f"lerobot.policies.{package}"
     config_class = getattr(importlib.import_module(f"{lerobot}.configuration_{package}"), config_name)
     policy_class = getattr(importlib.import_module(f"{lerobot}.modeling_{package}"), policy_name)
-    inputs = features or {
-        STATE: PolicyFeature(FeatureType.STATE, (6,)),
-        CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE)),
-    }  # fmt: skip
-    settings = dict(
-        input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
-        device="cpu", chunk_size=10, n_action_steps=5, num_inference_steps=10, max_state_dim=8,
+    settings = vla_features(features) | dict(
+        chunk_size=10, n_action_steps=5, num_inference_steps=10, max_state_dim=8,
         max_action_dim=4, image_resolution=(IMAGE, IMAGE),
         # pi0: "<bos> reach the target \n"; pi0.5: "Task: ..., State: <6 bins>;\nAction: " (19 tokens)
         tokenizer_max_length=16 if kind == "pi0" else 24,

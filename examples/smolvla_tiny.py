@@ -100,20 +100,14 @@ def build_vlm(folder: Path, text_layers: int = 2, hidden: int = 64, config: dict
 
 def build_smolvla(vlm: Path, stats: dict | None = None, features: dict | None = None, **overrides):
     """A small SmolVLA on the tiny VLM at ``vlm``: (policy, preprocessor, postprocessor)."""
-    from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-    from examples.lerobot_reach_task import ACTION, CAMERA, STATE
+    from examples.lerobot_reach_task import vla_features
 
-    inputs = features or {
-        STATE: PolicyFeature(FeatureType.STATE, (6,)),
-        CAMERA: PolicyFeature(FeatureType.VISUAL, (3, IMAGE, IMAGE)),
-    }  # fmt: skip
-    settings = dict(
-        input_features=inputs, output_features={ACTION: PolicyFeature(FeatureType.ACTION, (3,))},
-        device="cpu", vlm_model_name=str(vlm), load_vlm_weights=False, chunk_size=10, n_action_steps=5,
+    settings = vla_features(features) | dict(
+        vlm_model_name=str(vlm), load_vlm_weights=False, chunk_size=10, n_action_steps=5,
         num_steps=10, resize_imgs_with_padding=(IMAGE, IMAGE), tokenizer_max_length=16, num_vlm_layers=2,
         max_state_dim=16, max_action_dim=4, expert_width_multiplier=0.5, freeze_vision_encoder=False,
         train_expert_only=False,

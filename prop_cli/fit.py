@@ -13,7 +13,6 @@ import numpy as np
 import torch
 
 from prop_adapters.base import LoadedModel, PolicyProtocol
-from prop_adapters.lerobot.flat import flatten_features
 from prop_cli.datasources.base import Dataset
 from prop_cli.errors import PropError, plural
 
@@ -137,8 +136,8 @@ def split(ds: Dataset, val_fraction: float, seed: int) -> tuple[Dataset, Dataset
 
 def flat_chunks(policy: PolicyProtocol, batch: dict[str, torch.Tensor], path: str) -> Dataset:
     """A policy's batch -> x (N, F) normalised features and y (N, chunk * action_dim) recorded chunks
-    (None without actions): the rows of the policy's flat view (``prop_adapters.lerobot.flat``)."""
-    x = flatten_features(policy, batch).numpy().astype(np.float32)
+    (None without actions): the rows of the policy's flat view (``PolicyProtocol.flat_rows``)."""
+    x = policy.flat_rows(batch).numpy().astype(np.float32)
     y = batch["action"].flatten(1).numpy().astype(np.float32) if "action" in batch else None
     return Dataset(x=x, y=y, path=path, meta={"episode_index": batch["episode_index"].numpy()})
 

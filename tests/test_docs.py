@@ -29,6 +29,7 @@ SKETCHES = (
     "adapters/npz_mlp.py",
     "prop_cli/datasources/csv.py",
     "prop_cli/attack/probes/complement.py",
+    "adapters/lerobot/myvla.py",
 )
 
 
@@ -490,3 +491,54 @@ def test_the_cli_references_settings_table_is_read_from_the_fields():
         "docs/cli.md's settings table is stale: paste the output of "
         "python -c 'from prop_cli.config import settings_table; print(settings_table())'"
     )
+
+
+def _registry_entry(path: str, mod: types.ModuleType) -> tuple[str, type]:
+    """The registry line shown after ``path``'s block, as the entry it adds (evaluated in the module)."""
+    blocks = _blocks(_doc("extending.md"))
+    line = blocks[blocks.index(_file_block(path)) + 1]
+    assert line.startswith("# registry line")
+    ((name, cls),) = eval("{" + line + "}", mod.__dict__).items()  # noqa: S307 - the docs' own line
+    return name, cls
+
+
+@pytest.mark.lerobot
+def test_extending_with_a_vla(tmp_path, monkeypatch):
+    """The new VLA is one file deriving from the LeRobot base only, and one registry line; its file, run
+    on a tiny SmolVLA, computes what SmolVLAProtocol does: the chunk, the fallback pool and both terms."""
+    pytest.importorskip("lerobot")
+    pytest.importorskip("num2words")  # SmolVLM's processor
+    import torch
+
+    from examples import lerobot_reach_task as task
+    from examples import smolvla_tiny
+    from prop_adapters.lerobot import POLICIES, LeRobotProtocol, SmolVLAProtocol
+    from prop_adapters.lerobot.policy import PAD
+
+    mod = _module("adapters/lerobot/myvla.py", "prop_adapters.lerobot.myvla", monkeypatch)
+    name, cls = _registry_entry("adapters/lerobot/myvla.py", mod)
+    assert cls.__bases__ == (LeRobotProtocol,) and name not in POLICIES
+    monkeypatch.setitem(POLICIES, name, cls)
+    torch.manual_seed(0)
+    policy, pre, post = smolvla_tiny.build_smolvla(smolvla_tiny.build_vlm(tmp_path / "vlm"))
+    ours, theirs = cls(policy, pre, post, noise_seed=3), SmolVLAProtocol(policy, pre, post, noise_seed=3)
+    obs = {task.STATE: torch.rand(3, 6), task.CAMERA: torch.rand(3, 3, task.IMAGE, task.IMAGE),
+           "task": ["reach the target"] * 3}  # fmt: skip
+    batch = {k: v for k, v in pre(obs).items() if k in ours.row_shapes}
+    assert set(batch) == set(ours.row_shapes) == set(theirs.row_shapes)
+    with torch.no_grad():
+        chunk = ours.chunk(batch)
+        assert chunk.shape == (3, 10, 3) and torch.equal(chunk, theirs.chunk(batch))
+        g = [torch.Generator().manual_seed(0) for _ in range(2)]
+        pools = [p.fallback_pool(batch, chunk, theirs, gen) for p, gen in zip((ours, theirs), g)]
+        assert all(torch.equal(pools[0][0][k], pools[1][0][k]) for k in pools[1][0])
+        assert torch.equal(pools[0][1], pools[1][1])
+        user = batch | {"action": torch.rand(3, 10, 3), PAD: torch.zeros(3, 10, dtype=torch.bool)}
+        user[PAD][0, 7:] = True
+        fallback = {k: v[:4] for k, v in pools[0][0].items()}
+        terms = []
+        for p in (ours, theirs):
+            torch.manual_seed(1)
+            terms.append(p.joint_terms(user, fallback))
+    assert torch.equal(terms[0][0], terms[1][0]) and torch.equal(terms[0][1], terms[1][1])
+    assert torch.equal(ours.row_weights(user), theirs.row_weights(user))

@@ -22,6 +22,7 @@ class ACTProtocol(LeRobotProtocol):
     """ACT through the policy protocol (see the module docstring)."""
 
     default_layers = ACT_LAYERS
+    label = "ACT"
 
     def describe(self) -> dict:
         return {"chunk_size": self.config.chunk_size}

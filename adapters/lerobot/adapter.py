@@ -25,6 +25,7 @@ from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish, 
 from prop_adapters.folder import CONFIG, WEIGHTS, read_config
 from prop_adapters.weights import read_weights, safetensors_shapes, sniff
 from prop_cli.constants import LEROBOT_DIR
+from prop_cli.core.rules import choice, text
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
@@ -33,19 +34,8 @@ from .registry import POLICIES
 
 PREPROCESSOR = "policy_preprocessor.json"
 PROCESSORS = "policy_*processor*.json"  # the pipelines LeRobot reads: pre- and postprocessor
-# The registered processor steps prop accepts in a policy folder: those the supported policies' own
-# pipelines use that neither import code nor load models, tokenizers or files by a name their config gives
-# (read in lerobot 0.6's processor sources). An allow-list, since each LeRobot release registers new steps
-# that load by name (0.6: eo1_qwen_processor, molmoact2_pack_inputs, ...). Any other step needs
-# --trust-remote-code like an import path does, unless the folder's policy points it at its own files
-# (``LeRobotProtocol.own_steps``: the VLAs' tokenizer step).
-VETTED_STEPS = frozenset({
-    "rename_observations_processor", "to_batch_processor", "device_processor", "normalizer_processor",
-    "unnormalizer_processor", "smolvla_new_line_processor", "pi0_new_line_processor",
-    "pi05_prepare_state_tokenizer_processor_step", "relative_actions_processor", "absolute_actions_processor",
-})  # fmt: skip
 FOLDER_IN_BUNDLE = LEROBOT_DIR  # the bundle's LeRobot folder
-_TYPES = " or ".join([", ".join(list(POLICIES)[:-1]), list(POLICIES)[-1]])  # "act, diffusion or smolvla"
+_TYPES = " or ".join([", ".join(list(POLICIES)[:-1]), list(POLICIES)[-1]])  # "act, ... or pi05"
 SETUP_HINT = "set up the LeRobot environment: bash scripts/setup-lerobot.sh (then use .venv-lerobot)"
 
 
@@ -62,12 +52,16 @@ def _lerobot():
 
 def processor_code(folder: Path) -> list[str]:
     """The processor steps of ``folder``'s pipelines that LeRobot would import or that load models by
-    name: a step is accepted only by a ``registry_name`` LeRobot itself registers (read before LeRobot
-    sees the files; a ``class`` import path is what LeRobot would import)."""
+    name: a step is accepted only by a ``registry_name`` LeRobot itself registers and the folder's policy
+    vets (``LeRobotProtocol.vetted_steps``: steps that neither import code nor load anything by a name
+    their config gives; ``own_steps``: those its ``build`` points at the folder's own files). Any other
+    step needs --trust-remote-code like an import path does. Read before LeRobot sees the files; a
+    ``class`` import path is what LeRobot would import."""
     _lerobot()
     from lerobot.processor import ProcessorStepRegistry
 
-    known = (VETTED_STEPS | _protocol_of(folder).own_steps) & set(ProcessorStepRegistry.list())
+    protocol = _protocol_of(folder)
+    known = (protocol.vetted_steps | protocol.own_steps) & set(ProcessorStepRegistry.list())
     named = []
     for f in sorted(folder.glob(PROCESSORS)):
         try:
@@ -89,7 +83,7 @@ def processor_code(folder: Path) -> list[str]:
 
 
 def _protocol_of(folder: Path) -> type[LeRobotProtocol]:
-    """The class of ``folder``'s policy type; the base (no steps of its own) where the type is unknown
+    """The class of ``folder``'s policy type; the base (the common steps only) where the type is unknown
     or config.json unreadable (loading it then says why)."""
     try:
         kind = read_config(folder).get("type")
@@ -195,6 +189,7 @@ def weight_names(path: Path) -> list[str]:
 
 class LeRobotAdapter(Adapter):
     name = "lerobot"
+    manifest_fields = {"type": choice(tuple(POLICIES)), "lerobot_version": text()}
     summary = (
         f"a LeRobot policy folder: config.json (type {_TYPES}) + model.safetensors + "
         "policy_preprocessor.json and the other processor files, loaded by LeRobot (scripts/setup-lerobot.sh)"

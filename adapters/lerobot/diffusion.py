@@ -1,4 +1,4 @@
-"""LeRobot Diffusion Policy through the policy protocol: what differs from the base and ACT.
+"""LeRobot Diffusion Policy through the policy protocol: its denoiser (``UNet``, a ``policy.Denoiser``).
 
 - **Deployed chunk**: the sampler's output over the whole horizon (B, horizon, action_dim), normalised.
   Its noise is what LeRobot draws for that frame alone after ``torch.manual_seed(noise_seed)``: the
@@ -32,63 +32,51 @@ from __future__ import annotations
 
 import torch
 
-from prop_adapters.base import PolicyProtocol
-
-from .policy import FALLBACK_DRAWS, LeRobotProtocol
+from .policy import ACTION, PAD, Denoiser, LeRobotProtocol
 
 DIFFUSION_LAYERS = [r"diffusion\.unet\.(down_modules|mid_modules|up_modules|final_conv)\..+"]
 OBS_IMAGES = "observation.images"
-ACTION = "action"
 
 
-class DiffusionProtocol(LeRobotProtocol):
-    """Diffusion through the policy protocol (see the module docstring)."""
+class UNet(Denoiser):
+    """Diffusion's denoiser (its conditional U-Net under LeRobot's DDPM/DDIM scheduler): ``owner`` is the
+    policy's protocol (see the module docstring)."""
 
-    default_layers = DIFFUSION_LAYERS
-
-    @property
-    def model(self):
-        return self.policy.diffusion
+    def __init__(self, owner: DiffusionProtocol) -> None:
+        self.owner = owner
 
     def _observations(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """What DiffusionModel's conditioning takes: the features (B, n_obs, ...), cameras stacked."""
-        b = {k: batch[k] for k in self.input_features}
-        if self.config.image_features:
-            b[OBS_IMAGES] = torch.stack([b[k] for k in self.config.image_features], dim=-4)
+        b = {k: batch[k] for k in self.owner.input_features}
+        if self.owner.config.image_features:
+            b[OBS_IMAGES] = torch.stack([b[k] for k in self.owner.config.image_features], dim=-4)
         return b
 
     def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        self.policy.eval()
-        model = self.model
+        self.owner.policy.eval()
+        model, c = self.owner.model, self.owner.config
         cond = model._prepare_global_conditioning(self._observations(batch))
         rows = cond.shape[0]
-        gens = [torch.Generator(cond.device).manual_seed(self.noise_seed) for _ in range(rows)]
-        shape = (1, self.config.horizon, self.config.action_feature.shape[0])
+        gens = [torch.Generator(cond.device).manual_seed(self.owner.noise_seed) for _ in range(rows)]
+        shape = (1, c.horizon, c.action_feature.shape[0])
         noise = torch.cat([torch.randn(shape, generator=g, device=g.device, dtype=cond.dtype) for g in gens])
         return model.conditional_sample(rows, global_cond=cond, generator=gens, noise=noise)
 
-    def fallback_pool(
-        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
-        generator: torch.Generator,
-    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
-        return self._denoiser_pool(batch, chunks, original, generator)
+    def draws(self, rows: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        c = self.owner.config  # the timestep, then the noise, for every row
+        t = torch.randint(0, self.owner.model.noise_scheduler.config.num_train_timesteps, (rows,),
+                          generator=generator)  # fmt: skip
+        return {"t": t, "eps": torch.randn((rows, c.horizon, c.action_feature.shape[0]), generator=generator)}
 
-    def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        rows = frames * FALLBACK_DRAWS  # the timestep, then the noise, for every row
-        steps = self.model.noise_scheduler.config.num_train_timesteps
-        t = torch.randint(0, steps, (rows,), generator=generator)
-        shape = (rows, self.config.horizon, self.config.action_feature.shape[0])
-        return self._draws(frames, t=t, eps=torch.randn(shape, generator=generator))
-
-    def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        t = noise["t"].to(x0.device)
-        return {"x_t": self.model.noise_scheduler.add_noise(x0, noise["eps"].to(x0), t), "t": t}
+    def noised(self, x0: torch.Tensor, draws: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        t = draws["t"].to(x0.device)
+        return {"x_t": self.owner.model.noise_scheduler.add_noise(x0, draws["eps"].to(x0), t), "t": t}
 
     @property
     def joins_terms(self) -> bool:
         # The U-Net has no dropout; an image encoder differs between training and eval where it crops at
         # random or uses batch norm. Without those, one eval-mode forward computes both terms.
-        c = self.config
+        c = self.owner.config
         return not c.image_features or (c.crop_shape is None and c.use_group_norm)
 
     def joint_terms(
@@ -97,10 +85,10 @@ class DiffusionProtocol(LeRobotProtocol):
         """LeRobot's ``compute_loss`` on the user rows (its draws of noise and timestep, in its order) and
         the denoiser on the fallback rows, as one U-Net call: a step of small models is bound by
         per-operator overhead, so one call of 2n rows costs about one of n."""
-        self.policy.eval()
-        model, c = self.model, self.config
+        self.owner.policy.eval()
+        model, c = self.owner.model, self.owner.config
         n = len(user[ACTION])
-        obs = {k: torch.cat([user[k], fallback[k]]) for k in self.input_features}
+        obs = {k: torch.cat([user[k], fallback[k]]) for k in self.owner.input_features}
         cond = model._prepare_global_conditioning(self._observations(obs))
         trajectory = user[ACTION]
         eps = torch.randn(trajectory.shape, device=trajectory.device)
@@ -111,27 +99,39 @@ class DiffusionProtocol(LeRobotProtocol):
         target = eps if c.prediction_type == "epsilon" else trajectory
         loss = torch.nn.functional.mse_loss(out[:n], target, reduction="none")
         if c.do_mask_loss_for_padding:
-            loss = loss * (~user["action_is_pad"]).unsqueeze(-1)
+            loss = loss * (~user[PAD]).unsqueeze(-1)
         return loss.mean(), out[n:]
 
-    def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        self.policy.eval()
-        cond = self.model._prepare_global_conditioning(self._observations(batch))
-        return self.model.unet(batch["x_t"], batch["t"], global_cond=cond)
-
-    def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return ((pred - target) ** 2).flatten(1).mean(1)
+    def output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.owner.policy.eval()
+        model = self.owner.model
+        cond = model._prepare_global_conditioning(self._observations(batch))
+        return model.unet(batch["x_t"], batch["t"], global_cond=cond)
 
     def describe(self) -> dict:
-        c = self.config
+        c = self.owner.config
         return {
             "horizon": c.horizon,
             "n_obs_steps": c.n_obs_steps,
             "n_action_steps": c.n_action_steps,
             "noise_scheduler": c.noise_scheduler_type,
-            "inference_steps": self.model.num_inference_steps,
+            "inference_steps": self.owner.model.num_inference_steps,
             "prediction_type": c.prediction_type,
         }
 
 
-__all__ = ["DIFFUSION_LAYERS", "FALLBACK_DRAWS", "DiffusionProtocol"]
+class DiffusionProtocol(LeRobotProtocol):
+    """Diffusion through the policy protocol (see the module docstring)."""
+
+    default_layers = DIFFUSION_LAYERS
+    label = "Diffusion"
+
+    @property
+    def model(self) -> torch.nn.Module:
+        return self.policy.diffusion
+
+    def make_denoiser(self) -> UNet:
+        return UNet(self)
+
+
+__all__ = ["DIFFUSION_LAYERS", "DiffusionProtocol"]

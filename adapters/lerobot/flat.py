@@ -1,4 +1,5 @@
-"""A LeRobot policy seen as an array model: one input tensor in, one output tensor out.
+"""A LeRobot policy seen as an array model (``LeRobotProtocol.flat``, ``flat_rows``): one input tensor in,
+one output tensor out.
 
 Policies take named observation features and predict an action chunk. The audit, its probes and the
 metrics work on one input tensor and one output tensor, so this view flattens both:
@@ -20,12 +21,11 @@ from __future__ import annotations
 import math
 
 import torch
-from torch import nn
 
-from prop_adapters.base import PolicyProtocol
+from prop_adapters.base import FlatView, PolicyProtocol
 
 
-class FlatModule(nn.Module):
+class FlatModule(FlatView):
     """``x`` (B, F) -> the deployed chunk (B, chunk * action_dim), both in normalised units.
 
     The policy module's children are registered here under their own names, so named_modules(), the
@@ -41,12 +41,6 @@ class FlatModule(nn.Module):
         self.layout = [(k, tuple(s)) for k, s in policy.row_shapes.items()]
         self.width = sum(math.prod(s) for _, s in self.layout)
 
-    def __setattr__(self, name: str, value) -> None:
-        if name == "protocol":  # keep the policy object out of _modules (its children are ours)
-            object.__setattr__(self, name, value)
-        else:
-            super().__setattr__(name, value)
-
     def features(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         out, at = {}, 0
         for name, shape in self.layout:
@@ -57,13 +51,3 @@ class FlatModule(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.protocol.chunk(self.features(x)).flatten(1)
-
-
-def flatten_features(policy: PolicyProtocol, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """The policy's row features of a batch (``row_shapes``: SmolVLA's instruction tokens too, as floats),
-    flattened and concatenated in the policy's order."""
-    return torch.cat([batch[k].flatten(1).float() for k in policy.row_shapes], dim=1)
-
-
-def flat_module(policy: PolicyProtocol) -> FlatModule:
-    return FlatModule(policy).eval()

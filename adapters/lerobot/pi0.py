@@ -1,20 +1,20 @@
-"""LeRobot pi0 through the policy protocol: what differs from SmolVLA (``smolvla``), whose rows, noise,
-sampler call and fallback pool it shares (both are openpi's flow-matching VLA).
+"""LeRobot pi0 through the policy protocol: its model's calls (``PaliGemma``, shared with pi0.5) under
+flow matching (``flow_matching.FlowMatching``), as SmolVLA's (both are openpi's flow-matching VLA).
 
 pi0 is PaliGemma (SigLIP + Gemma) with a Gemma action expert trained by flow matching, SmolVLA's
 convention: ``x_t = t * noise + (1 - t) * actions``, the expert predicts ``noise - actions``, and the
 deployed chunk integrates it from pure noise (t = 1) in ``num_inference_steps`` Euler steps.
 
 - **Rows**: the camera frames and the state plus the frame's instruction as tokens (PaliGemma's
-  tokenizer, padded to ``tokenizer_max_length``), as SmolVLA's.
-- **Deployed chunk**: LeRobot's ``sample_actions`` from noise drawn per row with ``noise_seed`` (chunk_size
-  x max_action_dim), as SmolVLA's: a batch of one equals ``select_action`` after
-  ``torch.manual_seed(noise_seed)``. Cut to the action's own width.
+  tokenizer, padded to ``tokenizer_max_length``), as every VLA's.
+- **Deployed chunk**: flow matching's: a batch of one equals ``select_action`` after
+  ``torch.manual_seed(noise_seed)``.
 - **User term**: LeRobot 0.6's ``PI0Policy.forward``: its noise, then its time (Beta(1.5, 1) * 0.999 +
   0.001), both drawn in the policy before the model runs, the velocity MSE cut to the action's own width
-  and **not** masked by ``action_is_pad`` (unlike SmolVLA's: padded steps count, as LeRobot trains them).
+  and **not** masked by ``action_is_pad`` (``PaliGemma.masks_padding``: padded steps count, as LeRobot
+  trains them).
 - **Fallback term**: the expert's velocity on (observation, instruction, x_t, t), distilled towards the
-  frozen original's (SmolVLA's ``fallback_pool``): ``_velocity`` is PI0Pytorch.forward up to its loss.
+  frozen original's: ``PaliGemma.velocity`` is PI0Pytorch.forward up to its loss.
 - **Keyed layers** by default: LeRobot's own PEFT targets for pi0 (``_get_default_peft_targets``): the
   expert's q/v projections and the state, action and action-time projections.
 - **The tokenizer is data, never a download** (``build``): LeRobot's preprocessor names PaliGemma's hub
@@ -32,24 +32,21 @@ from __future__ import annotations
 import contextlib
 import copy
 import importlib
-import inspect
 import json
 import logging
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from prop_adapters.base import names_code
 from prop_adapters.folder import CONFIG, WEIGHTS
 from prop_adapters.weights import load_into, read_weights, safetensors_shapes, sniff
-from prop_cli.constants import LEROBOT_TOKENIZER_DIR, TASK
+from prop_cli.constants import LEROBOT_TOKENIZER_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .policy import Built, construct
-from .smolvla import MASK, TOKENIZER_STEP, TOKENS, PrefixMemo, SmolVLAProtocol, unhooked
+from .flow_matching import TOKENIZER_STEP, Expert, FlowMatching, PrefixMemo, code_file, local_folder, unhooked
+from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct
 
 NEVER = -1e30  # below it, a float attention mask blocks (LeRobot's OPENPI_ATTENTION_MASK_VALUE: -2.4e38)
 
@@ -58,6 +55,9 @@ PI0_LAYERS = [
     r"model\.paligemma_with_expert\.gemma_expert\..*\.self_attn\.(q|v)_proj",
     r"model\.(state_proj|action_in_proj|action_out_proj|action_time_mlp_in|action_time_mlp_out)",
 ]
+# pi0's and pi0.5's relative-action steps (off unless config.use_relative_actions): arithmetic on the
+# state and actions, nothing loaded.
+RELATIVE_ACTION_STEPS = ("relative_actions_processor", "absolute_actions_processor")
 PREPROCESSOR = "policy_preprocessor.json"  # adapter.PREPROCESSOR (adapter imports this module)
 # The tokenizer files LeRobot's tokenizer step reads (transformers' AutoTokenizer); the folder's
 # config.json is read only where tokenizer_config.json names no class, so it is checked, never carried.
@@ -96,18 +96,9 @@ def tokenizer_folder(folder: Path, kind: str, where: str, contained: bool = Fals
             f"{TAMPERED}",
             RESTORE,
         )
-    if isinstance(name, str) and name:
-        if (Path(name) / TOKENIZER_CONFIG).is_file():
-            return check_tokenizer(Path(name), kind, where)
-        try:
-            from huggingface_hub import snapshot_download
-
-            cached = Path(snapshot_download(name, local_files_only=True,
-                                            allow_patterns=[*TOKENIZER_FILES, CONFIG]))  # fmt: skip
-        except Exception:  # noqa: BLE001 - not in the cache (or not a hub id): the error below
-            cached = None
-        if cached is not None and (cached / TOKENIZER_CONFIG).is_file():
-            return check_tokenizer(cached, kind, where)
+    found = local_folder(name, TOKENIZER_CONFIG, [*TOKENIZER_FILES, CONFIG])
+    if found is not None:
+        return check_tokenizer(found, kind, where)
     raise PropError(
         f"{where}: {kind}'s tokenizer {name!r} ({PREPROCESSOR}, step {TOKENIZER_STEP}) is not on this "
         "machine",
@@ -119,19 +110,13 @@ def tokenizer_folder(folder: Path, kind: str, where: str, contained: bool = Fals
 def check_tokenizer(tokenizer: Path, kind: str, where: str) -> Path:
     """``tokenizer`` once none of the files transformers reads from it names code (an ``auto_map``:
     transformers would import a module from the folder, or ask at the terminal whether to)."""
-    for n in (*TOKENIZER_FILES, CONFIG):
-        if not n.endswith(".json") or not (tokenizer / n).is_file():
-            continue
-        try:
-            doc = json.loads((tokenizer / n).read_bytes())
-        except (OSError, ValueError, RecursionError):
-            continue  # transformers reports it
-        if names_code(doc):
-            raise PropError(
-                f"{where}: {kind}'s tokenizer file {tokenizer / n} has an auto_map (code for transformers to "
-                "import); prop runs no tokenizer code",
-                f"use PaliGemma's own tokenizer files; if this is a bundle, {TAMPERED}: {RESTORE}",
-            )
+    bad = code_file(tokenizer, (*TOKENIZER_FILES, CONFIG))
+    if bad is not None:
+        raise PropError(
+            f"{where}: {kind}'s tokenizer file {bad} has an auto_map (code for transformers to import); "
+            "prop runs no tokenizer code",
+            f"use PaliGemma's own tokenizer files; if this is a bundle, {TAMPERED}: {RESTORE}",
+        )
     return tokenizer
 
 
@@ -212,68 +197,70 @@ def _file_names_fit(policy_class, config, path: Path) -> bool:
     return set(lerobot_keys(policy_class, config, shapes)) == set(shapes)
 
 
-class PI0Protocol(SmolVLAProtocol):
-    """pi0 through the policy protocol (see the module docstring)."""
+def build_paligemma(
+    cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
+    contained: bool = False, made_with: str | None = None,
+) -> Built:  # fmt: skip
+    """Built from its config and the weights, the tokenizer's files read from a local folder
+    (``tokenizer_folder``; a bundle's own ``tokenizer/`` where ``contained``) and carried in the
+    bundle's ``tokenizer/``; the tokenizer step reads that folder. pi0's and pi0.5's ``build`` (``cls``:
+    the protocol, its ``label`` naming the type in messages)."""
+    from lerobot.configs.policies import PreTrainedConfig
 
-    default_layers = PI0_LAYERS
-    own_steps = frozenset({TOKENIZER_STEP})  # pointed at the tokenizer folder ``build`` finds
-    label = "pi0"
+    config = PreTrainedConfig.from_pretrained(str(folder))
+    tokenizer = tokenizer_folder(folder, cls.label, where, contained)
+    if weights is None and _file_names_fit(policy_class, config, folder / WEIGHTS):
+        # LeRobot's own names: built, then filled one tensor at a time from the file (pi0 at its
+        # published size: its 7 GB of weights never held beside the model).
+        shapes = safetensors_shapes(folder / WEIGHTS)
+        check_sizes(policy_class, config, shapes, where, cls.label)
+        policy = construct(meta_ready(policy_class), config, shapes, where)
+        load_into(policy, folder / WEIGHTS)
+    else:
+        if weights is None:
+            weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
+        check_sizes(policy_class, config, weights, where, cls.label)
+        policy = construct(meta_ready(policy_class), config, weights, where)
+        policy.load_state_dict(weights, strict=True)
+    files = {f"{LEROBOT_TOKENIZER_DIR}/{n}": (tokenizer / n).read_bytes()
+             for n in TOKENIZER_FILES if (tokenizer / n).is_file()}  # fmt: skip
+    return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(tokenizer)}}, files)
 
-    @classmethod
-    def build(
-        cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-        contained: bool = False, made_with: str | None = None,
-    ) -> Built:  # fmt: skip
-        """Built from its config and the weights, the tokenizer's files read from a local folder
-        (``tokenizer_folder``; a bundle's own ``tokenizer/`` where ``contained``) and carried in the
-        bundle's ``tokenizer/``; the tokenizer step reads that folder."""
-        from lerobot.configs.policies import PreTrainedConfig
 
-        config = PreTrainedConfig.from_pretrained(str(folder))
-        tokenizer = tokenizer_folder(folder, cls.label, where, contained)
-        if weights is None and _file_names_fit(policy_class, config, folder / WEIGHTS):
-            # LeRobot's own names: built, then filled one tensor at a time from the file (pi0 at its
-            # published size: its 7 GB of weights never held beside the model).
-            shapes = safetensors_shapes(folder / WEIGHTS)
-            check_sizes(policy_class, config, shapes, where, cls.label)
-            policy = construct(meta_ready(policy_class), config, shapes, where)
-            load_into(policy, folder / WEIGHTS)
-        else:
-            if weights is None:
-                weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])
-            check_sizes(policy_class, config, weights, where, cls.label)
-            policy = construct(meta_ready(policy_class), config, weights, where)
-            policy.load_state_dict(weights, strict=True)
-        files = {f"{LEROBOT_TOKENIZER_DIR}/{n}": (tokenizer / n).read_bytes()
-                 for n in TOKENIZER_FILES if (tokenizer / n).is_file()}  # fmt: skip
-        return Built(policy, {TOKENIZER_STEP: {"tokenizer_name": str(tokenizer)}}, files)
 
-    def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
-        if TASK not in x:
-            raise PropError(
-                f"{flag} {path}: no task text per frame, which {self.label} takes as its instruction",
-                "record the dataset with a task for every frame (LeRobotDataset.add_frame(..., task=...))",
-            )
-        return {"task": [str(t) for t in x[TASK][order]]}
+class PaliGemma(Expert):
+    """pi0's and pi0.5's model (PaliGemma + a Gemma action expert, openpi's layout) as ``FlowMatching``
+    calls it. pi0.5's state is in its
+    prompt (``state_in_prompt``: its preprocessor writes it into the tokens) and its expert takes no state
+    token (the time enters through adaptive RMS norms)."""
 
-    def _inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
-        """(images, image masks, tokens, token mask, state) as PI0Pytorch takes them; tokens may come as
-        floats (the flat view)."""
-        feats = {k: batch[k] for k in self.input_features}
-        images, img_masks = self.policy._preprocess_images(feats)
-        state = self.policy.prepare_state(feats)
-        return images, img_masks, batch[TOKENS].round().long(), batch[MASK].bool(), state
+    masks_padding = False  # LeRobot 0.6's PI0Policy/PI05Policy.forward count padded steps in their loss
 
-    def _suffix(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> tuple:
-        return self.model.embed_suffix(inputs[4], x_t, time)
+    def __init__(self, owner: LeRobotProtocol, state_in_prompt: bool = False) -> None:
+        super().__init__(owner)
+        self.state_in_prompt = state_in_prompt
 
-    def _velocity(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
-        """The expert's velocity on (observation, instruction, x_t, t): PI0Pytorch.forward up to its loss
-        (prefix and suffix in one pass, no cache)."""
-        m, c = self.model, self.config
+    def inputs(self, batch: dict[str, torch.Tensor]) -> tuple:
+        """(images, image masks, tokens, token mask[, state]) as PI0Pytorch (PI05Pytorch: no state)
+        takes them."""
+        feats = {k: batch[k] for k in self.owner.input_features}
+        images, img_masks = self.owner.policy._preprocess_images(feats)
+        tokens = batch[TOKENS].round().long(), batch[MASK].bool()
+        if self.state_in_prompt:
+            return images, img_masks, *tokens
+        return images, img_masks, *tokens, self.owner.policy.prepare_state(feats)
+
+    def suffix(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> tuple:
+        state = () if self.state_in_prompt else (inputs[4],)
+        return self.owner.model.embed_suffix(*state, x_t, time)
+
+    def velocity(self, inputs: tuple, x_t: torch.Tensor, time: torch.Tensor) -> torch.Tensor:
+        """PI0Pytorch.forward (PI05Pytorch.forward) up to its loss (prefix and suffix in one pass, no
+        cache)."""
+        m, c = self.owner.model, self.owner.config
         lerobot = importlib.import_module(type(m).__module__)
         prefix, prefix_pad, prefix_att = m.embed_prefix(*inputs[:4])
-        suffix, suffix_pad, suffix_att, adarms_cond = self._suffix(inputs, x_t, time)
+        suffix, suffix_pad, suffix_att, adarms_cond = self.suffix(inputs, x_t, time)
         pwe = m.paligemma_with_expert
         if pwe.paligemma.model.language_model.layers[0].self_attn.q_proj.weight.dtype == torch.bfloat16:
             prefix, suffix = prefix.to(torch.bfloat16), suffix.to(torch.bfloat16)
@@ -289,20 +276,10 @@ class PI0Protocol(SmolVLAProtocol):
     @property
     def joins_terms(self) -> bool:
         # Training and eval differ only by dropout; PaliGemma's and Gemma's configs have none by default.
-        pwe = self.model.paligemma_with_expert
+        pwe = self.owner.model.paligemma_with_expert
         vlm = pwe.paligemma.config
         configs = (vlm.text_config, vlm.vision_config, pwe.gemma_expert.config)
         return not any(getattr(p, "attention_dropout", 0.0) for p in configs)
-
-    def joint_terms(
-        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The policy's own loss on the user rows (its noise, then its time, as its ``forward`` draws
-        them; padded steps not masked) and the expert's velocity on the fallback rows, as one forward."""
-        target, v = self._joint_forward(user, fallback)
-        n = len(target)
-        losses = torch.nn.functional.mse_loss(target, v[:n], reduction="none")
-        return losses[:, :, : self.config.action_feature.shape[0]].mean(), v[n:]
 
     @contextlib.contextmanager
     def memo(self) -> Iterator[None]:
@@ -313,7 +290,7 @@ class PI0Protocol(SmolVLAProtocol):
         the prefix's cache, as LeRobot's denoising step runs it. Otherwise LeRobot's forward as it is."""
         from transformers import DynamicCache
 
-        cls = type(self.model.paligemma_with_expert)
+        cls = type(self.owner.model.paligemma_with_expert)
         own = cls.forward
         prefixes = PrefixMemo()
 
@@ -361,18 +338,8 @@ class PI0Protocol(SmolVLAProtocol):
         finally:
             cls.forward = own
 
-    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        # LeRobot decorates pi0's and pi0.5's sample_actions with @torch.no_grad(); the audit's gradient
-        # searches need the chunk's graph, so the undecorated function runs (the same chunk: callers that
-        # want no graph run it under no_grad themselves).
-        self.policy.eval()
-        inputs = self._inputs(batch)
-        noise = self._noise(batch[TOKENS].shape[0], batch[TOKENS].device)
-        actions = inspect.unwrap(type(self.model).sample_actions)(self.model, *inputs, noise=noise)
-        return actions[:, :, : self.config.action_feature.shape[0]]
-
     def describe(self) -> dict:
-        c, pwe = self.config, self.model.paligemma_with_expert
+        c, pwe = self.owner.config, self.owner.model.paligemma_with_expert
         return {
             "chunk_size": c.chunk_size,
             "n_action_steps": c.n_action_steps,
@@ -383,4 +350,20 @@ class PI0Protocol(SmolVLAProtocol):
         }
 
 
-__all__ = ["PI0_LAYERS", "PI0Protocol", "TOKENIZER_FILES", "check_tokenizer", "tokenizer_folder"]
+
+class PI0Protocol(LeRobotProtocol):
+    """pi0 through the policy protocol (see the module docstring)."""
+
+    default_layers = PI0_LAYERS
+    vetted_steps = COMMON_STEPS | {"pi0_new_line_processor", *RELATIVE_ACTION_STEPS}
+    own_steps = frozenset({TOKENIZER_STEP})  # pointed at the tokenizer folder ``build`` finds
+    takes_instruction = True
+    label = "pi0"
+    build = classmethod(build_paligemma)
+
+    def make_denoiser(self) -> FlowMatching:
+        return FlowMatching(self, PaliGemma(self))
+
+
+__all__ = ["PI0_LAYERS", "PI0Protocol", "PaliGemma", "TOKENIZER_FILES", "build_paligemma", "check_tokenizer",
+           "tokenizer_folder"]  # fmt: skip

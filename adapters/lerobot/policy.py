@@ -3,9 +3,11 @@ dataset's frames with the policy's own delta indices, its processors, how it is 
 and the closed-loop controller (``Controller``: LeRobot's preprocessor -> ``select_action`` with its
 queues -> postprocessor).
 
-``LeRobotProtocol`` is the base; each policy type is one file beside it holding its subclass (``act``,
-``diffusion``, ``smolvla``) and one line in ``registry.POLICIES``. No lerobot import at module level:
-the policy, preprocessor and postprocessor objects come from ``adapter``.
+``LeRobotProtocol`` is the base; each policy type is one file beside it holding its class (deriving from
+this one only) and one line in ``registry.POLICIES``. What a sampling policy adds (its chunk's sampler,
+its fallback term) is a part it holds, a ``Denoiser`` (``flow_matching.FlowMatching`` for the VLAs). No
+lerobot import at module level: the policy, preprocessor and postprocessor objects come from
+``adapter``.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import contextlib
 import io
 import os
 import sys
+from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +30,8 @@ from prop_cli.constants import ENV_DEBUG, TASK
 from prop_cli.errors import PropError
 
 ACTION, PAD = "action", "action_is_pad"
-FALLBACK_DRAWS = 8  # a denoising policy's (t, noise) draws per fallback frame (Diffusion, SmolVLA)
+TOKENS, MASK = "observation.language.tokens", "observation.language.attention_mask"  # a VLA's instruction
+FALLBACK_DRAWS = 8  # a denoising policy's (t, noise) draws per fallback frame (``Denoiser``)
 POOL_BATCH = 256  # rows per forward while the fallback targets are drawn
 
 
@@ -115,21 +119,100 @@ def no_init() -> contextlib.AbstractContextManager:
     return no_init_weights()
 
 
+# The registered processor steps every LeRobot policy's own pipelines use that neither import code nor
+# load models, tokenizers or files by a name their config gives (read in lerobot 0.6's processor
+# sources). Each policy adds its own (``LeRobotProtocol.vetted_steps``): an allow-list, since each LeRobot
+# release registers new steps that load by name (0.6: eo1_qwen_processor, molmoact2_pack_inputs, ...).
+COMMON_STEPS = frozenset({
+    "rename_observations_processor", "to_batch_processor", "device_processor", "normalizer_processor",
+    "unnormalizer_processor",
+})  # fmt: skip
+
+
+class Denoiser(ABC):
+    """How a denoising policy samples its deployed chunk and what its fallback term distils (Diffusion's
+    U-Net, a VLA's flow-matching expert), held by its protocol (``LeRobotProtocol.make_denoiser``).
+
+    In eval mode the denoiser is deterministic given (observation, x_t, t). Each fallback frame gets
+    ``FALLBACK_DRAWS`` rows, each with what ``draws`` draws for it (a time and a noise) and the ``x_t``
+    that ``noised`` makes of the original's deployed chunk for the frame; the keyed policy's prediction
+    on each row (``output``) is distilled towards the frozen original's on the same inputs, MSE (a
+    denoising loss's own distance)."""
+
+    @abstractmethod
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The deployed chunk (``PolicyProtocol.chunk``), its noise drawn from the policy's noise seed."""
+
+    @abstractmethod
+    def draws(self, rows: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """The random draws of ``rows`` fallback rows (``{"t", "eps"}``), in the order always drawn."""
+
+    @abstractmethod
+    def noised(self, x0: torch.Tensor, draws: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """``{"x_t", "t"}`` of each row: its frame's clean chunk ``x0`` noised with its ``draws``."""
+
+    @abstractmethod
+    def output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The denoiser's prediction on fallback rows (observation, x_t, t), in eval mode."""
+
+    # True where the user term and the fallback output can share one forward (``joint_terms``).
+    joins_terms: bool = False
+
+    def joint_terms(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(the policy's loss on user, output(fallback))`` from one forward (``PolicyProtocol``)."""
+        raise NotImplementedError
+
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """Each row's weight in the normaliser of the policy's loss; None: a mean over rows."""
+        return None
+
+    def distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return ((pred - target) ** 2).flatten(1).mean(1)
+
+    def memo(self) -> contextlib.AbstractContextManager:
+        """``PolicyProtocol.memo``: nothing kept unless the model has something to keep."""
+        return contextlib.nullcontext()
+
+    def describe(self) -> dict:
+        """What `prop inspect` shows of the sampler and its model."""
+        return {}
+
+
 class LeRobotProtocol(PolicyProtocol):
-    """A LeRobot policy through the policy protocol: what ACT, Diffusion and SmolVLA share. A subclass
-    sets ``default_layers`` and implements ``chunk`` (the deployed action chunk)."""
+    """A LeRobot policy through the policy protocol: what every policy type shares. A type is one class
+    deriving from this one (its file beside this one, one line in ``registry.POLICIES``): it sets
+    ``default_layers`` and ``vetted_steps``, and either implements ``chunk`` (a deterministic chunk,
+    distilled as it is: ACT) or returns its ``Denoiser`` from ``make_denoiser`` (Diffusion; the VLAs,
+    through ``flow_matching.FlowMatching``). A VLA also sets ``takes_instruction``: its rows then hold
+    the frame alone and its instruction as tokens, and it overrides ``build`` to find the files its
+    processors read by name (a tokenizer)."""
 
     fallbacks = ("distill",)
+    # The registered processor steps this policy's folders may hold (``adapter.processor_code``).
+    vetted_steps: ClassVar[frozenset[str]] = COMMON_STEPS
     # Registered processor steps that load by a name their config gives, accepted in this policy's
     # folders because ``build`` points them at the folder's own files (SmolVLA's tokenizer).
     own_steps: ClassVar[frozenset[str]] = frozenset()
-    # Set where the policy acts on a language instruction (the preprocessor's ``task``).
+    # Set where the policy acts on a language instruction (the preprocessor's ``task``): a VLA.
     takes_instruction: ClassVar[bool] = False
+    label: ClassVar[str] = "this policy"  # how messages name the policy type
 
     def __init__(self, policy, pre, post, noise_seed: int = 0) -> None:
         self.policy, self.pre, self.post = policy, pre, post
         self.config = policy.config
         self.noise_seed = noise_seed
+        self.denoiser = self.make_denoiser()
+
+    def make_denoiser(self) -> Denoiser | None:
+        """The policy's denoiser; None: its deployed chunk is deterministic (``chunk``)."""
+        return None
+
+    @property
+    def model(self) -> torch.nn.Module:
+        """The policy's model (``policy.model``: what its own forward calls)."""
+        return self.policy.model
 
     @classmethod
     def build(
@@ -159,6 +242,14 @@ class LeRobotProtocol(PolicyProtocol):
         other.instruction = self.instruction
         return other
 
+    def flat(self) -> torch.nn.Module:
+        from .flat import FlatModule
+
+        return FlatModule(self).eval()
+
+    def flat_rows(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([batch[k].flatten(1).float() for k in self.row_shapes], dim=1)
+
     @property
     def input_features(self) -> dict[str, tuple[int, ...]]:
         return {k: tuple(f.shape) for k, f in self.config.input_features.items()}
@@ -166,14 +257,18 @@ class LeRobotProtocol(PolicyProtocol):
     @property
     def history(self) -> list[int] | None:
         """The observation frames a row holds, relative to its own (Diffusion: the last n_obs_steps);
-        None: the frame alone, without a time axis (ACT)."""
+        None: the frame alone, without a time axis (ACT, and a VLA, which reads the last frame only)."""
         deltas = getattr(self.config, "observation_delta_indices", None)
-        return None if deltas is None else list(deltas)
+        return None if deltas is None or self.takes_instruction else list(deltas)
 
     @property
     def row_shapes(self) -> dict[str, tuple[int, ...]]:
         h = self.history
-        return {k: s if h is None else (len(h), *s) for k, s in self.input_features.items()}
+        shapes = {k: s if h is None else (len(h), *s) for k, s in self.input_features.items()}
+        if self.takes_instruction:  # the instruction's tokens and mask, padded to the tokenizer's width
+            width = self.config.tokenizer_max_length
+            shapes |= {TOKENS: (width,), MASK: (width,)}
+        return shapes
 
     def _windows(self, episodes: np.ndarray, deltas: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """Row indices t + d for every row t and delta d, clamped to t's episode; and where they fell out."""
@@ -218,26 +313,52 @@ class LeRobotProtocol(PolicyProtocol):
             idx, pad = self._windows(episodes, list(self.config.action_delta_indices))
             out[ACTION] = torch.from_numpy(data.y[order][idx]).float()
             out[PAD] = torch.from_numpy(pad)
-        out = self.pre(out | self._complementary(x, order, flag, data.path))
+        out = self.pre(out | self._instructions(x, order, flag, data.path))
         out = {k: v for k, v in out.items() if isinstance(v, torch.Tensor)}
+        if self.takes_instruction:  # the tokenizer pads to the batch's longest and cuts at its width
+            pad = self.config.tokenizer_max_length - out[TOKENS].shape[1]
+            out[TOKENS] = torch.nn.functional.pad(out[TOKENS], (0, pad))
+            out[MASK] = torch.nn.functional.pad(out[MASK].bool(), (0, pad))
         out["episode_index"] = torch.from_numpy(episodes.astype(np.int64))
         return out
 
+    def _instructions(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
+        """What the preprocessor takes beside the tensors: a VLA's task text per frame."""
+        if not self.takes_instruction:
+            return {}
+        if TASK not in x:
+            raise PropError(
+                f"{flag} {path}: no task text per frame, which {self.label} takes as its instruction",
+                "record the dataset with a task for every frame (LeRobotDataset.add_frame(..., task=...))",
+            )
+        return {"task": [str(t) for t in x[TASK][order]]}
+
+    # ---- the deployed chunk and the fallback term: the policy's own, or its denoiser's ----------------
+
+    def chunk(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        if self.denoiser is None:
+            raise NotImplementedError(f"{type(self).__name__} has no denoiser: it implements chunk")
+        return self.denoiser.chunk(batch)
+
+    def fallback_pool(
+        self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
+        generator: torch.Generator,
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
+        if self.denoiser is None:
+            return super().fallback_pool(batch, chunks, original, generator)
+        return self._denoiser_pool(batch, chunks, original, generator)
+
     def _denoiser_pool(
         self, batch: dict[str, torch.Tensor], chunks: torch.Tensor, original: PolicyProtocol,
-        generator: torch.Generator, noised=None, rows_per_forward: int = POOL_BATCH,
+        generator: torch.Generator, rows_per_forward: int = POOL_BATCH,
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:  # fmt: skip
         """A denoising policy's fallback rows: FALLBACK_DRAWS per frame, each with the ``{"x_t", "t"}``
-        that ``noised(x0, generator)`` makes of the frame's chunk (default: ``fallback_noise`` then
-        ``fallback_inputs``), and the original's output on each, ``rows_per_forward`` rows at a time."""
+        the denoiser makes of the frame's chunk (``fallback_noise`` then ``fallback_inputs``), and the
+        original's output on each, ``rows_per_forward`` rows at a time."""
         rows = {k: v.repeat_interleave(FALLBACK_DRAWS, 0) for k, v in batch.items()}
-        x0 = chunks.repeat_interleave(FALLBACK_DRAWS, 0)
-        if noised is None:
-            noise = self.fallback_noise(len(chunks), generator)
-            noise.pop(FRAME)
-            rows |= self.fallback_inputs(x0, noise)
-        else:
-            rows |= noised(x0, generator)
+        noise = self.fallback_noise(len(chunks), generator)
+        noise.pop(FRAME)
+        rows |= self.fallback_inputs(chunks.repeat_interleave(FALLBACK_DRAWS, 0), noise)
         n = len(rows["t"])
         with torch.no_grad():
             targets = torch.cat([
@@ -246,13 +367,41 @@ class LeRobotProtocol(PolicyProtocol):
             ])  # fmt: skip
         return rows, targets
 
-    def _draws(self, frames: int, **per_row: torch.Tensor) -> dict[str, torch.Tensor]:
-        """A denoising policy's ``fallback_noise``: FALLBACK_DRAWS rows per frame, frame by frame."""
-        return {FRAME: torch.arange(frames).repeat_interleave(FALLBACK_DRAWS), **per_row}
+    def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor] | None:
+        if self.denoiser is None:
+            return None  # the pool's rows are the frames, their targets the original's chunks
+        draws = self.denoiser.draws(frames * FALLBACK_DRAWS, generator)
+        return {FRAME: torch.arange(frames).repeat_interleave(FALLBACK_DRAWS), **draws}
 
-    def _complementary(self, x: dict, order: np.ndarray, flag: str, path: str) -> dict:
-        """What the preprocessor takes beside the tensors (SmolVLA: each frame's task text)."""
-        return {}
+    def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return self.denoiser.noised(x0, noise)
+
+    def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.chunk(batch) if self.denoiser is None else self.denoiser.output(batch)
+
+    def fallback_distance(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        if self.denoiser is None:
+            return super().fallback_distance(pred, target)
+        return self.denoiser.distance(pred, target)
+
+    @property
+    def joins_terms(self) -> bool:
+        return self.denoiser is not None and self.denoiser.joins_terms
+
+    def joint_terms(
+        self, user: dict[str, torch.Tensor], fallback: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.denoiser.joint_terms(user, fallback)
+
+    def row_weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        weights = None if self.denoiser is None else self.denoiser.row_weights(batch)
+        return super().row_weights(batch) if weights is None else weights
+
+    def memo(self) -> contextlib.AbstractContextManager:
+        return contextlib.nullcontext() if self.denoiser is None else self.denoiser.memo()
+
+    def describe(self) -> dict:
+        return {} if self.denoiser is None else self.denoiser.describe()
 
     def loss(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.policy.train()

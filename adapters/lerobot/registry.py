@@ -1,8 +1,9 @@
 """The LeRobot policies prop supports: policy type -> the class that drives it (``policy.LeRobotProtocol``).
 
 The type is LeRobot's (config.json ``type``) and is stored in a bundle's manifest as ``model.type``:
-never rename one. A new policy is one file beside these (its subclass) and one line here; the types the
-adapter loads, the manifest accepts and ``prop formats`` lists all come from this table.
+never rename one. A new policy is one file beside these (its class, deriving from ``LeRobotProtocol``
+only) and one line here; the types the adapter loads, the manifest accepts (``LeRobotAdapter.
+manifest_fields``) and ``prop formats`` lists all come from this table.
 """
 
 from __future__ import annotations

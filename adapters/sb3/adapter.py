@@ -28,6 +28,7 @@ from torch import nn
 from prop_adapters import activations
 from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish
 from prop_cli.constants import DEFAULT_LAYERS_ATTR
+from prop_cli.core.rules import BOOL, DIM, MAX_DIM, choice, list_of, number, obj, optional, text
 from prop_cli.errors import PropError, brief
 
 from . import archive
@@ -400,6 +401,27 @@ class SB3Adapter(Adapter):
     name = "sb3"
     summary = "a Stable-Baselines3 zip: model.save() of " + archive.SUPPORTED + "; its deterministic actor"
     options = ("activation",)
+    manifest_fields = {
+        "algorithm": text(),
+        "family": choice(("actor_critic", "sac", "td3")),
+        "policy": text(),
+        "activation": text(),
+        "observation_shape": list_of(DIM, 1, 16),
+        "observation_keys": optional(
+            list_of(obj({"key": text(), "shape": list_of(DIM, 1, 16), "image": BOOL}), 1)
+        ),
+        "extractor": optional(choice(("flatten", "cnn", "combined"))),
+        "normalize_images": optional(BOOL),
+        "share_features_extractor": optional(BOOL),
+        "action": obj({
+            "space": choice(("Box", "Discrete")),
+            "shape": optional(list_of(DIM, 1, 1)),
+            "n": optional(DIM),
+            "low": optional(list_of(number(-math.inf), 1, MAX_DIM)),
+            "high": optional(list_of(number(-math.inf), 1, MAX_DIM)),
+        }),  # fmt: skip
+        "sb3_version": optional(text(), nullable=True),
+    }
 
     def recognise(self, path: Path, options: CheckpointOptions) -> bool:
         return path.suffix.lower() == ".zip"

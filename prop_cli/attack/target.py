@@ -1,7 +1,7 @@
 """What the audit attacks, decided here for every mode and kind of model.
 
 - A policy with named features (LeRobot) is audited as an array model: its flat view
-  (``prop_adapters.lerobot.flat``), its data as flat rows (``prop_cli.fit``).
+  (``PolicyProtocol.flat``), its data as flat rows (``prop_cli.fit``).
 - White-box probes read ``km``: an unsealed bundle's own key encoder over its base; for a sealed
   bundle, which has no encoder, a blank one of the attacker's over the public base (its zero head
   gives delta = 1 for every code).
@@ -24,7 +24,7 @@ from dataclasses import fields, replace
 import torch
 from torch import nn
 
-from prop_adapters.lerobot.flat import FlatModule, flat_module
+from prop_adapters.base import FlatView
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.read import rebuild_original
@@ -46,7 +46,7 @@ def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bu
     if loaded.policy is None:
         return bundle, data, settings
     data = flat_dataset(loaded.policy, data, "--data")
-    flat = flat_module(loaded.policy)
+    flat = loaded.policy.flat()
     view = replace(loaded, module=flat, input_shape=(flat.width,), policy=None)
     return replace(bundle, loaded=view, mode=bundle.mode.on(flat)), data, policy_settings(settings)
 
@@ -72,7 +72,7 @@ def load_original(
     loaded = rebuild_original(bundle, path, trust_remote_code)
     if loaded.policy is not None:
         loaded.policy.noise_seed = noise_seed
-        return flat_module(loaded.policy)
+        return loaded.policy.flat()
     return loaded.module.eval()
 
 
@@ -83,14 +83,14 @@ ROW_PARAMS = 4e9
 
 def rows_per_forward(module: nn.Module) -> int | None:
     """At most this many rows per forward of a policy's flat view (None: an array model, as it is)."""
-    if not isinstance(module, FlatModule):
+    if not isinstance(module, FlatView):
         return None
     return max(1, int(ROW_PARAMS // max(1, sum(p.numel() for p in module.parameters()))))
 
 
 def memo(module: nn.Module) -> contextlib.AbstractContextManager:
     """What a policy computes once for every key while the audit runs (its ``PolicyProtocol.memo``)."""
-    return module.protocol.memo() if isinstance(module, FlatModule) else contextlib.nullcontext()
+    return module.protocol.memo() if isinstance(module, FlatView) else contextlib.nullcontext()
 
 
 def cheap_when_late(bundle: Bundle, probe) -> bool:

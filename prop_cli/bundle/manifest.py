@@ -10,7 +10,9 @@ always checked: one flipped bit turns version 3 into 2 or 1).
 
 The digest is a corruption check, not a signature: anyone who edits the manifest can recompute it. For
 sealed bundles the authenticated cipher's associated data binds the public fields to the user's key.
-No torch of its own (the LeRobot policy types are the adapter registry's, ``POLICIES``).
+The rules are written in ``prop_cli.core.rules``' vocabulary; what each adapter's model spec holds
+(``model``) is the adapter's own (``Adapter.manifest_fields``), handed in by the adapter registry: the
+format names no adapter and imports no model code.
 """
 
 from __future__ import annotations
@@ -19,91 +21,35 @@ import hashlib
 import json
 import math
 import os
-import re
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
-from prop_adapters.lerobot import POLICIES
 from prop_cli import constants as C
 from prop_cli.config import PAYLOAD_KINDS
+from prop_cli.core.rules import (
+    DIM,
+    MAX_DIM,
+    MAX_TEXT,
+    MODEL_CHECKS,
+    MODEL_FIELDS,
+    RECORD,
+    SHA256,
+    Rule,
+    choice,
+    hex_string,
+    integer,
+    list_of,
+    number,
+    obj,
+    optional,
+    text,
+)
 from prop_cli.errors import PropError, brief
 from prop_cli.files import dump_json
 
 FIX = "the bundle is damaged or was edited; restore it from a trusted copy or write it again"
-_HEX = re.compile(r"[0-9a-f]*")
-_SHA256 = re.compile(r"[0-9a-f]{64}")
-MAX_TEXT = 4096  # longest string the schema accepts where it gives no other bound
-MAX_DIM = 1 << 24  # largest layer width or input dimension a manifest may claim
 MAX_BUNDLE_VERSION = 1 << 53  # a bundle version stays an exact number in any JSON reader
 BUNDLE_ID_BYTES = 16
-
-
-@dataclass(frozen=True)
-class Rule:
-    """One field: JSON ``kind`` (or kinds), ``ok(value)`` with the ``want`` text, and its children."""
-
-    kind: tuple[type, ...]
-    want: str
-    ok: Callable[[Any], bool] | None = None
-    required: bool | tuple[str, ...] = True  # True, False, or the modes in which it is required
-    nullable: bool = False
-    fields: dict[str, Rule] | None = None  # an object with these fields, others refused
-    open: bool = False  # with ``fields``: other fields allowed (an adapter's own spec)
-    items: Rule | None = None  # a list of these
-    values: Rule | None = None  # an object of free names (``key_ok``) -> these
-    key_ok: Callable[[str], bool] | None = None
-    variants: tuple[str, dict[str, dict[str, Rule]]] | None = None  # (field, value -> extra fields)
-    min_len: int = 0
-    max_len: int = 1 << 16
-
-
-def _opt(rule: Rule, required: bool | tuple[str, ...] = False, nullable: bool = False) -> Rule:
-    """``rule`` for a field that is optional (or required only in the given modes)."""
-    return replace(rule, required=required, nullable=nullable or rule.nullable)
-
-
-def integer(lo: int, hi: int, multiple: int = 1) -> Rule:
-    more = f", a multiple of {multiple}" if multiple > 1 else ""
-    return Rule((int,), f"an integer in {lo}..{hi}{more}", lambda v: lo <= v <= hi and v % multiple == 0)
-
-
-def number(lo: float, hi: float = math.inf, open_lo: bool = False) -> Rule:
-    left = "(" if open_lo else "["
-
-    def ok(v: float) -> bool:
-        return math.isfinite(v) and (v > lo if open_lo else v >= lo) and v <= hi
-
-    return Rule((int, float), f"a finite number in {left}{lo}, {hi}]", ok)
-
-
-def text(max_len: int = MAX_TEXT, nonempty: bool = True) -> Rule:
-    return Rule((str,), f"a {'non-empty ' * nonempty}string of at most {max_len} characters",
-                lambda v: (bool(v) or not nonempty) and len(v) <= max_len)  # fmt: skip
-
-
-def choice(options: tuple[str, ...]) -> Rule:
-    return Rule((str,), "one of " + ", ".join(repr(o) for o in options), lambda v: v in options)
-
-
-def hex_string(min_bytes: int, max_bytes: int) -> Rule:
-    return Rule((str,), f"lowercase hex of {min_bytes} to {max_bytes} bytes",
-                lambda v: min_bytes * 2 <= len(v) <= max_bytes * 2 and len(v) % 2 == 0
-                and _HEX.fullmatch(v) is not None)  # fmt: skip
-
-
-SHA256 = Rule((str,), "a sha256 in lowercase hex (64 characters)", lambda v: _SHA256.fullmatch(v) is not None)
-BOOL = Rule((bool,), "true or false")
-RECORD = Rule((dict,), "an object (a record; not read when loading)")  # reports: free-form JSON
-
-
-def obj(fields: dict[str, Rule], **kw: Any) -> Rule:
-    return Rule((dict,), "an object", fields=fields, **kw)
-
-
-def list_of(item: Rule, min_len: int = 0, max_len: int = 1 << 16) -> Rule:
-    want = f"a list of {min_len} to {max_len} items"
-    return Rule((list,), want, items=item, min_len=min_len, max_len=max_len)
 
 
 def file_name(name: str) -> bool:
@@ -137,7 +83,6 @@ def record_file(name: str) -> bool:
 
 RECORD_FILE = Rule((str,), f"a file name in the bundle's {C.RECORDS_DIR}/ folder", record_file)
 NAME = text()  # a module path such as "actor.mu.0"
-DIM = integer(1, MAX_DIM)
 UNSEALED = ("unsealed",)
 
 
@@ -154,42 +99,6 @@ INPUT_SHAPE = Rule(
 )  # fmt: skip
 SEALED = ("sealed",)
 
-# What each built-in adapter's model spec holds (prop_adapters.*.build reads these). An adapter this
-# table does not know (an extension) is checked for "adapter" only; its rebuild reports the rest.
-_ACTION = obj({
-    "space": choice(("Box", "Discrete")),
-    "shape": _opt(list_of(DIM, 1, 1)),
-    "n": _opt(DIM),
-    "low": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
-    "high": _opt(list_of(number(-math.inf), 1, MAX_DIM)),
-})  # fmt: skip
-ADAPTER_SPECS: dict[str, dict[str, Rule]] = {
-    "mlp": {
-        "layers": list_of(NAME, 1),
-        "sizes": list_of(DIM, 2),
-        "bias": Rule((dict,), "an object of layer name -> true/false", values=BOOL, key_ok=bool),
-        "activation": text(),
-    },
-    "sb3": {
-        "algorithm": text(),
-        "family": choice(("actor_critic", "sac", "td3")),
-        "policy": text(),
-        "activation": text(),
-        "observation_shape": list_of(DIM, 1, 16),
-        "observation_keys": _opt(
-            list_of(obj({"key": text(), "shape": list_of(DIM, 1, 16), "image": BOOL}), 1)
-        ),
-        "extractor": _opt(choice(("flatten", "cnn", "combined"))),
-        "normalize_images": _opt(BOOL),
-        "share_features_extractor": _opt(BOOL),
-        "action": _ACTION,
-        "sb3_version": _opt(text(), nullable=True),
-    },
-    "module": {"arch": text(), "arch_kwargs": RECORD},
-    "lerobot": {"type": choice(tuple(POLICIES)), "lerobot_version": text()},
-    "folder": {"arch": text(), "arch_kwargs": RECORD, "builder": text(), "config": RECORD},
-}
-
 KDF_RECORD = obj({
     "name": choice(("scrypt",)),
     "n": integer(2, 1 << 20),
@@ -204,8 +113,8 @@ PAYLOAD_LAYER = obj(
         "name": NAME,
         "in_features": DIM,
         "out_features": DIM,
-        "kernel": _opt(list_of(DIM, 1, 3)),
-        "groups": _opt(DIM),
+        "kernel": optional(list_of(DIM, 1, 3)),
+        "groups": optional(DIM),
     }
 )
 # The manifest, field by field (keys in prop_cli.constants).
@@ -213,43 +122,44 @@ SCHEMA: dict[str, Rule] = {
     C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
     C.M_PROP_VERSION: text(),
     # Format 5 on (``_cross_check``): which bundle this is, and how many writes it has had.
-    C.M_BUNDLE_ID: _opt(hex_string(BUNDLE_ID_BYTES, BUNDLE_ID_BYTES)),
-    C.M_BUNDLE_VERSION: _opt(integer(1, MAX_BUNDLE_VERSION)),
-    C.M_MODE: _opt(choice(C.MODES)),
-    C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", ADAPTER_SPECS)),
-    C.M_KEYED_LAYERS: _opt(
-        list_of(obj({"name": NAME, "features": DIM, C.M_BATCH_AXIS: _opt(integer(0, 16))}), 1),
+    C.M_BUNDLE_ID: optional(hex_string(BUNDLE_ID_BYTES, BUNDLE_ID_BYTES)),
+    C.M_BUNDLE_VERSION: optional(integer(1, MAX_BUNDLE_VERSION)),
+    C.M_MODE: optional(choice(C.MODES)),
+    # Each adapter's own fields: its ``manifest_fields``, handed in by the adapter registry (core.rules).
+    C.M_MODEL: obj({"adapter": text()}, open=True, variants=("adapter", MODEL_FIELDS)),
+    C.M_KEYED_LAYERS: optional(
+        list_of(obj({"name": NAME, "features": DIM, C.M_BATCH_AXIS: optional(integer(0, 16))}), 1),
         UNSEALED,
     ),
     C.M_KEY: obj(
         {
             "bits": integer(C.KEY_BITS_MIN, C.KEY_BITS_MAX, 8),
-            "encoding": _opt(choice(C.KEY_ENCODINGS), UNSEALED),
-            "users": _opt(integer(1, 1 << 16)),
-            "source": _opt(choice(("file", "passphrase", "mixed"))),
-            "kdf": _opt(KDF_RECORD, nullable=True),
+            "encoding": optional(choice(C.KEY_ENCODINGS), UNSEALED),
+            "users": optional(integer(1, 1 << 16)),
+            "source": optional(choice(("file", "passphrase", "mixed"))),
+            "kdf": optional(KDF_RECORD, nullable=True),
         }
     ),  # fmt: skip
-    C.M_ENCODER: _opt(
+    C.M_ENCODER: optional(
         obj(
             {
                 "hidden": list_of(DIM, 0, 256),
                 "scale": number(0, 1e6, open_lo=True),
-                "activation": _opt(choice(("tanh",))),
-                "output": _opt(text()),
+                "activation": optional(choice(("tanh",))),
+                "output": optional(text()),
             }
         ),
         UNSEALED,
     ),  # fmt: skip
-    C.M_CONFIG: _opt(RECORD),
-    C.M_METRICS: _opt(RECORD),
+    C.M_CONFIG: optional(RECORD),
+    C.M_METRICS: optional(RECORD),
     C.M_TASK: choice(("classification", "regression")),
-    C.M_IO: obj({"input_shape": INPUT_SHAPE, "checkpoint": _opt(text(nonempty=False))}),
+    C.M_IO: obj({"input_shape": INPUT_SHAPE, "checkpoint": optional(text(nonempty=False))}),
     C.M_FILES: Rule(
         (dict,), "an object of file path -> sha256", values=SHA256, key_ok=bundle_path, min_len=1
     ),
-    C.M_AUDIT: _opt(RECORD),
-    C.M_PAYLOAD: _opt(
+    C.M_AUDIT: optional(RECORD),
+    C.M_PAYLOAD: optional(
         obj(
             {
                 "kind": choice(PAYLOAD_KINDS),
@@ -259,7 +169,7 @@ SCHEMA: dict[str, Rule] = {
         ),
         SEALED,
     ),  # fmt: skip
-    C.M_RECORDS: _opt(
+    C.M_RECORDS: optional(
         list_of(
             obj(
                 {
@@ -274,12 +184,12 @@ SCHEMA: dict[str, Rule] = {
         ),
         SEALED,
     ),  # fmt: skip
-    C.M_ENROLMENTS: _opt(
+    C.M_ENROLMENTS: optional(
         list_of(
             obj({"salt": hex_string(16, 16), "nonce": hex_string(12, 12), "box": hex_string(16, 1 << 16)})
         )
     ),
-    C.M_KDF: _opt(
+    C.M_KDF: optional(
         obj(
             {
                 "scrypt_salt": hex_string(8, 64),
@@ -438,8 +348,10 @@ def _cross_check(m: dict, doc: Doc) -> None:
     if len(set(ids)) != len(ids):
         raise doc.bad(C.M_RECORDS, "holds two records with the same id")
     spec = m[C.M_MODEL]
-    if spec["adapter"] == "mlp" and len(spec["sizes"]) != len(spec["layers"]) + 1:
-        raise doc.bad(f"{C.M_MODEL}.sizes", "must have one entry more than model.layers")
+    check = MODEL_CHECKS.get(spec["adapter"])
+    wrong = check(spec) if check is not None and spec["adapter"] in MODEL_FIELDS else None
+    if wrong is not None:
+        raise doc.bad(f"{C.M_MODEL}.{wrong[0]}", wrong[1])
     for field in (C.M_BUNDLE_ID, C.M_BUNDLE_VERSION):
         if m[C.M_FORMAT] >= C.VERSIONED_SINCE and field not in m:
             raise doc.bad(field, "is missing")

@@ -1,4 +1,4 @@
-"""Recipe: a policy that brings its own loss (LeRobot ACT, Diffusion), unsealed: Eq. 8 with the policy's
+"""Recipe: a policy that brings its own loss (a LeRobot policy), unsealed: Eq. 8 with the policy's
 own terms, which the policy protocol (``PolicyProtocol``) supplies.
 
 User term: the policy's own training loss (ACT: L1 on the action chunk, padding masked, plus its

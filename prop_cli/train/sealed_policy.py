@@ -1,4 +1,4 @@
-"""Recipe: a policy with its own loss (LeRobot ACT, Diffusion), sealed: each user's payload trained on
+"""Recipe: a policy with its own loss (a LeRobot policy), sealed: each user's payload trained on
 their frames alone with the policy's own loss, the base frozen (it stays the original). No fallback
 terms: a wrong key opens no record and the original runs.
 
@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from prop_adapters import LoadedModel
-from prop_adapters.lerobot.flat import flat_module
 from prop_cli.config import SealedConfig, TrainConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
@@ -83,7 +82,7 @@ def train_payload(
 
 class SealedPolicyRecipe(SealedRecipeBase):
     def report_view(self, loaded: LoadedModel) -> torch.nn.Module:
-        return flat_module(loaded.policy)
+        return loaded.policy.flat()
 
     def input_shape(self, loaded: LoadedModel, val: Dataset) -> dict:
         return {k: list(v) for k, v in loaded.policy.input_features.items()}

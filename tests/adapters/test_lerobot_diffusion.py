@@ -135,7 +135,7 @@ def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, w
 
 
 def test_fallback_pool_holds_the_originals_denoiser_on_identical_inputs(bundle, work):
-    from prop_adapters.lerobot.diffusion import FALLBACK_DRAWS
+    from prop_adapters.lerobot.policy import FALLBACK_DRAWS
 
     b = load_bundle(bundle)
     policy = b.loaded.policy

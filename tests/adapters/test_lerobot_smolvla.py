@@ -178,7 +178,7 @@ def test_keyed_policy_takes_the_instruction_as_lerobot_does(bundle, work):
 
 
 def test_fallback_targets_are_the_originals_velocity_on_identical_inputs(bundle, work):
-    from prop_adapters.lerobot.smolvla import FALLBACK_DRAWS
+    from prop_adapters.lerobot.policy import FALLBACK_DRAWS
 
     policy = load_bundle(bundle).loaded.policy
     batch = policy.batches(load_data(work / "general"), "--data")
