@@ -330,17 +330,21 @@ class Sealed(Mode):
 
 
 # The manifest's keyed layers against the model they key: here, where the model is (the schema is data).
+def _keyable(mods: dict, layer: dict, where: str, source: str, mode: str = C.MODE_UNSEALED):
+    """The model's layer a manifest entry names, refused unless it is a linear layer or convolution."""
+    m = mods.get(layer["name"])
+    if not isinstance(m, KEYABLE):
+        problem = f"names no linear layer or convolution of the model ({layer['name']!r})"
+        raise schema.field_error(source, f"{where}.name", problem, mode)
+    return m
+
+
 def check_layers(layers: list[dict], module, source: str) -> None:
     """Each keyed layer is a linear layer or convolution of ``module`` with the recorded input width."""
     mods = dict(module.named_modules())
     for i, layer in enumerate(layers):
-        m = mods.get(layer["name"])
         where = f"{C.M_KEYED_LAYERS}[{i}]"
-        if not isinstance(m, KEYABLE):
-            raise schema.field_error(
-                source, f"{where}.name",
-                f"names no linear layer or convolution of the model ({layer['name']!r})",
-            )  # fmt: skip
+        m = _keyable(mods, layer, where, source)
         if in_width(m) != layer["features"]:
             raise schema.field_error(
                 source, f"{where}.features", f"is {layer['features']} but layer {layer['name']!r} takes "
@@ -360,13 +364,8 @@ def check_payload_layers(layers: list[dict], rank: int, elements: int, module, s
     mods = dict(module.named_modules())
     weights = 0
     for i, layer in enumerate(layers):
-        m = mods.get(layer["name"])
         where = f"{C.M_PAYLOAD}.layers[{i}]"
-        if not isinstance(m, KEYABLE):
-            raise schema.field_error(
-                source, f"{where}.name",
-                f"names no linear layer or convolution of the model ({layer['name']!r})", C.MODE_SEALED,
-            )  # fmt: skip
+        m = _keyable(mods, layer, where, source, C.MODE_SEALED)
         actual = describe_layer(layer["name"], m)
         if actual != layer:
             raise schema.field_error(
