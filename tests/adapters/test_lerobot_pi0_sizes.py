@@ -38,7 +38,7 @@ def work(tmp_path_factory):
         built = pi_tiny.build_pi("pi0", pi_tiny.build_tokenizer(d / "tok"), task.dataset_stats(d / "data"))
         task.train_base(d / "data", d / "pi0", steps=1, built=built)
         api.personalize_checkpoint(str(d / "pi0"), [(d / "data", KeySource(bits, "file"))], d / "b.prop",
-                                   PersonalizeConfig(**TINY))  # fmt: skip
+                                   PersonalizeConfig.of(**TINY))  # fmt: skip
     return d
 
 
