@@ -139,7 +139,9 @@ def _warn_coverage(user: int, coverage: dict | None) -> None:
     if not coverage:
         return
     ran, of = coverage["ran"], coverage["of"]
-    parts = [f"{ran[k]} of {of[k]} {w}" for k, w in (("frames", "held-out frames"), *GROUPS.items())]
+    # A sealed policy's report cuts frames only (its wrong keys open nothing and cost no sampler run).
+    groups = (("frames", "held-out frames"), *GROUPS.items())
+    parts = [f"{ran[k]} of {of[k]} {w}" for k, w in groups if k in ran]
     warn(f"user {user}'s report covers {', '.join(parts)} (--report-budget {coverage['budget']}; 0 runs "
          "every key on every frame); prop attack audits further")  # fmt: skip
 

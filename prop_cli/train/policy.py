@@ -430,6 +430,14 @@ def report_plan(frames: int, n_random: int, n_ham: int, budget: int | None) -> t
     return f, r, max(1, min(n_ham, keys - r))
 
 
+def spaced_frames(val: dict, f: int) -> dict:
+    """``f`` of the held-out frames of ``val``, evenly spaced (all of them when ``f`` covers them)."""
+    n = len(val["episode_index"])
+    if f >= n:
+        return val
+    return rows(val, torch.from_numpy(np.unique(np.linspace(0, n - 1, f).round().astype(np.int64))))
+
+
 def pair_outputs(km, fn, data: dict, deltas: list[torch.Tensor], per_forward: int) -> torch.Tensor:
     """``fn`` on every (key, row) pair of K keys (``deltas``: (K, features) per layer) and the rows of
     ``data``, key-major ((K * rows, ...): key 0 on every row, then key 1, ...), ``per_forward`` pairs
@@ -469,8 +477,7 @@ def chunk_report(
     ham = one_bit_neighbours(bits)
     n = len(val["episode_index"])
     f, r, h = report_plan(n, len(rand), len(ham), budget)
-    if f < n:
-        val = rows(val, torch.from_numpy(np.unique(np.linspace(0, n - 1, f).round().astype(np.int64))))
+    val = spaced_frames(val, f)
     rand = rand[:r]
     if h < len(ham):
         ham = ham[np.sort(rng.choice(len(ham), h, replace=False))]

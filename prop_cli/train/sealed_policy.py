@@ -28,12 +28,15 @@ from .distributed import Ranks
 from .loop import Optimiser, mixed_precision, run_steps
 from .policy import (
     CLIP,
+    REPORT_MIN_FRAMES,
     chunks,
     drawn,
     forward_rows,
     frozen_in_bf16,
+    report_budget,
     row_noise,
     rows,
+    spaced_frames,
     split_episodes,
     to_device,
     weighted,
@@ -80,6 +83,20 @@ def train_payload(
     return payload.eval(), losses
 
 
+# Sampler runs per held-out frame of a sealed policy's report: the original's chunk and the user's key's,
+# once for the private figures sealed with the payload and once through the records as anyone runs them
+# (the other keys open no record and reuse the original's outputs; opening costs no sampler run).
+RUNS_PER_FRAME = 4
+
+
+def sealed_report_frames(frames: int, budget: int | None) -> int:
+    """How many held-out frames a sealed policy's report runs within ``budget`` sampler runs (None: all);
+    every key still runs on each frame kept."""
+    if budget is None or frames * RUNS_PER_FRAME <= budget:
+        return frames
+    return min(frames, max(REPORT_MIN_FRAMES, budget // RUNS_PER_FRAME))
+
+
 class SealedPolicyRecipe(SealedRecipeBase):
     def report_view(self, loaded: LoadedModel) -> torch.nn.Module:
         return loaded.policy.flat()
@@ -119,6 +136,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
         )  # fmt: skip
         module.requires_grad_(False)
         out = []
+        budget = report_budget(tc, module)
         try:
             module.to(dev)
             per = self.report_rows(tc)
@@ -133,10 +151,16 @@ class SealedPolicyRecipe(SealedRecipeBase):
                 finally:
                     if restore is not None:
                         restore()
+                # The report within --report-budget (by the policy's size by default), as the unsealed one.
+                n = len(val["episode_index"])
+                val = spaced_frames(val, sealed_report_frames(n, budget))
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
                 b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)
                 private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, job)
+                if len(val["episode_index"]) < n:
+                    private["coverage"] = {"ran": {"frames": len(val["episode_index"])}, "of": {"frames": n},
+                                           "budget": budget}  # fmt: skip
                 flat_val = flat_chunks(policy, val, datasets[i - first_index].path)
                 out.append(SealedUser(payload.to("cpu"), private, bits, flat_val))
         finally:

@@ -78,3 +78,4 @@ def test_eval_finds_a_missing_obs_map_before_any_rollout(bundle, cli, obs_map, w
     r = cli(*args)
     assert r.code == 2 and words in r.err and len(r.err.strip().splitlines()) == 1, r.err
     assert "eval:" not in r.err  # no condition started
+

@@ -108,6 +108,18 @@ def test_the_policy_report_plan_stays_within_its_budget():
         PersonalizeConfig.of(report_budget=-1)
 
 
+def test_a_sealed_policy_report_keeps_frames_within_its_budget():
+    """issue 44: a sealed policy's report (the original's and the user's chunks, in the private figures
+    and through the records) runs within --report-budget sampler runs, frames cut, at least 2 kept."""
+    from prop_cli.train.sealed_policy import RUNS_PER_FRAME, sealed_report_frames
+
+    assert sealed_report_frames(50, None) == 50  # no budget (0 or a small policy): every frame
+    assert sealed_report_frames(5, 5 * RUNS_PER_FRAME) == 5  # enough for every frame
+    assert sealed_report_frames(50, 22) == 5 and 5 * RUNS_PER_FRAME <= 22  # 450 M parameters
+    assert sealed_report_frames(50, 1) == 2  # 2 frames at least
+    assert sealed_report_frames(1, 1) == 1  # never more frames than there are
+
+
 @pytest.mark.parametrize(
     ("field", "value", "flag"),
     [("hard_negatives", -1, "--hard-negatives"), ("hard_pool", 0, "--hard-pool"),
