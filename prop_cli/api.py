@@ -186,12 +186,14 @@ def personalize_checkpoint(
     force: bool = False,
     progress: Callable[[int, dict[str, float]], None] | None = None,
     threads: int | None = None,
+    status: Callable[[str], None] | None = None,
 ) -> PersonalizeResult:
     """Load a checkpoint, fine-tune it with the PRoP objective for the users, and write a bundle.
 
     ``users`` pairs each user's data file with their key (``core.key_files.user_keys`` builds them from key
     files and passphrases; ``salt`` is the passphrase salt it returns). ``threads``: torch's threads (None:
-    ``prop_cli.threads`` chooses from the model's size and the idle cores).
+    ``prop_cli.threads`` chooses from the model's size and the idle cores). ``status`` hears what the run
+    is doing outside its steps (loading, set-up, reports, writing), one line each.
     """
     bits = {len(k.bits) for _, k in users}
     if len(bits) > 1:
@@ -202,18 +204,23 @@ def personalize_checkpoint(
     check_not_input(out, "--out", [checkpoint, *(p for p, _ in users), general])
     check_output(out, force)  # before hours of training, not after
     ranks = ranks_from_env(device)  # one process, or those `accelerate launch` started
+    say = status if status is not None and ranks.is_main else (lambda _: None)
     loaded = _load(checkpoint, opts)
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None
+    # Said once the files have been read (a bad file is one error line, with nothing before it).
+    say(f"loaded {checkpoint} ({_parameters(loaded.module) / 1e6:.3g} M parameters) and the data of "
+        f"{len(users)} user{'s' if len(users) != 1 else ''}")
     trained = personalize(
         loaded, [User(d, k.bits) for d, (_, k) in zip(datasets, users)], cfg, general=general_ds,
-        device=device, progress=progress if ranks.is_main else None, ranks=ranks,
+        device=device, progress=progress if ranks.is_main else None, ranks=ranks, status=status,
     )  # fmt: skip
     try:
         if not ranks.is_main:  # the first process writes the bundle; the others trained the same model
             return PersonalizeResult(out, trained.task, [], [], {}, processes=ranks.world, written=False)
         common = common_fields(loaded, [k for _, k in users], salt, cfg.to_dict(), checkpoint)
+        say(f"writing {out}")
         written = trained.write(out, common, force=force)
         m = written.manifest
         # Each user's report gated as the audit gates (report.sweep_gate): what the CLI warns of.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -184,6 +185,49 @@ def stage_progress(fn: Callable):
 def output_path(value: Path | None) -> Path | None:
     """``-`` means stdout: no file."""
     return None if value is None or str(value) == "-" else value
+
+
+# A status line shows once its stage has lasted this long: a real-size policy's set-up or report (minutes)
+# is said while it runs, and a small model's (milliseconds) or one that ends in an error (one line: the
+# error) says nothing. 0: every status at once (tests).
+STATUS_AFTER_S = 1.0
+
+
+class StatusLines:
+    """A ``status`` callback: one stderr line for a stage a run spends time in outside its steps, with the
+    time since the run started (above the progress bar on a terminal: the bar's console prints it). Use it
+    as a context manager: a stage still pending when the run ends is never shown."""
+
+    def __init__(self, label: str) -> None:
+        self.label, self.t0 = label, time.perf_counter()
+        self.pending: threading.Timer | None = None
+
+    def __call__(self, what: str) -> None:
+        self.close()
+        if STATUS_AFTER_S <= 0:
+            self._show(what)
+            return
+        self.pending = threading.Timer(STATUS_AFTER_S, self._show, (what,))
+        self.pending.daemon = True
+        self.pending.start()
+
+    def _show(self, what: str) -> None:
+        line = f"{self.label}: {what} ({time.perf_counter() - self.t0:.1f} s)"
+        if err.is_terminal:
+            err.print(line, markup=False, highlight=False)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.pending is not None:
+            self.pending.cancel()
+            self.pending = None
+
+    def __enter__(self) -> StatusLines:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def training_progress(fn: Callable, steps: int, label: str):

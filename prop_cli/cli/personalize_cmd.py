@@ -12,7 +12,16 @@ from prop_cli.constants import (
 )
 from prop_cli.errors import plural
 
-from .common import checkpoint_options, fail, out, print_json, read_passphrase, training_progress, warn
+from .common import (
+    StatusLines,
+    checkpoint_options,
+    fail,
+    out,
+    print_json,
+    read_passphrase,
+    training_progress,
+    warn,
+)
 from .options import (
     Activation,
     Arch,
@@ -84,13 +93,14 @@ def personalize(
     phrases = [read_passphrase(f"Passphrase for user {len(key_file) + i + 1}") for i in range(passphrase)]
     keys, salt = user_keys(key_file, phrases, bits, allow_weak=weak_passphrase)
     opts = checkpoint_options(arch, arch_kwargs, activation, trust_remote_code)
-    result = training_progress(
-        lambda cb: personalize_checkpoint(
-            checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
-            device=device, force=force, progress=cb, threads=threads,
-        ),
-        cfg.train.steps, "personalize",
-    )  # fmt: skip
+    with StatusLines("personalize") as status:
+        result = training_progress(
+            lambda cb: personalize_checkpoint(
+                checkpoint, list(zip(data, keys)), out_path, cfg, opts=opts, general=general, salt=salt,
+                device=device, force=force, progress=cb, threads=threads, status=status,
+            ),
+            cfg.train.steps, "personalize",
+        )  # fmt: skip
     if not result.written:  # another process of `accelerate launch` writes and reports
         return
     if as_json:

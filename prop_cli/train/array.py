@@ -180,6 +180,7 @@ def personalize(job: Job[UnsealedConfig], users: list[User], general: Dataset | 
     cfg.check_key_bits(len(users[0].key_bits))
     check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
     datasets, task = prepare_users(loaded, [u.data for u in users], general, tc.task)
+    job.say("setting up: the fallback pool and the key encoder")
     names = select_layers(loaded.module, tc.layers, tc.exclude)
 
     dev = resolve_device(job.device)

@@ -10,7 +10,7 @@ from prop_cli.errors import PropError
 
 from . import array, policy, sealed_array, sealed_policy
 from .distributed import Ranks
-from .recipe import Job, Progress, Recipe, SealedRecipe, Trained, User
+from .recipe import Job, Progress, Recipe, SealedRecipe, Status, Trained, User
 
 
 def sealed_recipe(loaded: LoadedModel) -> SealedRecipe:
@@ -45,6 +45,7 @@ def personalize(
     device: str = "cpu",
     progress: Progress | None = None,
     ranks: Ranks | None = None,
+    status: Status | None = None,
 ) -> Trained:
     """Train ``loaded`` for ``users`` with the recipe for its kind and ``cfg``'s mode; the loaded module is
     updated in place (unsealed) or stays the original (sealed). ``ranks``: the processes `accelerate
@@ -52,5 +53,5 @@ def personalize(
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
     recipe = choose(loaded, cfg.mode)
-    job = Job(loaded, cfg.train, cfg.mode, device, progress, ranks or Ranks())
+    job = Job(loaded, cfg.train, cfg.mode, device, progress, ranks or Ranks(), status)
     return recipe.personalize(job, users, general)

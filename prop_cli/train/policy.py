@@ -507,16 +507,20 @@ class PolicyRecipe(Recipe[UnsealedConfig]):
         loaded, tc, cfg = job.loaded, job.train, job.mode
         dev = resolve_device(job.device)
         with loaded.policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+            job.say(f"setting up: the users' frames, the fallback samples and keys, per-row noise on {dev}")
             t = PolicyTrainer(loaded, users, tc, cfg, general, dev, job.ranks)
             losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)
             t.finish()
             budget = report_budget(tc, t.module)
-            reports = [  # by the process that writes the bundle (the others trained the same model)
-                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
-                             eval_rng(tc.seed, i),
-                             budget, t.per_forward)
-                for i, (u, (_, val)) in enumerate(zip(users, t.splits))
-            ] if job.ranks.is_main else []  # fmt: skip
+            reports = []
+            for i, (u, (_, val)) in enumerate(zip(users, t.splits)):
+                if not job.ranks.is_main:  # the process that writes the bundle reports (all trained alike)
+                    break
+                f, r, h = report_plan(len(val["episode_index"]), tc.eval_random_keys, len(u.key_bits), budget)
+                job.say(f"report of user {i + 1}: {f * (3 + r + h)} sampler runs ({f} held-out frames x "
+                        f"{3 + r + h} key conditions; --report-budget {budget or 'none'})")  # fmt: skip
+                reports.append(chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg,
+                                            tc.eval_random_keys, eval_rng(tc.seed, i), budget, t.per_forward))
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}

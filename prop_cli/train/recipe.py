@@ -23,6 +23,9 @@ from prop_cli.datasources import Dataset
 from .distributed import Ranks
 
 Progress = Callable[[int, dict[str, float]], None]  # (step, latest losses)
+# What a run is doing outside its steps (set-up before the first, the report after the last), one line each:
+# a real-size policy spends minutes there, and a user should not watch a silent terminal.
+Status = Callable[[str], None]
 M = TypeVar("M", bound=Mode)  # the mode's own settings: a recipe sees its own part and no other's
 
 
@@ -37,6 +40,12 @@ class Job(Generic[M]):
     device: str = "cpu"
     progress: Progress | None = None
     ranks: Ranks = field(default_factory=Ranks)  # the processes training together (``distributed``)
+    status: Status | None = None
+
+    def say(self, what: str) -> None:
+        """Tell whoever listens what the run is doing now (on the process that reports only)."""
+        if self.status is not None and self.ranks.is_main:
+            self.status(what)
 
 
 @dataclass

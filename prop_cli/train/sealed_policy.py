@@ -143,6 +143,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
             for i, ((tr, val), bits) in enumerate(zip(splits, keys), first_index):
                 # Under --precision bf16 the frozen base is held bf16 while the payload trains, then read
                 # back exactly from the checkpoint: the report and the bundle see the original's weights.
+                job.say(f"user {i + 1}: setting up the payload's frames and noise, then {tc.steps} steps")
                 restore = frozen_in_bf16(module, str(loaded.source)) if tc.precision == "bf16" else None
                 try:
                     payload, losses = train_payload(
@@ -154,6 +155,9 @@ class SealedPolicyRecipe(SealedRecipeBase):
                 # The report within --report-budget (by the policy's size by default), as the unsealed one.
                 n = len(val["episode_index"])
                 val = spaced_frames(val, sealed_report_frames(n, budget))
+                f = len(val["episode_index"])
+                job.say(f"report of user {i + 1}: {f * RUNS_PER_FRAME} sampler runs ({f} of {n} held-out "
+                        f"frames; --report-budget {budget or 'none'})")  # fmt: skip
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
                 b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)

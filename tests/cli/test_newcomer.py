@@ -128,6 +128,43 @@ def test_a_real_run_prints_its_estimate(workdir, cli):
     assert r.code == 0 and len(steps) == 10 and all(" left) " in line for line in steps[:-1]), r.err
 
 
+def test_personalize_says_what_it_does_before_the_first_step_and_after_the_last(workdir, cli, monkeypatch):
+    """issue 44: what was loaded and the set-up are said before the first step, and writing (with the
+    report) after the last, each on one stderr line with the time so far; stdout keeps the results. (A
+    stage shows once it has lasted STATUS_AFTER_S; 0 here: every stage.)"""
+    from prop_cli.cli import common
+
+    monkeypatch.setattr(common, "STATUS_AFTER_S", 0)
+    r = cli("personalize", workdir / "model.safetensors", "--data", workdir / "mine.npz", "--key-file",
+            workdir / "k.bin", "--out", workdir / "said.prop", *FAST)  # fmt: skip
+    assert r.code == 0, r.err
+    lines = r.err.splitlines()
+    said = [i for i, line in enumerate(lines) if line.startswith("personalize: ") and " s)" in line
+            and not line.startswith("personalize: step ")]  # fmt: skip
+    words = [lines[i] for i in said]
+    assert [w.split(":")[1].split()[0] for w in words] == ["loaded", "setting", "writing"], words
+    first_step = next(i for i, line in enumerate(lines) if line.startswith("personalize: step "))
+    assert said[1] < first_step < said[2]
+    assert "personalize: " not in r.out
+
+
+def test_a_status_shows_only_once_its_stage_has_lasted(monkeypatch, capsys):
+    """A short stage (or one ending in an error) says nothing; a long one is said while it runs."""
+    import time
+
+    from prop_cli.cli import common
+
+    monkeypatch.setattr(common, "STATUS_AFTER_S", 0.05)
+    with common.StatusLines("personalize") as say:
+        say("quick")
+        say("slow")  # replaces "quick" before it showed
+        say.pending.join(5)  # the stage lasts past STATUS_AFTER_S: it shows
+        say("cut short")  # the run ends before it shows
+    time.sleep(0.15)
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(" (")[0] for line in err] == ["personalize: slow"], err
+
+
 def test_export_peft_names_the_payload_it_needs(workdir, cli):
     """--peft takes a --seal --payload peft-lora bundle only: said before training and in the error."""
     r = cli("personalize", "--help")
