@@ -76,11 +76,7 @@ def jacobian(enc: KeyEncoder, gen: torch.Generator) -> torch.Tensor:
     points = torch.cat([torch.zeros(1, enc.code_bits), rand])
     dirs = []
     for c in points.to(enc.net[0].weight.device):
-        # One row per output, one backward: row i's gradient is d out_i / d code. Plain autograd, not
-        # torch.func.jacrev, whose first call costs 0.85 s of set-up (issue 44) for a 15 ms Jacobian.
-        with torch.enable_grad():
-            z = c.expand(enc.net[-1].out_features, -1).clone().requires_grad_(True)
-            (jac,) = torch.autograd.grad(enc.net(z).diagonal().sum(), z)  # (F, n)
+        jac = torch.func.jacrev(lambda z: enc.net(z[None])[0])(c)  # (F, n)
         dirs.append(torch.linalg.svd(jac, full_matrices=False).Vh[:2])
     return _both(torch.cat(dirs))
 
