@@ -10,7 +10,10 @@ parameter-free activations, or the MLP adapter's chain): everything before the f
 runs once per sample; the first keyed layer for all keys and samples is one matmul,
 ``Delta (K, d) @ [W diag(z_1) | ... | W diag(z_S)] (d, S*h)``, so no (K*S, d) product is built; the
 rest runs in bf16 (AMX/AVX-512 bf16 units on recent x86: several times fp32 matmul throughput) in
-buffers reused across chunks. Any other model takes ``KeyedModel.run_keys`` in fp32.
+buffers reused across chunks. Where the CPU has no bf16 arithmetic, torch emulates it (62x fp32's time
+on AVX2 kernels: a 305 s digits audit, issue 44), so the scan times both precisions on a few keys first
+and screens in fp32 unless bf16 is clearly faster (``_chain``). Any other model takes
+``KeyedModel.run_keys`` in fp32.
 """
 
 from __future__ import annotations
@@ -54,12 +57,18 @@ class KeyScan:
     values: dict[str, torch.Tensor]  # exact scores of the kept keys (probe_keys)
     scanned: int
     screen_samples: int
-    seconds: dict[str, float]  # per stage: keys, deltas, model, scores, rescore
-    path: str  # "bf16-chain" or "general" (run_keys, fp32)
+    seconds: dict[str, float]  # per stage: calibrate, keys+deltas, model, scores, rescore
+    path: str  # "bf16-chain", "fp32-chain" or "general" (run_keys, fp32)
 
 
 # Relative error the bf16 forward may show against fp32 on a check batch before it is refused.
 _BF16_TOLERANCE = 0.05
+# bf16 screens only where a chunk (encoder and chain) takes at most this share of fp32's time. Measured on
+# the project's 2-core EPYC, digits MLP, 1 thread: native bf16 (AVX512-BF16) 0.5 of fp32, emulated 2.2x
+# (AVX-512 without BF16) and 62x (AVX2); the margin keeps one machine's choice, and so its kept keys, the
+# same from run to run.
+_BF16_SHARE = 0.8
+_CALIBRATION_KEYS = 256
 _RELU_LIKE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_}
 
 
@@ -152,6 +161,34 @@ class ChainForward:
         return y.view(k, s, -1)
 
 
+def _chunk_seconds(ctx: Scannable, fast: ChainForward, bits: np.ndarray, low: bool) -> float:
+    """The fastest of 3 timed runs (after a warm-up) of one calibration chunk: deltas, then the chain."""
+    best = float("inf")
+    with torch.inference_mode():
+        for i in range(4):
+            t0 = time.perf_counter()
+            fast(ctx.key_deltas(bits, low_precision=low))
+            if i:
+                best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _chain(ctx: Scannable, xs: torch.Tensor) -> ChainForward | None:
+    """The chain forward in the precision that screens faster on this machine (bf16 only if it agrees
+    with fp32 on a check batch), or None where the model is not a chain MLP."""
+    try:
+        fp32 = ChainForward(ctx.km, xs, torch.float32)
+        bf16 = ChainForward(ctx.km, xs)
+    except ValueError:
+        return None
+    if not _check(bf16, ctx, xs):
+        return fp32
+    n = ctx.km.encoder.code_bits
+    bits = np.random.default_rng(1).integers(0, 2, (_CALIBRATION_KEYS, n), dtype=np.uint8)
+    fast = _chunk_seconds(ctx, bf16, bits, True) <= _BF16_SHARE * _chunk_seconds(ctx, fp32, bits, False)
+    return bf16 if fast else fp32
+
+
 def _check(fast: ChainForward, ctx: Scannable, xs: torch.Tensor) -> bool:
     """The bf16 chain against run_keys in fp32 on a few random keys: refuse it if it disagrees."""
     bits = np.random.default_rng(0).integers(0, 2, (4, ctx.km.encoder.code_bits), dtype=np.uint8)
@@ -232,21 +269,17 @@ def scan_keys(
 ) -> KeyScan:
     xs = ctx.ref.x[:screen]
     criteria = _Criteria(ctx.ref, screen)
-    fast: ChainForward | None = None
-    try:
-        fast = ChainForward(ctx.km, xs)
-        if not _check(fast, ctx, xs):
-            fast = None
-    except ValueError:
-        fast = None
-    sec = {"keys+deltas": 0.0, "model": 0.0, "scores": 0.0}
+    t0 = time.perf_counter()
+    fast = _chain(ctx, xs)
+    low = fast is not None and fast.dtype == torch.bfloat16  # the encoder in bf16 where the chain is
+    sec = {"calibrate": time.perf_counter() - t0, "keys+deltas": 0.0, "model": 0.0, "scores": 0.0}
     kept_bits = np.zeros((0, ctx.km.encoder.code_bits), np.uint8)
     kept_div = torch.zeros(0)
     kept_lk: torch.Tensor | None = None
     done = 0
     t_start, cpu_start = time.perf_counter(), time.process_time()
     with torch.inference_mode():
-        for bits, deltas in _deltas_ahead(ctx, chunks, fast is not None, sec):
+        for bits, deltas in _deltas_ahead(ctx, chunks, low, sec):
             t2 = time.perf_counter()
             o = (fast(deltas) if fast is not None else ctx.km.run_keys(xs, deltas)).float()
             t3 = time.perf_counter()
@@ -279,4 +312,5 @@ def scan_keys(
     t0 = time.perf_counter()
     values = ctx.probe_keys(kept_bits, stage)
     sec["rescore"] = time.perf_counter() - t0
-    return KeyScan(kept_bits, values, done, len(xs), sec, "bf16-chain" if fast is not None else "general")
+    path = "general" if fast is None else ("bf16-chain" if low else "fp32-chain")
+    return KeyScan(kept_bits, values, done, len(xs), sec, path)
