@@ -12,6 +12,10 @@ Rows:
   number of users (each with its own key and data) and by rows of data per user. Seconds.
 - audit: key x sample evaluations per second of the audit's default key probes (``audit.audit``, its
   report's ``speed``), against a bare loop of the same forwards (``KeyedModel.run_keys``).
+- audit wall: issue 44's `prop attack` command (--hamming 1..8 --search relaxed,latent, --json, --plot
+  when matplotlib is there) run as a user runs it, on the IL and digits examples' unsealed bundles (default
+  personalize settings); seconds against the issue's 60 s goal. A tiny ACT's row: docs/speed.md (LeRobot's
+  own environment).
 - inference: per call after loading, keyed / no key, batch 1 and 256: torch (key folded in memory),
   onnxruntime split form (encoder.onnx once, policy.onnx per call) and onnxruntime folded in memory.
 - import: ``import torch, torch._dynamo`` vs ``import torch`` (what prop's own Adam avoids).
@@ -22,6 +26,7 @@ Threads follow prop's policy (``prop_cli.threads``) unless OMP_NUM_THREADS is se
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import statistics
@@ -179,6 +184,41 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
     ]  # fmt: skip
 
 
+# issue 44's goal for its command on a quiet 2-core machine.
+AUDIT_GOAL_S = 60.0
+
+
+def audit_wall_rows(tmp: Path, il: dict, quick: bool) -> list[tuple[str, str, str]]:
+    """The issue-44 command through the installed `prop` in a fresh process, on IL and digits bundles."""
+    import importlib.util
+
+    from examples.digits_task import write_example as write_digits
+    from prop_cli.api import KeySource, personalize_checkpoint, read_key_file
+    from prop_cli.config import PersonalizeConfig
+
+    prop = str(Path(sys.executable).parent / "prop")
+    plot = importlib.util.find_spec("matplotlib") is not None
+    out = []
+    for name, paths in (("IL", il), ("digits", write_digits(tmp / "digits", seed=0))):
+        key_file = tmp / f"{name}.bin"
+        subprocess.run([prop, "keygen", str(key_file)], check=True, capture_output=True)
+        key = read_key_file(key_file)
+        bundle = tmp / f"{name}-audit.prop"
+        personalize_checkpoint(str(paths["base"]), [(paths["mine"], KeySource(key, "file"))], bundle,
+                               PersonalizeConfig.of(steps=200 if quick else 2000))  # fmt: skip
+        cmd = [prop, "attack", str(bundle), "--data", str(paths["mine"]), "--key-file", str(key_file),
+               "--hamming", "1..8", "--search", "relaxed,latent", "--json", str(tmp / f"{name}-a.json"),
+               *(["--plot", str(tmp / f"{name}-a.png")] if plot else [])]  # fmt: skip
+        t0 = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        wall = time.perf_counter() - t0
+        inner = json.loads((tmp / f"{name}-a.json").read_text()).get("speed", {}).get("wall_seconds")
+        probes = f" (the probes {inner:.1f} s)" if inner is not None else ""
+        out.append((f"audit wall, issue 44's command on {name}", f"{wall / AUDIT_GOAL_S:.2f}x",
+                    f"{wall:.1f} s wall{probes} vs the {AUDIT_GOAL_S:.0f} s goal"))  # fmt: skip
+    return out
+
+
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
     from prop_cli.bundle import load_bundle
     from prop_cli.core.keyed_model import key_codes
@@ -262,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += personalize_rows(il, mode)
         bundle, key = bundle_for(tmp, il, 200 if args.quick else 2000)
         rows += audit_rows(bundle, il, key, args.quick)
+        rows += audit_wall_rows(tmp, il, args.quick)
         rows += inference_rows(bundle, key, args.quick)
         rows.append(import_row(args.quick))
     print(f"prop speed ({name} mode), {machine()}; OMP_NUM_THREADS={threads_env or 'unset'}\n")
