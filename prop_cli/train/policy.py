@@ -463,7 +463,7 @@ def keyed_chunks(km, policy, val: dict, deltas: list[torch.Tensor], per_forward:
 @torch.no_grad()
 def chunk_report(
     km, policy, original, val: dict, bits: np.ndarray, cfg: UnsealedConfig, n_random: int, rng,
-    budget: int | None = None, per_forward: int = _CHUNK,
+    budget: int | None = None, per_forward: int = _CHUNK, say: Callable[[str], None] | None = None,
 ) -> dict:  # fmt: skip
     """personalization, leakage and fidelity (docs/metrics.md) on held-out frames' action chunks.
 
@@ -477,6 +477,9 @@ def chunk_report(
     ham = one_bit_neighbours(bits)
     n = len(val["episode_index"])
     f, r, h = report_plan(n, len(rand), len(ham), budget)
+    if say is not None:
+        say(f"{f * (3 + r + h)} sampler runs ({f} held-out frames x {3 + r + h} key conditions; "
+            f"--report-budget {budget or 'none'})")
     val = spaced_frames(val, f)
     rand = rand[:r]
     if h < len(ham):
@@ -512,15 +515,12 @@ class PolicyRecipe(Recipe[UnsealedConfig]):
             losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)
             t.finish()
             budget = report_budget(tc, t.module)
-            reports = []
-            for i, (u, (_, val)) in enumerate(zip(users, t.splits)):
-                if not job.ranks.is_main:  # the process that writes the bundle reports (all trained alike)
-                    break
-                f, r, h = report_plan(len(val["episode_index"]), tc.eval_random_keys, len(u.key_bits), budget)
-                job.say(f"report of user {i + 1}: {f * (3 + r + h)} sampler runs ({f} held-out frames x "
-                        f"{3 + r + h} key conditions; --report-budget {budget or 'none'})")  # fmt: skip
-                reports.append(chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg,
-                                            tc.eval_random_keys, eval_rng(tc.seed, i), budget, t.per_forward))
+            reports = [  # by the process that writes the bundle (the others trained the same model)
+                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
+                             eval_rng(tc.seed, i), budget, t.per_forward,
+                             say=lambda what, i=i: job.say(f"report of user {i + 1}: {what}"))
+                for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+            ] if job.ranks.is_main else []  # fmt: skip
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
