@@ -42,6 +42,7 @@ import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
   say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
   pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]"
+  pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop
   drop_draccus_tests
   exit 0
 fi
@@ -69,6 +70,11 @@ pip_install "$PIP" pybullet
 # log a 60-line traceback per dataset); `lerobot-test` adds the simulator and the test tools.
 say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2-5 min with pip's cache warm, ~4-7 min cold)"
 pip_install "$PIP" -e ".[lerobot,lerobot-test]"
+# The LeRobot policy plugin (--policy.type=prop in lerobot-eval, lerobot-record, lerobot-rollout): a
+# distribution of its own, since LeRobot imports every one named lerobot_policy_*; its dependencies are
+# the two just installed.
+say "setup-lerobot: installing the LeRobot policy plugin lerobot_policy_prop (~5 s)"
+pip_install "$PIP" --no-deps -e plugins/lerobot_policy_prop
 drop_draccus_tests
 say "setup-lerobot: checking that lerobot's policies and prop import (~30 s)"
 "$VENV/bin/python" - <<'PYEOF'
@@ -78,6 +84,7 @@ from lerobot.policies.pi0.modeling_pi0 import PI0Policy  # noqa: F401
 from lerobot.policies.pi05.modeling_pi05 import PI05Policy  # noqa: F401
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: F401
 import prop_cli  # noqa: F401
+import lerobot_policy_prop  # noqa: F401 - registers --policy.type=prop
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, "
       f"transformers {transformers.__version__}, numpy {numpy.__version__}")
 PYEOF
