@@ -218,3 +218,70 @@ def test_saving_or_training_the_policy_is_refused(work, tmp_path, capsys):
     refused(capsys, lambda: policy.save_pretrained(tmp_path / "out"))
     assert not any((tmp_path / "out").rglob("*.safetensors"))
     assert "prop personalize" in refused(capsys, lambda: policy.forward({}))
+
+
+# --policy.path: the folder prop export --lerobot writes, for the tools that load only by path.
+
+
+def export(work: Path, bundle: str, out: Path, *flags: str) -> Path:
+    p = subprocess.run([str(BIN / "prop"), "export", str(work / bundle), "--lerobot", str(out), *flags],
+                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    return out
+
+
+def by_path(folder: Path, **options):
+    """What lerobot-rollout does with --policy.path (rollout/context.py): the config from the folder, the
+    policy by from_pretrained, the processors from the folder with its two overrides."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.rollout.context import _load_pretrained_policy
+
+    cfg = PreTrainedConfig.from_pretrained(folder)
+    for k, v in options.items():
+        setattr(cfg, k, v)
+    cfg.pretrained_path = folder
+    policy = _load_pretrained_policy(cfg).eval()
+    pre, post = make_pre_post_processors(
+        cfg, pretrained_path=str(folder), preprocessor_overrides={
+            "device_processor": {"device": "cpu"}, "rename_observations_processor": {"rename_map": {}}},
+    )  # fmt: skip
+    return policy, pre, post
+
+
+def test_a_policy_folder_runs_as_lerobot_rollout_loads_it(work, frames, tmp_path):
+    folder = export(work, "sealed", tmp_path / "policy")
+    assert sorted(f.name for f in folder.iterdir()) == [
+        "config.json", "policy_postprocessor.json", "policy_preprocessor.json"]  # fmt: skip
+    assert not any(form in f.read_bytes() for f in folder.iterdir() for form in traces(work / "user.key"))
+    key = str(work / "user.key")
+    keyed = actions(make(work, "sealed", key_file=key), frames)
+    assert torch.equal(actions(by_path(folder, key_file=key), frames), keyed)
+    assert torch.equal(actions(by_path(folder), frames), actions(original(work), frames))
+
+
+def test_lerobot_eval_runs_a_policy_folder(work, tmp_path):
+    folder = export(work, "unsealed", tmp_path / "policy", "--resize-images")
+    out = tmp_path / "eval"
+    args = [
+        f"--policy.path={folder}",
+        f"--policy.key_file={work / 'user.key'}",
+        "--env.type=metaworld",
+        f"--env.task={tiny.TASK}",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        f"--output_dir={out}",
+    ]
+    p = lerobot("lerobot-eval", args, tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+
+
+def test_a_robot_that_does_not_give_the_bundles_features_is_refused_at_the_first_observation(
+    work, frames, tmp_path, capsys
+):
+    folder = export(work, "unsealed", tmp_path / "policy")
+    policy, pre, _ = by_path(folder)
+    wrong = {k: v for k, v in frames[0].items() if k != tiny.STATE}
+    line = refused(capsys, lambda: policy.select_action(pre(wrong)))
+    assert "'observation.state'" in line and "the observation does not give" in line

@@ -26,6 +26,12 @@ from prop_cli.run.hosted import Hosted, host_policy, match_features
 from .configuration_prop import PropConfig, refuse
 
 _HOSTED = "_prop_hosted"  # where the loaded bundle waits on the config (not a dataclass field: never dumped)
+_LAST: list[Hosted] = []  # the bundle this process hosts (a policy folder's processor step runs it)
+
+
+def last_hosted() -> Hosted | None:
+    """The bundle of the prop policy built last in this process (LeRobot's tools build one)."""
+    return _LAST[-1] if _LAST else None
 
 
 def resize_frames(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -63,6 +69,7 @@ def hosted_for(config: PropConfig) -> Hosted:
         except PropError as e:
             refuse(e)
         object.__setattr__(config, _HOSTED, hosted)
+    _LAST[:] = [hosted]
     return hosted
 
 
@@ -73,20 +80,47 @@ class PropPolicy(PreTrainedPolicy):
     def __init__(self, config: PropConfig, dataset_stats=None, dataset_meta=None, **_) -> None:
         super().__init__(config)
         hosted = hosted_for(config)
-        where = "the dataset" if dataset_meta is not None else "the environment"
-        try:
-            self.resize = match_features(
-                hosted,
-                {k: tuple(f.shape) for k, f in (config.input_features or {}).items()},
-                {k: tuple(f.shape) for k, f in (config.output_features or {}).items()},
-                where, resize_images=config.resize_images,
-            )  # fmt: skip
-        except PropError as e:
-            refuse(e)
+        self.resize: dict[str, tuple[int, ...]] = {}
+        # Tools that load by path (lerobot-rollout) know the robot's features only after the policy is
+        # built: then they are matched on the first observation, before its action is taken.
+        self.unmatched = not config.input_features
+        if not self.unmatched:
+            where = "the dataset" if dataset_meta is not None else "the environment"
+            try:
+                self.resize = match_features(
+                    hosted,
+                    {k: tuple(f.shape) for k, f in config.input_features.items()},
+                    {k: tuple(f.shape) for k, f in (config.output_features or {}).items()},
+                    where, resize_images=config.resize_images,
+                )  # fmt: skip
+            except PropError as e:
+                refuse(e)
         self.policy = hosted.module  # the bundle's LeRobot policy, under the key
         self.keyed = hosted.keyed
+        self.hosted = hosted
+
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, *, config: PropConfig | None = None, **kwargs):
+        """``--policy.path=FOLDER``: the folder ``prop export --lerobot`` wrote names the bundle, relative
+        to itself; no weights are read from it (the bundle holds them, verified)."""
+        folder = Path(pretrained_name_or_path)
+        if config is None:
+            config = PropConfig.from_pretrained(folder)
+        bundle = Path(config.bundle)
+        if not bundle.is_absolute():
+            config.bundle = str(folder / bundle)
+        keep = {k: v for k, v in kwargs.items() if k in ("dataset_stats", "dataset_meta")}
+        return cls(config, **keep)
 
     def _inputs(self, batch: dict) -> dict:
+        if self.unmatched:
+            given = {k: tuple(v.shape[1:]) for k, v in batch.items() if isinstance(v, torch.Tensor)}
+            try:
+                self.resize = match_features(self.hosted, given, {}, "the observation",
+                                             resize_images=self.config.resize_images)  # fmt: skip
+            except PropError as e:
+                refuse(e)
+            self.unmatched = False
         if not self.resize:
             return batch
         batch = dict(batch)
