@@ -70,12 +70,13 @@ PANDA_MISSING = ("PandaReach needs panda-gym, which is not installed: .venv-lero
 
 def require_sim(sim: str) -> None:
     """Exit in one line if ``sim`` is not one of SIMS or its simulator is not installed."""
-    import importlib.util
-
     if sim not in SIMS:
         raise SystemExit(f"error: unknown simulator {sim!r}: give one of {', '.join(SIMS)}")
-    if sim == "panda" and importlib.util.find_spec("panda_gym") is None:
-        raise SystemExit(f"error: {PANDA_MISSING}")
+    if sim == "panda":
+        try:
+            import panda_gym  # noqa: F401
+        except ImportError:
+            raise SystemExit(f"error: {PANDA_MISSING}") from None
 
 
 def sim_of(root: Path) -> str:

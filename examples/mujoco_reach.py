@@ -26,8 +26,11 @@ import sys
 
 import numpy as np
 
+# mujoco reads MUJOCO_GL when first imported: if it was imported before this module, without it, it
+# renders through GLFW, which needs a display (said in the error, rendering_error).
+_LATE = "mujoco" in sys.modules and "MUJOCO_GL" not in os.environ
 if sys.platform.startswith("linux"):
-    os.environ.setdefault("MUJOCO_GL", "egl")  # read when mujoco is first imported
+    os.environ.setdefault("MUJOCO_GL", "egl")
 
 import gymnasium as gym  # noqa: E402
 
@@ -61,7 +64,9 @@ MJCF = f"""
       <joint name="z" type="slide" axis="0 0 1" range="{LOW[2]} {HIGH[2]}"/>
       <geom type="sphere" size="0.025" mass="1" rgba=".15 .25 .9 1" contype="0" conaffinity="0"/>
     </body>
-    <site name="goal" type="sphere" size="0.03" rgba=".1 .9 .1 .8"/>
+    <body name="goal" mocap="true">
+      <geom type="sphere" size="0.03" rgba=".1 .9 .1 .8" contype="0" conaffinity="0"/>
+    </body>
   </worldbody>
   <actuator>
     <position joint="x" kp="10000" kv="200" ctrlrange="{LOW[0]} {HIGH[0]}"/>
@@ -76,6 +81,9 @@ def rendering_error(e: BaseException) -> str:
     """One line: why MuJoCo cannot render off-screen here, and what to install."""
     gl = os.environ.get("MUJOCO_GL", "")
     why = " ".join(f"{type(e).__name__}: {e}".split())[:200]
+    if _LATE:
+        return (f"MuJoCo cannot render off-screen ({why}): mujoco was imported before MUJOCO_GL was set; "
+                "set MUJOCO_GL=egl (or osmesa) in the environment before starting Python")
     return f"MuJoCo cannot render off-screen with MUJOCO_GL={gl or '(unset)'} ({why}); {FIX}"
 
 
@@ -90,7 +98,6 @@ class MujocoReach(gym.Env):
         self.model = mujoco.MjModel.from_xml_string(MJCF)
         self.data = mujoco.MjData(self.model)
         self.substeps = round(DT / self.model.opt.timestep)
-        self.goal_site = self.model.site("goal").id
         self.render_mode, self.width, self.height = render_mode, width, height
         self._renderer = None
         self.goal = np.zeros(3)
@@ -116,7 +123,7 @@ class MujocoReach(gym.Env):
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self.data.ctrl[:] = START
         self.goal = self.np_random.uniform(GOAL_LOW, GOAL_HIGH)
-        self.model.site_pos[self.goal_site] = self.goal
+        self.data.mocap_pos[0] = self.goal  # the goal sphere, drawn (no contact)
         mujoco.mj_forward(self.model, self.data)
         return self._obs(), {"is_success": self._distance() < SUCCESS}
 
@@ -176,7 +183,7 @@ def check_rendering(side: int = 32) -> str:
     if frame.shape != (side, side, 3) or not green:
         raise RuntimeError(f"MuJoCo rendered a frame without the goal in it ({frame.shape}); {FIX}")
     gl = os.environ.get("MUJOCO_GL", "(unset)")
-    return f"ok: MuJoCo {mujoco.__version__} renders off-screen with MUJOCO_GL={gl}" \
+    return f"ok: MuJoCo {mujoco.__version__} renders off-screen with MUJOCO_GL={gl} " \
         f"({side}x{side}, {ms:.0f} ms)"
 
 

@@ -41,6 +41,10 @@ drop_draccus_tests() {
   site="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
   if grep -q '^tests/__init__.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/tests"; fi
 }
+# lerobot 0.6.1's own pins of torch, numpy and transformers, given on the command line: otherwise pip's
+# resolver first fetches the newest torch that prop's own range allows (555 MB, measured on a cold cache)
+# before lerobot's metadata sends it back to 2.11.
+LEROBOT_PINS=("torch>=2.7,<2.12" "numpy>=2,<2.3" "transformers>=5.4,<5.6")
 drop_mujoco_4() {
   # mujoco 4 comes as three distributions (mujoco, mujoco-core, mujoco-studio); pinning mujoco back to 3.x
   # leaves the other two, and then `import mujoco` fails ("libmujoco.so.4.0.0: cannot open").
@@ -58,7 +62,7 @@ import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
   say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
   drop_mujoco_4
-  pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]"
+  pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
   drop_draccus_tests
   check_rendering
   exit 0
@@ -77,8 +81,8 @@ pip_install "$PIP" --upgrade "pip>=24"
 # libraries without torchcodec (prop refuses video features, and without FFmpeg torchcodec makes LeRobot
 # log a 60-line traceback per dataset); `lerobot-test` adds the simulators (MuJoCo, MetaWorld) and the
 # test tools.
-say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2-5 min with pip's cache warm, ~4-7 min cold)"
-pip_install "$PIP" -e ".[lerobot,lerobot-test]"
+say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2 min with pip's cache warm, longer cold: docs/speed.md)"
+pip_install "$PIP" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
 drop_draccus_tests
 say "setup-lerobot: checking that lerobot's policies and prop import (~30 s)"
 "$VENV/bin/python" - <<'PYEOF'
