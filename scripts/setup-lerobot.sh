@@ -60,9 +60,10 @@ check_rendering() {
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
-  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
   drop_mujoco_4
+  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
   pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
+  say "setup-lerobot: updating the LeRobot policy plugin lerobot_policy_prop (~5 s)"
   pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop
   drop_draccus_tests
   check_rendering
