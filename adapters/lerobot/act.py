@@ -7,15 +7,72 @@
 - **Keyed layers** by default (measured in examples/RESULTS.md, "LeRobot ACT"): the feed-forward
   layers of the transformer encoder and decoder and the action head. Not the attention out_proj (never
   called through its forward) nor the VAE encoder (training only).
+- **Memo** (``memo``): the image backbone's feature maps, per camera frame, computed once while the
+  audit or a report runs every key over the same frames (the backbone is never keyed by default, and
+  it is most of a small ACT's compute: a ResNet-18 per frame).
 """
 
 from __future__ import annotations
 
-import torch
+import contextlib
+from collections.abc import Iterator
+from itertools import chain
 
+import torch
+from torch.nn.utils import parametrize
+
+from .flow_matching import Bounded, row_digest
 from .policy import ACTION, PAD, LeRobotProtocol
 
 ACT_LAYERS = [r"model\.(encoder|decoder)\.layers\.\d+\.linear[12]", r"model\.action_head"]
+BACKBONE_BYTES = 256 << 20  # feature maps kept by ``memo`` (a 96x96 frame's is 18 KB; 480x480, 0.5 MB)
+
+
+def _fixed(module: torch.nn.Module) -> bool:
+    """Whether ``module`` computes the same for the same input now: nothing trains through it (no
+    gradient will flow into its parameters) and no hook or parametrization (a key, a payload) is on it."""
+    training = torch.is_grad_enabled() and any(p.requires_grad for p in module.parameters())
+    return not training and not any(
+        m._forward_pre_hooks or m._forward_hooks or parametrize.is_parametrized(m) for m in module.modules()
+    )
+
+
+@contextlib.contextmanager
+def backbone_memo(backbone: torch.nn.Module, limit: int = BACKBONE_BYTES) -> Iterator[None]:
+    """Within: a backbone of ``backbone``'s class (ACT's IntermediateLayerGetter) returns each frame's
+    feature map from a memo where that frame went through it before with the same weights, else runs as
+    it is. The class is patched, not the instance, because the audit runs copies that share the
+    weights (a sealed bundle's searches and their controls). A row is keyed by its content and the
+    identity, storage and version of every weight and buffer (an optimizer step, in place, bumps a
+    version), so a changed backbone never serves an old map; while gradients would flow into a
+    backbone, or a hook or parametrization sits on it, it runs as LeRobot's."""
+    kept = Bounded(limit)
+    cls = type(backbone)
+    had = cls.__dict__.get("forward")  # the class's own forward, or None where it inherits one
+    forward = cls.forward
+
+    def memo_forward(self: torch.nn.Module, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        if x.requires_grad or not _fixed(self):
+            return forward(self, x)
+        weights = chain(self.parameters(), self.buffers())
+        head = tuple((id(t), t.data_ptr(), t._version) for t in weights)
+        keys = [(head, row_digest(row)) for row in x]
+        todo = list(dict.fromkeys(k for k in keys if k not in kept))
+        if todo:
+            first = {k: i for i, k in reversed(list(enumerate(keys)))}
+            maps = forward(self, x[[first[k] for k in todo]])["feature_map"]
+            for j, k in enumerate(todo):
+                kept.keep(k, maps[j].clone())
+        return {"feature_map": torch.stack(kept.rows(keys))}
+
+    cls.forward = memo_forward
+    try:
+        yield
+    finally:
+        if had is None:
+            del cls.forward
+        else:
+            cls.forward = had
 
 
 class ACTProtocol(LeRobotProtocol):
@@ -26,6 +83,10 @@ class ACTProtocol(LeRobotProtocol):
 
     def describe(self) -> dict:
         return {"chunk_size": self.config.chunk_size}
+
+    def memo(self) -> contextlib.AbstractContextManager:
+        backbone = getattr(self.model, "backbone", None)  # none without camera features
+        return contextlib.nullcontext() if backbone is None else backbone_memo(backbone)
 
     def _model_batch(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # What ACTPolicy.forward does before calling its model: the list of camera tensors.
