@@ -2,6 +2,7 @@
 (figures in examples/RESULTS.md).
 
     bash scripts/setup-lerobot.sh
+    .venv-lerobot/bin/pip install -e '.[rl]'  # panda-gym: its pybullet compiles on Python 3.12 (~14 min)
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --out out/lerobot-reach
     OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m examples.lerobot_reach --policy diffusion \
         --out out/lerobot-reach-diffusion
@@ -15,7 +16,7 @@
    save_pretrained.
 3. `prop personalize` the policy folder with the user's dataset and a key.
 4. `prop eval` closed loop: the original, the user's key, no key, random keys, one-bit neighbours,
-   over the recorded horizon (30 steps) under every key: panda-gym ends an episode on reaching the
+   over the recorded horizon (30 steps) under every key: the task ends an episode on reaching the
    goal, before a preference judged at the episode's end could show.
 5. `prop attack` with the user's key and the original ACT (controls): leakage of every probe on the
    user's frames, whole action chunks in normalised units (report in --out/audit.json).
@@ -28,6 +29,9 @@
 keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only),
 --no-sealed step 6;
 --datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
+--sim mujoco runs it all on the MuJoCo reach (examples/mujoco_reach.py; no panda-gym needed, not the
+paper's task: its figures are not those of examples/RESULTS.md); steps 3-6 take the simulator the
+datasets were recorded on.
 
 SmolVLA, pi0 and pi0.5 read the camera, the state with the goal and the instruction. pi0 and pi0.5 are
 the tiny ones of examples/pi_tiny.py, which load only under its size patch: every `prop` call for them
@@ -115,6 +119,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="record the rendered camera too (32 x 32) and make it a policy input (diffusion)")
     ap.add_argument("--datasets", type=Path, default=None,
                     help="copy the general and user datasets from this earlier run's --out")  # fmt: skip
+    ap.add_argument("--sim", choices=sorted(task.SIMS), default="panda",
+                    help="panda: PandaReach-v3, the paper's figures (the rl extra); mujoco: wheels only")
     ap.add_argument("--reuse", action="store_true", help="keep the datasets, base and key of an earlier run")
     ap.add_argument("--attack-only", nargs="?", const="bundle", choices=("bundle", "sealed"),
                     help="keep the bundle (or with 'sealed' the sealed one) of an earlier run; audit it")
@@ -135,6 +141,8 @@ def main(argv: list[str] | None = None) -> None:
         earlier = json.loads((out / "figures.json").read_text())
         figures = {k: v for k, v in earlier.items() if k.startswith(("record", "base"))}
     else:
+        if not args.datasets:
+            task.require_sim(args.sim)  # before the earlier run is deleted
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
         t = time.perf_counter()
@@ -146,8 +154,9 @@ def main(argv: list[str] | None = None) -> None:
             figures["record_s"] = json.loads((args.datasets / "figures.json").read_text())["record_s"]
         else:
             task.record(out / "reach-general", 80, 0, np.zeros(3, np.float32), camera=camera,
-                        goal_in_state=vla)  # fmt: skip
-            task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=camera, goal_in_state=vla)
+                        goal_in_state=vla, sim=args.sim)  # fmt: skip
+            task.record(out / "reach-user", 20, 50_000, task.USER_OFFSET, camera=camera, goal_in_state=vla,
+                        sim=args.sim)  # fmt: skip
             figures["record_s"] = round(time.perf_counter() - t, 1)
         t = time.perf_counter()
         built = (pi(out, kind) if kind in PI else smolvla(out)) if vla else None
@@ -217,7 +226,9 @@ def sealed(out: Path, episodes: int, kind: str, audit: bool = True) -> None:
 def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
     """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
     camera = task.CAMERA in json.loads((out / kind / "config.json").read_text())["input_features"]
-    env_id, obs_map = (task.CAMERA_ENV_ID, task.CAMERA_OBS_MAP) if camera else (task.ENV_ID, task.OBS_MAP)
+    sim = task.sim_of(out / "reach-general")
+    task.require_sim(sim)
+    env_id, obs_map = task.env_id(sim, camera), (task.CAMERA_OBS_MAP if camera else task.OBS_MAP)
     extra = []
     if kind in VLA:
         obs_map, extra = task.SMOLVLA_OBS_MAP, ["--instruction", task.INSTRUCTION]

@@ -1,15 +1,21 @@
-"""PandaReach (panda-gym) as a LeRobot task: scripted-expert recording, a small ACT or Diffusion Policy,
-their training loop.
+"""A reach task as a LeRobot task: scripted-expert recording, a small ACT or Diffusion Policy, their
+training loop.
 
 Nobody labels anything: the general behaviour is a scripted expert reaching the goal; the user's
 preference is the same expert holding the end effector 10 cm above it. Both are recorded into local
-LeRobotDatasets (state-only, no rendering, no downloads). Needs the LeRobot environment
-(scripts/setup-lerobot.sh), which installs panda-gym too.
+LeRobotDatasets (state-only unless asked, no downloads). Needs the LeRobot environment
+(scripts/setup-lerobot.sh).
+
+Two simulators, the same observations, actions and expert (``sim``): ``mujoco`` (the default, what the
+tests run) is examples/mujoco_reach.py, a 3-D reach on MuJoCo, wheels only; ``panda`` is panda-gym's
+PandaReach-v3 (pybullet, compiled on Python 3.12: the `rl` extra), on which the paper's LeRobot figures
+in examples/RESULTS.md were measured. A dataset names its simulator in its ``robot_type`` (``sim_of``).
 
 Observation features: ``observation.state`` (6: end-effector position and velocity) and
 ``observation.environment_state`` (3: the goal); ``action`` (3) in [-1, 1]. With ``camera=True`` also
-``observation.images.front``: panda-gym's rendered camera (its CPU renderer), 32 x 32 RGB, recorded as
-dtype image; ``CAMERA_ENV_ID`` is the same task whose observations carry that frame (``pixels``).
+``observation.images.front``: the simulator's rendered camera (MuJoCo's off-screen renderer; panda-gym's
+CPU renderer), 32 x 32 RGB, recorded as dtype image; ``CAMERA_ENV_ID`` (``PANDA_CAMERA_ENV_ID``) is the
+same task whose observations carry that frame (``pixels``).
 """
 
 from __future__ import annotations
@@ -22,13 +28,14 @@ import torch
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-ENV_ID = "panda_gym:PandaReach-v3"
+ENV_ID = "examples.mujoco_reach:MujocoReach-v0"
+PANDA_ENV_ID = "panda_gym:PandaReach-v3"
 OBS_MAP = "observation.state=observation,observation.environment_state=desired_goal"
 METRIC = "examples.lerobot_reach_task:user_preference"
-FPS = 25  # panda-gym steps 0.04 s
-HORIZON = 30  # recorded steps per episode; the expert needs ~10
+FPS = 25  # both simulators step 0.04 s
+HORIZON = 30  # recorded steps per episode; the expert needs ~3 (MuJoCo) or ~10 (PandaReach)
 USER_OFFSET = np.array([0.0, 0.0, 0.10], np.float32)
-SUCCESS = 0.05  # panda-gym's own distance threshold
+SUCCESS = 0.05  # both tasks' distance threshold (PandaReach's)
 STATE, ENV_STATE, ACTION = "observation.state", "observation.environment_state", "action"
 CAMERA = "observation.images.front"
 IMAGE = 32  # camera frames are IMAGE x IMAGE RGB
@@ -40,22 +47,68 @@ FEATURES = {
 STATE_GOAL_FEATURE = {"dtype": "float32", "shape": (9,),
                       "names": [*FEATURES[STATE]["names"], "gx", "gy", "gz"]}  # fmt: skip
 CAMERA_FEATURE = {"dtype": "image", "shape": (IMAGE, IMAGE, 3), "names": ["height", "width", "channels"]}
-# The camera task for `prop eval --env`: importing this module registers it.
-CAMERA_ENV_ID = "examples.lerobot_reach_task:PandaReachCamera-v0"
+# The camera tasks for `prop eval --env`: importing this module registers them.
+CAMERA_ENV_ID = "examples.lerobot_reach_task:MujocoReachCamera-v0"
+PANDA_CAMERA_ENV_ID = "examples.lerobot_reach_task:PandaReachCamera-v0"
 CAMERA_OBS_MAP = OBS_MAP + f",{CAMERA}=pixels"
 # SmolVLA reads one state vector (observation.state): its camera task's state holds the goal too.
 STATE_GOAL = "state_goal"  # the camera task's observation key: observation + desired_goal
 SMOLVLA_OBS_MAP = f"{STATE}={STATE_GOAL},{CAMERA}=pixels"
 INSTRUCTION = "reach the target"  # every frame's task text
-# Looking at the table from the front and above, so the goal sphere is in view wherever it is drawn.
+# PandaReach: looking at the table from the front and above, so the goal sphere is in view wherever it
+# is drawn. (MuJoCo's reach has its own `front` camera.)
 CAMERA_VIEW = dict(renderer="Tiny", render_width=IMAGE, render_height=IMAGE, render_distance=0.9,
                    render_target_position=[0.0, 0.0, 0.1], render_yaw=60, render_pitch=-30)  # fmt: skip
+# Per simulator: the state task, the camera task, the dataset's robot_type.
+SIMS = {
+    "mujoco": {"env": ENV_ID, "camera_env": CAMERA_ENV_ID, "robot_type": "mujoco_reach"},
+    "panda": {"env": PANDA_ENV_ID, "camera_env": PANDA_CAMERA_ENV_ID, "robot_type": "panda"},
+}
+PANDA_MISSING = ("PandaReach needs panda-gym, which is not installed: .venv-lerobot/bin/pip install -e "
+                 "'.[rl]' (pybullet compiles, ~14 min once), or use the MuJoCo reach: --sim mujoco")
 
 
-def make_camera_env(**kwargs):
-    """PandaReach whose observations also hold the rendered camera frame (``pixels``, HWC uint8)."""
+def require_sim(sim: str) -> None:
+    """Exit in one line if ``sim`` is not one of SIMS or its simulator is not installed."""
+    if sim not in SIMS:
+        raise SystemExit(f"error: unknown simulator {sim!r}: give one of {', '.join(SIMS)}")
+    if sim == "panda":
+        try:
+            import panda_gym  # noqa: F401
+        except ImportError:
+            raise SystemExit(f"error: {PANDA_MISSING}") from None
+
+
+def sim_of(root: Path) -> str:
+    """The simulator a dataset recorded by ``record`` was recorded on (its robot_type)."""
+    import json
+
+    robot = json.loads((Path(root) / "meta" / "info.json").read_text()).get("robot_type")
+    return next((k for k, v in SIMS.items() if v["robot_type"] == robot), "panda")
+
+
+def env_id(sim: str, camera: bool) -> str:
+    return SIMS[sim]["camera_env" if camera else "env"]
+
+
+def _base_env(sim: str, camera: bool, **kwargs):
     import gymnasium as gym
-    import panda_gym  # noqa: F401 - registers the environments
+
+    if sim == "panda":
+        import panda_gym  # noqa: F401 - registers the environments
+
+        view = dict(render_mode="rgb_array", **CAMERA_VIEW) if camera else {}
+        return gym.make("PandaReach-v3", **view, **kwargs)
+    from examples import mujoco_reach  # noqa: F401 - registers MujocoReach-v0
+
+    view = dict(render_mode="rgb_array", width=IMAGE, height=IMAGE) if camera else {}
+    return gym.make("MujocoReach-v0", **view, **kwargs)
+
+
+def make_camera_env(sim: str = "mujoco", **kwargs):
+    """The reach task whose observations also hold the rendered camera frame (``pixels``, HWC uint8)
+    and the state with the goal (``state_goal``)."""
+    import gymnasium as gym
 
     class WithPixels(gym.ObservationWrapper):
         def __init__(self, env):
@@ -70,14 +123,20 @@ def make_camera_env(**kwargs):
             pixels = np.ascontiguousarray(self.env.render()[..., :3])
             return {**obs, "pixels": pixels, STATE_GOAL: state_goal(obs)}
 
-    return WithPixels(gym.make("PandaReach-v3", render_mode="rgb_array", **CAMERA_VIEW, **kwargs))
+    return WithPixels(_base_env(sim, True, **kwargs))
+
+
+def make_panda_camera_env(**kwargs):
+    return make_camera_env("panda", **kwargs)
 
 
 def _register() -> None:
     import gymnasium as gym
 
+    if "MujocoReachCamera-v0" not in gym.registry:
+        gym.register("MujocoReachCamera-v0", entry_point=make_camera_env, max_episode_steps=50)
     if "PandaReachCamera-v0" not in gym.registry:
-        gym.register("PandaReachCamera-v0", entry_point=make_camera_env, max_episode_steps=50)
+        gym.register("PandaReachCamera-v0", entry_point=make_panda_camera_env, max_episode_steps=50)
 
 
 _register()
@@ -100,28 +159,27 @@ def expert(obs: dict, offset: np.ndarray) -> np.ndarray:
 
 def record(
     root: Path, episodes: int, seed0: int, offset: np.ndarray, noise: float = 0.3, camera: bool = False,
-    goal_in_state: bool = False,
+    goal_in_state: bool = False, sim: str = "mujoco",
 ) -> None:  # fmt: skip
     """Expert episodes into a new LeRobotDataset at ``root``. The executed action carries Gaussian noise
     (states off the expert's path get recorded too); the recorded action is the clean one (DART).
     ``camera``: each frame's rendered camera image too (``CAMERA``). ``goal_in_state``: the state is
-    observation + goal (9 values; SmolVLA reads one state vector)."""
-    import gymnasium as gym
-    import panda_gym  # noqa: F401 - registers the environments
+    observation + goal (9 values; SmolVLA reads one state vector). ``sim``: mujoco or panda (SIMS)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    require_sim(sim)
     ds = LeRobotDataset.create(
         repo_id=f"local/{root.name}",
         fps=FPS,
         features=FEATURES | ({CAMERA: CAMERA_FEATURE} if camera else {})
         | ({STATE: STATE_GOAL_FEATURE} if goal_in_state else {}),
         root=root,
-        robot_type="panda",
+        robot_type=SIMS[sim]["robot_type"],
         use_videos=False,
         video_backend="pyav",  # no video recorded; LeRobot 0.6 otherwise probes torchcodec
     )
     # A fixed horizon: no time limit, no stop on success.
-    env = (make_camera_env() if camera else gym.make("PandaReach-v3")).unwrapped
+    env = (make_camera_env(sim) if camera else _base_env(sim, False)).unwrapped
     rng = np.random.default_rng(seed0)
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed0 + ep)

@@ -68,7 +68,7 @@ def key_conditions(key: np.ndarray, n_random: int, n_neighbours: int, max_flip: 
 
 
 def episodes(env, controller, seeds: list[int], features: list[str], obs_map: dict[str, str]) -> list[dict]:
-    """One episode per seed over the recorded horizon (acting on after panda-gym's `terminated`, as the
+    """One episode per seed over the recorded horizon (acting on after the task's `terminated`, as the
     example's `prop eval --ignore-terminated`): success at the end, the user's preference, the return."""
     out = []
     for seed in seeds:
@@ -168,7 +168,9 @@ def measure(args: argparse.Namespace) -> dict:
                  "give an unsealed bundle")
     key = key_for_bundle(bundle.manifest, out / "user.key")
     camera = task.CAMERA in bundle.loaded.policy.input_features
-    env_id, obs_map = (task.CAMERA_ENV_ID, task.CAMERA_OBS_MAP) if camera else (task.ENV_ID, task.OBS_MAP)
+    sim = task.sim_of(out / "reach-general")  # the run's simulator, as its datasets were recorded
+    task.require_sim(sim)
+    env_id, obs_map = task.env_id(sim, camera), (task.CAMERA_OBS_MAP if camera else task.OBS_MAP)
     instruction = task.INSTRUCTION if kind in reach.VLA else None
     if kind in reach.VLA:
         obs_map = task.SMOLVLA_OBS_MAP

@@ -324,6 +324,22 @@ def export_peft_adapter(
     return export_peft(bundle, key, Path(out))
 
 
+def export_lerobot_folder(
+    bundle_path: Path, out: Path, *, resize_images: bool = False, force: bool = False,
+    trust_remote_code: bool = False, allow_rollback: bool = False,
+) -> Path:  # fmt: skip
+    """`prop export --lerobot`: a LeRobot policy folder naming the bundle, for ``--policy.path`` in
+    LeRobot's tools through the plugin ``lerobot_policy_prop`` (``deploy.lerobot_folder``); it holds no
+    weights and no key. The bundle is verified here, and again each time the folder runs."""
+    from prop_cli.deploy.lerobot_folder import write_lerobot_folder
+    from prop_cli.files import LEROBOT_FOLDER
+
+    check_not_input(Path(out), "--lerobot", [bundle_path])
+    check_output(Path(out), force, what="LeRobot policy folder", flag="--lerobot", kind=LEROBOT_FOLDER)
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, allow_rollback=allow_rollback)
+    return write_lerobot_folder(bundle, Path(out), resize_images=resize_images)
+
+
 def export_bundle(
     bundle_path: Path,
     out: Path | None = None,

@@ -64,6 +64,13 @@ DEFAULT_LAYERS_ATTR = "prop_default_layers"
 EXPORT_DIR = "onnx"  # default place: <bundle>/onnx
 PEFT_CONFIG = "adapter_config.json"  # `prop export --peft`: a standard peft adapter folder
 PEFT_WEIGHTS = "adapter_model.safetensors"
+# `prop export --lerobot`: a LeRobot policy folder for --policy.path (lerobot_policy_prop): LeRobot's own
+# file names, and the processor step of the plugin that runs the bundle's processors.
+LEROBOT_CONFIG = "config.json"
+LEROBOT_PRE = "policy_preprocessor.json"
+LEROBOT_POST = "policy_postprocessor.json"
+LEROBOT_POLICY_TYPE = "prop"
+LEROBOT_BUNDLE_STEP = "prop_bundle_processor"
 SIGNATURE_FILE = "model.sig"  # `prop push --sign`: the publisher's signature (a sigstore bundle)
 EXPORT_META = "export.json"  # what was exported, for which bundle, and how to feed it
 # 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.

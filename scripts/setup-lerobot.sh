@@ -8,10 +8,14 @@
 # pip's resolver (`pip install -e ".[lerobot]"`). Why not the CPU wheel prop's .venv uses: PyPI has no
 # CPU-only torch for Linux x86_64 at any version lerobot 0.6 accepts (every manylinux x86_64 wheel needs
 # the CUDA 13 nvidia-* wheels), and the CPU wheel on these machines is built for Python 3.11 only. The
-# CUDA build runs on the CPU (measured) and is also what a GPU needs. Measured on a 2-core machine:
-# ~215 s and 6.3 GB with a cold torch download (docs/speed.md); pybullet (panda-gym's simulator, for the
-# closed-loop examples and tests) has no cp312 wheel on PyPI, so pip compiles it once (~14 min) and
-# reuses its wheel cache afterwards. Each step is said before it starts, with roughly how long it takes.
+# CUDA build runs on the CPU (measured) and is also what a GPU needs. Everything comes as a wheel: nothing
+# compiles (issue 38; panda-gym, whose pybullet has none for cp312, is the opt-in `rl` extra, for the
+# paper's PandaReach figures only). Times on a 2-core machine in docs/speed.md ("Setting up LeRobot").
+# Each step is said before it starts, with roughly how long it takes.
+#
+# The last step renders one MuJoCo frame off-screen (the tests' camera task, examples/mujoco_reach.py):
+# with MUJOCO_GL=egl unless MUJOCO_GL is set (Mesa's EGL renders on the CPU through llvmpipe; osmesa is
+# the other CPU choice). If it cannot, the set-up fails in one line naming the Debian packages to install.
 #
 # Usage: scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the repository root)
 set -euo pipefail
@@ -22,7 +26,7 @@ timed setup-lerobot
 find_python() {
   local c root
   root="$(pyenv root 2>/dev/null || echo "$HOME/.pyenv")"
-  # 3.12 first: the version lerobot 0.6 is tested on here (pybullet wheels get built for it once).
+  # 3.12 first: the version lerobot 0.6 is tested on here.
   for c in "${PYTHON:-}" python3.12 "$root"/versions/3.12*/bin/python python3.13 "$root"/versions/3.13*/bin/python; do
     [ -n "$c" ] || continue
     command -v "$c" >/dev/null 2>&1 || continue
@@ -37,12 +41,31 @@ drop_draccus_tests() {
   site="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
   if grep -q '^tests/__init__.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/tests"; fi
 }
+# lerobot 0.6.1's own pins of torch, numpy and transformers, given on the command line: otherwise pip's
+# resolver first fetches the newest torch that prop's own range allows (555 MB, measured on a cold cache)
+# before lerobot's metadata sends it back to 2.11.
+LEROBOT_PINS=("torch>=2.7,<2.12" "numpy>=2,<2.3" "transformers>=5.4,<5.6")
+drop_mujoco_4() {
+  # mujoco 4 comes as three distributions (mujoco, mujoco-core, mujoco-studio); pinning mujoco back to 3.x
+  # leaves the other two, and then `import mujoco` fails ("libmujoco.so.4.0.0: cannot open").
+  if "$VENV/bin/pip" show -q mujoco-core >/dev/null 2>&1; then
+    say "setup-lerobot: removing mujoco 4 (metaworld 3.0.0 needs mujoco 3.16; a few seconds)"
+    "$VENV/bin/pip" uninstall -y -q mujoco mujoco-core mujoco-studio >/dev/null
+  fi
+}
+check_rendering() {
+  say "setup-lerobot: rendering one MuJoCo frame off-screen (MUJOCO_GL=${MUJOCO_GL:-egl}; ~5 s)"
+  "$VENV/bin/python" -m examples.mujoco_reach --check-rendering
+}
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
   say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
-  pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]"
+  drop_mujoco_4
+  pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
+  pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop
   drop_draccus_tests
+  check_rendering
   exit 0
 fi
 PY="$(find_python)" || {
@@ -53,22 +76,19 @@ say "setup-lerobot: creating $VENV with $PY ($("$PY" -V 2>&1); a few seconds)"
 rm -rf "$VENV"  # an older environment (Python 3.11, lerobot 0.4.4) is replaced, not patched
 "$PY" -m venv "$VENV"
 PIP="$VENV/bin/pip"
-PY_TAG=$("$PY" -c 'import sys; print(f"cp{sys.version_info[0]}{sys.version_info[1]}")')
 say "setup-lerobot: upgrading pip (~10 s)"
 pip_install "$PIP" --upgrade "pip>=24"
-# pybullet first, on its own, so that its compile (the longest step by far) is said before it starts.
-cached=$("$PIP" cache list pybullet 2>/dev/null || true)
-if grep -q -E "pybullet-.*-${PY_TAG}-" <<<"$cached"; then
-  say "setup-lerobot: installing pybullet from the wheel pip built before (~10 s)"
-else
-  say "setup-lerobot: compiling pybullet (no ${PY_TAG} wheel on PyPI; ~14 min the first time, cached after)"
-fi
-pip_install "$PIP" pybullet
 # pyproject.toml's `lerobot` extra is lerobot[pi,smolvla,peft,diffusion] 0.6.x plus the dataset
 # libraries without torchcodec (prop refuses video features, and without FFmpeg torchcodec makes LeRobot
-# log a 60-line traceback per dataset); `lerobot-test` adds the simulator and the test tools.
-say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2-5 min with pip's cache warm, ~4-7 min cold)"
-pip_install "$PIP" -e ".[lerobot,lerobot-test]"
+# log a 60-line traceback per dataset); `lerobot-test` adds the simulators (MuJoCo, MetaWorld) and the
+# test tools.
+say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2 min with pip's cache warm, longer cold: docs/speed.md)"
+pip_install "$PIP" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
+# The LeRobot policy plugin (--policy.type=prop in lerobot-eval, lerobot-record, lerobot-rollout): a
+# distribution of its own, since LeRobot imports every one named lerobot_policy_*; its dependencies are
+# the two just installed.
+say "setup-lerobot: installing the LeRobot policy plugin lerobot_policy_prop (~5 s)"
+pip_install "$PIP" --no-deps -e plugins/lerobot_policy_prop
 drop_draccus_tests
 say "setup-lerobot: checking that lerobot's policies and prop import (~30 s)"
 "$VENV/bin/python" - <<'PYEOF'
@@ -77,8 +97,10 @@ from lerobot.policies.act.modeling_act import ACTPolicy  # noqa: F401
 from lerobot.policies.pi0.modeling_pi0 import PI0Policy  # noqa: F401
 from lerobot.policies.pi05.modeling_pi05 import PI05Policy  # noqa: F401
 from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: F401
-import prop_cli  # noqa: F401
+import metaworld, mujoco, prop_cli  # noqa: F401
+import lerobot_policy_prop  # noqa: F401 - registers --policy.type=prop
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, "
       f"transformers {transformers.__version__}, numpy {numpy.__version__}")
 PYEOF
 say "setup-lerobot: $VENV takes $(du -sh "$VENV" | cut -f1) (lerobot 0.6 on $("$VENV/bin/python" -V))"
+check_rendering

@@ -24,6 +24,10 @@ torch.set_num_threads(1)
 # one folder for the session (fixtures shared between tests), and a fresh one for each test.
 _SESSION_STATE = tempfile.mkdtemp(prefix="prop-test-state-")
 os.environ["PROP_STATE_DIR"] = _SESSION_STATE
+# MuJoCo (the LeRobot tests' reach task, MetaWorld) renders off-screen through EGL unless told otherwise;
+# mujoco reads MUJOCO_GL once, when first imported, whichever test module imports it first.
+if sys.platform.startswith("linux"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
 atexit.register(shutil.rmtree, _SESSION_STATE, True)
 
 

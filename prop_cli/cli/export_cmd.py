@@ -35,6 +35,14 @@ PeftDir = Annotated[
     opt("--peft", "New folder: the payload your key opens in a sealed bundle (--payload peft-lora) as a "
                   "standard peft LoRA adapter. It is your behaviour in the clear."),
 ]  # fmt: skip
+LeRobotDir = Annotated[
+    Path | None,
+    opt("--lerobot", "New folder: a LeRobot policy folder naming the bundle, for --policy.path in "
+                     "LeRobot's tools (lerobot-rollout ...; plugin lerobot_policy_prop). No weights or key."),
+]  # fmt: skip
+ResizeImages = Annotated[
+    bool, opt("--resize-images", "With --lerobot: resize camera frames of another size to the bundle's.")
+]
 VerifyKey = Annotated[
     Path | None,
     opt("--key-file", "Verify with your key and bind it to the graphs (prop run --onnx runs bound keys)."),
@@ -45,17 +53,32 @@ VerifyInputs = Annotated[Path | None, opt("--input", "Verify on these inputs (.n
 @config_options(ExportSettings, SETTINGS, into="settings")
 def export(
     bundle: BundleArg, settings: ExportSettings, onnx: Onnx = False, out_dir: OutDir = None,
-    peft: PeftDir = None,
+    peft: PeftDir = None, lerobot: LeRobotDir = None, resize_images: ResizeImages = False,
     key_file: VerifyKey = None, passphrase: Passphrase = False, input_path: VerifyInputs = None,
     threads: Threads = DEFAULT_THREADS, force: Force = False, as_json: Json = False,
     trust_remote_code: TrustRemoteCode = False, arch: BundleArch = None,
     allow_unenrolled_key: AllowUnenrolledKey = False,
     allow_rollback: AllowRollback = False,
 ) -> None:  # fmt: skip
-    """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; or a
-    sealed user's payload as a peft LoRA adapter (--peft DIR)."""
-    if onnx == (peft is not None):
-        fail("choose one export format", "pass --onnx or --peft DIR")
+    """Export a bundle to ONNX (base, keyed, encoder + policy graphs), verified with onnxruntime; a
+    sealed user's payload as a peft LoRA adapter (--peft DIR); or a LeRobot policy folder (--lerobot DIR)."""
+    if sum((onnx, peft is not None, lerobot is not None)) != 1:
+        fail("choose one export format", "pass --onnx, --peft DIR or --lerobot DIR")
+    if resize_images and lerobot is None:
+        fail("--resize-images goes with --lerobot", "drop it, or export with --lerobot DIR")
+    if lerobot is not None:
+        from prop_cli.api import export_lerobot_folder
+
+        written = export_lerobot_folder(
+            bundle, lerobot, resize_images=resize_images, force=force, trust_remote_code=trust_remote_code,
+            allow_rollback=allow_rollback,
+        )  # fmt: skip
+        if as_json:
+            print_json({"out": str(written), "bundle": str(bundle)})
+        else:
+            out.print(f"wrote {written} (run it with lerobot-rollout --policy.path={written} "
+                      "--policy.key_file=YOUR.key ...)")  # fmt: skip
+        return
     if peft is not None:
         _export_peft(
             bundle, peft, key_file, passphrase, force, as_json, trust_remote_code, arch, allow_rollback

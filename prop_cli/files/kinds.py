@@ -152,6 +152,17 @@ def _is_peft(path: Path) -> str | None:
     return _not_a(path, "a peft LoRA adapter folder as prop export --peft writes")
 
 
+def _is_lerobot_folder(path: Path) -> str | None:
+    if not path.is_dir():
+        return _not_a(path, "a LeRobot policy folder")
+    config = _read_json(path / C.LEROBOT_CONFIG)
+    names = {C.LEROBOT_CONFIG, C.LEROBOT_PRE, C.LEROBOT_POST}
+    ours = isinstance(config, dict) and config.get("type") == C.LEROBOT_POLICY_TYPE
+    if not _entries(path) or (ours and set(_entries(path)) <= names):
+        return None
+    return _not_a(path, "a LeRobot policy folder as prop export --lerobot writes")
+
+
 def _head(path: Path, n: int) -> bytes:
     try:
         with open(path, "rb") as f:
@@ -194,6 +205,10 @@ def _is_plot(path: Path) -> str | None:
 BUNDLE = OutputKind("a prop bundle (a folder of prop's manifest.json and its files)", True, _is_bundle)
 EXPORT = OutputKind("a prop ONNX export (a folder of prop's export.json and its graphs)", True, _is_export)
 PEFT = OutputKind("a peft LoRA adapter folder (adapter_config.json and its weights only)", True, _is_peft)
+LEROBOT_FOLDER = OutputKind(
+    "a LeRobot policy folder naming a prop bundle (config.json of type prop and two processor files)", True,
+    _is_lerobot_folder,
+)
 ARRAY = OutputKind("a .npy array file", False, _is_array)
 KEY = OutputKind(
     f"a key file as prop keygen writes ({C.KEY_BITS_MIN // 8} to {C.KEY_BITS_MAX // 8} bytes, mode 0600)",

@@ -1,6 +1,6 @@
 """LeRobot policies and datasets under prop (pytest -m lerobot; scripts/test-lerobot.sh).
 
-A tiny ACT and two tiny LeRobotDatasets are made here from the scripted PandaReach expert: no
+A tiny ACT and two tiny LeRobotDatasets are made here from the scripted reach expert (MuJoCo): no
 downloads. Skipped where lerobot is not installed (the default environment); `.ci/run` runs them in
 .venv-lerobot.
 """
@@ -180,7 +180,7 @@ def test_keyed_policy_in_a_loop_is_lerobots_own_and_prop_evals(bundle, sealed, w
 
 
 def test_the_readme_closed_loop_example_runs(bundle, work, monkeypatch):
-    """The README's LeRobot loop, on this bundle and key, in the PandaReach task."""
+    """The README's LeRobot loop, on this bundle and key, in the reach task it names (the tests')."""
     import re
     from pathlib import Path
 
@@ -191,7 +191,8 @@ def test_the_readme_closed_loop_example_runs(bundle, work, monkeypatch):
     (work / "act.prop").symlink_to(bundle)
     tmp_key(work).rename(work / "k.bin")
     env: dict = {}
-    exec(compile(block.replace('"PandaReach-v3"', f"{task.ENV_ID!r}"), "README.md", "exec"), env)
+    assert f"gym.make({task.ENV_ID!r})" in block.replace('"', "'")
+    exec(compile(block, "README.md", "exec"), env)
     assert env["action"].shape == (3,) and env["steps"] > 0
 
 

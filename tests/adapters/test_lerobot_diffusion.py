@@ -1,7 +1,7 @@
 """LeRobot Diffusion Policy under prop (pytest -m lerobot; scripts/test-lerobot.sh).
 
 A small Diffusion Policy (U-Net 32/64/128) trained a few steps on datasets recorded from the scripted
-PandaReach expert: no downloads. What differs from ACT is tested here: the keyed convolutions, the
+reach expert (MuJoCo): no downloads. What differs from ACT is tested here: the keyed convolutions, the
 noise seed, the denoiser as the fallback target, LeRobot's own sampler as the deployed chunk.
 """
 

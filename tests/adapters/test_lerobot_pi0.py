@@ -1,7 +1,7 @@
 """LeRobot pi0 and pi0.5 under prop (pytest -m lerobot; scripts/test-lerobot.sh).
 
 A tiny pi0 and pi0.5 built here (examples/pi_tiny.py: 2-layer Gemmas and SigLIP with random weights, a
-tokenizer built with `tokenizers`; nothing downloaded) on the PandaReach camera task (32 x 32 frames,
+tokenizer built with `tokenizers`; nothing downloaded) on the MuJoCo reach's camera task (32 x 32 frames,
 state, the task text as instruction). Every test runs both (ids ``pi0`` and ``pi05``).
 
 LeRobot builds pi0 only at PaliGemma's sizes; a tiny one's config.json still names gemma_300m, so it

@@ -1,7 +1,7 @@
 """LeRobot SmolVLA under prop (pytest -m lerobot; scripts/test-lerobot.sh).
 
 A tiny SmolVLA built here (examples/smolvla_tiny.py: a 2-layer SmolVLM with random weights, a tokenizer
-built with `tokenizers`, SmolVLM's image processor; nothing downloaded) on the PandaReach camera task
+built with `tokenizers`, SmolVLM's image processor; nothing downloaded) on the MuJoCo reach's camera task
 (32 x 32 frames, state, the task text as instruction). What differs from ACT and Diffusion is tested:
 the instruction as tokens in every row, the VLM folder the bundle carries, the flow-matching expert as
 the fallback target, LeRobot's own sampler as the deployed chunk.

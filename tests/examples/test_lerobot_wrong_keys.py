@@ -84,6 +84,7 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     assert [r["group"] for r in rows] == ["original", "no_key", "user_key", "random", "random",
                                           "neighbour", "neighbour"]  # fmt: skip
     assert all(r["episodes"] == 2 for r in rows)
+    assert report["env"] == task.ENV_ID  # the run's datasets name their simulator (MuJoCo's reach)
     # the offline figures are taken against the original itself
     assert rows[0]["fidelity_user"] == rows[0]["fidelity_general"] == rows[0]["leakage_user"] == 0.0
     assert rows[2]["code_distance"] == 0.0 and rows[2]["delta_cos_user"] == pytest.approx(1.0, abs=1e-5)
@@ -105,3 +106,30 @@ def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
                                PersonalizeConfig.of(**TINY, seal=True))  # fmt: skip
     with pytest.raises(SystemExit, match="is sealed"):
         wk.main(["--out", str(d), "--bundle", "sealed", "--episodes", "1", "--offline-frames", "0"])
+
+
+def test_paper_reach_without_panda_gym_is_refused_in_one_line_before_deleting(tmp_path, monkeypatch):
+    from examples import lerobot_reach
+
+    monkeypatch.setitem(sys.modules, "panda_gym", None)  # import fails as if not installed
+    (tmp_path / "figures.json").write_text("{}")  # an earlier run, kept
+    with pytest.raises(SystemExit) as e:
+        lerobot_reach.main(["--sim", "panda", "--out", str(tmp_path)])
+    line = str(e.value.code)
+    assert "\n" not in line and "panda-gym" in line and "'.[rl]'" in line and "--sim mujoco" in line
+    assert (tmp_path / "figures.json").is_file()
+
+
+def test_a_run_recorded_on_panda_gym_asks_for_it(run, tmp_path, monkeypatch):
+    d, _ = run
+    assert task.sim_of(d / "reach-general") == "mujoco"
+    old = tmp_path / "old"
+    (old / "reach-general" / "meta").mkdir(parents=True)
+    for name in ("act", "bundle", "user.key"):
+        (old / name).symlink_to(d / name)
+    info = json.loads((d / "reach-general" / "meta" / "info.json").read_text()) | {"robot_type": "panda"}
+    (old / "reach-general" / "meta" / "info.json").write_text(json.dumps(info))
+    assert task.sim_of(old / "reach-general") == "panda"  # runs recorded before issue 38 say "panda"
+    monkeypatch.setitem(sys.modules, "panda_gym", None)
+    with pytest.raises(SystemExit, match=r"needs panda-gym.*\[rl\]"):
+        wk.main(["--out", str(old), "--episodes", "1", "--offline-frames", "0"])
