@@ -54,13 +54,19 @@ def features() -> dict:
 
 
 def resize_images(x: torch.Tensor, size: tuple[int, int] = (IMAGE, IMAGE)) -> torch.Tensor:
-    """Float CHW (or NCHW) in [0, 1] -> the same at ``size``: bilinear with antialiasing, the resize the
-    prop LeRobot plugin applies at evaluation (``--policy.resize_images=true``)."""
-    single = x.dim() == 3
-    y = torch.nn.functional.interpolate(
-        x[None] if single else x, size=size, mode="bilinear", antialias=True, align_corners=False
-    )
-    return y[0] if single else y
+    """Float CHW (or NCHW) in [0, 1] -> the same at ``size``: bilinear with antialiasing
+    (``F.interpolate(..., mode="bilinear", antialias=True, align_corners=False)``), the resize the prop
+    LeRobot plugin applies at evaluation (``--policy.resize_images=true``): its own function where it
+    is installed."""
+    try:
+        from lerobot_policy_prop.modeling_prop import resize_frames
+    except ImportError:  # the same definition
+        single = x.dim() == 3
+        y = torch.nn.functional.interpolate(
+            x[None] if single else x, size=size, mode="bilinear", antialias=True, align_corners=False
+        )
+        return y[0] if single else y
+    return resize_frames(x, size)
 
 
 def frame(pixels: np.ndarray) -> torch.Tensor:
@@ -171,12 +177,13 @@ def record(
     counts = {"episodes": 0, "frames": 0, "success": 0, "user_success": 0, "steps": []}
     for ep in range(episodes):
         obs = env.reset(seed0 + ep)
-        object0, success = env.object0.copy(), False
-        for t in range(horizon):
+        object0, success, steps = env.object0.copy(), False, 0
+        while steps < horizon:
+            steps += 1
             a = env.expert(offset)
             ds.add_frame({
-                STATE: np.asarray(obs["agent_pos"], np.float32), IMAGE_KEY: to_uint8_hwc(frame(obs["pixels"])),
-                ACTION: a, "task": env.description,
+                STATE: np.asarray(obs["agent_pos"], np.float32),
+                IMAGE_KEY: to_uint8_hwc(frame(obs["pixels"])), ACTION: a, "task": env.description,
             })  # fmt: skip
             executed = np.clip(a + noise * rng.standard_normal(4).astype(np.float32), -1, 1)
             obs, _, terminated, _, info = env.step(executed)
@@ -186,8 +193,8 @@ def record(
                 break
         ds.save_episode()
         counts["episodes"] += 1
-        counts["frames"] += t + 1
-        counts["steps"].append(t + 1)
+        counts["frames"] += steps
+        counts["steps"].append(steps)
         counts["success"] += int(success)
         counts["user_success"] += int(user_success(hand(obs), object0))
     ds.finalize()
