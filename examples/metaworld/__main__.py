@@ -7,6 +7,7 @@ examples/RESULTS.md, "MetaWorld, judged by lerobot-eval").
     .venv-lerobot/bin/python -m examples.metaworld train --out out/metaworld
     .venv-lerobot/bin/python -m examples.metaworld personalize --out out/metaworld
     .venv-lerobot/bin/python -m examples.metaworld judge --out out/metaworld
+    .venv-lerobot/bin/python -m examples.metaworld lerobot-eval --out out/metaworld
     .venv-lerobot/bin/python -m examples.metaworld table --out out/metaworld
     .venv-lerobot/bin/python -m examples.metaworld all --out out/metaworld
 
@@ -55,7 +56,9 @@ def step_record(out: Path, tasks: list[str], base_episodes: int, user_episodes: 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m examples.metaworld", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    ap.add_argument("step", choices=("record", "train", "personalize", "judge", "table", "all"))
+    ap.add_argument(
+        "step", choices=("record", "train", "personalize", "judge", "lerobot-eval", "table", "all")
+    )
     ap.add_argument("--out", type=Path, default=Path("out/metaworld"))
     ap.add_argument("--tasks", default=mw.TASKS[0], help=f"comma-separated (chosen: {', '.join(mw.TASKS)})")
     ap.add_argument("--policies", default="act", help="comma-separated: act, diffusion")
@@ -65,13 +68,13 @@ def main(argv: list[str] | None = None) -> None:
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     if args.step in ("record", "all"):
         step_record(args.out, tasks, args.base_episodes, args.user_episodes)
-    if args.step in ("train", "personalize", "judge", "table", "all"):
+    if args.step in ("train", "personalize", "judge", "lerobot-eval", "table", "all"):
         from examples.metaworld import pipeline
 
         policies = [p.strip() for p in args.policies.split(",") if p.strip()]
-        for step in ("train", "personalize", "judge", "table"):
+        for step in ("train", "personalize", "judge", "lerobot-eval", "table"):
             if args.step in (step, "all"):
-                getattr(pipeline, f"step_{step}")(args.out, tasks, policies)
+                getattr(pipeline, f"step_{step.replace('-', '_')}")(args.out, tasks, policies)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ TRAIN = {
         "--policy.n_action_steps=10",
         "--policy.optimizer_lr=3e-4",
         "--policy.optimizer_lr_backbone=3e-4",
-        "--steps=2000",
+        "--steps=1500",
         "--batch_size=16",
     ],
     "diffusion": [
@@ -68,7 +68,7 @@ PERSONALIZE = [
     "--base-lr-scale",
     "0.1",
 ]
-SEALED = ["--seal", "--steps", "600", "--user-rows", "32", "--payload-lr", "1e-3"]
+SEALED = ["--seal", "--steps", "500", "--user-rows", "32", "--payload-lr", "1e-3"]
 JUDGE_SEED = 1_000_000  # recording used 0-39 and 50,000-50,014
 EPISODES = {"original": 8, "no_key": 8, "user_key": 8, "wrong": 4}  # per condition; wrong: per key
 N_RANDOM, N_NEIGHBOURS, MAX_FLIP = 16, 16, 8
@@ -80,6 +80,8 @@ def policy_dir(out: Path, t: str, p: str) -> Path:
 
 def run(cmd: list, log: Path | None = None) -> None:
     print("$ " + " ".join(map(str, cmd)), flush=True)
+    if log:
+        log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") if log else open("/dev/null", "w") as f:
         subprocess.run(list(map(str, cmd)), check=True, stdout=f if log else None, stderr=subprocess.STDOUT)
 
@@ -107,7 +109,6 @@ def step_train(out: Path, tasks: list[str], policies: list[str]) -> None:
                     "--num_workers=0",
                     f"--save_freq={steps}",
                     "--log_freq=100",
-                    "--eval_freq=0",
                     "--wandb.enable=false",
                     f"--output_dir={train}",
                     f"--job_name=metaworld-{t}-{p}",
@@ -328,3 +329,42 @@ def step_table(out: Path, tasks: list[str], policies: list[str]) -> None:
                     f"\n{t} {p}: wrong-key episodes against the original on the same seeds: lost {lost}, "
                     f"gained {gained} of {nw}"
                 )
+
+
+LEROBOT_EVAL_EPISODES = 4
+
+
+def lerobot_eval_command(out: Path, t: str, p: str, name: str, bundle: str, key: Path | None, n: int) -> list:
+    """``lerobot-eval --policy.type=prop`` (the plugin) on LeRobot's MetaWorld env, 480 x 480 frames
+    resized to the bundle's by the plugin; LeRobot's own 500-step episodes, ended on MetaWorld's success."""
+    cmd = [BIN / "lerobot-eval", "--policy.type=prop", f"--policy.bundle={out / t / p / bundle}",
+           "--policy.resize_images=true", "--env.type=metaworld", f"--env.task={t}",
+           f"--eval.n_episodes={n}", "--eval.batch_size=1",
+           f"--output_dir={out / t / p / 'lerobot-eval' / name}"]  # fmt: skip
+    if key is not None:
+        cmd += [f"--policy.key_file={key}", "--policy.allow_unenrolled_key=true"]
+    return cmd
+
+
+def step_lerobot_eval(out: Path, tasks: list[str], policies: list[str]) -> None:
+    """MetaWorld's success by LeRobot's own evaluator, through the plugin: the bundle without a key (the
+    original, bit for bit), the user's key, and a wrong key on the sealed bundle (its base: the
+    original). Unsealed wrong keys are judged by step_judge (through the encoder, which the plugin does
+    not run: it runs the base for a key enrolled in nothing)."""
+    for t in tasks:
+        for p in policies:
+            wrong = out / "wrong.key"
+            if not wrong.is_file():
+                prop("keygen", wrong)
+            for name, bundle, key in (("no-key", "bundle", None), ("user-key", "bundle", out / "user.key"),
+                                      ("sealed-wrong-key", "bundle-sealed", wrong)):  # fmt: skip
+                info = out / t / p / "lerobot-eval" / name / "eval_info.json"
+                if info.is_file():
+                    continue
+                shutil.rmtree(info.parent, ignore_errors=True)
+                t0 = time.perf_counter()
+                run(lerobot_eval_command(out, t, p, name, bundle, key, LEROBOT_EVAL_EPISODES),
+                    log=out / t / p / f"lerobot-eval-{name}.log")  # fmt: skip
+                r = json.loads(info.read_text())
+                print(f"lerobot-eval {t} {p} {name}: pc_success {r['aggregated']['pc_success']:.1f} "
+                      f"({time.perf_counter() - t0:.0f} s)", flush=True)  # fmt: skip
