@@ -50,7 +50,7 @@ BACKBONE = {"act": ["--policy.pretrained_backbone_weights=null"], "diffusion": [
 # prop personalize (the PandaReach example's Eq. 8 batch, fewer steps: every row runs the ResNet).
 PERSONALIZE = [
     "--steps",
-    "600",
+    "500",
     "--user-rows",
     "16",
     "--null-rows",
