@@ -221,9 +221,39 @@ def conditions(key: np.ndarray) -> list[dict]:
     return out
 
 
+def original_controller(path: Path):
+    """The trained checkpoint as LeRobot loads it (its class, its processors), in prop's closed-loop
+    controller (LeRobot's select_action between the processors)."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+    from prop_adapters.lerobot.policy import Controller
+
+    cfg = PreTrainedConfig.from_pretrained(path)
+    cfg.device = "cpu"
+    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(path))
+    return Controller(policy, pre, post, {k: tuple(f.shape) for k, f in cfg.input_features.items()})
+
+
+def judge_original(out: Path, t: str, p: str) -> None:
+    """The original alone (it needs no bundle): judge/original.json."""
+    path = out / t / p / "judge" / "original.json"
+    if path.is_file():
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    seeds = [JUDGE_SEED + i for i in range(EPISODES["original"])]
+    t0 = time.perf_counter()
+    eps = rollouts(t, original_controller(policy_dir(out, t, p)), seeds)
+    row = {"name": "original", "group": "original", "id": None, "episodes": eps,
+           "seconds": round(time.perf_counter() - t0, 1)}  # fmt: skip
+    path.write_text(json.dumps(row, indent=1))
+    k, u, n = sum(e["success"] for e in eps), sum(e["user"] for e in eps), len(eps)
+    print(f"judge {t} {p} original       success {k}/{n}  user's criterion {u}/{n}  ({row['seconds']} s)")
+
+
 def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
     from prop_cli.bundle import load_bundle
-    from prop_cli.bundle.read import rebuild_original
     from prop_cli.core.key_files import key_for_bundle
     from prop_cli.run import KeyedPolicy
 
@@ -233,7 +263,6 @@ def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
             judged.mkdir(parents=True, exist_ok=True)
             bundle = load_bundle(out / t / p / "bundle")
             key = key_for_bundle(bundle.manifest, out / "user.key")
-            original = None
             for c in conditions(key):
                 path = judged / f"{c['name']}.json"
                 if path.is_file():
@@ -241,9 +270,9 @@ def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
                 n = EPISODES.get(c["group"], EPISODES["wrong"])
                 seeds = [JUDGE_SEED + i for i in range(n)]
                 if c["group"] == "original":
-                    original = original or rebuild_original(bundle, str(policy_dir(out, t, p)))
-                    ctl = original.policy.controller(original.module.eval())
-                elif c["group"] == "no_key":
+                    judge_original(out, t, p)
+                    continue
+                if c["group"] == "no_key":
                     ctl = KeyedPolicy(bundle, None)
                 elif c["group"] == "user_key":
                     ctl = KeyedPolicy(bundle, key)
