@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -265,8 +266,10 @@ def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
             key = key_for_bundle(bundle.manifest, out / "user.key")
             for c in conditions(key):
                 path = judged / f"{c['name']}.json"
-                if path.is_file():
+                claim = path.with_suffix(".running")  # a second judge process takes the next condition
+                if path.is_file() or claim.is_file():
                     continue
+                claim.write_text(str(os.getpid()))
                 n = EPISODES.get(c["group"], EPISODES["wrong"])
                 seeds = [JUDGE_SEED + i for i in range(n)]
                 if c["group"] == "original":
@@ -290,6 +293,7 @@ def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
                     "seconds": round(time.perf_counter() - t0, 1),
                 }
                 path.write_text(json.dumps(row, indent=1))
+                claim.unlink()
                 print(
                     f"judge {t} {p} {c['name']:14s} success {sum(e['success'] for e in eps)}/{n}  user's "
                     f"criterion {sum(e['user'] for e in eps)}/{n}  ({row['seconds']} s)",
