@@ -367,36 +367,53 @@ def step_table(out: Path, tasks: list[str], policies: list[str]) -> None:
 LEROBOT_EVAL_EPISODES = 4
 
 
-def lerobot_eval_command(out: Path, t: str, p: str, name: str, bundle: str, key: Path | None, n: int) -> list:
+def lerobot_eval_command(
+    out: Path, t: str, p: str, name: str, bundle: str, key: Path | None, n: int, encoder: bool = False
+) -> list:
     """``lerobot-eval --policy.type=prop`` (the plugin) on LeRobot's MetaWorld env, 480 x 480 frames
-    resized to the bundle's by the plugin; LeRobot's own 500-step episodes, ended on MetaWorld's success."""
+    resized to the bundle's by the plugin; LeRobot's own 500-step episodes, ended on MetaWorld's success.
+    ``encoder``: the key through the unsealed bundle's encoder (--policy.through_encoder), as anyone
+    holding the files can run a wrong key."""
     cmd = [BIN / "lerobot-eval", "--policy.type=prop", f"--policy.bundle={out / t / p / bundle}",
            "--policy.resize_images=true", "--env.type=metaworld", f"--env.task={t}",
            f"--eval.n_episodes={n}", "--eval.batch_size=1",
            f"--output_dir={out / t / p / 'lerobot-eval' / name}"]  # fmt: skip
     if key is not None:
         cmd += [f"--policy.key_file={key}", "--policy.allow_unenrolled_key=true"]
+    if encoder:
+        cmd += ["--policy.through_encoder=true"]
     return cmd
 
 
+LEROBOT_EVAL_WRONG_KEYS = 3  # random keys through the unsealed encoder, in lerobot-eval itself
+
+
 def step_lerobot_eval(out: Path, tasks: list[str], policies: list[str]) -> None:
-    """MetaWorld's success by LeRobot's own evaluator, through the plugin: the bundle without a key (the
-    original, bit for bit), the user's key, and a wrong key on the sealed bundle (its base: the
-    original). Unsealed wrong keys are judged by step_judge (through the encoder, which the plugin does
-    not run: it runs the base for a key enrolled in nothing)."""
+    """MetaWorld's success by LeRobot's own evaluator, through the plugin: the sealed bundle without a key
+    (the original, bit for bit), the user's key on both bundles, wrong keys through the unsealed encoder
+    (--policy.through_encoder) and a wrong key on the sealed bundle (its base: the original). The
+    larger wrong-key sweep is step_judge's (the same policy and resize in Python, shorter episodes)."""
     for t in tasks:
         for p in policies:
             wrong = out / "wrong.key"
             if not wrong.is_file():
                 prop("keygen", wrong)
-            for name, bundle, key in (("no-key", "bundle", None), ("user-key", "bundle", out / "user.key"),
-                                      ("sealed-wrong-key", "bundle-sealed", wrong)):  # fmt: skip
+            wrongs = [out / f"wrong-{i}.key" for i in range(LEROBOT_EVAL_WRONG_KEYS)]
+            for w in wrongs:
+                if not w.is_file():
+                    prop("keygen", w)
+            conditions = [("sealed-no-key", "bundle-sealed", None, False),
+                          ("user-key", "bundle", out / "user.key", False),
+                          ("sealed-user-key", "bundle-sealed", out / "user.key", False),
+                          *[(f"encoder-wrong-key-{i}", "bundle", w, True) for i, w in enumerate(wrongs)],
+                          ("sealed-wrong-key", "bundle-sealed", wrong, False)]  # fmt: skip
+            for name, bundle, key, encoder in conditions:
                 info = out / t / p / "lerobot-eval" / name / "eval_info.json"
                 if info.is_file():
                     continue
                 shutil.rmtree(info.parent, ignore_errors=True)
                 t0 = time.perf_counter()
-                run(lerobot_eval_command(out, t, p, name, bundle, key, LEROBOT_EVAL_EPISODES),
+                run(lerobot_eval_command(out, t, p, name, bundle, key, LEROBOT_EVAL_EPISODES, encoder),
                     log=out / t / p / f"lerobot-eval-{name}.log")  # fmt: skip
                 r = json.loads(info.read_text())
                 print(f"lerobot-eval {t} {p} {name}: pc_success {r['aggregated']['pc_success']:.1f} "

@@ -46,9 +46,13 @@ def host_policy(
     allow_unenrolled_key: bool = False,
     allow_rollback: bool = False,
     trust_remote_code: bool = False,
+    through_encoder: bool = False,
 ) -> Hosted:
     """The bundle's LeRobot policy for a host's loop, checked as ``prop run`` checks it. The key bits live
-    only in this call: what comes back holds the behaviour they open, never the key."""
+    only in this call: what comes back holds the behaviour they open, never the key.
+    ``through_encoder``: any key runs as the method answers it, unchecked (an unsealed bundle's encoder,
+    what anyone holding the files can run, as ``prop attack``'s key rows do; a sealed bundle's records,
+    where a wrong key opens nothing and the base runs): for measuring wrong keys in a closed loop."""
     bundle = load_bundle(
         Path(bundle_path), trust_remote_code=trust_remote_code, allow_rollback=allow_rollback
     )
@@ -59,6 +63,19 @@ def host_policy(
             "run it with prop run or prop eval; LeRobot's tools run bundles of LeRobot policies",
         )
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    if through_encoder:
+        if key is None:
+            raise PropError(
+                "--policy.through_encoder runs a key, and none was given", "pass --policy.key_file"
+            )
+        module = module_for_key(bundle, key, method=True)
+        del key
+        config = policy.config
+        return Hosted(
+            str(bundle_path), module.eval(), policy.pre, policy.post, False,
+            {k: tuple(f.shape) for k, f in config.input_features.items()},
+            {k: tuple(f.shape) for k, f in config.output_features.items()},
+        )  # fmt: skip
     keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
     with warnings.catch_warnings():
         # require_enrolled has refused an unenrolled key, or the caller allowed it: say so once, below.

@@ -285,3 +285,23 @@ def test_a_robot_that_does_not_give_the_bundles_features_is_refused_at_the_first
     wrong = {k: v for k, v in frames[0].items() if k != tiny.STATE}
     line = refused(capsys, lambda: policy.select_action(pre(wrong)))
     assert "'observation.state'" in line and "the observation does not give" in line
+
+
+def test_a_wrong_key_runs_through_the_encoder_only_when_asked(work, frames, capsys):
+    """--policy.through_encoder: what anyone holding an unsealed bundle's files can run with any key (for
+    measuring wrong keys in lerobot-eval), as prop's own runtime runs it; a sealed bundle's wrong key
+    opens nothing there either, and the original runs."""
+    from prop_cli.bundle import load_bundle
+    from prop_cli.core.key_files import read_key_file
+    from prop_cli.run import KeyedPolicy
+
+    other = work / "other.key"
+    bundle = load_bundle(work / "unsealed")
+    prop = KeyedPolicy(bundle, read_key_file(other), method=True).controller
+    expected = torch.cat([torch.as_tensor(prop.select_action(dict(f))).reshape(-1, 4) for f in frames])
+    got = actions(make(work, "unsealed", key_file=str(other), through_encoder=True), frames)
+    assert torch.equal(got, expected)
+    assert not torch.equal(got, actions(make(work, "unsealed"), frames))
+    sealed = actions(make(work, "sealed", key_file=str(other), through_encoder=True), frames)
+    assert torch.equal(sealed, actions(original(work), frames))
+    assert "none was given" in refused(capsys, lambda: make(work, "unsealed", through_encoder=True))

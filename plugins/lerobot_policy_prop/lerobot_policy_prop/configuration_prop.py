@@ -40,6 +40,9 @@ class PropConfig(PreTrainedConfig):
     allow_unenrolled_key: bool = False
     # Run this copy even where it is older than one this machine has seen (prop's rollback check).
     allow_rollback: bool = False
+    # Run the key through an unsealed bundle's encoder, unchecked: what anyone holding the files can run
+    # with any key (prop attack's key rows). For measuring wrong keys in a closed loop, never deployment.
+    through_encoder: bool = False
     # Import code the bundle names (a processor step LeRobot does not register): the user's consent.
     trust_remote_code: bool = False
     # Resize camera frames of another size to the bundle's (bilinear, antialiased), e.g. a simulator that

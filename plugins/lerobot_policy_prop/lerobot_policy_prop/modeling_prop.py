@@ -65,6 +65,7 @@ def hosted_for(config: PropConfig) -> Hosted:
                 Path(config.bundle), key_file=Path(config.key_file) if config.key_file else None,
                 passphrase=_passphrase(config), allow_unenrolled_key=config.allow_unenrolled_key,
                 allow_rollback=config.allow_rollback, trust_remote_code=config.trust_remote_code,
+                through_encoder=config.through_encoder,
             )  # fmt: skip
         except PropError as e:
             refuse(e)
