@@ -35,11 +35,13 @@ find_python() {
   return 1
 }
 drop_draccus_tests() {
-  # draccus (lerobot's config library) installs its own test suite as a top-level package `tests`, which
-  # shadows this repository's tests/ under pytest; it is not needed to run draccus.
+  # draccus (lerobot's config library) installs its own test suite and demos as top-level packages
+  # `tests` and `examples`, which shadow this repository's tests/ under pytest and its examples package
+  # (`python -m examples.metaworld` run from another folder); neither is needed to run draccus.
   local site
   site="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
   if grep -q '^tests/__init__.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/tests"; fi
+  if grep -q '^examples/demo.py' "$site"/draccus-*.dist-info/RECORD 2>/dev/null; then rm -rf "$site/examples"; fi
 }
 # lerobot 0.6.1's own pins of torch, numpy and transformers, given on the command line: otherwise pip's
 # resolver first fetches the newest torch that prop's own range allows (555 MB, measured on a cold cache)
