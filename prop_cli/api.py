@@ -97,6 +97,7 @@ __all__ = [
     "run_bundle",
     "run_file",
     "select_probes",
+    "serve_bundle",
     "user_keys",
     "verify_bundle",
 ]
@@ -417,6 +418,31 @@ def eval_bundle(
         bundle, env_id, key, settings, obs_map=mapping, metric=fn, original=ref, progress=progress,
         normalizer=normalizer, video=video, allow_unenrolled=allow_unenrolled_key, probe=probe,
     )  # fmt: skip
+
+
+def serve_bundle(
+    bundle_path: Path, *, host: str = C.SERVE_HOST, port: int = C.SERVE_PORT, tls_cert: Path | None = None,
+    tls_key: Path | None = None, allow_unenrolled_key: bool = False,
+    max_connections: int = C.SERVE_MAX_CONNECTIONS, trust_remote_code: bool = False, arch: str | None = None,
+    allow_rollback: bool = False, ready: Callable[[str], None] | None = None,
+) -> int:  # fmt: skip
+    """`prop serve`: the bundle as an openpi websocket policy server until SIGINT/SIGTERM
+    (``prop_cli.serve``); ``ready(url)`` once it listens. Returns the connections it served. The address
+    and TLS are checked before the bundle is loaded."""
+    try:
+        from prop_cli.serve import PolicyServer
+        from prop_cli.serve import serve_bundle as run_server
+    except ImportError as e:
+        raise PropError(f"prop serve needs {e.name}, which is not installed",
+                        "pip install 'prop-keys[serve]'") from None  # fmt: skip
+    from prop_cli.serve.server import tls_context
+
+    tls_context(host, tls_cert, tls_key)  # a refused address says so before the model loads
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch,
+                         allow_rollback=allow_rollback)  # fmt: skip
+    server = PolicyServer(bundle, host=host, port=port, tls_cert=tls_cert, tls_key=tls_key,
+                          allow_unenrolled=allow_unenrolled_key, max_connections=max_connections)  # fmt: skip
+    return run_server(server, ready)
 
 
 @dataclass

@@ -120,3 +120,10 @@ PASSPHRASE_MIN_YEARS = 100.0
 
 # The package registry name ("prop-cli" there is someone else's); the import package stays prop_cli.
 DISTRIBUTION = "prop-keys"
+
+# `prop serve`: the largest message a client may send (a bigger one closes its connection, 1009). 16 MiB
+# holds a few 224x224 RGB frames and a state, what a VLA's observation is.
+SERVE_MAX_MESSAGE_BYTES = 16 * 2**20
+SERVE_MAX_CONNECTIONS = 16
+SERVE_PORT = 8000
+SERVE_HOST = "127.0.0.1"  # the loopback: any other address needs TLS

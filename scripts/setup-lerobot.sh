@@ -59,6 +59,12 @@ check_rendering() {
   say "setup-lerobot: rendering one MuJoCo frame off-screen (MUJOCO_GL=${MUJOCO_GL:-egl}; ~5 s)"
   "$VENV/bin/python" -m examples.mujoco_reach --check-rendering
 }
+# The prop serve tests' client (tests/serve), unchanged; --no-deps: its metadata pins numpy<2 and dm-tree
+# for modules that client never imports (pyproject.toml, `serve`).
+install_openpi_client() {
+  say "setup-lerobot: installing openpi-client 0.1.2 without its dependencies (a few seconds)"
+  pip_install "$VENV/bin/pip" --no-deps "openpi-client==0.1.2"
+}
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
@@ -67,6 +73,7 @@ assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>
   pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
   say "setup-lerobot: updating the LeRobot policy plugin lerobot_policy_prop (~5 s)"
   pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop
+  install_openpi_client
   drop_draccus_tests
   check_rendering
   exit 0
@@ -92,6 +99,7 @@ pip_install "$PIP" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
 # the two just installed.
 say "setup-lerobot: installing the LeRobot policy plugin lerobot_policy_prop (~5 s)"
 pip_install "$PIP" --no-deps -e plugins/lerobot_policy_prop
+install_openpi_client
 drop_draccus_tests
 say "setup-lerobot: checking that lerobot's policies and prop import (~30 s)"
 "$VENV/bin/python" - <<'PYEOF'

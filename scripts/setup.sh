@@ -30,4 +30,10 @@ else
   say "setup: installing prop and its dependencies (~20 s on a fresh machine)"
 fi
 pip_install .venv/bin/pip -e ".${EXTRAS:+[$EXTRAS]}"
+if [[ ",$EXTRAS," == *,test,* ]]; then
+  # The prop serve tests connect with openpi-client's WebsocketClientPolicy, unchanged. --no-deps: its
+  # metadata pins numpy<2 and dm-tree for modules that client never imports (pyproject.toml, `serve`).
+  say "setup: installing openpi-client 0.1.2 without its dependencies (a few seconds)"
+  pip_install .venv/bin/pip --no-deps "openpi-client==0.1.2"
+fi
 python -c "import torch, prop_cli" # fail here, not later, if the install did not work

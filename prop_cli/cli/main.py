@@ -23,6 +23,7 @@ from . import (
     personalize_cmd,
     push_cmd,
     run_cmd,
+    serve_cmd,
     users_cmd,
     verify_cmd,
 )
@@ -110,6 +111,7 @@ COMMANDS = {
     "remove-user": users_cmd.remove_user,
     "attack": attack_cmd.attack,
     "eval": eval_cmd.eval_,
+    "serve": serve_cmd.serve,
     "export": export_cmd.export,
     "push": push_cmd.push,
     "verify": verify_cmd.verify,

@@ -235,3 +235,25 @@ def key_for_bundle(
             raise PropError("this bundle was not made with a passphrase", "use --key-file")
         return passphrase_bits(passphrase, bytes.fromhex(kdf["salt"]), bits)
     return None
+
+
+def key_text(path: Path) -> str:
+    """A key file as text, for a header (``prop serve``'s ``Authorization: Api-Key <text>``): the hex of
+    its bytes, read and checked as ``read_key_file`` reads them."""
+    return np.packbits(read_key_file(path)).tobytes().hex()
+
+
+def key_from_text(text: str, bits: int) -> np.ndarray:
+    """``key_text``'s text back to key bits for a bundle of ``bits``-bit keys. A refusal never quotes the
+    text (it is the key)."""
+    text = text.strip()
+    if len(text) != bits // 4:
+        raise PropError(
+            f"the key text has {len(text)} characters; this bundle's keys are {bits // 4} hex characters",
+            "send the key file's bytes in hex (prop_cli.core.key_files.key_text)",
+        )
+    try:
+        data = bytes.fromhex(text)
+    except ValueError:
+        raise PropError("the key text is not hex", "send the key file's bytes in hex (key_text)") from None
+    return np.unpackbits(np.frombuffer(data, dtype=np.uint8))

@@ -1,0 +1,278 @@
+"""The websocket server: openpi's policy protocol (server metadata first, then one msgpack-numpy reply per
+observation), one ``Session`` per connection, the key checked once at connect and never logged.
+
+Safe by default: the loopback only, unless TLS (wss) is given; messages capped (``max_size``); a client's
+bad message gets a one-line text reply (openpi-client raises it as "Error in inference server"), never a
+traceback, and the server keeps serving. Inference runs on one worker thread: connections are served in
+turn (batching across users is not here yet)."""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+import os
+import signal
+import ssl
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from prop_cli import constants as C
+from prop_cli.bundle import Bundle
+from prop_cli.core.key_files import key_from_text
+from prop_cli.errors import PropError, brief
+
+from .sessions import OBSERVATION, Session
+from .wire import WireError, packb, unpackb
+
+LOG = logging.getLogger("prop.serve")
+# websockets logs request headers (the key among them) at DEBUG: its logger is held at WARNING whatever the
+# root logger's level, so no setting of the host program's logging can print the Authorization header.
+_WS_LOG = logging.getLogger("prop.serve.websockets")
+_WS_LOG.setLevel(logging.WARNING)  # its INFO lines repeat ours
+
+SCHEME = "Api-Key"  # openpi-client sends `Authorization: Api-Key <api_key>`
+CLOSE_POLICY, CLOSE_ERROR, CLOSE_FULL = (
+    1008,
+    1011,
+    1013,
+)  # RFC 6455: policy violation, internal error, try later
+LOOPBACK = ("localhost",)
+
+
+def is_loopback(host: str) -> bool:
+    if host in LOOPBACK:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def tls_context(host: str, tls_cert: Path | None, tls_key: Path | None) -> ssl.SSLContext | None:
+    """TLS for wss, required off the loopback: the key travels in a header, so never in the clear."""
+    if (tls_cert is None) != (tls_key is None):
+        raise PropError("--tls-cert and --tls-key go together", "pass both (PEM certificate and its key)")
+    if tls_cert is None:
+        if not is_loopback(host):
+            raise PropError(
+                f"--host {host} is not the loopback, and keys would cross the network in the clear",
+                "pass --tls-cert and --tls-key (wss), or serve on --host 127.0.0.1",
+            )
+        return None
+    for flag, path in (("--tls-cert", tls_cert), ("--tls-key", tls_key)):
+        if not Path(path).is_file():
+            raise PropError(f"{flag} {path} is not a file", f"pass a PEM file to {flag}")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        context.load_cert_chain(str(tls_cert), str(tls_key))
+    except (ssl.SSLError, OSError) as e:
+        raise PropError(f"--tls-cert/--tls-key do not load ({brief(e, 80)})",
+                        "pass a PEM certificate and its matching private key") from None  # fmt: skip
+    return context
+
+
+def _reason(text: str) -> str:
+    """A close reason: RFC 6455 allows 123 bytes."""
+    data = text.encode()[:120]
+    return data.decode(errors="ignore")
+
+
+def _peer(ws: ServerConnection) -> str:
+    address = ws.remote_address
+    return f"{address[0]}:{address[1]}" if isinstance(address, tuple) else "peer"
+
+
+class PolicyServer:
+    """``bundle`` served on ``host:port`` (0: a free port). ``max_connections``: more are closed at once
+    (1013, try again later); ``max_message_bytes``: a bigger message closes its connection (1009)."""
+
+    def __init__(
+        self, bundle: Bundle, *, host: str = C.SERVE_HOST, port: int = C.SERVE_PORT,
+        tls_cert: Path | None = None, tls_key: Path | None = None, allow_unenrolled: bool = False,
+        max_connections: int = C.SERVE_MAX_CONNECTIONS,
+        max_message_bytes: int = C.SERVE_MAX_MESSAGE_BYTES,
+    ) -> None:  # fmt: skip
+        if max_connections < 1:
+            raise PropError(f"--max-connections {max_connections}", "pass 1 or more")
+        self.ssl = tls_context(host, tls_cert, tls_key)
+        self.bundle, self.host, self.port = bundle, host, port
+        self.allow_unenrolled, self.max_connections = allow_unenrolled, max_connections
+        self.max_message_bytes = max_message_bytes
+        self.open = 0
+        self.served = 0  # connections accepted since start
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prop-serve")
+
+    @property
+    def scheme(self) -> str:
+        return "wss" if self.ssl is not None else "ws"
+
+    def metadata(self, session: Session) -> dict:
+        """What the server sends first (openpi's server metadata): nothing of the key, only whether it
+        opened a behaviour."""
+        policy = self.bundle.loaded.policy
+        return {
+            "server": "prop", "bundle": Path(str(self.bundle.path)).name,
+            "kind": "lerobot" if policy is not None else "array",
+            "observation": list(policy.input_features) if policy is not None else OBSERVATION,
+            "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
+            # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers one
+            # step at a time from its own queue; an array model one action per observation.
+            "action_horizon": 1,
+        }  # fmt: skip
+
+    def _key(self, ws: ServerConnection):
+        """The key bits the connection's Authorization header carries; None without the header."""
+        header = ws.request.headers.get("Authorization") if ws.request is not None else None
+        if header is None:
+            return None
+        scheme, _, text = header.strip().partition(" ")
+        if scheme != SCHEME or not text.strip():
+            raise PropError(f"the Authorization header is not '{SCHEME} <key hex>'", "see docs/deploy.md")
+        return key_from_text(text, int(self.bundle.manifest[C.M_KEY]["bits"]))
+
+    async def _session(self, ws: ServerConnection) -> Session | None:
+        """The connection's session, or None after closing it with a reason (the key is never in it)."""
+        loop = asyncio.get_running_loop()
+        try:
+            key = self._key(ws)
+            given = key is not None
+            session = await loop.run_in_executor(self._pool, Session, self.bundle, key, self.allow_unenrolled)
+            del key
+        except PropError as e:
+            LOG.warning("%s: refused: %s", _peer(ws), e.what)
+            # The client is told the bundle's name, not where it lies on this machine.
+            what = e.what.replace(str(self.bundle.path), Path(str(self.bundle.path)).name)
+            await ws.close(CLOSE_POLICY, _reason(f"refused: {what}"))
+            return None
+        except Exception as e:  # a bug: one line each side (no traceback, whose frames held the key)
+            LOG.error("%s: the policy could not be made: %s", _peer(ws), type(e).__name__)
+            await ws.close(CLOSE_ERROR, "internal error: the policy could not be made")
+            return None
+        how = (
+            "keyed"
+            if session.keyed
+            else ("the base: key enrolled in nothing (allowed)" if given else "no key")
+        )
+        LOG.info("%s: connected (%s)", _peer(ws), how)
+        return session
+
+    async def _handle(self, ws: ServerConnection) -> None:
+        if self.open >= self.max_connections:
+            LOG.warning("%s: refused: %d connections open (--max-connections)", _peer(ws), self.open)
+            await ws.close(CLOSE_FULL, "server full: try again later")
+            return
+        self.open += 1
+        try:
+            session = await self._session(ws)
+            if session is None:
+                return
+            self.served += 1
+            await ws.send(packb(self.metadata(session)))
+            async for message in ws:
+                await ws.send(await self._answer(session, message))
+        except ConnectionClosed:
+            pass
+        finally:
+            self.open -= 1
+        LOG.info("%s: closed", _peer(ws))
+
+    async def _answer(self, session: Session, message) -> bytes | str:
+        """One reply: msgpack-numpy bytes, or a one-line error as text (openpi's error convention)."""
+        if isinstance(message, str):
+            return "prop serve: error: send msgpack-numpy bytes (openpi-client's infer), not text"
+        loop = asyncio.get_running_loop()
+        try:
+            return packb(await loop.run_in_executor(self._pool, session.infer, unpackb(message)))
+        except (WireError, PropError) as e:
+            return f"prop serve: error: {e}"
+        except Exception as e:  # a bug or a model failure: one line each side, the server goes on
+            LOG.error("inference failed: %s", brief(e))
+            if os.environ.get(C.ENV_DEBUG):
+                LOG.exception("traceback")
+            return f"prop serve: error: inference failed ({type(e).__name__})"
+
+    async def run(
+        self, ready: Callable[[str], None] | None = None, stop: asyncio.Event | None = None
+    ) -> None:
+        """Serve until ``stop`` is set (SIGINT/SIGTERM in the main thread set it too)."""
+        stop = stop or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, stop.set)
+        try:
+            async with serve(
+                self._handle, self.host, self.port, ssl=self.ssl, max_size=self.max_message_bytes,
+                compression=None, logger=_WS_LOG, server_header=None,
+            ) as server:  # fmt: skip
+                self.port = server.sockets[0].getsockname()[1]
+                if ready is not None:
+                    ready(self.url)
+                await stop.wait()
+        except OSError as e:
+            raise PropError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e})",
+                            "pick another --port, or stop what holds this one") from None  # fmt: skip
+        finally:
+            self._pool.shutdown(wait=True)  # in-flight inferences finish before the process exits
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}"
+
+
+def serve_bundle(server: PolicyServer, ready: Callable[[str], None] | None = None) -> int:
+    """Run ``server`` in this thread until SIGINT or SIGTERM; returns the connections it served."""
+    asyncio.run(server.run(ready))
+    return server.served
+
+
+@dataclass
+class Running:
+    """A server running on a thread of its own (tests, benchmarks, a notebook): ``stop()`` ends it."""
+
+    server: PolicyServer
+    url: str
+    port: int
+    _loop: asyncio.AbstractEventLoop
+    _stop: asyncio.Event
+    _thread: threading.Thread
+
+    def stop(self, timeout: float = 10.0) -> None:
+        if not self._thread.is_alive():
+            return
+        self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(timeout)
+
+
+def start_in_thread(server: PolicyServer, timeout: float = 30.0) -> Running:
+    """Start ``server`` on a daemon thread and return once it listens (its port: ``Running.port``)."""
+    started = threading.Event()
+    box: dict = {}
+
+    def main() -> None:
+        loop = asyncio.new_event_loop()
+        box["loop"], box["stop"] = loop, asyncio.Event()
+        try:
+            loop.run_until_complete(server.run(lambda url: started.set(), box["stop"]))
+        except BaseException as e:  # noqa: BLE001 - handed to the caller below
+            box["error"] = e
+            started.set()
+        finally:
+            loop.close()
+
+    thread = threading.Thread(target=main, name="prop-serve", daemon=True)
+    thread.start()
+    if not started.wait(timeout):
+        raise PropError(f"the server did not start within {timeout:.0f} s", "see its log")
+    if "error" in box:
+        raise box["error"]
+    return Running(server, server.url, server.port, box["loop"], box["stop"], thread)

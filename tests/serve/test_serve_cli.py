@@ -1,0 +1,58 @@
+"""prop serve from the command line: refusals in one line, and a real process serving until SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from prop_cli.core.key_files import key_text
+from tests.cli.shares import assert_clean_error
+from tests.serve.shares import OPENPI_CONNECT
+
+client_policy = pytest.importorskip("openpi_client.websocket_client_policy")
+pytestmark = OPENPI_CONNECT
+
+
+@pytest.mark.parametrize(
+    "flags, words",
+    [
+        (["--host", "0.0.0.0"], ["--host 0.0.0.0", "--tls-cert"]),
+        (["--host", "192.168.1.5", "--tls-cert", "c.pem"], ["--tls-cert and --tls-key go together"]),
+        (["--tls-cert", "missing.pem", "--tls-key", "missing.key"], ["--tls-cert missing.pem is not a file"]),
+        (["--max-connections", "0"], ["--max-connections"]),
+    ],
+)
+def test_refusals_are_one_line(cli, served_bundle, flags, words):
+    res = cli("serve", served_bundle / "mine.prop", *flags)
+    assert_clean_error(res, *words)
+
+
+def test_a_served_process_answers_openpi_client_and_stops_on_sigterm(served_bundle):
+    code = "from prop_cli.cli.main import main; main()"
+    args = [sys.executable, "-c", code, "serve", str(served_bundle / "mine.prop"), "--port", "0", "--json"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # the address comes first, on stdout
+        url = json.loads(line)["url"] if line.startswith("{") else line
+        assert url.startswith("ws://127.0.0.1:"), (url, proc.stderr.read() if proc.poll() is not None else "")
+        text = key_text(served_bundle / "k.bin")
+        client = client_policy.WebsocketClientPolicy(host=url, api_key=text)
+        actions = client.infer({"observation": np.zeros(4, np.float32)})["actions"]
+        assert actions.shape == (2,)
+        client._ws.close()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert json.loads(out) == {"connections": 1}
+    assert "connected (keyed)" in err and "stopped after 1 connection" in err and "Traceback" not in err
+    key_bytes = (served_bundle / "k.bin").read_bytes()
+    assert text not in err + out and text.upper() not in err + out and key_bytes.hex() not in err + out
