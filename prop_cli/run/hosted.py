@@ -63,35 +63,26 @@ def host_policy(
             "run it with prop run or prop eval; LeRobot's tools run bundles of LeRobot policies",
         )
     key = key_for_bundle(bundle.manifest, key_file, passphrase)
+    if through_encoder and key is None:
+        raise PropError("--policy.through_encoder runs a key, and none was given", "pass --policy.key_file")
     if through_encoder:
-        if key is None:
-            raise PropError(
-                "--policy.through_encoder runs a key, and none was given", "pass --policy.key_file"
-            )
-        module = module_for_key(bundle, key, method=True)
-        del key
-        config = policy.config
-        return Hosted(
-            str(bundle_path), module.eval(), policy.pre, policy.post, False,
-            {k: tuple(f.shape) for k, f in config.input_features.items()},
-            {k: tuple(f.shape) for k, f in config.output_features.items()},
-        )  # fmt: skip
-    keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
-    with warnings.catch_warnings():
-        # require_enrolled has refused an unenrolled key, or the caller allowed it: say so once, below.
-        warnings.simplefilter("ignore", WrongKeyWarning)
-        module = module_for_key(bundle, key, allow_unenrolled=allow_unenrolled_key)
+        module, keyed = module_for_key(bundle, key, method=True), False
+    else:
+        keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled_key)
+        with warnings.catch_warnings():
+            # require_enrolled has refused an unenrolled key, or the caller allowed it: said once, below.
+            warnings.simplefilter("ignore", WrongKeyWarning)
+            module = module_for_key(bundle, key, allow_unenrolled=allow_unenrolled_key)
+        if not keyed and key is not None:
+            warnings.warn(f"{bundle_path}: the key is enrolled in nothing; running the bundle's base "
+                          "(--policy.allow_unenrolled_key)", WrongKeyWarning, stacklevel=2)  # fmt: skip
     del key
-    if not keyed and (key_file is not None or passphrase is not None):
-        warnings.warn(f"{bundle_path}: the key is enrolled in nothing; running the bundle's base "
-                      "(--policy.allow_unenrolled_key)", WrongKeyWarning, stacklevel=2)  # fmt: skip
     config = policy.config
     return Hosted(
         str(bundle_path), module.eval(), policy.pre, policy.post, keyed,
         {k: tuple(f.shape) for k, f in config.input_features.items()},
         {k: tuple(f.shape) for k, f in config.output_features.items()},
     )  # fmt: skip
-
 
 def match_features(
     hosted: Hosted,
