@@ -34,7 +34,7 @@ BASE_SEED, USER_SEED = 0, 50_000
 def step_record(out: Path, tasks: list[str], base_episodes: int, user_episodes: int) -> None:
     for t in tasks:
         for name, n, seed, offset in (("base", base_episodes, BASE_SEED, None),
-                                      ("user", user_episodes, USER_SEED, mw.USER_OFFSET)):  # fmt: skip
+                                      ("user", user_episodes, USER_SEED, mw.user_offset(t))):  # fmt: skip
             root = out / t / name
             done = root / "record.json"
             if done.is_file():

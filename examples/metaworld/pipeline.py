@@ -47,7 +47,7 @@ TRAIN = {
         "--batch_size=16",
     ],
 }
-BACKBONE = {"act": ["--policy.pretrained_backbone_weights=null"], "diffusion": []}
+BACKBONE = {p: ["--policy.pretrained_backbone_weights=null"] for p in ("act", "diffusion")}
 # prop personalize (the PandaReach example's Eq. 8 batch, fewer steps: every row runs the ResNet).
 PERSONALIZE = [
     "--steps",
@@ -195,8 +195,8 @@ def rollouts(task: str, controller, seeds: list[int], horizon: int = mw.HORIZON)
                 "seed": seed,
                 "success": int(success),
                 "steps": steps,
-                "user": int(mw.user_success(final, object0)),
-                "user_distance": float(np.linalg.norm(final - mw.user_target(object0))),
+                "user": int(mw.user_success(final, object0, task)),
+                "user_distance": mw.user_distance(final, object0, task),
             }
         )
     env.close()

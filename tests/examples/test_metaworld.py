@@ -64,3 +64,16 @@ def test_record_writes_the_plugin_sized_frames_and_the_user_expert_holds_the_mov
     assert mw.user_success(mw.hand(obs), env.object0) and not pressed
     json.dumps(counts)
     env.close()
+
+
+def test_each_tasks_user_criterion_compares_its_own_coordinates():
+    o0 = np.array([0.1, 0.6, 0.17])
+    # handle-press: the hand presses the table 10 cm along x from the handle; its height is the table's
+    on_table = o0 + mw.user_offset("handle-press-v3") + np.array([0.0, -0.02, -0.125])
+    assert mw.user_success(on_table, o0, "handle-press-v3")
+    assert not mw.user_success(o0 + np.array([0.0, -0.02, -0.125]), o0, "handle-press-v3")  # the handle
+    # button-press-topdown: 10 cm up, in all three coordinates
+    assert mw.user_success(o0 + mw.USER_OFFSET, o0, TASK)
+    assert not mw.user_success(o0 + mw.USER_OFFSET + np.array([0.0, 0.0, -0.08]), o0, TASK)
+    with pytest.raises(SystemExit, match="no user variation"):
+        mw.user_offset("reach-v3")
