@@ -37,9 +37,12 @@ USER_THRESHOLD = 0.05  # MetaWorld's reach-v3 success distance (m)
 # criterion compares). handle-press-v3's expert aims 0.5 m below the handle, so moving it up still
 # presses it: the user's handle is moved 10 cm along x instead and the hand, pressing down onto the
 # table there, is judged in the table's plane (its height is wherever the table stops it).
+# drawer-close-v3: the user wants the drawer left open: the handle moved 10 cm toward the robot, the
+# expert parks the hand in front of it (at the height it approaches from), judged in the table's plane.
 VARIATIONS = {
     "button-press-topdown-v3": (USER_OFFSET, (0, 1, 2)),
     "handle-press-v3": (np.array([0.10, 0.0, 0.0]), (0, 1)),
+    "drawer-close-v3": (np.array([0.0, -0.10, 0.0]), (0, 1)),
 }
 # Judge horizon: the scripted experts finish these tasks in 35-92 steps (LeRobot's env would run 500).
 HORIZON = 100
