@@ -362,6 +362,23 @@ def step_table(out: Path, tasks: list[str], policies: list[str]) -> None:
                     f"\n{t} {p}: wrong-key episodes against the original on the same seeds: lost {lost}, "
                     f"gained {gained} of {nw}"
                 )
+    lerobot_eval_table(out, tasks, policies)
+
+
+def lerobot_eval_table(out: Path, tasks: list[str], policies: list[str]) -> None:
+    """What lerobot-eval itself wrote (eval_info.json): MetaWorld's success per episode, per condition."""
+    lines = []
+    for t in tasks:
+        for p in policies:
+            for info in sorted((out / t / p / "lerobot-eval").glob("*/eval_info.json")):
+                r = json.loads(info.read_text())
+                wins = [bool(w) for task in r["per_task"] for w in task["metrics"]["successes"]]
+                eps = ", ".join("pass" if w else "fail" for w in wins)
+                lines.append(f"| {t} | {p} | {info.parent.name} | {sum(wins)}/{len(wins)} | {eps} | "
+                             f"{r['overall']['eval_s']:.0f} s |")  # fmt: skip
+    if lines:
+        print("\n| task | policy | lerobot-eval condition | success | episodes | wall |\n|" + " --- |" * 6)
+        print("\n".join(lines))
 
 
 LEROBOT_EVAL_EPISODES = 4
