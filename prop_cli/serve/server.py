@@ -116,6 +116,16 @@ class Backoff:
         self.failures.pop(host, None)
 
 
+def bundle_stamp(path: Path) -> tuple | None:
+    """What changes when a bundle is rewritten (prop writes a new folder and renames it into place; an edit
+    in place rewrites its manifest): the folder's and its manifest's identity, size and time."""
+    try:
+        folder, manifest = os.stat(path), os.stat(Path(path) / C.MANIFEST)
+    except OSError:
+        return None
+    return (folder.st_ino, folder.st_mtime_ns, manifest.st_ino, manifest.st_size, manifest.st_mtime_ns)
+
+
 def _host(ws: ServerConnection) -> str:
     address = ws.remote_address
     return str(address[0]) if isinstance(address, tuple) else "peer"
@@ -154,6 +164,7 @@ class PolicyServer:
         self.served = 0  # connections accepted since start
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prop-serve")
         self.cache = BehaviourCache(int(cache_mb * 2**20))
+        self.stamp = bundle_stamp(Path(str(bundle.path)))  # the bundle as loaded (and checked)
         self.backoff = backoff or Backoff()
         module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
         self.batcher = Batcher(lambda requests: run_requests(module, keyed, requests), self._pool,
@@ -225,6 +236,13 @@ class PolicyServer:
         if self.open >= self.max_connections:
             LOG.warning("%s: refused: %d connections open (--max-connections)", _peer(ws), self.open)
             await ws.close(CLOSE_FULL, "server full: try again later")
+            return
+        if bundle_stamp(Path(str(self.bundle.path))) != self.stamp:
+            # Keys are checked against the bundle in memory; the one on disk may have lost a user
+            # (remove-user) or changed: no new connection until a restart loads and checks it again.
+            LOG.warning("%s: refused: the bundle changed on disk since the server started", _peer(ws))
+            await ws.close(CLOSE_POLICY, "refused: the bundle changed on disk since the server started: "
+                                         "restart prop serve")  # fmt: skip
             return
         self.open += 1
         try:

@@ -241,3 +241,27 @@ def test_sealed_users_are_payloads_batched_with_the_base(sealed_bundle, served_b
     np.testing.assert_allclose(got[0].numpy(), want_user, rtol=0, atol=ATOL)
     np.testing.assert_allclose(got[1].numpy(), want_base, rtol=0, atol=ATOL)
     assert Session(bundle, read_key_file(served_bundle / "k.bin"), False, cache).cached
+
+
+@OPENPI_CONNECT
+def test_a_bundle_changed_on_disk_refuses_new_connections_and_keeps_open_ones(
+    served_bundle, start_bundle, tmp_path
+):
+    import shutil
+
+    from websockets.exceptions import ConnectionClosed
+
+    copy = tmp_path / "copy.prop"
+    shutil.copytree(served_bundle / "mine.prop", copy)
+    running = start_bundle(copy)
+    Client = client_policy.WebsocketClientPolicy
+    keyed = Client(host="127.0.0.1", port=running.port, api_key=key_text(served_bundle / "k.bin"))
+    x = {"observation": np.zeros((1, 4), np.float32)}
+    before = keyed.infer(x)["actions"]
+    manifest = copy / "manifest.json"
+    manifest.write_text(manifest.read_text() + "\n")  # as remove-user or a hand edit would
+    with pytest.raises(ConnectionClosed) as e:
+        Client(host="127.0.0.1", port=running.port)
+    assert e.value.rcvd.code == 1008 and "changed on disk" in e.value.rcvd.reason
+    np.testing.assert_array_equal(keyed.infer(x)["actions"], before)  # an open connection goes on
+    keyed._ws.close()
