@@ -8,7 +8,8 @@ A row's ``Behaviour`` is one of:
   ``KeyedModel.run_rows`` (one delta row per batch row, the path training takes);
 - ``Payload`` (``core.payload``): a sealed bundle's decrypted payload, applied by hooks on the keyed
   linear layers: the input scaled by the row's delta (``delta``, ``lora``) and the row's low-rank or full
-  update added to the layer's output (``lora``, ``peft-lora``, ``full``), rows of one user at a time;
+  update added to the layer's output: every keyed row's LoRA A and B gathered and applied in two batched
+  matmuls (``lora``, ``peft-lora``: Punica's BGMV), a ``full`` payload's weight one user's rows at a time;
 - ``Folded``: a module of its own (keyed layers that are not linear, where no gathered form is written
   here): its rows run apart, in the same call.
 
@@ -84,7 +85,25 @@ def _payload_hooks(module: nn.Module, payloads: list[Payload], index: list[torch
 
             handles.append(lin.register_forward_pre_hook(pre))
 
-        if parts & {"lora_a", "weight_delta"}:
+        if "lora_a" in parts:
+            # Punica's BGMV: each keyed row's A and B gathered, two batched matmuls for every user at once.
+            keyed = torch.cat(index)
+            user = torch.cat([torch.full((len(idx),), u, dtype=torch.long) for u, idx in enumerate(index)])
+            a_rows = torch.stack([p.tensor(name, "lora_a").detach() for p in payloads]).index_select(0, user)
+            b_rows = torch.stack([p.tensor(name, "lora_b").detach() for p in payloads]).index_select(0, user)
+
+            def post(mod, args, out, keyed=keyed, a_rows=a_rows, b_rows=b_rows):
+                z = args[0]
+                if z.shape[0] != rows:
+                    raise _Mismatch()
+                zk = z.index_select(0, keyed)
+                flat = zk.reshape(zk.shape[0], -1, zk.shape[-1])  # (K, M, in)
+                extra = torch.bmm(torch.bmm(flat, a_rows.transpose(1, 2)), b_rows.transpose(1, 2))
+                return out.index_add(0, keyed, extra.reshape(*zk.shape[:-1], -1).to(out.dtype))
+
+            handles.append(lin.register_forward_hook(post))
+
+        if "weight_delta" in parts:  # a whole weight per user: rows of one user at a time
 
             def post(mod, args, out, name=name):
                 z = args[0]
@@ -92,11 +111,7 @@ def _payload_hooks(module: nn.Module, payloads: list[Payload], index: list[torch
                     raise _Mismatch()
                 for p, idx in zip(payloads, index):
                     zi = z.index_select(0, idx)
-                    if p.spec.kind == "full":
-                        extra = zi @ p.tensor(name, "weight_delta").detach().T + p.tensor(name, "bias_delta")
-                    else:
-                        a, b = p.tensor(name, "lora_a").detach(), p.tensor(name, "lora_b").detach()
-                        extra = (zi @ a.T) @ b.T
+                    extra = zi @ p.tensor(name, "weight_delta").detach().T + p.tensor(name, "bias_delta")
                     out = out.index_add(0, idx, extra.to(out.dtype))
                 return out
 
