@@ -52,6 +52,9 @@ CLOSE_POLICY, CLOSE_ERROR, CLOSE_FULL = (
     1013,
 )  # RFC 6455: policy violation, internal error, try later
 LOOPBACK = ("localhost",)
+# A message {"reset": True} (and an optional "seed") starts a new episode on this connection: a LeRobot
+# policy's queues emptied. openpi-client's own reset() sends nothing: send it with infer({"reset": True}).
+RESET = "reset"
 
 
 def is_loopback(host: str) -> bool:
@@ -266,6 +269,12 @@ class PolicyServer:
         loop = asyncio.get_running_loop()
         try:
             obs = unpackb(message)
+            if isinstance(obs, dict) and obs.get(RESET) is True:  # {"reset": True[, "seed": int]}
+                seed = obs.get("seed")
+                if seed is not None and not isinstance(seed, int):
+                    raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
+                await loop.run_in_executor(self._pool, session.reset, seed)
+                return packb({RESET: True})
             if session.controller is not None:
                 return packb(await loop.run_in_executor(self._pool, session.infer, obs))
             x, single = session.observation(obs)

@@ -137,6 +137,7 @@ class Session:
         y = run_requests(loaded.module, self.bundle.mode.keyed, [self.request(x)])[0]
         return self.answer(y, single)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
+        """A new episode for this connection: a LeRobot policy's queues emptied (``seed``: its noise)."""
         if self.controller is not None:
-            self.policy.reset()
+            self.policy.reset(seed)

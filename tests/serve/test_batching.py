@@ -265,3 +265,15 @@ def test_a_bundle_changed_on_disk_refuses_new_connections_and_keeps_open_ones(
     assert e.value.rcvd.code == 1008 and "changed on disk" in e.value.rcvd.reason
     np.testing.assert_array_equal(keyed.infer(x)["actions"], before)  # an open connection goes on
     keyed._ws.close()
+
+
+@OPENPI_CONNECT
+def test_a_reset_message_is_answered_and_a_bad_seed_refused_in_one_line(start):
+    running = start()
+    client = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port)
+    assert client.infer({"reset": True}) == {"reset": True}
+    assert client.infer({"reset": True, "seed": 3}) == {"reset": True}
+    with pytest.raises(RuntimeError, match="seed is an int"):
+        client.infer({"reset": True, "seed": "x"})
+    assert client.infer({"observation": np.zeros(4, np.float32)})["actions"].shape == (2,)
+    client._ws.close()

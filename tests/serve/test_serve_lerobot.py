@@ -58,6 +58,10 @@ def test_act_over_openpi_client_matches_keyed_policy_per_connection(act_bundle, 
         assert got_u.shape == (1, *u.shape)
         np.testing.assert_allclose(got_u[0], u, rtol=0, atol=1e-5)
         np.testing.assert_allclose(got_b[0], b, rtol=0, atol=1e-5)
+    # {"reset": True} starts the connection's episode again: its queue replays the same actions.
+    assert keyed.infer({"reset": True}) == {"reset": True}
+    for f, u in zip(frames, want_user):
+        np.testing.assert_allclose(keyed.infer(f)["actions"][0], u, rtol=0, atol=1e-5)
     # A second no-key connection starts its own episode: the base's queue is not shared with the first.
     late = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port)
     for f, b in zip(frames, want_base):
