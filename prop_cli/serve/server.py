@@ -186,9 +186,10 @@ class PolicyServer:
             "kind": "lerobot" if policy is not None else "array",
             "observation": list(policy.input_features) if policy is not None else OBSERVATION,
             "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
-            # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers one
-            # step at a time from its own queue; an array model one action per observation.
-            "action_horizon": 1,
+            # Steps per infer (openpi's ActionChunkBroker action_horizon): ACT answers its chunk
+            # (n_action_steps); other LeRobot policies one step at a time from their own queues; an array
+            # model one action per observation.
+            "action_horizon": session.chunk_steps or 1,
         }  # fmt: skip
 
     def _key(self, ws: ServerConnection):

@@ -41,6 +41,7 @@ class Session:
         self.bundle = bundle
         self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
         self.controller = None
+        self.chunk_steps: int | None = None  # a LeRobot policy's actions per infer; None: one step
         self.cached = False  # the behaviour came from the cache (no decryption)
         if loaded.policy is None:  # an array model: a behaviour for batched rows
             self.behaviour = self._behaviour(key, allow_unenrolled, cache)
@@ -57,6 +58,9 @@ class Session:
             self.policy.module = module
             self.policy.controller = loaded.policy.on(module).controller(module)
         self.controller = self.policy.controller
+        # openpi clients take a chunk per infer (ActionChunkBroker): ACT answers its whole chunk; the
+        # others one step at a time from their own queues on this connection.
+        self.chunk_steps = getattr(self.controller, "chunk_steps", None)
 
     def _behaviour(self, key, allow: bool, cache: BehaviourCache | None) -> Behaviour:
         """What ``key`` runs, checked as ``KeyedPolicy`` checks it; from ``cache`` when it is there."""
@@ -131,6 +135,8 @@ class Session:
         if self.controller is not None:
             if not isinstance(obs, Mapping):
                 raise PropError(f"an observation is a dict, not {type(obs).__name__}", "send {name: array}")
+            if self.chunk_steps is not None:
+                return {"actions": np.asarray(self.controller.action_chunk(obs), np.float32)}
             return {"actions": np.asarray(self.policy.select_action(obs), np.float32)[None]}
         x, single = self.observation(obs)
         loaded = self.bundle.loaded
