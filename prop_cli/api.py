@@ -425,6 +425,8 @@ def serve_bundle(
     tls_key: Path | None = None, allow_unenrolled_key: bool = False,
     max_connections: int = C.SERVE_MAX_CONNECTIONS, trust_remote_code: bool = False, arch: str | None = None,
     allow_rollback: bool = False, ready: Callable[[str], None] | None = None,
+    batch_window_ms: float = C.SERVE_BATCH_WINDOW_MS, max_batch: int = C.SERVE_MAX_BATCH,
+    cache_mb: float = C.SERVE_CACHE_MB,
 ) -> int:  # fmt: skip
     """`prop serve`: the bundle as an openpi websocket policy server until SIGINT/SIGTERM
     (``prop_cli.serve``); ``ready(url)`` once it listens. Returns the connections it served. The address
@@ -441,7 +443,9 @@ def serve_bundle(
     bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch,
                          allow_rollback=allow_rollback)  # fmt: skip
     server = PolicyServer(bundle, host=host, port=port, tls_cert=tls_cert, tls_key=tls_key,
-                          allow_unenrolled=allow_unenrolled_key, max_connections=max_connections)  # fmt: skip
+                          allow_unenrolled=allow_unenrolled_key, max_connections=max_connections,
+                          batch_window_ms=batch_window_ms, max_batch=max_batch,
+                          cache_mb=cache_mb)  # fmt: skip
     return run_server(server, ready)
 
 

@@ -126,4 +126,7 @@ DISTRIBUTION = "prop-keys"
 SERVE_MAX_MESSAGE_BYTES = 16 * 2**20
 SERVE_MAX_CONNECTIONS = 16
 SERVE_PORT = 8000
+SERVE_BATCH_WINDOW_MS = 2.0  # requests arriving within it run as one forward
+SERVE_MAX_BATCH = 256  # observations per forward at most
+SERVE_CACHE_MB = 256.0  # decrypted behaviours kept between connections
 SERVE_HOST = "127.0.0.1"  # the loopback: any other address needs TLS

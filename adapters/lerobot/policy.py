@@ -463,6 +463,38 @@ class Controller:
             action = self.post(self.module.select_action(self.pre(x))).numpy()
         return action[0] if single else action
 
+    # Policies whose predict_action_chunk needs nothing but the frame (no observation history, no
+    # temporal ensembling): ``action_chunk`` answers their whole chunk.
+    CHUNKED: tuple[str, ...] = ("act",)
+
+    @property
+    def chunk_steps(self) -> int | None:
+        """Actions per ``action_chunk`` (the policy's ``n_action_steps``); None where it has none here."""
+        config = getattr(self.module, "config", None)
+        if getattr(config, "type", None) not in self.CHUNKED or getattr(
+            config, "temporal_ensemble_coeff", None
+        ):
+            return None
+        return int(config.n_action_steps)
+
+    @torch.no_grad()
+    def action_chunk(self, obs: Mapping) -> np.ndarray:
+        """The next ``chunk_steps`` actions for ``obs``, in the dataset's action units: what as many
+        ``select_action`` calls from an empty queue give, in one call ((steps, action_dim) for one frame,
+        (N, steps, action_dim) for a batch). The queues are left as they are."""
+        steps = self.chunk_steps
+        if steps is None:
+            raise PropError("this policy answers one action at a time (select_action)", "call select_action")
+        x, single = self._inputs(obs)
+        seed = call_seed(self.noise_seed, self.episode, self.calls)
+        self.calls += 1
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            chunk = self.module.predict_action_chunk(self.pre(x))[:, :steps]
+        b, t = chunk.shape[:2]
+        action = self.post(chunk.reshape(b * t, -1)).reshape(b, t, -1).numpy()
+        return action[0] if single else action
+
     def _inputs(self, obs: Mapping) -> tuple[dict, bool]:
         """``obs`` as the preprocessor takes it, with a batch axis; and whether it came without one."""
         names = ", ".join(self.features)

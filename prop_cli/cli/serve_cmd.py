@@ -8,7 +8,14 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
-from prop_cli.constants import SERVE_HOST, SERVE_MAX_CONNECTIONS, SERVE_PORT
+from prop_cli.constants import (
+    SERVE_BATCH_WINDOW_MS,
+    SERVE_CACHE_MB,
+    SERVE_HOST,
+    SERVE_MAX_BATCH,
+    SERVE_MAX_CONNECTIONS,
+    SERVE_PORT,
+)
 
 from .common import err
 from .options import AllowRollback, AllowUnenrolledKey, BundleArch, BundleArg, TrustRemoteCode, opt
@@ -25,6 +32,14 @@ JsonLines = Annotated[
 MaxConnections = Annotated[
     int, opt("--max-connections", "Connections open at once; more are closed (try again later).", min=1)
 ]
+BatchWindow = Annotated[
+    float,
+    opt("--batch-window-ms", "Requests (any users) arriving within this window run as one forward.", min=0),
+]
+MaxBatch = Annotated[int, opt("--max-batch", "Observations per forward at most.", min=1)]
+CacheMb = Annotated[
+    float, opt("--cache-mb", "Memory for decrypted users' payloads kept between connections (LRU).", min=0)
+]
 
 
 def serve(
@@ -32,6 +47,8 @@ def serve(
     tls_key: TlsKey = None, allow_unenrolled_key: AllowUnenrolledKey = False,
     max_connections: MaxConnections = SERVE_MAX_CONNECTIONS, trust_remote_code: TrustRemoteCode = False,
     arch: BundleArch = None, allow_rollback: AllowRollback = False, as_json: JsonLines = False,
+    batch_window_ms: BatchWindow = SERVE_BATCH_WINDOW_MS, max_batch: MaxBatch = SERVE_MAX_BATCH,
+    cache_mb: CacheMb = SERVE_CACHE_MB,
 ) -> None:  # fmt: skip
     """Serve BUNDLE to openpi-client's WebsocketClientPolicy until Ctrl-C or SIGTERM: each connection's key
     (Authorization: Api-Key <key file bytes in hex>) runs its holder's behaviour; no key, the base."""
@@ -54,6 +71,7 @@ def serve(
             bundle, host=host, port=port, tls_cert=tls_cert, tls_key=tls_key,
             allow_unenrolled_key=allow_unenrolled_key, max_connections=max_connections,
             trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback, ready=ready,
+            batch_window_ms=batch_window_ms, max_batch=max_batch, cache_mb=cache_mb,
         )  # fmt: skip
     finally:
         log.removeHandler(handler)

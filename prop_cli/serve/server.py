@@ -3,8 +3,13 @@ observation), one ``Session`` per connection, the key checked once at connect an
 
 Safe by default: the loopback only, unless TLS (wss) is given; messages capped (``max_size``); a client's
 bad message gets a one-line text reply (openpi-client raises it as "Error in inference server"), never a
-traceback, and the server keeps serving. Inference runs on one worker thread: connections are served in
-turn (batching across users is not here yet)."""
+traceback, and the server keeps serving. A peer whose keys keep failing waits longer before each next try
+(``Backoff``), while everyone else is served.
+
+Inference runs on one worker thread. An array model's requests, from any connection, that arrive within
+``batch_window_s`` run as one forward of the base, each row under its own user's behaviour (``batcher``,
+``rows``); decrypted behaviours are kept in an LRU cache capped at ``cache_bytes`` (``cache``). A LeRobot
+policy's connections run one at a time, each on its own folded module and queues."""
 
 from __future__ import annotations
 
@@ -28,6 +33,9 @@ from prop_cli.bundle import Bundle
 from prop_cli.core.key_files import key_from_text
 from prop_cli.errors import PropError, brief
 
+from .batcher import Batcher
+from .cache import BehaviourCache
+from .rows import run_requests
 from .sessions import OBSERVATION, Session
 from .wire import WireError, packb, unpackb
 
@@ -44,6 +52,9 @@ CLOSE_POLICY, CLOSE_ERROR, CLOSE_FULL = (
     1013,
 )  # RFC 6455: policy violation, internal error, try later
 LOOPBACK = ("localhost",)
+# A message {"reset": True} (and an optional "seed") starts a new episode on this connection: a LeRobot
+# policy's queues emptied. openpi-client's own reset() sends nothing: send it with infer({"reset": True}).
+RESET = "reset"
 
 
 def is_loopback(host: str) -> bool:
@@ -85,6 +96,44 @@ def _reason(text: str) -> str:
     return data.decode(errors="ignore")
 
 
+class Backoff:
+    """Wrong keys from one peer address: the n-th failure in a row makes that address's next connection
+    wait ``min(cap_s, first_s * 2 ** (n - 1))`` before its key is tried; a key that opens resets it. The
+    wait is the connection's own (asyncio), so other peers are not slowed. At most ``peers`` addresses
+    are remembered (the oldest forgotten first)."""
+
+    def __init__(self, first_s: float = 0.05, cap_s: float = 2.0, peers: int = 4096) -> None:
+        self.first_s, self.cap_s, self.peers = first_s, cap_s, peers
+        self.failures: dict[str, int] = {}
+
+    def delay(self, host: str) -> float:
+        n = self.failures.get(host, 0)
+        return 0.0 if n == 0 else min(self.cap_s, self.first_s * 2 ** (n - 1))
+
+    def failed(self, host: str) -> None:
+        self.failures[host] = self.failures.pop(host, 0) + 1
+        while len(self.failures) > self.peers:
+            self.failures.pop(next(iter(self.failures)))
+
+    def opened(self, host: str) -> None:
+        self.failures.pop(host, None)
+
+
+def bundle_stamp(path: Path) -> tuple | None:
+    """What changes when a bundle is rewritten (prop writes a new folder and renames it into place; an edit
+    in place rewrites its manifest): the folder's and its manifest's identity, size and time."""
+    try:
+        folder, manifest = os.stat(path), os.stat(Path(path) / C.MANIFEST)
+    except OSError:
+        return None
+    return (folder.st_ino, folder.st_mtime_ns, manifest.st_ino, manifest.st_size, manifest.st_mtime_ns)
+
+
+def _host(ws: ServerConnection) -> str:
+    address = ws.remote_address
+    return str(address[0]) if isinstance(address, tuple) else "peer"
+
+
 def _peer(ws: ServerConnection) -> str:
     address = ws.remote_address
     return f"{address[0]}:{address[1]}" if isinstance(address, tuple) else "peer"
@@ -99,9 +148,17 @@ class PolicyServer:
         tls_cert: Path | None = None, tls_key: Path | None = None, allow_unenrolled: bool = False,
         max_connections: int = C.SERVE_MAX_CONNECTIONS,
         max_message_bytes: int = C.SERVE_MAX_MESSAGE_BYTES,
+        batch_window_ms: float = C.SERVE_BATCH_WINDOW_MS, max_batch: int = C.SERVE_MAX_BATCH,
+        cache_mb: float = C.SERVE_CACHE_MB, backoff: Backoff | None = None,
     ) -> None:  # fmt: skip
         if max_connections < 1:
             raise PropError(f"--max-connections {max_connections}", "pass 1 or more")
+        if not 0 <= batch_window_ms <= 1000:
+            raise PropError(f"--batch-window-ms {batch_window_ms}", "pass 0 to 1000 (0: no waiting)")
+        if max_batch < 1:
+            raise PropError(f"--max-batch {max_batch}", "pass 1 or more observations")
+        if cache_mb < 0:
+            raise PropError(f"--cache-mb {cache_mb}", "pass 0 (no cache) or more megabytes")
         self.ssl = tls_context(host, tls_cert, tls_key)
         self.bundle, self.host, self.port = bundle, host, port
         self.allow_unenrolled, self.max_connections = allow_unenrolled, max_connections
@@ -109,6 +166,12 @@ class PolicyServer:
         self.open = 0
         self.served = 0  # connections accepted since start
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prop-serve")
+        self.cache = BehaviourCache(int(cache_mb * 2**20))
+        self.stamp = bundle_stamp(Path(str(bundle.path)))  # the bundle as loaded (and checked)
+        self.backoff = backoff or Backoff()
+        module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
+        self.batcher = Batcher(lambda requests: run_requests(module, keyed, requests), self._pool,
+                               batch_window_ms / 1000, max_batch)  # fmt: skip
 
     @property
     def scheme(self) -> str:
@@ -123,9 +186,10 @@ class PolicyServer:
             "kind": "lerobot" if policy is not None else "array",
             "observation": list(policy.input_features) if policy is not None else OBSERVATION,
             "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
-            # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers one
-            # step at a time from its own queue; an array model one action per observation.
-            "action_horizon": 1,
+            # Steps per infer (openpi's ActionChunkBroker action_horizon): ACT answers its chunk
+            # (n_action_steps); other LeRobot policies one step at a time from their own queues; an array
+            # model one action per observation.
+            "action_horizon": session.chunk_steps or 1,
         }  # fmt: skip
 
     def _key(self, ws: ServerConnection):
@@ -141,12 +205,20 @@ class PolicyServer:
     async def _session(self, ws: ServerConnection) -> Session | None:
         """The connection's session, or None after closing it with a reason (the key is never in it)."""
         loop = asyncio.get_running_loop()
+        host = _host(ws)
         try:
             key = self._key(ws)
             given = key is not None
-            session = await loop.run_in_executor(self._pool, Session, self.bundle, key, self.allow_unenrolled)
+            if given and (wait := self.backoff.delay(host)):
+                await asyncio.sleep(wait)  # this peer's keys kept failing: its next try waits
+            session = await loop.run_in_executor(
+                self._pool, Session, self.bundle, key, self.allow_unenrolled, self.cache
+            )
             del key
+            if given:
+                self.backoff.opened(host)
         except PropError as e:
+            self.backoff.failed(host)
             LOG.warning("%s: refused: %s", _peer(ws), e.what)
             # The client is told the bundle's name, not where it lies on this machine.
             what = e.what.replace(str(self.bundle.path), Path(str(self.bundle.path)).name)
@@ -169,6 +241,13 @@ class PolicyServer:
             LOG.warning("%s: refused: %d connections open (--max-connections)", _peer(ws), self.open)
             await ws.close(CLOSE_FULL, "server full: try again later")
             return
+        if bundle_stamp(Path(str(self.bundle.path))) != self.stamp:
+            # Keys are checked against the bundle in memory; the one on disk may have lost a user
+            # (remove-user) or changed: no new connection until a restart loads and checks it again.
+            LOG.warning("%s: refused: the bundle changed on disk since the server started", _peer(ws))
+            await ws.close(CLOSE_POLICY, "refused: the bundle changed on disk since the server started: "
+                                         "restart prop serve")  # fmt: skip
+            return
         self.open += 1
         try:
             session = await self._session(ws)
@@ -190,7 +269,17 @@ class PolicyServer:
             return "prop serve: error: send msgpack-numpy bytes (openpi-client's infer), not text"
         loop = asyncio.get_running_loop()
         try:
-            return packb(await loop.run_in_executor(self._pool, session.infer, unpackb(message)))
+            obs = unpackb(message)
+            if isinstance(obs, dict) and obs.get(RESET) is True:  # {"reset": True[, "seed": int]}
+                seed = obs.get("seed")
+                if seed is not None and not isinstance(seed, int):
+                    raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
+                await loop.run_in_executor(self._pool, session.reset, seed)
+                return packb({RESET: True})
+            if session.controller is not None:
+                return packb(await loop.run_in_executor(self._pool, session.infer, obs))
+            x, single = session.observation(obs)
+            return packb(session.answer(await self.batcher.submit(session.request(x)), single))
         except (WireError, PropError) as e:
             return f"prop serve: error: {e}"
         except Exception as e:  # a bug or a model failure: one line each side, the server goes on

@@ -1,5 +1,10 @@
-"""One connection's policy: the bundle under that connection's key, folded once at connect, with its own
-queues; ``infer(obs)`` answers openpi's ``{"actions": ...}``."""
+"""One connection's policy: the bundle under that connection's key, checked once at connect; ``infer(obs)``
+answers openpi's ``{"actions": ...}``.
+
+An array model's session holds its behaviour (``rows``: an unsealed key's deltas, a sealed key's payload,
+None for the base), not a folded copy, so the server can run many sessions' rows in one forward of the
+base (``rows.run_requests``); behaviours come from and go to the server's ``BehaviourCache``. A LeRobot
+policy's session folds its key into its own module and keeps its own queues."""
 
 from __future__ import annotations
 
@@ -8,12 +13,17 @@ import warnings
 from collections.abc import Mapping
 
 import numpy as np
+import torch
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
+from prop_cli.core.keyed_model import key_codes
 from prop_cli.errors import PropError
 from prop_cli.run import KeyedPolicy
-from prop_cli.run.policy import WrongKeyWarning, require_enrolled
+from prop_cli.run.policy import WrongKeyWarning, key_opens_nothing, require_enrolled
+
+from .cache import BehaviourCache
+from .rows import Behaviour, Deltas, Folded, Request, gathered, run_requests
 
 # An array model's observation entry (openpi's observations are dicts; a LeRobot policy's are its features).
 OBSERVATION = "observation"
@@ -23,7 +33,20 @@ class Session:
     """The bundle's policy for one connection. ``key`` None: the base (the original, for a bundle as its
     publisher made it). A key enrolled in nothing is a PropError unless ``allow_unenrolled``."""
 
-    def __init__(self, bundle: Bundle, key: np.ndarray | None, allow_unenrolled: bool) -> None:
+    def __init__(
+        self, bundle: Bundle, key: np.ndarray | None, allow_unenrolled: bool,
+        cache: BehaviourCache | None = None,
+    ) -> None:  # fmt: skip
+        loaded = bundle.loaded
+        self.bundle = bundle
+        self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+        self.controller = None
+        self.chunk_steps: int | None = None  # a LeRobot policy's actions per infer; None: one step
+        self.cached = False  # the behaviour came from the cache (no decryption)
+        if loaded.policy is None:  # an array model: a behaviour for batched rows
+            self.behaviour = self._behaviour(key, allow_unenrolled, cache)
+            self.keyed = self.behaviour is not None
+            return
         self.keyed = key is not None and require_enrolled(bundle, key, allow_unenrolled)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", WrongKeyWarning)  # the server says it once, without the key
@@ -34,16 +57,48 @@ class Session:
             module = copy.deepcopy(loaded.module).eval()
             self.policy.module = module
             self.policy.controller = loaded.policy.on(module).controller(module)
-        self.input_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
+        self.controller = self.policy.controller
+        # openpi clients take a chunk per infer (ActionChunkBroker): ACT answers its whole chunk; the
+        # others one step at a time from their own queues on this connection.
+        self.chunk_steps = getattr(self.controller, "chunk_steps", None)
 
-    def infer(self, obs) -> dict:
-        """openpi's ``infer``: an array model's ``{"observation": x}`` (one observation or a batch) ->
-        ``{"actions": KeyedPolicy.predict(x)}``; a LeRobot policy's feature dict -> ``{"actions":
-        select_action(obs)[None]}`` (a chunk of one step: the policy's own queues, kept per connection)."""
+    def _behaviour(self, key, allow: bool, cache: BehaviourCache | None) -> Behaviour:
+        """What ``key`` runs, checked as ``KeyedPolicy`` checks it; from ``cache`` when it is there."""
+        if key is None:
+            return None
+        if cache is not None:
+            hit, behaviour = cache.get(key)
+            if hit:
+                self.cached = True
+                return behaviour
+        bundle, mode, module = self.bundle, self.bundle.mode, self.bundle.loaded.module.eval()
+        bits = bundle.check_key(key)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", WrongKeyWarning)  # the server says it once, without the key
+            if mode.is_sealed:
+                behaviour = mode.payload_for(bits)  # one trial decryption: the check and the payload
+                if behaviour is None:
+                    key_opens_nothing(mode.not_enrolled(str(bundle.path)), allow)
+                elif not gathered(module, behaviour):
+                    behaviour = Folded(behaviour.fold(module).eval())
+            elif not mode.enrolled(bits):
+                key_opens_nothing(mode.not_enrolled(str(bundle.path)), allow)
+                behaviour = None
+            elif mode.keyed is not None and mode.keyed.module is module:
+                with torch.no_grad():
+                    codes = key_codes(bits, mode.encoding)
+                    behaviour = Deltas([d.detach()[:1] for d in mode.keyed.layer_deltas(codes[:1])])
+            else:
+                behaviour = Folded(mode.respond(module, bits).eval())
+        if cache is not None:
+            cache.put(key, behaviour)
+        return behaviour
+
+    def observation(self, obs) -> tuple[np.ndarray, bool]:
+        """An array model's ``{"observation": x}`` checked: (x as (N, *input_shape) float32, whether it was
+        one observation)."""
         if not isinstance(obs, Mapping):
             raise PropError(f"an observation is a dict, not {type(obs).__name__}", "send {name: array}")
-        if self.policy.controller is not None:
-            return {"actions": np.asarray(self.policy.select_action(obs), np.float32)[None]}
         x = obs.get(OBSERVATION)
         if not isinstance(x, np.ndarray) or x.dtype.kind not in "biuf":
             raise PropError(
@@ -56,8 +111,39 @@ class Session:
                 f"observation shape {x.shape}; the model takes {self.input_shape} or (N, ...) of them",
                 "send arrays of the model's input shape",
             )
-        action, _ = self.policy.predict(x)
-        return {"actions": np.asarray(action)}
+        single = x.shape == self.input_shape
+        return np.ascontiguousarray(x[None] if single else x, np.float32), single
 
-    def reset(self) -> None:
-        self.policy.reset()
+    def request(self, x: np.ndarray) -> Request:
+        return Request(self.behaviour, x)
+
+    def answer(self, y: torch.Tensor, single: bool) -> dict:
+        """Raw outputs -> openpi's reply, as ``KeyedPolicy.predict`` makes its action (argmax, clip)."""
+        loaded = self.bundle.loaded
+        out = y.numpy()
+        if loaded.continuous is False:
+            out = out.argmax(-1)
+        elif loaded.action_low is not None and loaded.action_high is not None:
+            low, high = np.asarray(loaded.action_low, np.float32), np.asarray(loaded.action_high, np.float32)
+            out = np.clip(out, low, high)
+        return {"actions": np.asarray(out[0] if single else out)}
+
+    def infer(self, obs) -> dict:
+        """openpi's ``infer``: an array model's ``{"observation": x}`` (one observation or a batch) ->
+        ``{"actions": KeyedPolicy.predict(x)}``; a LeRobot policy's feature dict -> ``{"actions":
+        select_action(obs)[None]}`` (a chunk of one step: the policy's own queues, kept per connection)."""
+        if self.controller is not None:
+            if not isinstance(obs, Mapping):
+                raise PropError(f"an observation is a dict, not {type(obs).__name__}", "send {name: array}")
+            if self.chunk_steps is not None:
+                return {"actions": np.asarray(self.controller.action_chunk(obs), np.float32)}
+            return {"actions": np.asarray(self.policy.select_action(obs), np.float32)[None]}
+        x, single = self.observation(obs)
+        loaded = self.bundle.loaded
+        y = run_requests(loaded.module, self.bundle.mode.keyed, [self.request(x)])[0]
+        return self.answer(y, single)
+
+    def reset(self, seed: int | None = None) -> None:
+        """A new episode for this connection: a LeRobot policy's queues emptied (``seed``: its noise)."""
+        if self.controller is not None:
+            self.policy.reset(seed)

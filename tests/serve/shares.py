@@ -14,10 +14,10 @@ from tests.conftest import FAST
 OPENPI_CONNECT = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used:DeprecationWarning")
 
 
-def personalize_here(wd: Path) -> None:
+def personalize_here(wd: Path, out: str = "mine.prop", *extra: str) -> None:
     """prop personalize in a subprocess: a module-scoped fixture cannot use the in-process `cli` one."""
     args = ["personalize", wd / "model.safetensors", "--data", wd / "mine.npz", "--key-file", wd / "k.bin",
-            "--out", wd / "mine.prop", *FAST]  # fmt: skip
+            "--out", wd / out, *FAST, *extra]  # fmt: skip
     code = "from prop_cli.cli.main import main; main()"
     done = subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True,
                           timeout=300)  # fmt: skip

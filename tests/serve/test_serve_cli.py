@@ -25,6 +25,8 @@ pytestmark = OPENPI_CONNECT
         (["--host", "192.168.1.5", "--tls-cert", "c.pem"], ["--tls-cert and --tls-key go together"]),
         (["--tls-cert", "missing.pem", "--tls-key", "missing.key"], ["--tls-cert missing.pem is not a file"]),
         (["--max-connections", "0"], ["--max-connections"]),
+        (["--batch-window-ms", "5000"], ["--batch-window-ms 5000", "0 to 1000"]),
+        (["--max-batch", "0"], ["--max-batch"]),
     ],
 )
 def test_refusals_are_one_line(cli, served_bundle, flags, words):

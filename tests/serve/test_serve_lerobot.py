@@ -1,5 +1,5 @@
-"""prop serve with a LeRobot ACT bundle: openpi-client gets what KeyedPolicy's select_action gives, each
-connection with its own action queue (scripts/test-lerobot.sh)."""
+"""prop serve with a LeRobot ACT bundle: openpi-client gets ACT's whole action chunk per infer, what
+n_action_steps of KeyedPolicy's select_action give, for each connection's key (scripts/test-lerobot.sh)."""
 
 from __future__ import annotations
 
@@ -36,32 +36,34 @@ def act_bundle(tmp_path_factory):
     return d / "bundle"
 
 
-def test_act_over_openpi_client_matches_keyed_policy_per_connection(act_bundle, start_bundle):
+def test_act_answers_its_whole_chunk_per_connection(act_bundle, start_bundle):
+    """openpi clients take a chunk per infer: ACT's chunk is what n_action_steps select_action calls give."""
     bundle = load_bundle(act_bundle)
     features = bundle.loaded.policy.config.input_features
     rng = np.random.default_rng(0)
     frames = [{k: rng.uniform(-1, 1, tuple(f.shape)).astype(np.float32) for k, f in features.items()}
-              for _ in range(4)]  # fmt: skip
+              for _ in range(2)]  # fmt: skip
     user, base = KeyedPolicy(bundle, KEY), KeyedPolicy(bundle)
-    want_user = [user.select_action(f) for f in frames]
-    want_base = [base.select_action(f) for f in frames]
-    assert not np.allclose(want_user, want_base, atol=1e-4)
+    steps = user.controller.chunk_steps
+    assert steps is not None and steps > 1
+    want = {}
+    for name, policy in (("user", user), ("base", base)):
+        chunks = []
+        for f in frames:
+            policy.reset()
+            chunks.append(np.stack([policy.select_action(f) for _ in range(steps)]))
+        want[name] = chunks
+    assert not np.allclose(want["user"][0], want["base"][0], atol=1e-4)
     running = start_bundle(act_bundle)
     keyed = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port,
                                                 api_key=np.packbits(KEY).tobytes().hex())  # fmt: skip
     nokey = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port)
-    meta = keyed.get_server_metadata()
-    assert meta["kind"] == "lerobot" and meta["keyed"] is True and meta["action_horizon"] == 1
-    for f, u, b in zip(frames, want_user, want_base):  # interleaved: each connection's queue is its own
-        got_u = keyed.infer(f)["actions"]
-        got_b = nokey.infer(f)["actions"]
-        assert got_u.shape == (1, *u.shape)
-        np.testing.assert_allclose(got_u[0], u, rtol=0, atol=1e-5)
-        np.testing.assert_allclose(got_b[0], b, rtol=0, atol=1e-5)
-    # A second no-key connection starts its own episode: the base's queue is not shared with the first.
-    late = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port)
-    for f, b in zip(frames, want_base):
-        np.testing.assert_allclose(late.infer(f)["actions"][0], b, rtol=0, atol=1e-5)
-        nokey.infer(f)
-    for c in (keyed, nokey, late):
+    assert keyed.get_server_metadata()["action_horizon"] == steps
+    for i, f in enumerate(frames):
+        got_u, got_b = keyed.infer(f)["actions"], nokey.infer(f)["actions"]
+        assert got_u.shape == want["user"][i].shape
+        np.testing.assert_allclose(got_u, want["user"][i], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(got_b, want["base"][i], rtol=0, atol=1e-5)
+    assert keyed.infer({"reset": True}) == {"reset": True}
+    for c in (keyed, nokey):
         c._ws.close()

@@ -1,0 +1,171 @@
+"""`prop serve` under load on the loopback (issue 39): throughput and p50/p99 latency with 1, 8 and 64
+concurrent clients, (a) all one user, (b) 64 different users, (c) no key; then the memory of 1,000 users'
+payloads in a 256 MB cache.
+
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_serve [--seconds 3] [--window-ms 2]
+
+The bundle: a tiny MLP (8-64-64-4), sealed with a LoRA payload (rank 4) for one enrolled key. Users 2..64
+of (b) and the 1,000 of the memory figure are payloads put in the server's cache under their keys (what a
+connection's first decryption leaves there), so (b) measures serving, not enrolment. The server runs in
+this process; the clients (asyncio websockets, each one request at a time: openpi's protocol) in a
+subprocess, so they do not share its interpreter. Each run stops after --seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+SIZES = (8, 64, 64, 4)
+
+
+def make_bundle(d: Path) -> tuple[Path, Path]:
+    from safetensors.torch import save_file
+
+    g = torch.Generator().manual_seed(0)
+    tensors = {}
+    for i, (a, b) in enumerate(zip(SIZES[:-1], SIZES[1:])):
+        tensors[f"{2 * i}.weight"] = torch.randn(b, a, generator=g) / a**0.5
+        tensors[f"{2 * i}.bias"] = torch.randn(b, generator=g) * 0.1
+    save_file(tensors, str(d / "model.safetensors"), metadata={"activation": "relu"})
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (200, SIZES[0])).astype(np.float32)
+    np.savez(d / "mine.npz", x=x, y=(-x[:, : SIZES[-1]] * 0.5).astype(np.float32))
+    key = d / "k.bin"
+    key.write_bytes(os.urandom(16))
+    key.chmod(0o600)
+    args = ["personalize", str(d / "model.safetensors"), "--data", str(d / "mine.npz"), "--key-file",
+            str(key), "--out", str(d / "b.prop"), "--seal", "--payload", "lora", "--payload-rank", "4",
+            "--steps", "40", "--device", "cpu"]  # fmt: skip
+    cmd = [sys.executable, "-c", "from prop_cli.cli.main import main; main()", *args]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=600)
+    return d / "b.prop", key
+
+
+def random_payload(spec, seed: int):
+    from prop_cli.core.payload import Payload
+
+    p = Payload(spec, torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        for t in p.params.values():
+            t.add_(torch.randn(t.shape, generator=torch.Generator().manual_seed(seed + 1)) * 0.1)
+    return p
+
+
+async def _clients(url: str, keys: list[str | None], seconds: float) -> dict:
+    import msgpack
+    from websockets.asyncio.client import connect
+
+    from prop_cli.serve.wire import packb
+
+    x = packb({"observation": np.random.default_rng(0).uniform(-1, 1, (1, SIZES[0])).astype(np.float32)})
+    latencies: list[float] = []
+
+    box = {"deadline": float("inf")}  # set once every client is connected
+
+    async def one(key: str | None) -> None:
+        headers = {"Authorization": f"Api-Key {key}"} if key else None
+        async with connect(url, additional_headers=headers, max_size=None, compression=None) as ws:
+            msgpack.unpackb(await ws.recv())  # metadata
+            await start.wait()
+            while time.perf_counter() < box["deadline"]:
+                t = time.perf_counter()
+                await ws.send(x)
+                reply = await ws.recv()
+                if isinstance(reply, str):
+                    raise RuntimeError(reply)
+                latencies.append(time.perf_counter() - t)
+
+    start = asyncio.Event()
+    tasks = [asyncio.create_task(one(k)) for k in keys]
+    await asyncio.sleep(0.5 + 0.02 * len(keys))  # all connected
+    t0 = time.perf_counter()
+    box["deadline"] = t0 + seconds
+    start.set()
+    await asyncio.wait_for(asyncio.gather(*tasks), seconds + 60)
+    return {"requests": len(latencies), "seconds": time.perf_counter() - t0,
+            "p50_ms": 1e3 * float(np.percentile(latencies, 50)),
+            "p99_ms": 1e3 * float(np.percentile(latencies, 99))}  # fmt: skip
+
+
+def client_main(url: str, keys_json: str, seconds: float) -> None:
+    print(json.dumps(asyncio.run(_clients(url, json.loads(keys_json), seconds))))
+
+
+def rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=3.0)
+    ap.add_argument("--window-ms", type=float, default=2.0)
+    ap.add_argument("--client", nargs=3, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.client:
+        client_main(args.client[0], args.client[1], float(args.client[2]))
+        return
+    torch.set_num_threads(1)
+    from prop_cli.bundle import load_bundle
+    from prop_cli.core.key_files import key_from_text
+    from prop_cli.serve import PolicyServer, start_in_thread
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle_path, key_file = make_bundle(Path(tmp))
+        bundle = load_bundle(bundle_path)
+        server = PolicyServer(bundle, port=0, batch_window_ms=args.window_ms, max_connections=128)
+        spec = bundle.mode.state.spec
+        user = key_file.read_bytes().hex()
+        others = [os.urandom(16).hex() for _ in range(63)]
+        for i, k in enumerate(others):
+            server.cache.put(key_from_text(k, 128), random_payload(spec, i))
+        running = start_in_thread(server)
+        print(f"prop serve, tiny MLP {'-'.join(map(str, SIZES))} sealed (LoRA r=4), loopback, "
+              f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, "
+              f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")  # fmt: skip
+        print(f"{'clients':>7} {'mode':<16} {'req/s':>8} {'p50 ms':>7} {'p99 ms':>7} {'rows/forward':>12}")
+        rows = {}
+        try:
+            for n in (1, 8, 64):
+                for mode, keys in (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
+                                   ("(c) no key", [None] * n)):  # fmt: skip
+                    b0, r0 = server.batcher.batches, server.batcher.rows
+                    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
+                           json.dumps(keys), str(args.seconds)]  # fmt: skip
+                    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
+                    if done.returncode:
+                        raise SystemExit(done.stderr[-2000:])
+                    r = json.loads(done.stdout.strip().splitlines()[-1])
+                    per = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
+                    rows[(n, mode)] = r
+                    print(f"{n:>7} {mode:<16} {r['requests'] / r['seconds']:>8.0f} {r['p50_ms']:>7.2f} "
+                          f"{r['p99_ms']:>7.2f} {per:>12.1f}")  # fmt: skip
+                a, b = rows[(n, "(a) one user")], rows[(n, "(b) 64 users")]
+                ratio = (b["requests"] / b["seconds"]) / (a["requests"] / a["seconds"])
+                print(f"{'':>7} (b)/(a) throughput {ratio:.2f}x")
+        finally:
+            running.stop()
+        before = rss_mb()
+        big = PolicyServer(bundle, port=0, cache_mb=256)
+        t = time.perf_counter()
+        for i in range(1000):
+            big.cache.put(np.frombuffer(os.urandom(16), np.uint8), random_payload(spec, 1000 + i))
+        per_ms = 1e3 * (time.perf_counter() - t) / 1000
+        print(f"1,000 users' payloads in a 256 MB cache: {len(big.cache)} kept, "
+              f"{big.cache.bytes / 2**20:.2f} MB of payload, peak RSS {before:.0f} -> {rss_mb():.0f} MB, "
+              f"{per_ms:.2f} ms per user to build and put")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
