@@ -274,6 +274,7 @@ def step_judge(out: Path, tasks: list[str], policies: list[str]) -> None:
                 seeds = [JUDGE_SEED + i for i in range(n)]
                 if c["group"] == "original":
                     judge_original(out, t, p)
+                    claim.unlink()
                     continue
                 if c["group"] == "no_key":
                     ctl = KeyedPolicy(bundle, None)
