@@ -75,6 +75,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--real-size", action="store_true", help="the published sizes, not the tiny builds")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--bench-args", default="", help="more bench_real_size flags, quoted")
+    ap.add_argument(
+        "--prop-args",
+        default="--report-budget 25",
+        help="more `prop personalize` flags, quoted (default: a short report; it is not timed)",
+    )
     args = ap.parse_args(argv)
     print("command:", shlex.join([Path(sys.executable).name, "-m", "benchmarks.bench_bf16", *argv]))
     work = args.work or Path(tempfile.mkdtemp(prefix="prop-bf16-"))
@@ -96,7 +101,9 @@ def main(argv: list[str] | None = None) -> None:
         ckpt = folder / "model.safetensors"
         for precision in ("fp32", "bf16"):
             for run in [r.strip() for r in args.runs.split(",") if r.strip()]:
-                flags = f"--precision {precision}" + (" --freeze-base" if run == "prop" else "")
+                flags = f"--precision {precision} {args.prop_args}" + (
+                    " --freeze-base" if run == "prop" else ""
+                )
                 subprocess.run([*base, "--runs", run, "--prop-args", flags], check=True, env=env,
                                stdout=subprocess.DEVNULL)  # fmt: skip
                 r = json.loads((pw / "results.json").read_text())[run]
