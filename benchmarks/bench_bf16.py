@@ -5,10 +5,10 @@ on a bf16 checkpoint, each run in its own process (``bench_real_size``'s runs an
     .venv-lerobot/bin/python -m benchmarks.bench_bf16 [--policies pi0,smolvla] [--steps 3] [--real-size]
 
 Without ``--real-size`` the policies are the tiny ones the tests build (examples/pi_tiny.py,
-examples/smolvla_tiny.py); with it, their published sizes (bench_real_size's builds: pi0 3.5 B
-parameters, about 30 GiB of memory and an hour per run on 2 cores). pi0's checkpoint is written as
-lerobot/pi0_base holds it (bf16, the vision tower, projector and norms fp32); SmolVLA's, built fp32,
-is rewritten bf16 first (every float tensor), so both are bf16 checkpoints.
+examples/smolvla_tiny.py); with it, their published sizes (bench_real_size's builds: pi0 4 B
+parameters, up to about 20 GiB of memory and most of an hour per run on 2 cores, docs/speed.md).
+pi0's checkpoint is written as lerobot/pi0_base holds it (bf16, the vision tower, projector and norms
+fp32); SmolVLA's, built fp32, is rewritten bf16 first (every float tensor): both are bf16 checkpoints.
 
 The unsealed run (bench_real_size's ``prop``) takes ``--freeze-base``: LeRobot's pi0 trains every
 weight by default, so without it nothing is frozen and there is nothing to hold bf16 (SmolVLA's own

@@ -79,8 +79,9 @@ def test_a_bf16_checkpoint_trains_on_a_bf16_base_and_gives_a_bf16_bundle_base(
     seen = _watch(monkeypatch, sealed_recipe if seal else unsealed_recipe)
     out = tmp_path / "b.prop"
     cfg = PersonalizeConfig.of(**(TINY | {"seal": seal, "precision": "bf16", "freeze_base": not seal}))
+    general = None if seal else work / "general"  # --seal takes no general data
     result = api.personalize_checkpoint(
-        str(work / "act16"), [(work / "user", KeySource(key(), "file"))], out, cfg, general=None if seal else work / "general"
+        str(work / "act16"), [(work / "user", KeySource(key(), "file"))], out, cfg, general=general
     )
     assert np.isfinite(result.metrics[0]["personalization"])
     assert seen == [{torch.bfloat16}]  # every frozen parameter bf16 during the steps
