@@ -138,6 +138,31 @@ def safetensors_shapes(path: Path) -> dict[str, tuple[int, ...]]:
         ) from None
 
 
+# safetensors' dtype names (its header) as torch's.
+_ST_DTYPES = {
+    "F64": torch.float64, "F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16,
+    "I64": torch.int64, "I32": torch.int32, "I16": torch.int16, "I8": torch.int8, "U8": torch.uint8,
+    "BOOL": torch.bool,
+}  # fmt: skip
+
+
+def safetensors_dtypes(path: Path) -> dict[str, torch.dtype]:
+    """Each tensor's name and dtype from a safetensors file's header (no tensor read): the dtype the
+    checkpoint holds it in, which a bundle's base keeps (a bf16 checkpoint gives a bf16 base). A dtype
+    torch has no name for here is left out (the tensor is then written as the module holds it)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            named = {name: f.get_slice(name).get_dtype() for name in f.keys()}
+    except (SafetensorError, OSError, ValueError, RuntimeError, KeyError, json.JSONDecodeError) as e:
+        raise PropError(
+            f"checkpoint {path} is not a readable safetensors file ({e})",
+            "re-export it with safetensors.torch.save_file",
+        ) from None
+    return {n: _ST_DTYPES[d] for n, d in named.items() if d in _ST_DTYPES}
+
+
 def load_into(module: torch.nn.Module, path: Path) -> None:
     """``module.load_state_dict`` (strict) from a safetensors file, one tensor at a time: memory stays
     the module's plus one tensor, not the module's plus the whole file's (a 450 M-parameter policy: 1.8

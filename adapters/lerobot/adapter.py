@@ -23,7 +23,7 @@ import torch
 
 from prop_adapters.base import Adapter, CheckpointOptions, LoadedModel, finish, no_prompt
 from prop_adapters.folder import CONFIG, WEIGHTS, read_config
-from prop_adapters.weights import read_weights, safetensors_shapes, sniff
+from prop_adapters.weights import read_weights, safetensors_dtypes, safetensors_shapes, sniff
 from prop_cli.constants import LEROBOT_DIR
 from prop_cli.core.rules import choice, text
 from prop_cli.errors import PropError
@@ -207,7 +207,8 @@ class LeRobotAdapter(Adapter):
                 "migrate it with lerobot's processor/migrate_policy_normalization.py",
             )
         version, policy, pre, post, files = _load(path, None, str(path))
-        return self._loaded(policy, pre, post, version, str(path), files)
+        held = safetensors_dtypes(path / WEIGHTS) if sniff(path / WEIGHTS) == "safetensors" else {}
+        return self._loaded(policy, pre, post, version, str(path), files, held)
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         folder, contained = Path(source) / FOLDER_IN_BUNDLE, True
@@ -218,15 +219,21 @@ class LeRobotAdapter(Adapter):
         made_with = spec.get("lerobot_version") if isinstance(spec.get("lerobot_version"), str) else None
         version, policy, pre, post, files = _load(folder, weights, source, contained, made_with)
         # The version the weights were trained under stays the bundle's (add-user rewrites the manifest).
-        return self._loaded(policy, pre, post, made_with or version, source, files)
+        held = {k: v.dtype for k, v in weights.items()}
+        return self._loaded(policy, pre, post, made_with or version, source, files, held)
 
-    def _loaded(self, policy, pre, post, version: str, source: str, files: dict[str, bytes]) -> LoadedModel:
+    def _loaded(
+        self, policy, pre, post, version: str, source: str, files: dict[str, bytes],
+        held: dict[str, torch.dtype],
+    ) -> LoadedModel:  # fmt: skip
+        """``held``: the dtype the checkpoint holds each tensor in (the module computes in fp32, ``finish``);
+        the bundle's base is written back in it (a bf16 pi0 gives a bf16 base, not one of twice its size)."""
         module = finish(policy)
         spec = {"adapter": self.name, "type": policy.config.type, "lerobot_version": version}
         return LoadedModel(
             module=module,
             spec=spec,
-            dtypes={k: v.dtype for k, v in module.state_dict().items()},
+            dtypes={k: held.get(k, v.dtype) for k, v in module.state_dict().items()},
             input_shape=None,
             source=source,
             continuous=True,

@@ -19,6 +19,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import split
 
 from .data import outputs, prepare_users, targets_tensor
+from .frozen import frozen_in_bf16
 from .hardening import antipode_codes, code_negatives, encoder_init, far_codes
 from .loop import Optimiser, run_steps
 from .objective import Batch, check_user_keys, delta_pull, prop_loss, prop_loss_share, row_loss
@@ -254,7 +255,12 @@ def personalize(job: Job[UnsealedConfig], users: list[User], general: Dataset | 
         parts = ranks.sum_tensor(parts)
         return {"personal": parts[0].item(), "fallback": parts[1].item(), "null": parts[2].item()}
 
+    # --freeze-base under --precision bf16: the frozen matrices held bf16 during the steps (frozen.py).
+    restore = frozen_in_bf16(module, loaded, True) if tc.precision == "bf16" else None
     losses = run_steps(step, tc.steps, job.progress, tc.precision, dev)
+    if restore is not None:
+        restore()
+    optim = None  # Adam's state freed before the report
     reports = [
         user_report(
             km,

@@ -24,15 +24,12 @@ from __future__ import annotations
 import contextlib
 import copy
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from prop_adapters import LoadedModel
 from prop_adapters.base import FRAME
-from prop_adapters.folder import WEIGHTS
-from prop_adapters.weights import safetensors_shapes, sniff
 from prop_cli.config import TrainConfig, UnsealedConfig
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.core.device import resolve_device
@@ -43,6 +40,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
+from .frozen import frozen_in_bf16
 from .hardening import far_codes
 from .loop import Optimiser, mixed_precision, run_steps
 from .objective import check_user_keys, delta_pull
@@ -91,12 +89,16 @@ class FallbackPool:
     forward holds at most ``per_forward`` rows and a row refers to its frame instead of copying it, so
     memory does not grow with the rows drawn at once. The random draws (``fallback_noise``) are made
     up front, in the order a pool drawn whole makes them. Targets are computed in fp32 (outside the
-    step's autocast), as they were before the steps."""
+    step's autocast), as they were before the steps; under the step's autocast where the original's
+    frozen weights are held bf16 (``frozen_in_bf16``)."""
 
     def __init__(
-        self, policy, original, frames: dict[str, torch.Tensor], generator: torch.Generator, per_forward: int
+        self, policy, original, frames: dict[str, torch.Tensor], generator: torch.Generator, per_forward: int,
+        module: torch.nn.Module | None = None,
     ) -> None:  # fmt: skip
+        """``module``: the original's module (whose weights may be held bf16)."""
         self.policy, self.original, self.frames, self.per = policy, original, frames, per_forward
+        self.module = module
         n = len(frames["episode_index"])
         noise = policy.fallback_noise(n, generator)
         self.whole = None
@@ -123,7 +125,10 @@ class FallbackPool:
         if self.whole is not None:
             pool, targets = self.whole
             return rows(pool, idx), targets[idx]
-        with torch.autocast(idx.device.type, enabled=False):
+        # fp32 unless the original's frozen weights are held bf16 (--precision bf16, ``frozen_in_bf16``):
+        # then under the step's autocast, the arithmetic its matrices take anyway.
+        held = self.module is not None and any(p.dtype == torch.bfloat16 for p in self.module.parameters())
+        with contextlib.nullcontext() if held else torch.autocast(idx.device.type, enabled=False):
             frames = self.frame[idx]
             self._chunks = self._fill(self._chunks, self._have_chunk, frames, self._frame_chunks)
             if self.noise is None:  # deterministic: the rows are the frames, the targets their chunks
@@ -136,7 +141,7 @@ class FallbackPool:
         todo = todo[~have[todo]]
         for i in range(0, len(todo), self.per):
             part = todo[i : i + self.per]
-            out = compute(part)
+            out = compute(part).float()
             if store is None:
                 store = out.new_empty((len(have), *out.shape[1:]))
             store[part] = out
@@ -162,31 +167,6 @@ def frozen_twin(module: torch.nn.Module) -> torch.nn.Module:
     the original's trainable 100 M parameters instead of 1.8 GB)."""
     shared = {id(p): p for p in module.parameters() if not p.requires_grad}
     return copy.deepcopy(module, shared).requires_grad_(False).eval()
-
-
-def frozen_in_bf16(module: torch.nn.Module, source: str) -> Callable[[], None] | None:
-    """Under --precision bf16: the parameters that do not train held as bfloat16 while the steps run
-    (SmolVLA's VLM: 0.7 GB less), the trained ones fp32. Returns what puts the frozen ones back as the
-    checkpoint holds them, read again from its file (the report and the bundle see exactly the
-    original's weights); None, and nothing cast, where the file cannot be read again."""
-    path = Path(source) / WEIGHTS if Path(source).is_dir() else Path(source)
-    if not path.is_file() or sniff(path) != "safetensors":
-        return None
-    frozen = {n: p for n, p in module.named_parameters() if not p.requires_grad and p.is_floating_point()}
-    if not frozen or not set(frozen) <= set(safetensors_shapes(path)):
-        return None
-    dtypes = {n: p.dtype for n, p in frozen.items()}
-    for p in frozen.values():
-        p.data = p.data.to(torch.bfloat16)
-
-    def restore() -> None:
-        from safetensors import safe_open
-
-        with safe_open(str(path), framework="pt", device="cpu") as f:
-            for n, p in frozen.items():
-                p.data = f.get_tensor(n).to(device=p.device, dtype=dtypes[n])
-
-    return restore
 
 
 def row_noise(
@@ -264,8 +244,9 @@ class PolicyTrainer:
         # and the original's denoiser output).
         self.per_forward = forward_rows(cfg.batch_rows(tc.user_rows))
         self.fallback = FallbackPool(
-            policy, self.original_policy, self.fb, torch.Generator().manual_seed(tc.seed), self.per_forward
-        )
+            policy, self.original_policy, self.fb, torch.Generator().manual_seed(tc.seed), self.per_forward,
+            self.original,
+        )  # fmt: skip
 
         mods = dict(module.named_modules())
         features = [in_width(mods[n]) for n in names]
@@ -284,7 +265,7 @@ class PolicyTrainer:
         self.optim = Optimiser(groups, cfg.lr, tc.steps, tc.lr_floor, clip=CLIP, reduce=reduce)
         self.user_codes = key_codes(np.stack([u.key_bits for u in users]), cfg.key_encoding).to(dev)
         # After the probe: from here to ``finish`` the frozen weights may be bf16 (shared with the original).
-        self.restore = frozen_in_bf16(module, str(loaded.source)) if tc.precision == "bf16" else None
+        self.restore = frozen_in_bf16(module, loaded) if tc.precision == "bf16" else None
         self.sampler = KeySampler(
             [u.key_bits for u in users], cfg.hamming_radius, rng,
             cfg.hard_negatives, cfg.hard_pool, cfg.hard_every,
@@ -478,8 +459,10 @@ def chunk_report(
     n = len(val["episode_index"])
     f, r, h = report_plan(n, len(rand), len(ham), budget)
     if say is not None:
-        say(f"{f * (3 + r + h)} sampler runs ({f} held-out frames x {3 + r + h} key conditions; "
-            f"--report-budget {budget or 'none'})")
+        say(
+            f"{f * (3 + r + h)} sampler runs ({f} held-out frames x {3 + r + h} key conditions; "
+            f"--report-budget {budget or 'none'})"
+        )
     val = spaced_frames(val, f)
     rand = rand[:r]
     if h < len(ham):

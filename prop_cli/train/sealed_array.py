@@ -16,6 +16,7 @@ from prop_cli.fit import split
 
 from .data import prepare_users, targets_tensor
 from .distributed import Ranks
+from .frozen import frozen_in_bf16
 from .loop import Optimiser, run_steps
 from .objective import row_loss
 from .recipe import Job, Progress, SealedUser
@@ -70,7 +71,12 @@ class SealedArrayRecipe(SealedRecipeBase):
         out = []
         for i, (ds, bits) in enumerate(zip(datasets, keys), first_index):
             tr, val = split(ds, tc.val_fraction, tc.seed + i)
+            module.requires_grad_(False)  # the base is frozen: held bf16 during the steps under bf16
+            bf16 = tc.precision == "bf16"
+            restore = frozen_in_bf16(module, loaded, True) if bf16 else None
             payload, losses = train_payload(module, spec, tr, task, tc, cfg, dev, job.progress, job.ranks)
+            if restore is not None:
+                restore()
             xv, pv = torch.from_numpy(val.x).to(dev), targets_tensor(val, task).to(dev)
             with torch.no_grad():
                 o, b = payload.fold(module)(xv), module(xv)

@@ -25,6 +25,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_chunks
 
 from .distributed import Ranks
+from .frozen import frozen_in_bf16
 from .loop import Optimiser, mixed_precision, run_steps
 from .policy import (
     CLIP,
@@ -32,7 +33,6 @@ from .policy import (
     chunks,
     drawn,
     forward_rows,
-    frozen_in_bf16,
     report_budget,
     row_noise,
     rows,
@@ -144,7 +144,7 @@ class SealedPolicyRecipe(SealedRecipeBase):
                 # Under --precision bf16 the frozen base is held bf16 while the payload trains, then read
                 # back exactly from the checkpoint: the report and the bundle see the original's weights.
                 job.say(f"user {i + 1}: setting up the payload's frames and noise, then {tc.steps} steps")
-                restore = frozen_in_bf16(module, str(loaded.source)) if tc.precision == "bf16" else None
+                restore = frozen_in_bf16(module, loaded) if tc.precision == "bf16" else None
                 try:
                     payload, losses = train_payload(
                         loaded, spec, to_device(tr, dev), tc, job.mode, i, job.progress, dev, job.ranks
