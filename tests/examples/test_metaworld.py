@@ -75,5 +75,8 @@ def test_each_tasks_user_criterion_compares_its_own_coordinates():
     # button-press-topdown: 10 cm up, in all three coordinates
     assert mw.user_success(o0 + mw.USER_OFFSET, o0, TASK)
     assert not mw.user_success(o0 + mw.USER_OFFSET + np.array([0.0, 0.0, -0.08]), o0, TASK)
+    # drawer-close: the hand parks 10 cm in front of the open drawer's handle, at any height
+    parked = o0 + mw.user_offset("drawer-close-v3") + np.array([0.005, 0.0, 0.19])
+    assert mw.user_success(parked, o0, "drawer-close-v3") and not mw.user_success(o0, o0, "drawer-close-v3")
     with pytest.raises(SystemExit, match="no user variation"):
         mw.user_offset("reach-v3")
