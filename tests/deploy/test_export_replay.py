@@ -57,12 +57,9 @@ def _bits(d: Path, key: str) -> np.ndarray:
 
 def _sealed(cli, d: Path) -> Path:
     """A sealed bundle of two users (k.bin, k2.bin), exported with k2's key bound."""
-    b = d / "sealed.prop"
-    r = cli("personalize", d / "model.safetensors", "--data", d / "mine.npz", "--key-file", d / "k.bin",
-            "--out", b, *FAST, "--seal")  # fmt: skip
-    assert r.code == 0, r.err
-    r = cli("add-user", b, "--data", d / "mine.npz", "--key-file", d / "k2.bin", "--steps", "20")
-    assert r.code == 0, r.err
+    from tests.bundle.test_rollback import _sealed_with_second_user
+
+    b = _sealed_with_second_user(cli, d)
     r = cli("export", b, "--onnx", "--key-file", d / "k2.bin")
     assert r.code == 0, r.err
     return b
