@@ -295,8 +295,12 @@ def record_audit(bundle_path: Path, report: dict) -> dict:
     """Store the audit's summary in the bundle's manifest (``audit``); weights and hashes untouched. A
     sealed bundle's summary holds verdicts only: no figure of its user (``attack.report.summary``)."""
     from prop_cli.attack.report import record
+    from prop_cli.run.onnx import follow
 
-    return record(Path(bundle_path), report)
+    old = read_manifest(Path(bundle_path))
+    summary = record(Path(bundle_path), report)
+    follow(Path(bundle_path) / C.EXPORT_DIR, old, read_manifest(Path(bundle_path)))  # stays the bundle's
+    return summary
 
 
 def export_peft_adapter(
@@ -486,7 +490,7 @@ def add_user(
     if folder.exists():  # after the bundle: the export never holds more than it
         from prop_cli.run.onnx import add_record, describe_export
 
-        add_record(folder, Path(bundle_path), new, rec.id)
+        add_record(folder, Path(bundle_path), bundle.manifest, new, rec.id)
         export = describe_export(folder, new)
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report, export)
 
@@ -512,6 +516,10 @@ def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False
     named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
     adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
     new, status = enrol_key(Path(bundle_path), manifest, key)
+    if new is not manifest:
+        from prop_cli.run.onnx import follow
+
+        follow(Path(bundle_path) / C.EXPORT_DIR, manifest, new)  # the export stays the bundle's
     return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
 
 
@@ -549,8 +557,10 @@ def remove_user(
     new = with_records(bundle.manifest, [], [record])
     export = no_links(Path(bundle_path), C.EXPORT_DIR)
     if (export / C.EXPORT_META).is_file():
+        from prop_cli.bundle.manifest import bundle_version, next_version
         from prop_cli.run.onnx import drop_record
 
-        drop_record(export, record)  # first: the export never holds more than the bundle
+        # First: the export never holds more than the bundle; it takes the version the removal writes.
+        drop_record(export, record, bundle_version(next_version(bundle.manifest)) or None)
     new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
     return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))

@@ -76,8 +76,10 @@ EXPORT_META = "export.json"  # what was exported, for which bundle, and how to f
 # 2: export.json carries its own digest (EXPORT_DIGEST), as the bundle manifest does; 1 still reads.
 # 3: export.json binds the keys given at export to its graphs (M_ENROLMENTS); a key an export does not
 # bind is refused (allowed: its base.onnx runs).
-EXPORT_FORMAT = 3
-EXPORT_FORMATS = (1, 2, 3)
+# 4: export.json has a schema as the manifest has, and carries the bundle's id and version; each binding
+# holds the record or enrolment its key opens, checked against the rollback state (issue 42).
+EXPORT_FORMAT = 4
+EXPORT_FORMATS = (1, 2, 3, 4)
 EXPORT_DIGEST = "export_sha256"
 BASE_GRAPH = "base.onnx"
 KEYED_GRAPH = "keyed.onnx"

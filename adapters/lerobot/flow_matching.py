@@ -38,6 +38,8 @@ from typing import ClassVar
 import torch
 
 from prop_adapters.base import names_code
+from prop_cli.errors import PropError
+from prop_cli.files import RESTORE, TAMPERED, shown
 
 from .policy import PAD, TOKENS, Denoiser, LeRobotProtocol
 
@@ -199,6 +201,66 @@ def code_file(folder: Path, names: tuple[str, ...]) -> Path | None:
         if names_code(doc):
             return folder / n
     return None
+
+
+# JSON files transformers reads by name whose keys are words of the vocabulary, not settings.
+VOCABULARIES = ("tokenizer.json", "added_tokens.json", "vocab.json")
+
+
+def _file_fields(doc: object) -> Iterator[tuple[str, object]]:
+    """Every field of a parsed JSON document, at any depth, whose name ends in ``_file`` or ``_files``
+    (transformers opens a tokenizer's ``*_file`` arguments as paths), with its value."""
+    stack = [doc]
+    while stack:
+        node = stack.pop()
+        items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+        for k, v in items:
+            if isinstance(k, str) and k.endswith(("_file", "_files")):
+                yield k, v
+            if isinstance(v, (dict, list)):
+                stack.append(v)
+
+
+def _sibling(folder: Path, name: object) -> bool:
+    """``name`` is a plain file name of a regular file in ``folder`` (no folder, no link)."""
+    plain = isinstance(name, str) and name not in ("", ".", "..") and not {"/", "\\", "\0"} & set(name)
+    return plain and not (folder / name).is_symlink() and (folder / name).is_file()
+
+
+def outside_file(folder: Path, names: tuple[str, ...]) -> tuple[str, str, object] | None:
+    """The first field of a settings file of ``names`` in ``folder`` (a tokenizer's or processor's JSON)
+    that makes transformers read a file from outside ``folder``: (file, field, value), or None.
+
+    A ``*_file`` field with any value but null: transformers opens it as a path, an absolute one
+    anywhere, a relative one or a plain name from the working folder (measured: ``"tokenizer_file":
+    "tokenizer.json"`` read the working folder's, not the tokenizer's); left null or out, it reads the
+    folder's own file. A ``*_files`` list: each entry must name a file in ``folder`` (transformers looks
+    it up there). In a bundle, every file in the folder is one the manifest lists."""
+    for n in names:
+        if not n.endswith(".json") or n in VOCABULARIES or not (folder / n).is_file():
+            continue
+        try:
+            doc = json.loads((folder / n).read_bytes())
+        except (OSError, ValueError, RecursionError):
+            continue  # transformers reports it
+        for field, value in _file_fields(doc):
+            listed = field.endswith("_files") and isinstance(value, list)
+            if value is not None and not (listed and all(_sibling(folder, v) for v in value)):
+                return n, field, value
+    return None
+
+
+def refuse_outside_file(folder: Path, names: tuple[str, ...], what: str, where: str) -> None:
+    """``outside_file`` as the one-line refusal, naming the file, the field and its value."""
+    found = outside_file(folder, names)
+    if found is not None:
+        n, field, value = found
+        raise PropError(
+            f"{where}: {what} file {folder / n} names {field} {shown(repr(value))}: transformers would read "
+            f"it from outside {folder.name}/ (a plain name: from the working folder), a file no hash covers",
+            f"leave {field} out (or null): transformers then reads the folder's own file; if this is a "
+            f"bundle, {TAMPERED}: {RESTORE}",
+        )
 
 
 # ---- what a VLA computes once per frame ----------------------------------------------------------------

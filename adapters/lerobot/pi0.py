@@ -45,7 +45,16 @@ from prop_cli.constants import LEROBOT_TOKENIZER_DIR
 from prop_cli.errors import PropError
 from prop_cli.files import RESTORE, TAMPERED, shown
 
-from .flow_matching import TOKENIZER_STEP, Expert, FlowMatching, PrefixMemo, code_file, local_folder, unhooked
+from .flow_matching import (
+    TOKENIZER_STEP,
+    Expert,
+    FlowMatching,
+    PrefixMemo,
+    code_file,
+    local_folder,
+    refuse_outside_file,
+    unhooked,
+)
 from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct
 
 NEVER = -1e30  # below it, a float attention mask blocks (LeRobot's OPENPI_ATTENTION_MASK_VALUE: -2.4e38)
@@ -109,7 +118,8 @@ def tokenizer_folder(folder: Path, kind: str, where: str, contained: bool = Fals
 
 def check_tokenizer(tokenizer: Path, kind: str, where: str) -> Path:
     """``tokenizer`` once none of the files transformers reads from it names code (an ``auto_map``:
-    transformers would import a module from the folder, or ask at the terminal whether to)."""
+    transformers would import a module from the folder, or ask at the terminal whether to), nor a file
+    outside it (``flow_matching.outside_file``: a ``tokenizer_file`` elsewhere decides the token ids)."""
     bad = code_file(tokenizer, (*TOKENIZER_FILES, CONFIG))
     if bad is not None:
         raise PropError(
@@ -117,6 +127,7 @@ def check_tokenizer(tokenizer: Path, kind: str, where: str) -> Path:
             "prop runs no tokenizer code",
             f"use PaliGemma's own tokenizer files; if this is a bundle, {TAMPERED}: {RESTORE}",
         )
+    refuse_outside_file(tokenizer, (*TOKENIZER_FILES, CONFIG), f"{kind}'s tokenizer", where)
     return tokenizer
 
 

@@ -56,6 +56,7 @@ from .flow_matching import (
     PrefixMemo,
     code_file,
     local_folder,
+    refuse_outside_file,
     unhooked,
 )
 from .policy import COMMON_STEPS, MASK, TOKENS, Built, LeRobotProtocol, construct, older_than
@@ -109,6 +110,7 @@ def check_vlm(vlm: Path, where: str) -> Path:
             "use SmolVLM's own files (transformers ships its code); if this is a bundle, "
             f"{TAMPERED}: {RESTORE}",
         )
+    refuse_outside_file(vlm, VLM_FILES, "SmolVLA's VLM", where)  # a tokenizer_file elsewhere, ...
     return vlm
 
 

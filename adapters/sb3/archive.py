@@ -54,24 +54,67 @@ def unsupported(path: str, what: str) -> PropError:
     return PropError(f"{path}: {what} is not supported", f"prop reads {SUPPORTED}")
 
 
+# What an SB3 zip may inflate to, all members together: its float tensors barely compress (measured 1.0-1.1
+# times their zip size), so this leaves room for any model, and refuses a zip bomb (a 1 MB member that
+# inflates to 1 GiB) before anything is inflated.
+INFLATE_SLACK = 64 << 20
+INFLATE_RATIO = 8
+
+
+def inflate_budget(size: int) -> int:
+    """How many bytes the members of an SB3 zip of ``size`` bytes may inflate to, together."""
+    return INFLATE_SLACK + INFLATE_RATIO * size
+
+
+def _too_big(path: Path, inflated: int, budget: int, size: int) -> PropError:
+    return PropError(
+        f"{path}: its members inflate to {inflated} bytes or more, over the {budget} a Stable-Baselines3 "
+        f"zip of {size} bytes may hold ({INFLATE_SLACK >> 20} MiB + {INFLATE_RATIO} x its size): it may be "
+        "a zip bomb; nothing was inflated past that",
+        SAVE_HINT,
+    )
+
+
+def _read(z: zipfile.ZipFile, name: str, left: list[int], path: Path, budget: int, size: int) -> bytes:
+    """Member ``name``, inflated in 1 MiB steps and stopped where the budget still ``left`` runs out
+    (whatever its header claims)."""
+    parts = []
+    with z.open(name) as member:
+        while chunk := member.read(1 << 20):
+            left[0] -= len(chunk)
+            if left[0] < 0:
+                raise _too_big(path, budget - left[0], budget, size)
+            parts.append(chunk)
+    return b"".join(parts)
+
+
 def read_zip(path: Path) -> tuple[dict, dict[str, torch.Tensor], str | None]:
-    """``data`` as JSON, the ``policy.pth`` state dict and the SB3 version string; never unpickles."""
+    """``data`` as JSON, the ``policy.pth`` state dict and the SB3 version string; never unpickles.
+    The members are inflated under a budget (``inflate_budget``): sizes the zip declares past it are
+    refused before anything is inflated, and each member read stops where the budget runs out."""
     if not path.is_file():
         raise PropError(f"checkpoint {path} does not exist", "check the path")
+    size = path.stat().st_size
+    budget = inflate_budget(size)
     try:
         with zipfile.ZipFile(path) as z:
-            verify_zip(z)
+            declared = sum(info.file_size for info in z.infolist())
+            if declared > budget:
+                raise _too_big(path, declared, budget, size)
+            verify_zip(z)  # every member's CRC, each read to no more than its declared size
             names = set(z.namelist())
             if "data" not in names or "policy.pth" not in names:
                 raise PropError(
                     f"{path} is a zip but not a Stable-Baselines3 model (no 'data' and 'policy.pth' entries)",
                     SAVE_HINT,
                 )
-            raw_data = z.read("data")
-            raw_policy = z.read("policy.pth")
+            left = [budget]
+            raw_data = _read(z, "data", left, path, budget, size)
+            raw_policy = _read(z, "policy.pth", left, path, budget, size)
             version = None
             if "_stable_baselines3_version" in names:
-                version = z.read("_stable_baselines3_version").decode(errors="replace").strip() or None
+                raw = _read(z, "_stable_baselines3_version", left, path, budget, size)
+                version = raw.decode(errors="replace").strip() or None
     except ZIP_ERRORS as e:
         raise PropError(f"{path} is not a readable zip archive ({brief(e)})", SAVE_HINT) from None
     try:

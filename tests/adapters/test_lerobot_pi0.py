@@ -384,6 +384,25 @@ def test_pi0_a_tokenizer_naming_code_is_refused_and_nothing_is_imported(sealed, 
     assert not marker.exists() and not (tmp_path / "y.npy").exists()
 
 
+def test_pi0_a_tokenizer_file_outside_the_bundle_is_refused(sealed, work, tmp_path, cli):
+    """Issue 42 finding 3: the carried tokenizer_config.json names "tokenizer_file": an absolute path, a
+    relative one or a plain name (transformers reads those from the working folder). 0.2.0 loaded it with
+    no key and no flag, and that unhashed file decided the token ids. Now refused in one line."""
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(sealed / "lerobot" / "tokenizer", elsewhere)
+    for value in (str(elsewhere / "tokenizer.json"), "../../../elsewhere/tokenizer.json", "tokenizer.json"):
+
+        def edit(b, m, value=value):
+            f = b / "lerobot" / "tokenizer" / "tokenizer_config.json"
+            f.write_text(json.dumps({**json.loads(f.read_text()), "tokenizer_file": value}))
+
+        planted = _planted(sealed, tmp_path, edit)
+        r = cli("run", planted, "--input", work.user, "--output", tmp_path / "y.npy")
+        assert r.code == 2 and r.err.count("\n") == 1 and "names tokenizer_file" in r.err, r.err
+        assert "tokenizer_config.json" in r.err and not (tmp_path / "y.npy").exists()
+        shutil.rmtree(planted)
+
+
 def test_pi0_a_bundle_reads_its_tokenizer_from_itself_only(bundle, work, tmp_path, cli):
     """Without the carried tokenizer/, the preprocessor names a folder outside the bundle (here the
     original's tokenizer): prop reads nothing there."""

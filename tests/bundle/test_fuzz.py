@@ -191,8 +191,13 @@ def test_an_edited_export_description_is_refused(tmp_path):
         (tmp_path / g).write_bytes(g.encode())
     meta = {
         "format": C.EXPORT_FORMAT,
+        "exporter": "torch",
+        "opset": 18,
+        "verified_atol": 1e-5,
+        "bundle_files": {C.BASE_WEIGHTS: "0" * 64},
+        "key": {"bits": 128, "encoding": "hashed"},
         "graphs": {g: sha256_file(tmp_path / g) for g in C.GRAPHS},
-        "deltas": [{"input": "delta_0", "layer": "2", "features": 16, "base_weight": None}],
+        "deltas": [{"input": "delta_1", "layer": "2", "features": 16, "base_weight": None}],
         "input_shape": [4],
     }
     (tmp_path / C.EXPORT_META).write_text(dump_json(schema.stamp(meta, C.EXPORT_DIGEST)))

@@ -760,3 +760,38 @@ def test_compressed_torch_members_are_refused(tmp_path):
     assert read_weights(tmp_path / "plain.pt")[0]["0.weight"].numel() == 1 << 22
     with pytest.raises(PropError, match=r"bomb.pt: member .* is compressed, which torch.save never does"):
         read_weights(tmp_path / "bomb.pt")
+
+
+def test_an_sb3_zip_bomb_is_refused_before_it_inflates(tmp_path):
+    """Issue 42 finding 9: a 1 MB SB3 zip whose policy.pth inflates to 1 GiB (zeros, deflated). 0.2.0:
+    `prop inspect` took 2.3 GB and 33 s before refusing it. Now refused in one line from the sizes the zip
+    declares, before anything is inflated; a zip that understates its sizes is stopped by the reads."""
+    import time
+    import zipfile
+
+    from prop_adapters.sb3 import archive
+    from tests.adapters.test_sb3 import make_zip
+
+    make_zip(tmp_path / "genuine.zip")
+    bomb = tmp_path / "bomb.zip"
+    deflated = zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED, compresslevel=9)
+    with zipfile.ZipFile(tmp_path / "genuine.zip") as z, deflated as out:
+        for info in z.infolist():
+            if info.filename != "policy.pth":
+                out.writestr(info.filename, z.read(info))
+        with out.open("policy.pth", "w", force_zip64=True) as f:
+            for _ in range(64):
+                f.write(bytes(1 << 24))
+    assert bomb.stat().st_size < 1_100_000
+    start = time.perf_counter()
+    code, err, peak = _measured(_CLI, "inspect", bomb)
+    took = time.perf_counter() - start
+    _one_line_refusal(code, None, err, "bomb.zip", "inflate to 1073", "zip bomb")
+    assert peak < 100, peak  # MB: nothing inflated
+    assert took < 60, took  # the interpreter and torch start-up; the refusal itself reads no member
+    # The reads stop at the budget too, in 1 MiB steps, whatever the headers say (here: 1 MiB left).
+    small = tmp_path / "small.zip"
+    with zipfile.ZipFile(small, "w", zipfile.ZIP_DEFLATED) as out:
+        out.writestr("policy.pth", bytes(1 << 27))
+    with zipfile.ZipFile(small) as z, pytest.raises(PropError, match="zip bomb"):
+        archive._read(z, "policy.pth", [1 << 20], small, 1 << 20, small.stat().st_size)

@@ -14,10 +14,11 @@ import numpy as np
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
+from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.modes import mode_of
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
-from prop_cli.files import EXPORT, check_output, no_links
+from prop_cli.files import EXPORT, check_output, dump_json, no_links, write_text
 from prop_cli.run.policy import key_opens_nothing, require_enrolled
 
 from . import sealed, unsealed
@@ -25,6 +26,7 @@ from .common import (
     REEXPORT,
     ExportResult,
     bound,
+    check_current,
     read_export,
     refuse_link,
     require_onnx,
@@ -44,6 +46,7 @@ __all__ = [
     "describe_export",
     "drop_record",
     "export_onnx",
+    "follow",
     "read_export",
     "require_onnx",
     "run_onnx",
@@ -143,7 +146,7 @@ def describe_export(folder: Path, manifest: dict) -> dict | None:
         return None
     state = {"folder": str(folder), "current": True, "why": None, "fix": None, "bound_keys": 0}
     try:
-        meta = read_export(folder, manifest)
+        meta = read_export(folder)
     except PropError as e:
         return {**state, "current": False, "why": e.what, "fix": REEXPORT}
     state["bound_keys"] = len(meta.get(C.M_ENROLMENTS, []))
@@ -156,5 +159,29 @@ def describe_export(folder: Path, manifest: dict) -> dict | None:
     if have != want:
         extra = f" and {len(have - want)} the bundle no longer has" if have - want else ""
         why = f"it holds {len(have & want)} of the bundle's {plural(len(want), 'user record')}{extra}"
-        state.update(current=False, why=why, fix=REEXPORT)
+        return {**state, "current": False, "why": why, "fix": REEXPORT}
+    try:
+        check_current(meta, folder, manifest)
+    except PropError as e:
+        state.update(current=False, why=e.what, fix=REEXPORT)
     return state
+
+
+def follow(folder: Path, old: dict, new: dict) -> None:
+    """After a write of the bundle that changed neither its files nor its records (a recorded audit,
+    `prop enrol`): the export in ``folder`` (``<bundle>/onnx``) takes the new version, if it was the
+    export of the bundle as it was (``old``), so that it stays the bundle's; else it is left as it is
+    (``describe_export`` says why). Nothing is written through a link."""
+    folder = Path(folder)
+    if folder.is_symlink() or not (folder / C.EXPORT_META).is_file():
+        return
+    same = {k: new.get(k) for k in (C.M_FILES, C.M_RECORDS, C.M_BUNDLE_ID)}
+    if same != {k: old.get(k) for k in same} or C.M_BUNDLE_VERSION not in new:
+        return
+    try:
+        meta = read_export(folder, old)
+    except PropError:
+        return
+    meta[C.M_BUNDLE_VERSION] = new[C.M_BUNDLE_VERSION]
+    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
+               C.EXPORT_META, "--out")  # fmt: skip

@@ -3,36 +3,45 @@ export's ``export.json``, and comparing onnxruntime with torch."""
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import itertools
 import os
 import re
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from prop_cli import constants as C
-from prop_cli.bundle import Bundle
-from prop_cli.bundle.enrol import FILE, behaviour, changed, changed_error, enrolment, open_enrolment
+from prop_cli.bundle import Bundle, rollback
+from prop_cli.bundle.enrol import (
+    BUNDLE_ID,
+    FILE,
+    behaviour,
+    changed,
+    changed_error,
+    enrolment,
+    open_enrolment,
+)
 from prop_cli.bundle.manifest import (
-    DIM,
-    SHA256,
+    INPUT_SHAPE,
+    NAME,
+    SCHEMA,
     Doc,
+    canonical_json,
     check_digest,
     check_fields,
     check_version,
-    list_of,
-    obj,
     read_json,
-    text,
 )
 from prop_cli.config import ExportSettings
+from prop_cli.core.rules import DIM, SHA256, choice, hex_string, integer, list_of, number, obj, optional, text
 from prop_cli.errors import PropError, brief
-from prop_cli.files import sha256_file
+from prop_cli.files import no_links, sha256_file
 
 from ..streams import stdout_to_stderr
 
@@ -40,16 +49,51 @@ ONNX_EXTRA = "pip install 'prop-keys[onnx]'"
 REEXPORT = "run prop export BUNDLE --onnx --force"
 VERIFY_BATCH = 16
 EXPORTER = f"torch {torch.__version__} (TorchScript-based, dynamo=False)"
-# What the runtimes read from export.json (the rest describes the export for people and other tools).
-# Sealed exports hold base.onnx only, and no deltas.
+FORMAT = "format"
+VERSIONED_SINCE = 4  # export format 4: the bundle's id and version, the key's record bound (issue 42)
+MAX_META = 64 << 20  # the largest export.json read: a sealed export of 65536 records is ~20 MB
+WHAT = "ONNX export"  # how link errors name an export folder
+# export.json, field by field, as the bundle manifest's SCHEMA: each typed and bounded, unknown fields
+# refused, every path a fixed name inside the export folder (graphs) or users/<file name> (records).
+# Required per mode: "unsealed" (four graphs, an encoder), "sealed" (base.onnx and the records).
+UNSEALED, SEALED = (C.MODE_UNSEALED,), (C.MODE_SEALED,)
+ENROLMENT = obj({
+    "salt": hex_string(16, 16), "nonce": hex_string(12, 12), "box": hex_string(16, 1 << 16),
+    "record": optional(text()),
+})  # fmt: skip
+# What opening a record needs: the bundle manifest's public fields (``records.public_part``), by its rules.
+SEALED_PART = {
+    **{f: SCHEMA[f] for f in (C.M_FORMAT, C.M_MODEL, C.M_TASK, C.M_IO, C.M_KEY, C.M_FILES, C.M_BUNDLE_ID)},
+    C.M_MODE: choice(SEALED),
+    C.M_PAYLOAD: optional(SCHEMA[C.M_PAYLOAD], True),
+    C.M_RECORDS: optional(SCHEMA[C.M_RECORDS], True),
+    C.M_KEYED_LAYERS: optional(SCHEMA[C.M_KEYED_LAYERS], nullable=True),
+}
 EXPORT_FIELDS = {
-    "graphs": obj({g: replace(SHA256, required=False) for g in C.GRAPHS}, min_len=1),
-    "deltas": replace(list_of(obj({"input": text(), "layer": text(), "features": DIM,
-                                   "base_weight": replace(text(), nullable=True)}, open=True)),
-                      required=False),
-    C.M_ENROLMENTS: replace(list_of(obj({"salt": text(), "nonce": text(), "box": text(1 << 21)}, open=True)),
-                            required=False),
+    FORMAT: integer(min(C.EXPORT_FORMATS), max(C.EXPORT_FORMATS)),
+    C.M_MODE: optional(choice(C.MODES)),
+    "exporter": text(),
+    "opset": integer(1, 64),
+    "verified_atol": number(0, 1e6, open_lo=True),
+    "bundle_files": SCHEMA[C.M_FILES],
+    "input_shape": INPUT_SHAPE,
+    C.M_BUNDLE_ID: SCHEMA[C.M_BUNDLE_ID],
+    C.M_BUNDLE_VERSION: SCHEMA[C.M_BUNDLE_VERSION],
+    "graphs": obj({g: optional(SHA256) for g in C.GRAPHS}, min_len=1),
+    C.M_ENROLMENTS: optional(list_of(ENROLMENT)),
+    # Unsealed: the key's layout and the encoder's outputs, one scale per keyed layer.
+    "key": optional(obj({"bits": SCHEMA[C.M_KEY].fields["bits"], "encoding": choice(C.KEY_ENCODINGS)}),
+                    UNSEALED),
+    "code": optional(text()),
+    "deltas": optional(list_of(obj({"input": text(), "layer": NAME, "features": DIM,
+                                    "base_weight": optional(text(), nullable=True)}), 1), UNSEALED),
+    # Sealed: the public fields, and the initializers the payload of each keyed layer folds into.
+    "sealed": optional(obj(SEALED_PART), SEALED),
+    "layers": optional(list_of(obj({"layer": NAME, "weight": optional(text(), True, nullable=True),
+                                    "bias": optional(text(), True, nullable=True)}), 1), SEALED),
 }  # fmt: skip
+# What a runtime reads of export.json besides the graphs: bound to each key with them (``bind``).
+FEEDS = ("input_shape", "key", "deltas", "layers")
 # torch >= 2.5 takes `dynamo`; older versions only have the TorchScript exporter.
 _LEGACY_EXPORTER = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
 
@@ -175,38 +219,118 @@ def refuse_link(folder: Path, what: str, fix: str) -> None:
 
 
 def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
-    """Read and check ``export.json`` (graph hashes; with a manifest, that it matches the bundle)."""
+    """Read and check ``export.json`` as the bundle manifest is read: its size, JSON, format version,
+    digest and schema (``EXPORT_FIELDS``, every field typed and bounded, unknown ones refused), how its
+    fields fit together, no link on any path read, and the graphs' hashes; with a manifest, that it is
+    an export of that bundle as it is (``check_current``). One-line PropErrors naming the field."""
     folder = Path(folder)
-    mpath = folder / C.EXPORT_META
+    mpath = no_links(folder, C.EXPORT_META, WHAT)
     if not mpath.is_file():
         raise PropError(
             f"{folder} holds no ONNX export ({C.EXPORT_META} missing)", "run prop export BUNDLE --onnx"
         )
     doc = Doc(str(mpath), fix=REEXPORT)
     try:
+        if mpath.stat().st_size > MAX_META:
+            raise PropError(f"{mpath} is over {MAX_META >> 20} MiB, more than prop ever writes", REEXPORT)
         raw = mpath.read_bytes()
     except OSError as e:
         raise PropError(f"{mpath} cannot be read ({e.strerror})", "check its permissions") from None
     meta = read_json(raw, str(mpath), REEXPORT)
-    if check_version(meta, "format", C.EXPORT_FORMATS, doc) >= 2 or C.EXPORT_DIGEST in meta:
+    if check_version(meta, FORMAT, C.EXPORT_FORMATS, doc) >= 2 or C.EXPORT_DIGEST in meta:
         check_digest(meta, raw, C.EXPORT_DIGEST, doc)
-    check_fields(EXPORT_FIELDS, meta, doc, open_=True)
-    graphs = meta["graphs"]
-    for g, digest in graphs.items():
-        if not (folder / g).is_file() or sha256_file(folder / g) != digest:
-            raise PropError(f"{folder / g} is missing or modified", REEXPORT)
-    if bundle_manifest is not None and meta.get("bundle_files") != bundle_manifest.get(C.M_FILES):
-        raise PropError(
-            f"the ONNX export in {folder} was made from another bundle (or an older version of it)",
-            "run prop export BUNDLE --onnx --force",
-        )
+    doc = doc_of(folder, meta)
+    check_fields(EXPORT_FIELDS, {k: v for k, v in meta.items() if k != C.EXPORT_DIGEST}, doc)
+    _cross_check(meta, doc)
+    for g, digest in meta["graphs"].items():
+        path = no_links(folder, g, WHAT)
+        if not path.is_file() or sha256_file(path) != digest:
+            raise PropError(f"{path} is missing or modified", REEXPORT)
+    for entry in (meta.get("sealed") or {}).get(C.M_RECORDS, []):
+        no_links(folder, entry["file"], WHAT)  # users/ linked elsewhere: refused, not followed
+    if bundle_manifest is not None:
+        check_current(meta, folder, bundle_manifest)
     return meta
 
 
-def bind(meta: dict, bundle: Bundle, key: np.ndarray | None, record: str | None = None) -> list[dict]:
+# Each mode's own fields and graphs: an export holds those of its mode only.
+OWN_FIELDS = {C.MODE_UNSEALED: ("key", "code", "deltas"), C.MODE_SEALED: ("sealed", "layers")}
+OWN_GRAPHS = {C.MODE_UNSEALED: set(C.GRAPHS), C.MODE_SEALED: {C.BASE_GRAPH}}
+RUNNERS = {C.MODE_UNSEALED: "OnnxRunner", C.MODE_SEALED: "SealedOnnxRunner"}
+
+
+def _cross_check(meta: dict, doc: Doc) -> None:
+    """What one field's rule cannot say: how export.json's fields fit together (each mode's own checks:
+    ``sealed.check_meta``, ``unsealed.check_meta``, which its runner calls)."""
+    for mode, names in OWN_FIELDS.items():
+        for name in names:
+            if name in meta and mode != doc.mode:
+                raise doc.bad(name, f"is not a field of {doc.mode} exports")
+    want = OWN_GRAPHS[doc.mode]
+    if set(meta["graphs"]) != want:
+        found = ", ".join(sorted(meta["graphs"]))
+        raise doc.bad("graphs", f"must name {', '.join(sorted(want))} (found {found})")
+    if meta[FORMAT] >= VERSIONED_SINCE and (C.M_BUNDLE_ID in meta) != (C.M_BUNDLE_VERSION in meta):
+        missing = C.M_BUNDLE_VERSION if C.M_BUNDLE_ID in meta else C.M_BUNDLE_ID
+        raise doc.bad(missing, "is missing (an export of a versioned bundle carries its id and version)")
+
+
+def doc_of(folder: Path, meta: dict) -> Doc:
+    """How errors name export.json in ``folder`` and the field they are about, in its mode."""
+    mode = meta.get(C.M_MODE)
+    return Doc(str(Path(folder) / C.EXPORT_META), mode if mode in C.MODES else C.MODE_UNSEALED, REEXPORT)
+
+
+def require_mode(meta: dict, folder: Path, mode: str) -> Doc:
+    """``meta`` is the export of a bundle of ``mode`` (each mode has its runner); its Doc."""
+    doc = doc_of(folder, meta)
+    if doc.mode != mode:
+        raise PropError(
+            f"{folder} is the ONNX export of a {doc.mode} bundle", f"run it with {RUNNERS[doc.mode]}"
+        )
+    return doc
+
+
+def check_current(meta: dict, folder: Path, manifest: dict) -> None:
+    """``meta`` is the export of the bundle ``manifest`` describes as it is now: made from its files,
+    its id and version (prop keeps the export in ``<bundle>/onnx`` in step with every write), and for a
+    sealed bundle holding its records; else a PropError saying which."""
+    where = f"the ONNX export in {folder}"
+    other_id = C.M_BUNDLE_ID in meta and meta[C.M_BUNDLE_ID] != manifest.get(C.M_BUNDLE_ID)
+    if meta.get("bundle_files") != manifest.get(C.M_FILES) or other_id:
+        raise PropError(f"{where} was made from another bundle (or an older version of it)", REEXPORT)
+    have, want = meta.get(C.M_BUNDLE_VERSION), manifest.get(C.M_BUNDLE_VERSION)
+    if have != want:
+        if have is None:
+            why = f"by an older prop (export format {meta[FORMAT]}), without the bundle's version"
+        else:
+            older = "an older" if have < want else "another"
+            why = f"from {older} version of the bundle (version {have}; the bundle is at version {want})"
+        raise PropError(f"{where} was made {why}", REEXPORT)
+    public = meta.get("sealed") or {}
+    if public.get(C.M_RECORDS) != manifest.get(C.M_RECORDS):
+        raise PropError(f"{where} holds other user records than the bundle", REEXPORT)
+
+
+def identity(manifest: dict) -> dict:
+    """export.json's copy of the bundle's id and version (format 5 bundles; others have none)."""
+    return {k: manifest[k] for k in (C.M_BUNDLE_ID, C.M_BUNDLE_VERSION) if k in manifest}
+
+
+def feeds(meta: dict) -> str:
+    """The digest of what a runtime reads of export.json besides the graphs (``FEEDS``)."""
+    return hashlib.sha256(canonical_json({f: meta.get(f) for f in FEEDS})).hexdigest()
+
+
+def bind(
+    meta: dict, bundle: Bundle, key: np.ndarray | None, user: dict | None = None, record: str | None = None
+) -> list[dict]:
     """export.json's enrolments: ``key`` (if given) bound to these graphs and this bundle, so that the
-    key runs only them (``bound``). The key must be enrolled in the bundle as it is now. ``record``: the
-    sealed record the key opens (public), so that remove-user --record drops the binding with it."""
+    key runs only them (``bound``). The key must be enrolled in the bundle as it is now. Bound with it,
+    under the key: what the runtimes read of export.json (``feeds``), and ``user``: the record or
+    enrolment the key opens ({"id", "version"}: its id and the bundle version it was written in), which
+    the runners check against this machine's rollback state (``check_opened``). ``record``: the sealed
+    record the key opens (public), so that remove-user --record drops the binding with it."""
     if key is None:
         return []
     if not bundle.mode.enrolled(key):
@@ -214,27 +338,63 @@ def bind(meta: dict, bundle: Bundle, key: np.ndarray | None, record: str | None 
             f"the key is enrolled in no user of {bundle.path}: there is no behaviour of it to export",
             "pass the key of one of the bundle's users, or export without --key-file",
         )
-    what = {"bundle": behaviour(bundle.manifest), "graphs": meta["graphs"]}
+    what = {"bundle": behaviour(bundle.manifest), "graphs": meta["graphs"], "feeds": feeds(meta)}
+    what["user"] = user or {"id": None, "version": 0}
     return [{**enrolment(key, what), **({"record": record} if record else {})}]
 
 
-def bound(meta: dict, bits: np.ndarray, folder: Path, manifest: dict | None = None) -> bool:
-    """Whether ``bits`` is bound to this export's graphs as they are (True), bound to nothing (False),
-    or bound to graphs or a bundle that changed since (a PropError: nothing runs). ``manifest``: the
-    bundle's, to check against it too (else against the bundle files export.json names)."""
+def bound(meta: dict, bits: np.ndarray, folder: Path, manifest: dict | None = None) -> dict | None:
+    """What binds ``bits`` to this export's graphs as they are (the binding's plaintext), None where it
+    is bound to nothing, or a PropError where it is bound to graphs, fields or a bundle that changed
+    since (nothing runs). ``manifest``: the bundle's, to check against it too (else against the bundle
+    files and id export.json names)."""
     opened = open_enrolment(meta.get(C.M_ENROLMENTS, []), bits)
     if opened is None:
-        return False
+        return None
     graphs = {FILE + g: d for g, d in meta["graphs"].items()}
     diff = changed({FILE + g: d for g, d in opened.get("graphs", {}).items()}, graphs)
+    if meta[FORMAT] >= VERSIONED_SINCE and (opened.get("feeds") != feeds(meta) or "user" not in opened):
+        diff.append(C.EXPORT_META)
+    enrolled = opened.get("bundle", {})
     if manifest is not None:
-        diff += changed(opened.get("bundle", {}), behaviour(manifest))
+        diff += changed(enrolled, behaviour(manifest))
     else:
         files = {FILE + f: d for f, d in (meta.get("bundle_files") or {}).items()}
-        diff += changed({k: v for k, v in opened.get("bundle", {}).items() if k.startswith(FILE)}, files)
+        bundle_id = meta.get(C.M_BUNDLE_ID, (meta.get("sealed") or {}).get(C.M_BUNDLE_ID))
+        if bundle_id is not None:
+            files[BUNDLE_ID] = behaviour_entry(bundle_id)
+        diff += changed({k: v for k, v in enrolled.items() if k.startswith(FILE) or k == BUNDLE_ID}, files)
     if diff:
         raise changed_error(f"the ONNX export in {folder}", diff, REEXPORT)
-    return True
+    return opened
+
+
+def behaviour_entry(value: object) -> str:
+    """A value as a behaviour entry holds it (``enrol.behaviour``: the sha256 of its canonical JSON)."""
+    return hashlib.sha256(canonical_json(value)).hexdigest()
+
+
+def check_opened(
+    meta: dict, folder: Path, uid: str | None, version: int, versioned: bool, allow: bool
+) -> None:
+    """The rollback check the torch path runs (``bundle.rollback.opened``), on what a runner of this
+    export opened with a key: record or enrolment ``uid`` written at bundle ``version``, in the export
+    of the bundle version export.json names. ``versioned``: the record or binding belongs to a bundle
+    with an id (format 5), whose export must carry its version (export format 4 on). ``allow``:
+    --allow-rollback (a warning instead of the refusal)."""
+    where = f"the ONNX export in {folder}"
+    if meta[FORMAT] < VERSIONED_SINCE:
+        if versioned:
+            raise PropError(
+                f"{where} was made by an older prop (export format {meta[FORMAT]}): it does not carry the "
+                "bundle version the rollback check needs",
+                REEXPORT,
+            )
+        return
+    if C.M_BUNDLE_ID not in meta:
+        return  # a format 1-4 bundle: no version, nothing remembered (as with torch)
+    seen_as = {C.M_BUNDLE_ID: meta[C.M_BUNDLE_ID], C.M_BUNDLE_VERSION: meta[C.M_BUNDLE_VERSION]}
+    rollback.opened(seen_as, uid, version, where, allow)
 
 
 def key_bits(key, bits: int) -> np.ndarray:

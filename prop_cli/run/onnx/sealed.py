@@ -16,10 +16,10 @@ import torch
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.enrol import changed_error
-from prop_cli.bundle.manifest import stamp
+from prop_cli.bundle.manifest import Doc, quoted, stamp
 from prop_cli.bundle.records import copy_records, load_state, public_part
 from prop_cli.config import ExportSettings
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 from prop_cli.files import (
     dump_json,
     no_links,
@@ -35,9 +35,7 @@ from . import common
 from .common import ExportResult, VerificationFailed
 
 
-def export(
-    bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify
-) -> ExportResult:
+def export(bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify) -> ExportResult:
     """Write ``base.onnx``, the records and ``export.json`` to ``out``, if ``verify(folder)`` passes."""
     onnx, _ = common.require_onnx()
     in_shape = tuple(bundle.manifest[C.M_IO]["input_shape"])
@@ -53,7 +51,8 @@ def export(
             meta = _meta(bundle, tmp, s.opset, s.atol)
             opened = bundle.records.open(key) if key is not None else None
             rid = opened.record_id if opened is not None else None
-            meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key, rid)}, C.EXPORT_DIGEST)
+            user = {"id": rid, "version": opened.version} if opened is not None else None
+            meta = stamp({**meta, C.M_ENROLMENTS: common.bind(meta, bundle, key, user, rid)}, C.EXPORT_DIGEST)
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
             table = verify(tmp)
             if not all(r["ok"] for r in table):
@@ -68,6 +67,7 @@ def _meta(bundle: Bundle, folder: Path, opset: int, atol: float) -> dict:
     m = bundle.manifest
     params = common.gemm_params(folder / C.BASE_GRAPH, bundle.layer_names)
     return {
+        **common.identity(m),
         "format": C.EXPORT_FORMAT,
         "mode": C.MODE_SEALED,
         "exporter": common.EXPORTER,
@@ -97,7 +97,8 @@ def verify(
         warnings.simplefilter("ignore")  # the random key opens nothing, by design
         for key_name, bits in keys:
             ref = KeyedPolicy(bundle, bits, allow_unenrolled=True)(x)
-            got = SealedOnnxRunner(folder, bits, threads=1, allow_unenrolled=True)(x)
+            got = SealedOnnxRunner(folder, bits, threads=1, allow_unenrolled=True,
+                                   allow_rollback=bundle.mode.allow_rollback)(x)  # fmt: skip
             rows.append(common.diff_row(C.BASE_GRAPH, key_name, got, ref, atol))
     return rows
 
@@ -107,41 +108,63 @@ class SealedOnnxRunner:
     into the keyed layers' initializers in this process's memory when ``key_bits`` is bound to the
     export (``prop export --onnx --key-file``) and opens its record. A key the export does not bind is
     refused (``allow_unenrolled``: base.onnx runs, with a warning); an export or record changed since it
-    was bound is refused. Nothing is written."""
+    was bound is refused, and so is a record older than one this machine has seen, or removed here
+    (the torch path's rollback check; ``allow_rollback``: it runs, with a warning). Nothing is written
+    but that check's state."""
 
     def __init__(
         self, folder: Path, key_bits: np.ndarray | None = None, threads: int = 0, *,
-        allow_unenrolled: bool = False,
+        allow_unenrolled: bool = False, allow_rollback: bool = False,
     ) -> None:  # fmt: skip
         _, ort = common.require_onnx()
         folder = Path(folder)
         self.meta = common.read_export(folder)
+        check_meta(self.meta, common.require_mode(self.meta, folder, C.MODE_SEALED))
         self.opened = None
         so = common.session_options(ort, threads)
         self._keep: list = []
         if key_bits is not None:
             bits = common.key_bits(key_bits, self.meta["sealed"]["key"]["bits"])
-            self.opened = _open(folder, self.meta, bits, allow_unenrolled)
+            self.opened = _open(folder, self.meta, bits, allow_unenrolled, allow_rollback)
         if self.opened is not None:
-            from onnx import numpy_helper
+            self._fold(folder, so, ort)
+        self.session = common.open_session(ort, folder / C.BASE_GRAPH, so)
 
-            missing = [x["layer"] for x in self.meta["layers"] if not x["weight"]]
-            bias = self.opened.payload.spec.variant.changes_bias
-            missing += [x["layer"] for x in self.meta["layers"] if bias and x["weight"] and not x["bias"]]
-            if missing:
-                raise PropError(
-                    f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
-                    "run the bundle with torch (prop run without --onnx)",
-                )
-            inits = {i.name: i for i in common.load_graph(folder / C.BASE_GRAPH).graph.initializer}
+    def _fold(self, folder: Path, so, ort) -> None:
+        """The opened payload folded into the keyed layers' initializers that export.json names."""
+        from onnx import numpy_helper
+
+        layers = self.meta["layers"]
+        bias = self.opened.payload.spec.variant.changes_bias
+        missing = [x["layer"] for x in layers if not x["weight"] or (bias and not x["bias"])]
+        if missing:
+            raise PropError(
+                f"{folder / C.BASE_GRAPH} does not expose the weights of {', '.join(missing)} by name",
+                "run the bundle with torch (prop run without --onnx)",
+            )
+        inits = {i.name: i for i in common.load_graph(folder / C.BASE_GRAPH).graph.initializer}
+        for i, x in enumerate(layers):
+            for part in ("weight", "bias") if bias else ("weight",):
+                if x[part] not in inits:
+                    raise PropError(
+                        f"{folder / C.EXPORT_META} field 'layers[{i}].{part}' names no initializer of "
+                        f"{C.BASE_GRAPH} ({quoted(x[part])})",
+                        common.REEXPORT,
+                    )
+        try:
             with torch.no_grad():
-                for x in self.meta["layers"]:
+                for x in layers:
                     w = torch.from_numpy(numpy_helper.to_array(inits[x["weight"]]).copy())
                     self._override(so, ort, x["weight"], self.opened.payload.weight(x["layer"], w))
                     if bias:
                         b = torch.from_numpy(numpy_helper.to_array(inits[x["bias"]]).copy())
                         self._override(so, ort, x["bias"], b + self.opened.payload.bias_delta(x["layer"]))
-        self.session = common.open_session(ort, folder / C.BASE_GRAPH, so)
+        except (RuntimeError, ValueError) as e:  # an initializer of another shape than the payload's layer
+            raise PropError(
+                f"{folder / C.EXPORT_META}: the payload of layer {x['layer']!r} does not fit the initializer "
+                f"it names ({brief(e, 80)})",
+                common.REEXPORT,
+            ) from None
 
     def _override(self, so, ort, name: str, t) -> None:
         common.add_weight(so, ort, name, t.detach().numpy(), self._keep)
@@ -150,28 +173,57 @@ class SealedOnnxRunner:
         return self.session.run(["y"], {"x": np.ascontiguousarray(x, np.float32)})[0]
 
 
-def _open(folder: Path, meta: dict, bits: np.ndarray, allow_unenrolled: bool):
-    """The record ``bits`` opens in a sealed export, checked: a PropError if the export does not bind
-    the key (``allow_unenrolled``: None, with a warning), or if the export, its bundle or the record
-    changed since."""
+def check_meta(meta: dict, doc: Doc) -> None:
+    """What the rules of a sealed export's fields cannot say: its public part is export.json's own
+    (files, bundle id, input shape), its records have one id each, and ``layers`` names the payload's."""
     public = meta["sealed"]
-    if not common.bound(meta, bits, folder, public):
+    if meta[common.FORMAT] >= common.VERSIONED_SINCE:
+        if public[C.M_FILES] != meta["bundle_files"]:
+            raise doc.bad(f"sealed.{C.M_FILES}", "differs from bundle_files")
+        if public.get(C.M_BUNDLE_ID) != meta.get(C.M_BUNDLE_ID):
+            raise doc.bad(f"sealed.{C.M_BUNDLE_ID}", f"differs from {C.M_BUNDLE_ID}")
+    if public[C.M_IO]["input_shape"] != meta["input_shape"]:
+        raise doc.bad("sealed.io.input_shape", "differs from input_shape")
+    ids = [r["id"] for r in public[C.M_RECORDS]]
+    if len(set(ids)) != len(ids):
+        raise doc.bad(f"sealed.{C.M_RECORDS}", "holds two records with the same id")
+    if [x["layer"] for x in meta["layers"]] != [p["name"] for p in public[C.M_PAYLOAD]["layers"]]:
+        raise doc.bad("layers", "must name the payload's layers, in order (sealed.payload.layers)")
+
+
+def _open(folder: Path, meta: dict, bits: np.ndarray, allow_unenrolled: bool, allow_rollback: bool):
+    """The record ``bits`` opens in a sealed export, checked: a PropError if the export does not bind
+    the key (``allow_unenrolled``: None, with a warning), if the export, its bundle or the record
+    changed since, if the record is not the one the key was bound with, or if this machine has seen
+    the record removed or a newer one (``common.check_opened``; ``allow_rollback``: a warning)."""
+    public = meta["sealed"]
+    binding = common.bound(meta, bits, folder, public)
+    if binding is None:
         common.not_bound(folder, allow_unenrolled)
         return None
     opened = load_state(folder, public).open(bits)
+    user = binding.get("user") or {}
+    if opened is not None and "id" in user and user["id"] != opened.record_id:
+        opened.changed = [*opened.changed, "the record"]
     if opened is None or opened.changed:
         parts = opened.changed if opened is not None else ["the record"]
         raise changed_error(f"the ONNX export in {folder}", parts, common.REEXPORT)
+    versioned = public.get(C.M_BUNDLE_ID) is not None
+    common.check_opened(meta, folder, opened.record_id, opened.version, versioned, allow_rollback)
     return opened
 
 
-def drop_record(folder: Path, record_id: str) -> None:
-    """Remove a user's record, and the key binding that goes with it, from a sealed export in place."""
+def drop_record(folder: Path, record_id: str, version: int | None = None) -> None:
+    """Remove a user's record, and the key binding that goes with it, from a sealed export in place.
+    ``version``: the bundle version the removal writes; the export takes it if it was in step with the
+    bundle (one version behind)."""
     common.refuse_link(folder, "the ONNX export", "remove the link (and export again), then retry")
     meta = common.read_export(folder)
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id]
     meta[C.M_ENROLMENTS] = [e for e in meta.get(C.M_ENROLMENTS, []) if e.get("record") != record_id]
+    if version is not None and meta.get(C.M_BUNDLE_VERSION) == version - 1:
+        meta[C.M_BUNDLE_VERSION] = version
     record = f"{C.RECORDS_DIR}/{record_id}{C.RECORD_SUFFIX}"
     no_links(folder, record, "export")  # before anything is written
     write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
@@ -179,16 +231,17 @@ def drop_record(folder: Path, record_id: str) -> None:
     remove_inside(folder, record, "export")
 
 
-def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> None:
+def add_record(folder: Path, bundle: Path, old: dict, manifest: dict, record_id: str) -> None:
     """Add a new user's record to a sealed export in place (as ``drop_record`` removes one): its graphs
     hold no record, so the export then serves the bundle as it is. The new key is bound to nothing
     (`prop export --onnx --key-file` binds it); the keys bound before stay bound (the behaviour they
-    were bound to leaves out the records list). ``manifest``: the bundle's, with the record. An export
-    that is not an unmodified export of this bundle is left as it is (``describe_export`` says why)."""
+    were bound to leaves out the records list). ``old``, ``manifest``: the bundle's before and after the
+    record was added. An export that was not an unmodified export of the bundle as it was is left as it
+    is (``describe_export`` says why)."""
     if Path(folder).is_symlink():
         return  # never written through (``refuse_link``); describe_export says it is not current
     try:
-        meta = common.read_export(folder, manifest)
+        meta = common.read_export(folder, old)
     except PropError:
         return
     entry = next(e for e in manifest[C.M_RECORDS] if e["id"] == record_id)
@@ -196,9 +249,11 @@ def add_record(folder: Path, bundle: Path, manifest: dict, record_id: str) -> No
     write_inside(folder, entry["file"], data, "export")  # first: never listed, absent
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id] + [entry]
+    meta.update(common.identity(manifest))
     write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
                C.EXPORT_META, "--out")  # fmt: skip
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
-    return SealedOnnxRunner(folder, None if key is None else bundle.check_key(key), threads=threads)(x)
+    bits = None if key is None else bundle.check_key(key)
+    return SealedOnnxRunner(folder, bits, threads=threads, allow_rollback=bundle.mode.allow_rollback)(x)

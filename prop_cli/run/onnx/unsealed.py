@@ -26,28 +26,33 @@ from torch import nn
 
 from prop_cli import constants as C
 from prop_cli.bundle import Bundle
-from prop_cli.bundle.manifest import stamp
+from prop_cli.bundle.enrol import BUNDLE_ID, ID, VERSION, open_enrolment
+from prop_cli.bundle.manifest import Doc, quoted, stamp
 from prop_cli.config import ExportSettings
 from prop_cli.core.keyed_model import KeyedModel, key_codes
 from prop_cli.core.layers import is_conv, scale_inputs
-from prop_cli.errors import PropError
+from prop_cli.errors import PropError, brief
 from prop_cli.files import dump_json, sha256_file, staged_dir
 
 from .common import (
     EXPORTER,
+    REEXPORT,
     ExportResult,
     VerificationFailed,
     add_weight,
     bind,
     bound,
+    check_opened,
     diff_row,
     export_graph,
     gemm_params,
+    identity,
     key_bits,
     load_graph,
     not_bound,
     open_session,
     read_export,
+    require_mode,
     require_onnx,
     session,
     session_options,
@@ -139,9 +144,7 @@ def _export_all(km: KeyedModel, folder: Path, in_shape: tuple, names: list[str],
     export_graph(_EncoderGraph(km.encoder), (code0,), folder / C.ENCODER_GRAPH, ["code"], names, axes, opset)
 
 
-def export(
-    bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify
-) -> ExportResult:
+def export(bundle: Bundle, out: Path, s: ExportSettings, key: np.ndarray | None, verify) -> ExportResult:
     """Write the four graphs and ``export.json`` to ``out``, if ``verify(folder)`` (onnxruntime against
     torch) passes; otherwise nothing is left behind and the result is not ok."""
     onnx, _ = require_onnx()
@@ -157,11 +160,32 @@ def export(
             meta = _export_meta(bundle, tmp, names, s.opset, s.atol)
             if not all(r["ok"] for r in table):
                 raise VerificationFailed  # staged_dir removes the folder: nothing is left behind
-            meta = stamp({**meta, C.M_ENROLMENTS: bind(meta, bundle, key)}, C.EXPORT_DIGEST)
+            meta = stamp(
+                {**meta, C.M_ENROLMENTS: bind(meta, bundle, key, _user(bundle, key))}, C.EXPORT_DIGEST
+            )
             (tmp / C.EXPORT_META).write_text(dump_json(meta))
     except VerificationFailed:
         return ExportResult(out, s.opset, s.atol, [], table, False, meta)
     return ExportResult(out, s.opset, s.atol, [*C.GRAPHS, C.EXPORT_META], table, True, meta)
+
+
+def _user(bundle: Bundle, key: np.ndarray | None) -> dict | None:
+    """The enrolment ``key`` opens in the bundle: its id and the version it was written in (format 5)."""
+    if key is None:
+        return None
+    entry = open_enrolment(bundle.manifest.get(C.M_ENROLMENTS, []), key) or {}
+    return {"id": entry.get(ID), "version": int(entry.get(VERSION, 0))}
+
+
+def check_meta(meta: dict, doc: Doc) -> None:
+    """What the rules of an unsealed export's fields cannot say: ``deltas`` are the encoder's outputs in
+    order (delta_1, delta_2, ...), one per keyed layer."""
+    inputs = [d["input"] for d in meta["deltas"]]
+    if inputs != delta_names(len(inputs)):
+        raise doc.bad("deltas", "must be delta_1, delta_2, ... in order (the encoder's outputs)")
+    layers = [d["layer"] for d in meta["deltas"]]
+    if len(set(layers)) != len(layers):
+        raise doc.bad("deltas", "names a layer twice")
 
 
 @torch.no_grad()
@@ -209,6 +233,7 @@ def _export_meta(bundle: Bundle, folder: Path, names: list[str], opset: int, ato
     m = bundle.manifest
     params = gemm_params(folder / C.BASE_GRAPH, [layer["name"] for layer in m[C.M_KEYED_LAYERS]])
     return {
+        **identity(m),
         "format": C.EXPORT_FORMAT,
         "exporter": EXPORTER,
         "opset": opset,
@@ -248,16 +273,22 @@ class OnnxRunner:
 
     def __init__(
         self, folder: Path, key: np.ndarray | None = None, threads: int = 0, fold: bool | None = None,
-        *, code: np.ndarray | None = None, allow_unenrolled: bool = False,
+        *, code: np.ndarray | None = None, allow_unenrolled: bool = False, allow_rollback: bool = False,
     ) -> None:  # fmt: skip
         _, ort = require_onnx()
         folder = Path(folder)
         self.meta = read_export(folder)
+        check_meta(self.meta, require_mode(self.meta, folder, C.MODE_UNSEALED))
         self.names = [d["input"] for d in self.meta["deltas"]]
         key_code = code
         if key is not None:
             bits = key_bits(key, self.meta["key"]["bits"])
-            if bound(self.meta, bits, folder):
+            binding = bound(self.meta, bits, folder)
+            if binding is not None:
+                # The enrolment the key was bound with: checked as torch checks the bundle's (rollback).
+                user, versioned = binding.get("user") or {}, BUNDLE_ID in binding.get("bundle", {})
+                uid, version = user.get("id"), user.get("version", 0)
+                check_opened(self.meta, folder, uid, version, versioned, allow_rollback)
                 key_code = key_codes(bits, self.meta["key"]["encoding"]).numpy()
             else:
                 not_bound(folder, allow_unenrolled)
@@ -267,7 +298,7 @@ class OnnxRunner:
             self.session = session(folder / C.BASE_GRAPH, threads)
         else:
             code = np.asarray(key_code, np.float32).reshape(1, -1)
-            deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+            deltas = self._deltas(folder, code, threads)
             if fold is None:
                 fold = all(d.get("base_weight") for d in self.meta["deltas"])
             if fold:
@@ -277,10 +308,32 @@ class OnnxRunner:
                 feeds = {n: ort.OrtValue.ortvalue_from_numpy(d) for n, d in zip(self.names, deltas)}
                 self._keep += feeds.values()
         self._binding = self.session.io_binding()
-        for n, v in feeds.items():
-            self._binding.bind_ortvalue_input(n, v)
+        try:
+            for n, v in feeds.items():
+                self._binding.bind_ortvalue_input(n, v)
+        except Exception as e:  # noqa: BLE001 - onnxruntime's own types: an input policy.onnx lacks
+            what = f"{folder / C.POLICY_GRAPH} does not take the inputs export.json names ({brief(e)})"
+            raise PropError(what, REEXPORT) from None
         self._binding.bind_output("y")
         self._rows: int | None = None  # the batch size the output binding was last run with
+
+    def _deltas(self, folder: Path, code: np.ndarray, threads: int) -> list[np.ndarray]:
+        """delta per keyed layer: encoder.onnx on ``code``, each checked against export.json's width."""
+        try:
+            deltas = session(folder / C.ENCODER_GRAPH, threads).run(self.names, {"code": code})
+        except PropError:
+            raise
+        except Exception as e:  # noqa: BLE001 - onnxruntime's own types: outputs or code of other sizes
+            what = f"{folder / C.ENCODER_GRAPH} does not run as export.json describes it ({brief(e)})"
+            raise PropError(what, REEXPORT) from None
+        for i, (d, meta) in enumerate(zip(deltas, self.meta["deltas"])):
+            if d.shape != (1, meta["features"]):
+                raise PropError(
+                    f"{folder / C.EXPORT_META} field 'deltas[{i}].features' is {meta['features']} but "
+                    f"{C.ENCODER_GRAPH} gives {d.shape[-1]}",
+                    REEXPORT,
+                )
+        return deltas
 
     def _folded(self, folder: Path, deltas: list[np.ndarray], threads: int, ort):
         from onnx import numpy_helper
@@ -293,13 +346,26 @@ class OnnxRunner:
             )
         inits = {i.name: i for i in load_graph(folder / C.BASE_GRAPH).graph.initializer}
         so = session_options(ort, threads)
-        for name, d in zip(weights, deltas):
-            w = numpy_helper.to_array(inits[name])
+        for i, (name, d) in enumerate(zip(weights, deltas)):
+            w = numpy_helper.to_array(inits[name]) if name in inits else None
+            if w is None or w.ndim < 2 or (w.ndim == 2 and w.shape[1] != d.size):
+                raise PropError(
+                    f"{folder / C.EXPORT_META} field 'deltas[{i}].base_weight' names no weight of "
+                    f"{C.BASE_GRAPH} that takes {d.size} inputs ({quoted(name)})",
+                    REEXPORT,
+                )
             if w.ndim == 2:
                 w = w * d.reshape(1, -1)  # Gemm B (out, in), transB=1
             else:  # a Conv's (out, in / groups, *kernel): scale its input channels
                 t = torch.from_numpy(w.copy())
-                w = (t * scale_inputs(t, torch.from_numpy(d).flatten())).numpy()
+                try:
+                    w = (t * scale_inputs(t, torch.from_numpy(d).flatten())).numpy()
+                except (RuntimeError, ValueError) as e:
+                    raise PropError(
+                        f"{folder / C.EXPORT_META} field 'deltas[{i}].base_weight': {quoted(name)} does not "
+                        f"take {d.size} input channels ({brief(e, 80)})",
+                        REEXPORT,
+                    ) from None
             add_weight(so, ort, name, w, self._keep)
         return open_session(ort, folder / C.BASE_GRAPH, so)
 
@@ -316,4 +382,4 @@ class OnnxRunner:
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
-    return OnnxRunner(folder, key, threads=threads)(x)
+    return OnnxRunner(folder, key, threads=threads, allow_rollback=bundle.mode.allow_rollback)(x)
