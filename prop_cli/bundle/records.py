@@ -22,8 +22,10 @@ import json
 import os
 import shutil
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -102,7 +104,8 @@ class SealedState:
     def __post_init__(self) -> None:
         self.enrolled = enrolled_records(self.manifest)
         self.behaviour = behaviour(self.manifest) if self.enrolled else None
-        self.index = Index([rec.lookup for rec in self.records], salt_of(self.manifest))
+        names = self.records.entries if isinstance(self.records, Listed) else self.records
+        self.index = Index([_name(r) for r in names], salt_of(self.manifest))
         # The associated data of each record, computed once when first tried: the audit tries a million
         # keys. Files read: the last few kept (a million keys on one bundle read each file once).
         self._bound: dict[int, bytes] = {}
@@ -164,6 +167,10 @@ class SealedState:
 READ_KEPT = 16  # record files a SealedState keeps in memory once read
 
 
+def _name(record: SealedRecord | dict) -> str | None:
+    return record.get(LOOKUP) if isinstance(record, dict) else record.lookup
+
+
 def record_file(record_id: str) -> str:
     return f"{C.RECORDS_DIR}/{record_id}{C.RECORD_SUFFIX}"
 
@@ -194,9 +201,7 @@ def _check_present(path: Path, entries: list[dict]) -> None:
             there = {f"{C.RECORDS_DIR}/{e.name}" for e in it if e.is_file(follow_symlinks=False)}
     except (FileNotFoundError, NotADirectoryError):
         there = set()
-    missing = [
-        e["file"] for e in entries if Path(e["file"]).parent.name != C.RECORDS_DIR or e["file"] not in there
-    ]
+    missing = [e["file"] for e in entries if e["file"] not in there]  # the schema: users/<file name>
     if missing:  # e.g. the folder was copied without users/: say how much is gone, not only the first
         shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
         raise PropError(
@@ -235,15 +240,34 @@ def load_state(path: Path, manifest: dict) -> SealedState:
     spec = PayloadSpec.from_dict(manifest[C.M_PAYLOAD])
     entries = manifest[C.M_RECORDS]
     _check_present(path, entries)
-    lazy = salt_of(manifest) is not None
+    if salt_of(manifest) is not None:
+        return SealedState(manifest, spec, Listed(entries), path)
     records = [
-        SealedRecord(
-            e["id"], bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]),
-            None if lazy else read_record(path, e), e.get(LOOKUP),
-        )
+        SealedRecord(e["id"], bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), read_record(path, e))
         for e in entries
-    ]  # fmt: skip
+    ]
     return SealedState(manifest, spec, records, path)
+
+
+class Listed(Sequence[SealedRecord]):
+    """The records of manifest entries, each made when asked for, its ciphertext left in its file (None):
+    a key asks for one of 10,000."""
+
+    def __init__(self, entries: list[dict]) -> None:
+        self.entries = entries
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @overload
+    def __getitem__(self, i: int) -> SealedRecord: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[SealedRecord]: ...
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(len(self))[i]]
+        e = self.entries[i]
+        return SealedRecord(e["id"], bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), None, e.get(LOOKUP))
 
 
 def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarray) -> SealedRecord:
