@@ -128,12 +128,11 @@ class SealedState:
             self._bound[i] = record_ad(self.manifest, self.records[i].id)
         return open_record(self.records[i], bits, self._bound[i], self._ciphertext(i))
 
-    def open(self, bits: np.ndarray) -> Opened | None:
-        """The user's payload if ``bits`` opens one of the records, else None (a wrong key). ``changed``
-        says what differs from what the record was enrolled in: the caller decides (``modes``).
-        The same work whichever record opens, or none (``lookup.Index.tries``): format 6, the record
-        filed under the key's name (or a stand-in of the same size, which cannot count); every record
-        without a name (format 2-5: all of them), whichever opens."""
+    def find(self, bits: np.ndarray) -> tuple[int, bytes] | None:
+        """(position, plaintext) of the record ``bits`` opens, or None: the same work whichever record
+        opens, or none (``lookup.Index.tries``). Format 6: the record filed under the key's name, or a
+        stand-in of the same size that cannot count (read, checked, decrypted all the same); and every
+        record without a name (format 2-5: all of them), whichever opens."""
         first, counts, rest = self.index.tries(bits)
         found = None
         if first is not None:
@@ -148,6 +147,13 @@ class SealedState:
             data = self._try(i, bits)
             if data is not None and found is None:
                 found = i, data
+        return found
+
+    def open(self, bits: np.ndarray) -> Opened | None:
+        """The user's payload if ``bits`` opens one of the records, else None (a wrong key), found as
+        ``find`` finds it. ``changed`` says what differs from what the record was enrolled in: the caller
+        decides (``modes``)."""
+        found = self.find(bits)
         if found is None:
             return None
         i, data = found
@@ -161,7 +167,7 @@ class SealedState:
 
     def holds(self, bits: np.ndarray) -> bool:
         """Whether ``bits`` opens a record here, or a record is filed under its name."""
-        return self.index.holds(bits) or self.open(bits) is not None
+        return self.index.holds(bits) or self.find(bits) is not None
 
 
 READ_KEPT = 16  # record files a SealedState keeps in memory once read
