@@ -73,6 +73,13 @@ def grow(bundle: Path, first: np.ndarray, keys: list[np.ndarray]) -> None:
 def as_format_5(src: Path, dst: Path) -> None:
     """A copy of ``src`` as format 5 wrote it: the same records, no lookup names."""
     shutil.copytree(src, dst)
+    inodes: dict[tuple[int, int], Path] = {}
+    for f in sorted(p for p in src.rglob("*") if p.is_file()):  # hard links stay links (LeRobot's alias)
+        st = f.stat()
+        first = inodes.setdefault((st.st_dev, st.st_ino), f)
+        if first != f:
+            (dst / f.relative_to(src)).unlink()
+            os.link(dst / first.relative_to(src), dst / f.relative_to(src))
     m = json.loads((dst / C.MANIFEST).read_text())
     m[C.M_FORMAT] = 5
     for e in m[C.M_RECORDS]:
