@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import shutil
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -98,7 +99,7 @@ class SealedState:
 
     manifest: dict
     spec: PayloadSpec
-    records: list[SealedRecord]
+    records: Sequence[SealedRecord]  # a list, or ``Listed``: made from the manifest's entries when tried
     folder: Path | None = None
 
     def __post_init__(self) -> None:
@@ -107,20 +108,23 @@ class SealedState:
         names = self.records.entries if isinstance(self.records, Listed) else self.records
         self.index = Index([_name(r) for r in names], salt_of(self.manifest))
         # The associated data of each record, computed once when first tried: the audit tries a million
-        # keys. Files read: the last few kept (a million keys on one bundle read each file once).
+        # keys. Files read: the last READ_KEPT kept (the audit's keys on a small bundle read each once).
         self._bound: dict[int, bytes] = {}
         self._read: OrderedDict[int, bytes] = OrderedDict()
+        self._lock = threading.Lock()
 
     def _ciphertext(self, i: int) -> bytes:
         rec = self.records[i]
         if rec.ciphertext is not None:
             return rec.ciphertext
-        data = self._read.pop(i, None)
+        with self._lock:  # a server opens keys from more than one thread
+            data = self._read.pop(i, None)
         if data is None:
             data = read_record(self.folder, self.manifest[C.M_RECORDS][i])
-        self._read[i] = data
-        if len(self._read) > READ_KEPT:
-            self._read.popitem(last=False)
+        with self._lock:
+            self._read[i] = data
+            while len(self._read) > READ_KEPT:
+                self._read.popitem(last=False)
         return data
 
     def _try(self, i: int, bits: np.ndarray) -> bytes | None:
