@@ -3,12 +3,13 @@
     python -m benchmarks.bench_open_timing [--records 3] [--reps 3000]
 
 A sealed bundle of one user is personalized (a tiny MLP, 40 steps), then its record's plaintext is
-sealed again for other keys, so that the bundle holds ``--records`` records and the user's key opens
-each position in turn. Timed: ``SealedState.open`` (every trial decryption, then the decoding of the
-payload that opened) for a key enrolled in nothing and for the key of each record, interleaved, each
-``--reps`` times in a shuffled order; the median in microseconds. Until 0.2 the first record that
-opened ended the trials, so a key's time told which record it opened; now every record is tried on
-every key.
+sealed again for other keys, without lookup names (as format 1-5 wrote records; format 6 files each
+record under its key's name: benchmarks/bench_lookup.py), so that the bundle holds ``--records``
+records and the user's key opens each position in turn. Timed: ``SealedState.open`` (every trial
+decryption, then the decoding of the payload that opened) for a key enrolled in nothing and for the key
+of each record, interleaved, each ``--reps`` times in a shuffled order; the median in microseconds.
+Until 0.2 the first record that opened ended the trials, so a key's time told which record it opened;
+now every record is tried on every key.
 """
 
 from __future__ import annotations
@@ -17,14 +18,16 @@ import argparse
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from prop_cli import constants as C
 from prop_cli.api import KeySource, PersonalizeConfig, personalize_checkpoint
 from prop_cli.bundle import load_bundle
 from prop_cli.bundle.cipher import open_record, seal
-from prop_cli.bundle.records import SealedState, record_ad
+from prop_cli.bundle.records import SealedState, read_record, record_ad
 
 
 def _state(root: Path, records: int) -> tuple[SealedState, list[np.ndarray]]:
@@ -40,7 +43,8 @@ def _state(root: Path, records: int) -> tuple[SealedState, list[np.ndarray]]:
     personalize_checkpoint(str(root / "m.safetensors"), [(root / "d.npz", KeySource(keys[0], "file"))],
                            root / "b.prop", cfg)  # fmt: skip
     state = load_bundle(root / "b.prop").records
-    rec = state.records[0]
+    entry = state.manifest[C.M_RECORDS][0]
+    rec = replace(state.records[0], ciphertext=read_record(root / "b.prop", entry), lookup=None)
     plaintext = open_record(rec, keys[0], record_ad(state.manifest, rec.id))
     others = [seal(plaintext, k, lambda rid: record_ad(state.manifest, rid)) for k in keys[1:]]
     return SealedState(state.manifest, state.spec, [rec, *others]), keys

@@ -17,15 +17,18 @@ RECORD_SUFFIX = ".sealed"
 # records); 3: the manifest carries its own digest (M_DIGEST); 4: keys are enrolled (M_ENROLMENTS for
 # unsealed bundles; sealed records carry what they were enrolled in, inside their plaintext) and
 # io.checkpoint is a file name; 5: a bundle id and a version every write increases (M_BUNDLE_ID,
-# M_BUNDLE_VERSION), bound into each enrolment and record (rollback protection, bundle/rollback.py).
+# M_BUNDLE_VERSION), bound into each enrolment and record (rollback protection, bundle/rollback.py);
+# 6: each record and enrolment is filed under its key's lookup name (bundle/lookup.py: a key finds its
+# own in O(1); format 1-5 entries have none and are all tried, as before).
 # Versions 1 and 2 (no digest) still load, with only their listed files checked; in a version 1-3
 # unsealed bundle every key is enrolled in nothing; a version 1-4 bundle is bundle version 0, unprotected
 # against rollback (docs/bundle-format.md).
-FORMAT_VERSION = 5
-FORMAT_VERSIONS = (1, 2, 3, 4, 5)  # what this prop reads
+FORMAT_VERSION = 6
+FORMAT_VERSIONS = (1, 2, 3, 4, 5, 6)  # what this prop reads
 DIGEST_SINCE = 3  # the first version whose manifest must carry M_DIGEST
 ENROL_SINCE = 4  # the first version whose keys are enrolled
 VERSIONED_SINCE = 5  # the first version with a bundle id and a bundle version
+LOOKUP_SINCE = 6  # the first version whose records and enrolments carry a lookup name
 
 # Manifest keys.
 M_FORMAT = "format_version"
@@ -43,11 +46,12 @@ M_FILES = "files"  # {file name: sha256 hex}
 M_AUDIT = "audit"  # summary written by `prop attack --record`
 M_MODE = "mode"  # "unsealed" (absent in version 1) | "sealed"
 M_PAYLOAD = "payload"  # sealed: {"kind", "rank", "layers": [{"name", "in_features", "out_features"}]}
-M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256"}], one per user
+M_RECORDS = "records"  # sealed: [{"id", "file", "salt", "nonce", "sha256", "lookup" (6 on)}], one per user
 MODE_UNSEALED = "unsealed"
 MODE_SEALED = "sealed"
 MODES = (MODE_UNSEALED, MODE_SEALED)
-M_ENROLMENTS = "enrolments"  # unsealed: [{"salt", "nonce", "box"}], one sealed enrolment per user
+M_ENROLMENTS = "enrolments"  # unsealed: [{"salt", "nonce", "box", "lookup" (6 on)}], one per user
+M_LOOKUP = "lookup"  # format 6: a record's or enrolment's lookup name (bundle/lookup.py), 16 bytes hex
 M_BUNDLE_ID = "bundle_id"  # format 5: 16 random bytes (hex) written by personalize, kept by every write
 M_BUNDLE_VERSION = "bundle_version"  # format 5: 1 at personalize, +1 on every write of the manifest
 M_DIGEST = "manifest_sha256"  # sha256 of the canonical JSON of every other field (prop_cli.bundle.manifest)

@@ -6,8 +6,9 @@ bytes come from scrypt first (keys.passphrase_bits), so the passphrase is stretc
 record's key is derived from the result.
 
 A record keeps in the clear only a random id (not derived from the key), its HKDF salt and its GCM
-nonce. Nothing there tests a key faster than attempting the decryption itself, which is what
-running the bundle with a key does anyway. The associated data binds a record to the public part
+nonce, and since format 6 its lookup name (``lookup_name``: a keyed hash of the key under the bundle
+id, what a key finds its record by, ``lookup``). Nothing there tests a key faster than one HKDF, which
+attempting the decryption costs anyway. The associated data binds a record to the public part
 of its bundle (``records.binding``): edit the manifest's model, layers or base weights and every
 record fails to open.
 """
@@ -28,6 +29,10 @@ from prop_cli.errors import PropError
 # derive their AES keys under ENROL_INFO, so the same key bits give unrelated AES keys for each use.
 SEAL_INFO = b"prop/seal/v1"
 ENROL_INFO = b"prop/enrol/v1"
+# Format 6: a record's or enrolment's lookup name (``lookup``), HKDF of the key bytes under this label and
+# the bundle id as salt: unrelated to every AES key above (other label, other salt).
+LOOKUP_INFO = b"prop/lookup/v1"
+LOOKUP_BYTES = 16
 BUCKET = 4096  # sealed plaintexts are padded to a multiple of this: sizes say nothing of their metadata
 SALT_BYTES = 16
 NONCE_BYTES = 12  # GCM's standard nonce size
@@ -55,7 +60,8 @@ class SealedRecord:
     id: str  # random hex, only to name the record (e.g. for remove-user)
     salt: bytes
     nonce: bytes
-    ciphertext: bytes  # AES-GCM output: payload ciphertext followed by the 16-byte tag
+    ciphertext: bytes | None  # AES-GCM output: ciphertext + 16-byte tag (None: in its file, read when tried)
+    lookup: str | None = None  # format 6: the name the record is filed under (``lookup_name``)
 
 
 def key_bytes(bits: np.ndarray) -> bytes:
@@ -64,6 +70,17 @@ def key_bytes(bits: np.ndarray) -> bytes:
     if bits.ndim != 1 or len(bits) % 8:
         raise ValueError(f"key bits must be a flat multiple of 8, got shape {bits.shape}")
     return np.packbits(bits).tobytes()
+
+
+def lookup_name(bits: np.ndarray, bundle_id: str) -> str:
+    """The name a key's record or enrolment is filed under in the bundle ``bundle_id`` (hex): HKDF-SHA256
+    of the key bytes, salted with the bundle id, under ``LOOKUP_INFO``; 16 bytes, hex. A pseudo-random
+    function of the key: without it the name says nothing of it (``lookup``)."""
+    _, hkdf, hashes, _ = _aead()
+    kdf = hkdf(
+        algorithm=hashes.SHA256(), length=LOOKUP_BYTES, salt=bytes.fromhex(bundle_id), info=LOOKUP_INFO
+    )
+    return kdf.derive(key_bytes(bits)).hex()
 
 
 def _cipher(bits: np.ndarray, salt: bytes, info: bytes = SEAL_INFO):
@@ -90,16 +107,24 @@ def decrypt(
         return None
 
 
-def seal(payload: bytes, bits: np.ndarray, associated: Callable[[str], bytes]) -> SealedRecord:
-    """Encrypt ``payload`` for the key ``bits``; ``associated(record_id)`` gives the bound data."""
+def seal(
+    payload: bytes, bits: np.ndarray, associated: Callable[[str], bytes], bundle_id: str | None = None
+) -> SealedRecord:
+    """Encrypt ``payload`` for the key ``bits``; ``associated(record_id)`` gives the bound data.
+    ``bundle_id`` (format 6): the record is filed under the key's lookup name in that bundle."""
     record_id = os.urandom(ID_BYTES).hex()
     salt, nonce, ct = encrypt(payload, bits, associated(record_id), SEAL_INFO)
-    return SealedRecord(record_id, salt, nonce, ct)
+    lookup = None if bundle_id is None else lookup_name(bits, bundle_id)
+    return SealedRecord(record_id, salt, nonce, ct, lookup)
 
 
-def open_record(record: SealedRecord, bits: np.ndarray, associated: bytes) -> bytes | None:
-    """The payload if ``bits`` is the record's key (and nothing was tampered with), else None."""
-    return decrypt(record.salt, record.nonce, record.ciphertext, bits, associated, SEAL_INFO)
+def open_record(
+    record: SealedRecord, bits: np.ndarray, associated: bytes, ciphertext: bytes | None = None
+) -> bytes | None:
+    """The payload if ``bits`` is the record's key (and nothing was tampered with), else None.
+    ``ciphertext``: the record's, where it was read from its file (``record.ciphertext`` is None)."""
+    data = record.ciphertext if ciphertext is None else ciphertext
+    return decrypt(record.salt, record.nonce, data, bits, associated, SEAL_INFO)
 
 
 def pad(body: bytes, bucket: int = BUCKET) -> bytes:

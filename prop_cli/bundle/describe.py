@@ -17,7 +17,7 @@ from prop_cli import constants as C
 from .manifest import bundle_version
 from .modes import mode_of
 from .read import check_files, read_manifest
-from .records import load_state
+from .records import check_records
 
 SIGNATURE_UNVERIFIED = f"present, not verified ({C.SIGNATURE_FILE}: prop verify checks it)"
 
@@ -49,7 +49,7 @@ def describe_bundle(path: Path) -> dict:
     mode = mode_of(m)
     records = mode.record_files(m)
     if records:
-        load_state(path, m)  # the users/ records: present, and each against its sha256
+        check_records(path, m)  # the users/ records: present, and each against its sha256
     model = m[C.M_MODEL]
     return {
         "bundle": str(path),

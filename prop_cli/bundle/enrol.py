@@ -15,8 +15,10 @@ processors...). With a key, prop runs only what that key's holder enrolled:
 
 Unsealed bundles keep one enrolment per user in the manifest (``enrolments``); a sealed record carries
 the behaviour inside its own plaintext (``records``), so it is its user's enrolment. Trying a key costs
-one HKDF and one GCM open per enrolment, the cost of the sealed records' trial decryption; an unsealed
-bundle's encoder already answers any key, so an enrolment reveals no more than it does.
+one HKDF and one GCM open per enrolment without a lookup name (format 1-5), the cost of the sealed
+records' trial decryption; since format 6 each enrolment is filed under its key's name (``lookup``) and
+a key opens one. An unsealed bundle's encoder already answers any key, so an enrolment reveals no more
+than it does.
 
 Format 5 binds the bundle's identity and version too: the bundle id is part of the behaviour (a
 record or enrolment moved from another bundle is "changed"), and each enrolment carries the bundle
@@ -35,7 +37,8 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.errors import PropError
 
-from .cipher import ENROL_INFO, decrypt, encrypt, pad, unpad
+from .cipher import ENROL_INFO, decrypt, encrypt, lookup_name, pad, unpad
+from .lookup import LOOKUP, Index, salt_of
 from .manifest import canonical_json
 
 ENROL_AD = b"prop/enrol/v1"
@@ -94,35 +97,55 @@ def changed_error(where: str, parts: list[str], fix: str | None = None) -> PropE
     )
 
 
-def enrolment(bits: np.ndarray, what: dict) -> dict:
-    """One user's enrolment entry: ``what`` (JSON) sealed under their key, padded to a fixed size."""
+def enrolment(bits: np.ndarray, what: dict, bundle_id: str | None = None) -> dict:
+    """One user's enrolment entry: ``what`` (JSON) sealed under their key, padded to a fixed size;
+    ``bundle_id`` (format 6): filed under the key's lookup name in that bundle (``lookup``)."""
     body = pad(json.dumps(what, sort_keys=True).encode(), ENROL_BUCKET)
     salt, nonce, box = encrypt(body, np.asarray(bits, np.uint8), ENROL_AD, ENROL_INFO)
-    return {"salt": salt.hex(), "nonce": nonce.hex(), "box": box.hex()}
+    entry = {"salt": salt.hex(), "nonce": nonce.hex(), "box": box.hex()}
+    if bundle_id is not None:
+        entry[LOOKUP] = lookup_name(bits, bundle_id)
+    return entry
 
 
-def open_enrolment(entries: list[dict], bits: np.ndarray) -> dict | None:
-    """What the first entry ``bits`` opens was enrolled with, or None (enrolled in nothing). Every entry
-    is tried, whichever opens: the time says nothing of which one does."""
+def _open_one(e: dict, bits: np.ndarray) -> bytes | None:
+    return decrypt(bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), bytes.fromhex(e["box"]), bits,
+                   ENROL_AD, ENROL_INFO)  # fmt: skip
+
+
+def _find(entries: list[dict], bits: np.ndarray, index: Index | None) -> tuple[int, bytes] | None:
+    """(position, plaintext) of the entry ``bits`` opens, or None. The same work for every key
+    (``lookup.Index.tries``): the entry filed under its name (or a stand-in that cannot count), and
+    every entry without a name, whichever opens. ``index`` None: every entry is tried."""
     bits = np.asarray(bits, np.uint8)
+    index = index or Index([None] * len(entries), None)
+    first, counts, rest = index.tries(bits)
     found = None
-    for e in entries:
-        data = decrypt(bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), bytes.fromhex(e["box"]), bits,
-                       ENROL_AD, ENROL_INFO)  # fmt: skip
-        found = data if found is None else found
-    return None if found is None else json.loads(unpad(found))
+    if first is not None:
+        data = _open_one(entries[first], bits)
+        found = (first, data) if counts and data is not None else None
+    for i in rest:
+        data = _open_one(entries[i], bits)
+        found = (i, data) if found is None and data is not None else found
+    return found
 
 
-def split(entries: list[dict], bits: np.ndarray) -> tuple[list[dict], dict | None]:
+def open_enrolment(entries: list[dict], bits: np.ndarray, index: Index | None = None) -> dict | None:
+    """What the entry ``bits`` opens was enrolled with, or None (enrolled in nothing). ``index``: where
+    ``entries`` are filed (``lookup.Index.of``; None: every entry is tried). The time says nothing of
+    which entry opens."""
+    found = _find(entries, bits, index)
+    return None if found is None else json.loads(unpad(found[1]))
+
+
+def split(
+    entries: list[dict], bits: np.ndarray, index: Index | None = None
+) -> tuple[list[dict], dict | None]:
     """(the entries ``bits`` does not open, what the one it opens holds or None)."""
-    kept, opened = [], None
-    for e in entries:
-        got = open_enrolment([e], bits) if opened is None else None
-        if got is None:
-            kept.append(e)
-        else:
-            opened = got
-    return kept, opened
+    found = _find(entries, bits, index)
+    if found is None:
+        return list(entries), None
+    return [e for i, e in enumerate(entries) if i != found[0]], json.loads(unpad(found[1]))
 
 
 def new_id() -> str:
@@ -133,20 +156,24 @@ def new_id() -> str:
 def enrol(manifest: dict, keys: list[np.ndarray], ids: list[str | None] | None = None) -> list[dict]:
     """Enrolments of ``keys`` in the bundle ``manifest`` describes (its files already hashed). Format 5:
     each with the manifest's bundle version and an enrolment id (``ids``: an id to keep per key, None:
-    a new one)."""
+    a new one); format 6: filed under the key's lookup name."""
     now = behaviour(manifest)
     if C.M_BUNDLE_VERSION not in manifest:
         return [enrolment(k, {"behaviour": now}) for k in keys]
     ids = ids or [None] * len(keys)
-    version = manifest[C.M_BUNDLE_VERSION]
-    return [enrolment(k, {"behaviour": now, ID: i or new_id(), VERSION: version}) for k, i in zip(keys, ids)]
+    version, salt = manifest[C.M_BUNDLE_VERSION], salt_of(manifest)
+    return [
+        enrolment(k, {"behaviour": now, ID: i or new_id(), VERSION: version}, salt) for k, i in zip(keys, ids)
+    ]
 
 
-def check(entries: list[dict], bits: np.ndarray, current: dict, where: str) -> dict | None:
+def check(
+    entries: list[dict], bits: np.ndarray, current: dict, where: str, index: Index | None = None
+) -> dict | None:
     """What ``bits`` opens if it is enrolled in the bundle as it is now (its enrolment's plaintext); None
     if enrolled in nothing; a PropError ("changed since this key was enrolled") if it was enrolled in
-    something else."""
-    opened = open_enrolment(entries, bits)
+    something else. ``index``: as ``open_enrolment``."""
+    opened = open_enrolment(entries, bits, index)
     if opened is None:
         return None
     diff = changed(opened.get("behaviour", {}), current)

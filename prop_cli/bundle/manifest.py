@@ -117,6 +117,9 @@ PAYLOAD_LAYER = obj(
         "groups": optional(DIM),
     }
 )
+# Format 6: the name a record or enrolment is filed under (``lookup``), 16 bytes of HKDF output.
+LOOKUP = C.M_LOOKUP
+LOOKUP_NAME = hex_string(16, 16)
 # The manifest, field by field (keys in prop_cli.constants).
 SCHEMA: dict[str, Rule] = {
     C.M_FORMAT: integer(min(C.FORMAT_VERSIONS), max(C.FORMAT_VERSIONS)),
@@ -178,6 +181,7 @@ SCHEMA: dict[str, Rule] = {
                     "salt": hex_string(8, 64),
                     "nonce": hex_string(8, 64),
                     "sha256": SHA256,
+                    LOOKUP: optional(LOOKUP_NAME),
                 }
             ),
             1,
@@ -186,7 +190,14 @@ SCHEMA: dict[str, Rule] = {
     ),  # fmt: skip
     C.M_ENROLMENTS: optional(
         list_of(
-            obj({"salt": hex_string(16, 16), "nonce": hex_string(12, 12), "box": hex_string(16, 1 << 16)})
+            obj(
+                {
+                    "salt": hex_string(16, 16),
+                    "nonce": hex_string(12, 12),
+                    "box": hex_string(16, 1 << 16),
+                    LOOKUP: optional(LOOKUP_NAME),
+                }
+            )
         )
     ),
     C.M_KDF: optional(
@@ -347,6 +358,7 @@ def _cross_check(m: dict, doc: Doc) -> None:
     ids = [r["id"] for r in m.get(C.M_RECORDS, [])]
     if len(set(ids)) != len(ids):
         raise doc.bad(C.M_RECORDS, "holds two records with the same id")
+    _check_names(m, doc)
     spec = m[C.M_MODEL]
     check = MODEL_CHECKS.get(spec["adapter"])
     wrong = check(spec) if check is not None and spec["adapter"] in MODEL_FIELDS else None
@@ -367,6 +379,15 @@ def _cross_check(m: dict, doc: Doc) -> None:
         checkpoint = m[C.M_IO].get("checkpoint")
         if checkpoint and not checkpoint.startswith("hf://") and ("/" in checkpoint or "\\" in checkpoint):
             raise doc.bad(f"{C.M_IO}.checkpoint", "must be a file name, not a path")
+
+
+def _check_names(m: dict, doc: Doc) -> None:
+    """Lookup names (format 6 on; in an older manifest they are ignored, as a format 5 reader would):
+    no name twice in a list (a key opens one entry)."""
+    for field in (C.M_RECORDS, C.M_ENROLMENTS):
+        names = [e[LOOKUP] for e in m.get(field, []) if LOOKUP in e]
+        if len(set(names)) != len(names):
+            raise doc.bad(field, "files two entries under the same lookup name")
 
 
 def _doc(source: str, mode: object = "unsealed") -> Doc:

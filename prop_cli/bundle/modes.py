@@ -34,6 +34,7 @@ from prop_cli.errors import PropError
 
 from . import enrol, rollback
 from . import manifest as schema
+from .lookup import Index
 from .records import SealedState, load_state
 
 
@@ -170,6 +171,7 @@ class Unsealed(Mode):
         self.keyed, self.encoding, self.manifest = keyed, encoding, manifest
         self.version = manifest[C.M_FORMAT]
         self.entries = manifest.get(C.M_ENROLMENTS, [])
+        self.index = Index.of(self.entries, manifest)  # format 6: a key opens the enrolment named for it
         self.current = enrol.behaviour(manifest)
 
     @property
@@ -181,7 +183,7 @@ class Unsealed(Mode):
         # through it unchecked (an attacker can write an old format too). `prop enrol` opts in.
         if self.version < C.ENROL_SINCE:
             return False
-        opened = enrol.check(self.entries, bits, self.current, self.where)
+        opened = enrol.check(self.entries, bits, self.current, self.where, self.index)
         if opened is None:
             return False
         self.seen(opened.get(enrol.ID), int(opened.get(enrol.VERSION, 0)))

@@ -19,9 +19,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -33,6 +38,7 @@ from prop_cli.files import dump_json, no_links, remove_inside, sha256_file, writ
 from . import rollback
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
 from .enrol import VERSION, behaviour, changed
+from .lookup import LOOKUP, Index, salt_of
 from .manifest import bundle_version, next_version, restamp
 
 # Format 2-3 records: the manifest fields that decide how a payload is applied, authenticated with
@@ -87,35 +93,92 @@ class Opened:
 
 @dataclass
 class SealedState:
-    """A sealed bundle's public part beyond the base: the payload layout and the encrypted records."""
+    """A sealed bundle's public part beyond the base: the payload layout and the encrypted records.
+    ``folder``: where the records whose ciphertext is not in memory (None) are read from, each when it is
+    tried, checked against its sha256 in the manifest (format 6: a key tries one record, not all)."""
 
     manifest: dict
     spec: PayloadSpec
-    records: list[SealedRecord]
+    records: Sequence[SealedRecord]  # a list, or ``Listed``: made from the manifest's entries when tried
+    folder: Path | None = None
 
     def __post_init__(self) -> None:
-        # The associated data of each record, computed once: the audit tries a million keys.
-        self._bound = [record_ad(self.manifest, rec.id) for rec in self.records]
         self.enrolled = enrolled_records(self.manifest)
         self.behaviour = behaviour(self.manifest) if self.enrolled else None
+        names = self.records.entries if isinstance(self.records, Listed) else self.records
+        self.index = Index([_name(r) for r in names], salt_of(self.manifest))
+        # The associated data of each record, computed once when first tried: the audit tries a million
+        # keys. Files read: the last READ_KEPT kept (the audit's keys on a small bundle read each once).
+        self._bound: dict[int, bytes] = {}
+        self._read: OrderedDict[int, bytes] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def _ciphertext(self, i: int) -> bytes:
+        rec = self.records[i]
+        if rec.ciphertext is not None:
+            return rec.ciphertext
+        with self._lock:  # a server opens keys from more than one thread
+            data = self._read.pop(i, None)
+        if data is None:
+            data = read_record(self.folder, self.manifest[C.M_RECORDS][i])
+        with self._lock:
+            self._read[i] = data
+            while len(self._read) > READ_KEPT:
+                self._read.popitem(last=False)
+        return data
+
+    def _try(self, i: int, bits: np.ndarray) -> bytes | None:
+        if i not in self._bound:
+            self._bound[i] = record_ad(self.manifest, self.records[i].id)
+        return open_record(self.records[i], bits, self._bound[i], self._ciphertext(i))
+
+    def find(self, bits: np.ndarray) -> tuple[int, bytes] | None:
+        """(position, plaintext) of the record ``bits`` opens, or None: the same work whichever record
+        opens, or none (``lookup.Index.tries``). Format 6: the record filed under the key's name, or a
+        stand-in of the same size that cannot count (read, checked, decrypted all the same); and every
+        record without a name (format 2-5: all of them), whichever opens."""
+        first, counts, rest = self.index.tries(bits)
+        found = None
+        if first is not None:
+            try:
+                data = self._try(first, bits)
+            except PropError:
+                if counts:
+                    raise
+                data = None  # a damaged stand-in: it was tried only for the time it takes
+            found = (first, data) if counts and data is not None else None
+        for i in rest:
+            data = self._try(i, bits)
+            if data is not None and found is None:
+                found = i, data
+        return found
 
     def open(self, bits: np.ndarray) -> Opened | None:
-        """The user's payload if ``bits`` opens one of the records, else None (a wrong key). ``changed``
-        says what differs from what the record was enrolled in: the caller decides (``modes``).
-        Every record is tried, whichever opens: the time says nothing of which one does."""
-        found = None
-        for rec, bound in zip(self.records, self._bound):
-            data = open_record(rec, bits, bound)
-            if data is not None and found is None:
-                found = rec, data
+        """The user's payload if ``bits`` opens one of the records, else None (a wrong key), found as
+        ``find`` finds it. ``changed`` says what differs from what the record was enrolled in: the caller
+        decides (``modes``)."""
+        found = self.find(bits)
         if found is None:
             return None
-        rec, data = found
+        i, data = found
         tensors, meta = decode_payload(unpad(data) if self.enrolled else data)
         enrolled = meta.pop(BEHAVIOUR, None)
         version = int(meta.pop(VERSION, 0))
         diff = changed(enrolled or {}, self.behaviour) if self.enrolled else []
-        return Opened(rec.id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff, version)
+        return Opened(
+            self.records[i].id, Payload.from_tensors(self.spec, tensors).eval(), meta, diff, version
+        )
+
+    def holds(self, bits: np.ndarray) -> bool:
+        """Whether ``bits`` opens a record here, or a record is filed under its name."""
+        return self.index.holds(bits) or self.find(bits) is not None
+
+
+READ_KEPT = 16  # record files a SealedState keeps in memory once read
+
+
+def _name(record: SealedRecord | dict) -> str | None:
+    return record.get(LOOKUP) if isinstance(record, dict) else record.lookup
 
 
 def record_file(record_id: str) -> str:
@@ -123,29 +186,32 @@ def record_file(record_id: str) -> str:
 
 
 def record_entry(rec: SealedRecord) -> dict:
-    """A record's manifest entry: where its file is and what opening it needs besides the key."""
-    return {
+    """A record's manifest entry: where its file is and what opening it needs besides the key (format 6:
+    and the name it is filed under)."""
+    entry = {
         "id": rec.id,
         "file": record_file(rec.id),
         "salt": rec.salt.hex(),
         "nonce": rec.nonce.hex(),
         "sha256": hashlib.sha256(rec.ciphertext).hexdigest(),
     }
+    if rec.lookup is not None:
+        entry[LOOKUP] = rec.lookup
+    return entry
 
 
 def _bad(path: Path, what: str) -> PropError:
     return PropError(f"bundle {path}: {what}", "restore the bundle from a trusted copy")
 
 
-def load_state(path: Path, manifest: dict) -> SealedState:
-    """The records of a sealed bundle, each file checked against its sha256 in the manifest."""
-    spec = PayloadSpec.from_dict(manifest[C.M_PAYLOAD])
-    entries = manifest[C.M_RECORDS]
-    missing = [
-        e["file"]
-        for e in entries
-        if Path(e["file"]).parent.name != C.RECORDS_DIR or not (path / e["file"]).is_file()
-    ]
+def _check_present(path: Path, entries: list[dict]) -> None:
+    """Every record the manifest lists has its file in ``users/`` (one listing of the folder)."""
+    try:
+        with os.scandir(path / C.RECORDS_DIR) as it:
+            there = {f"{C.RECORDS_DIR}/{e.name}" for e in it if e.is_file(follow_symlinks=False)}
+    except (FileNotFoundError, NotADirectoryError):
+        there = set()
+    missing = [e["file"] for e in entries if e["file"] not in there]  # the schema: users/<file name>
     if missing:  # e.g. the folder was copied without users/: say how much is gone, not only the first
         shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
         raise PropError(
@@ -153,32 +219,79 @@ def load_state(path: Path, manifest: dict) -> SealedState:
             f"record{'' if len(entries) == 1 else 's'} missing ({shown})",
             f"copy the whole bundle folder, {C.RECORDS_DIR}/ included, or restore it from a trusted copy",
         )
-    records = []
+
+
+def read_record(path: Path, entry: dict) -> bytes:
+    """A record's ciphertext, checked against its sha256 in the manifest."""
+    try:
+        data = no_links(path, entry["file"]).read_bytes()
+    except FileNotFoundError:
+        raise _bad(path, f"{entry['file']} is missing") from None
+    if hashlib.sha256(data).hexdigest() != entry["sha256"]:
+        raise _bad(path, f"{entry['file']} does not match its sha256 in {C.MANIFEST} (modified or corrupt)")
+    return data
+
+
+def check_records(path: Path, manifest: dict) -> None:
+    """Every record of a sealed bundle present and matching its sha256 (inspect, verify, push)."""
+    entries = manifest[C.M_RECORDS]
+    _check_present(path, entries)
     for entry in entries:
-        f = path / entry["file"]
-        if sha256_file(f) != entry["sha256"]:
+        if sha256_file(path / entry["file"]) != entry["sha256"]:
             raise _bad(
                 path, f"{entry['file']} does not match its sha256 in {C.MANIFEST} (modified or corrupt)"
             )
-        records.append(
-            SealedRecord(
-                entry["id"], bytes.fromhex(entry["salt"]), bytes.fromhex(entry["nonce"]), f.read_bytes()
-            )
-        )
-    return SealedState(manifest, spec, records)
+
+
+def load_state(path: Path, manifest: dict) -> SealedState:
+    """The records of a sealed bundle, each present. Format 6 (records filed by name): each file is read
+    and checked against its sha256 when a key tries it, one per key; before: all read and checked now
+    (every key tries every record)."""
+    spec = PayloadSpec.from_dict(manifest[C.M_PAYLOAD])
+    entries = manifest[C.M_RECORDS]
+    _check_present(path, entries)
+    if salt_of(manifest) is not None:
+        return SealedState(manifest, spec, Listed(entries), path)
+    records = [
+        SealedRecord(e["id"], bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), read_record(path, e))
+        for e in entries
+    ]
+    return SealedState(manifest, spec, records, path)
+
+
+class Listed(Sequence[SealedRecord]):
+    """The records of manifest entries, each made when asked for, its ciphertext left in its file (None):
+    a key asks for one of 10,000."""
+
+    def __init__(self, entries: list[dict]) -> None:
+        self.entries = entries
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @overload
+    def __getitem__(self, i: int) -> SealedRecord: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[SealedRecord]: ...
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(len(self))[i]]
+        e = self.entries[i]
+        return SealedRecord(e["id"], bytes.fromhex(e["salt"]), bytes.fromhex(e["nonce"]), None, e.get(LOOKUP))
 
 
 def seal_payload(manifest: dict, private: dict, payload: Payload, bits: np.ndarray) -> SealedRecord:
     """Encrypt one user's payload (and ``private``: their metrics and settings, sealed too) for their key.
     Format 4: with the bundle's behaviour (the user's enrolment), padded to a fixed bucket of sizes;
-    format 5: and the bundle version of ``manifest``, the manifest the record is written in."""
+    format 5: and the bundle version of ``manifest``, the manifest the record is written in; format 6:
+    filed under the key's lookup name."""
     if not enrolled_records(manifest):
         return seal(encode_payload(payload.tensors(), private), bits, lambda rid: binding(manifest, rid))
     sealed_meta = {**private, BEHAVIOUR: behaviour(manifest)}
     if C.M_BUNDLE_VERSION in manifest:
         sealed_meta[VERSION] = manifest[C.M_BUNDLE_VERSION]
     plaintext = pad(encode_payload(payload.tensors(), sealed_meta))
-    return seal(plaintext, bits, lambda rid: record_ad(manifest, rid))
+    return seal(plaintext, bits, lambda rid: record_ad(manifest, rid), salt_of(manifest))
 
 
 def write_record(folder: Path, rec: SealedRecord) -> None:
@@ -259,10 +372,10 @@ def record_to_remove(
 
 
 def check_new_key(state: SealedState, bits: np.ndarray) -> None:
-    """A new user's key must not open a user of the bundle already (`prop add-user`)."""
-    if state.open(bits) is not None:
+    """A new user's key must not open a user of the bundle already, nor have its name taken (`prop
+    add-user`)."""
+    if state.holds(bits):
         raise PropError(
             "this key already opens a user of the bundle",
             "use prop remove-user first to replace that user, or give the new user their own key",
         )
-

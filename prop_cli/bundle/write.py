@@ -171,13 +171,15 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     happened: "enrolled", "re-enrolled: <changes>" or "already enrolled" (nothing written). A sealed
     bundle is refused (each of its users is enrolled in their own record), and a key of another size."""
     from .enrol import ID, behaviour, changed, split
+    from .lookup import Index
     from .modes import mode_of
 
     mode_of(manifest).require_shared_enrolment(path)
     n = int(manifest[C.M_KEY]["bits"])
     if len(bits) != n:
         raise PropError(f"the key has {len(bits)} bits but the bundle expects {n}", "use the bundle's key")
-    kept, opened = split(manifest.get(C.M_ENROLMENTS, []), bits)
+    entries = manifest.get(C.M_ENROLMENTS, [])
+    kept, opened = split(entries, bits, Index.of(entries, manifest))
     diff = changed(opened.get("behaviour", {}), behaviour(manifest)) if opened is not None else None
     if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:
         return manifest, "already enrolled"

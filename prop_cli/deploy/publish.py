@@ -20,7 +20,7 @@ from prop_adapters.hub import hub_module, is_hub_path, offline, parse_hub_path, 
 from prop_cli import constants as C
 from prop_cli.bundle import check_files, read_manifest
 from prop_cli.bundle.modes import Mode, mode_of
-from prop_cli.bundle.records import load_state
+from prop_cli.bundle.records import check_records
 from prop_cli.errors import PropError, brief
 from prop_cli.run.onnx import read_export
 
@@ -276,7 +276,7 @@ def verified_files(bundle: Path) -> tuple[dict, type[Mode]]:
     check_files(bundle, manifest)
     mode = mode_of(manifest)
     if mode.record_files(manifest):
-        load_state(bundle, manifest)  # each record against its sha256
+        check_records(bundle, manifest)  # each record against its sha256
     return manifest, mode
 
 

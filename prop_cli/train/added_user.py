@@ -52,7 +52,7 @@ def train_added_user(
     [user], _, _ = recipe.train_users(job, [data], [bits], cfg.train.task or bundle.task, index)
     rec = seal_payload(next_version(m), user.private, user.payload, bits)  # the version it is written in
     new = with_records(m, [rec], [])
-    state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec])
+    state = SealedState(new, bundle.records.spec, [*bundle.records.records, rec], bundle.records.folder)
     report = user_report(state, recipe.report_view(bundle.loaded), user, bundle.task, cfg.train, index,
                          recipe.report_rows(cfg.train))  # fmt: skip
     return rec, new, report

@@ -84,7 +84,7 @@ def _personalize(cli, workdir: Path, out: Path, *extra) -> None:
 def test_every_write_increases_the_version_and_keeps_the_id(cli, workdir):
     b = _sealed_with_second_user(cli, workdir)
     m = _manifest(b)
-    assert m[C.M_FORMAT] == C.FORMAT_VERSION == 5 and m[VERSION] == 2 and len(m[C.M_BUNDLE_ID]) == 32
+    assert m[C.M_FORMAT] == C.FORMAT_VERSION == 6 and m[VERSION] == 2 and len(m[C.M_BUNDLE_ID]) == 32
     r = cli("remove-user", b, "--record", m[C.M_RECORDS][1]["id"])
     assert r.code == 0, r.err
     assert _manifest(b)[VERSION] == 3 and _manifest(b)[C.M_BUNDLE_ID] == m[C.M_BUNDLE_ID]
@@ -286,12 +286,12 @@ def test_a_format_4_bundle_is_version_0_and_the_new_fields_have_rules(cli, workd
     assert not any(_own_state_dir.rglob("*.json"))
     r = cli("inspect", fx.bundle, "--json")
     assert r.code == 0 and json.loads(r.out)["bundle_version"] == 0, r.err
-    # prop enrol makes a format 4 bundle format 5; the enrolments already there stay valid.
+    # prop enrol makes a format 4 bundle the current format; the enrolments already there stay valid.
     fx = v01.load("mlp-unsealed")
     copy = workdir / "v01.prop"
     shutil.copytree(fx.bundle, copy)
     r = cli("enrol", copy, "--key-file", fx.key("wrong.bin", workdir))
-    assert r.code == 0 and "format 5" in r.out, r.err
+    assert r.code == 0 and f"format {C.FORMAT_VERSION}" in r.out, r.err
     assert _manifest(copy)[VERSION] == 1 and len(_manifest(copy)[C.M_ENROLMENTS]) == 2
     user = next(r for r in fx.runs if r["name"] == "user" and not r["onnx"])
     out = workdir / "y.npy"
