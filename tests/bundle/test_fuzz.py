@@ -251,8 +251,12 @@ def _cli_cases(seeds, root: Path) -> list[tuple[str, Path, list[str], Path | Non
             _write(folder, mutate(seed, how, case_rng))  # the same damaged files again
             target = folder / seed.name
             out = folder / "out"
-            if kind == "bundle":
-                cmd = ["run", str(target), "--input", str(base / "x.npy"), "--output", str(out)]
+            if kind == "bundle":  # with the key the in-process case ran: it reads the user's record
+                key_file = folder / "user.key"
+                key_file.write_bytes(np.packbits(seed.load.key).tobytes())
+                key_file.chmod(0o600)
+                cmd = ["run", str(target), "--input", str(base / "x.npy"), "--output", str(out),
+                       "--key-file", str(key_file)]  # fmt: skip
             elif kind == "npz":
                 cmd = ["personalize", str(base / "model.safetensors"), "--data", str(target),
                        "--key-file", str(base / "k.bin"), "--steps", "2", "--out", str(out)]  # fmt: skip
