@@ -7,6 +7,7 @@ here and prints; the work is done in those packages.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from prop_cli import constants as C
 from prop_cli.attack import apply_max_leak, audit, target
 from prop_cli.attack.probes import select as select_probes
 from prop_cli.bundle import load_bundle, read_manifest
+from prop_cli.bundle.manifest import bundle_version, next_version
 from prop_cli.bundle.read import load_sealed, rebuild_original
 from prop_cli.bundle.records import (
     check_new_key,
@@ -46,6 +48,7 @@ from prop_cli.errors import PropError
 from prop_cli.files import (
     EXPORT,
     PEFT,
+    bundle_lock,
     check_not_input,
     check_output,
     check_writable,
@@ -369,17 +372,20 @@ def export_bundle(
     target_dir = Path(out) if out is not None else no_links(Path(bundle_path), C.EXPORT_DIR)
     check_not_input(target_dir, "--out", [bundle_path, input_path, key_file], inside_ok=[bundle_path])
     check_output(target_dir, force, what="export folder", kind=EXPORT)  # before the bundle is loaded
-    bundle = load_bundle(
-        bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
-    )
-    bundle = require_array_model(bundle, "prop export")
-    require_onnx()
-    configure_threads(bundle.parameters, threads)
-    key = key_for_bundle(bundle.manifest, key_file, passphrase)
-    x = load_inputs(input_path, bundle) if input_path is not None else None
-    return export_onnx(
-        bundle, out, settings, key=key, inputs=x, force=force, allow_unenrolled=allow_unenrolled_key
-    )
+    inside = Path(bundle_path).resolve() in Path(target_dir).resolve().parents
+    # Written into the bundle (its onnx/, by default): one writer at a time, as for its other writes.
+    with bundle_lock(Path(bundle_path)) if inside else contextlib.nullcontext():
+        bundle = load_bundle(
+            bundle_path, trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback
+        )
+        bundle = require_array_model(bundle, "prop export")
+        require_onnx()
+        configure_threads(bundle.parameters, threads)
+        key = key_for_bundle(bundle.manifest, key_file, passphrase)
+        x = load_inputs(input_path, bundle) if input_path is not None else None
+        return export_onnx(
+            bundle, out, settings, key=key, inputs=x, force=force, allow_unenrolled=allow_unenrolled_key
+        )
 
 
 def eval_bundle(
@@ -478,20 +484,22 @@ def add_user(
     Needs no other user's data or key. ``cfg`` defaults to the settings the bundle was made with; its
     payload kind, rank and layers must stay the bundle's (every record is enrolled in them). The
     manifest is written once, with the new record (no figure of the user goes in the clear)."""
-    bundle = load_sealed(bundle_path, "add-user", trust_remote_code, arch)
-    check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)  # now, not after training
-    bundle.check_key(key.bits, "the new user's key")
-    cfg = added_user_config(bundle, cfg)
-    check_new_key(bundle.records, key.bits)
-    configure_threads(bundle.parameters, None)
-    rec, new, report = train_added_user(bundle, load_data(data_path), key.bits, cfg, device, progress)
-    new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
-    folder, export = no_links(Path(bundle_path), C.EXPORT_DIR), None
-    if folder.exists():  # after the bundle: the export never holds more than it
-        from prop_cli.run.onnx import add_record, describe_export
+    with bundle_lock(Path(bundle_path)):  # one writer at a time, from the read to the write
+        bundle = load_sealed(bundle_path, "add-user", trust_remote_code, arch)
+        check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)  # now, not after training
+        bundle.check_key(key.bits, "the new user's key")
+        cfg = added_user_config(bundle, cfg)
+        check_new_key(bundle.records, key.bits)
+        next_version(bundle.manifest, str(bundle_path))  # a version left to write: refused before training
+        configure_threads(bundle.parameters, None)
+        rec, new, report = train_added_user(bundle, load_data(data_path), key.bits, cfg, device, progress)
+        new = rewrite_records(Path(bundle_path), bundle.manifest, new, [rec])
+        folder, export = no_links(Path(bundle_path), C.EXPORT_DIR), None
+        if folder.exists():  # after the bundle: the export never holds more than it
+            from prop_cli.run.onnx import add_record, describe_export
 
-        add_record(folder, Path(bundle_path), bundle.manifest, new, rec.id)
-        export = describe_export(folder, new)
+            add_record(folder, Path(bundle_path), bundle.manifest, new, rec.id)
+            export = describe_export(folder, new)
     return UserChange(Path(bundle_path), rec.id, len(new[C.M_RECORDS]), report, export)
 
 
@@ -511,15 +519,16 @@ def enrol(bundle_path: Path, key: np.ndarray, *, trust_remote_code: bool = False
     each user in their own record (prop add-user)."""
     from prop_cli.bundle import check_files, enrol_key
 
-    manifest = read_manifest(Path(bundle_path))
-    check_files(Path(bundle_path), manifest)
-    named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
-    adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
-    new, status = enrol_key(Path(bundle_path), manifest, key)
-    if new is not manifest:
-        from prop_cli.run.onnx import follow
+    with bundle_lock(Path(bundle_path)):  # one writer at a time, from the read to the write
+        manifest = read_manifest(Path(bundle_path))
+        check_files(Path(bundle_path), manifest)
+        named = adapters.remote_code(manifest[C.M_MODEL], str(bundle_path))  # reads files; imports nothing
+        adapters.require_trust(named, f"bundle {bundle_path}", trust_remote_code)
+        new, status = enrol_key(Path(bundle_path), manifest, key)
+        if new is not manifest:
+            from prop_cli.run.onnx import follow
 
-        follow(Path(bundle_path) / C.EXPORT_DIR, manifest, new)  # the export stays the bundle's
+            follow(Path(bundle_path) / C.EXPORT_DIR, manifest, new)  # the export stays the bundle's
     return Enrolled(Path(bundle_path), status, new[C.M_FORMAT])
 
 
@@ -531,7 +540,6 @@ def verify_bundle(
     then the bundle's own checks, as data (nothing it names is imported), then its version against the
     newest verified here from the same publisher (an older revision is refused unless
     ``allow_rollback``)."""
-    from prop_cli.bundle.manifest import bundle_version
     from prop_cli.deploy.publish import verified_files
     from prop_cli.deploy.sign import check_revision, verify_folder
 
@@ -550,17 +558,18 @@ def remove_user(
     (``<bundle>/onnx``) if it has one. Ownership is proven by the key: it must open the record it
     removes; or ``record`` (an id from `prop inspect`), for a bundle's maintainer when a user lost
     theirs (the rules: ``bundle.records.record_to_remove``)."""
-    bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
-    check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)
-    bits = None if key is None else bundle.check_key(key)
-    record = record_to_remove(bundle.manifest, bundle.records, bits, record, str(bundle_path))
-    new = with_records(bundle.manifest, [], [record])
-    export = no_links(Path(bundle_path), C.EXPORT_DIR)
-    if (export / C.EXPORT_META).is_file():
-        from prop_cli.bundle.manifest import bundle_version, next_version
-        from prop_cli.run.onnx import drop_record
+    with bundle_lock(Path(bundle_path)):  # one writer at a time, from the read to the write
+        bundle = load_sealed(bundle_path, "remove-user", trust_remote_code, arch)
+        check_writable(Path(bundle_path), "bundle", "BUNDLE", as_folder=False)
+        bits = None if key is None else bundle.check_key(key)
+        record = record_to_remove(bundle.manifest, bundle.records, bits, record, str(bundle_path))
+        new = with_records(bundle.manifest, [], [record])
+        version = bundle_version(next_version(bundle.manifest, str(bundle_path)))  # refused: nothing written
+        export = no_links(Path(bundle_path), C.EXPORT_DIR)
+        if (export / C.EXPORT_META).is_file():
+            from prop_cli.run.onnx import drop_record
 
-        # First: the export never holds more than the bundle; it takes the version the removal writes.
-        drop_record(export, record, bundle_version(next_version(bundle.manifest)) or None)
-    new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
+            # First: the export never holds more than the bundle; it takes the version the removal writes.
+            drop_record(export, record, version or None)
+        new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
     return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))

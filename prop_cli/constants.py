@@ -109,6 +109,19 @@ ENV_DEBUG = "PROP_DEBUG"
 ENV_OMP_THREADS = "OMP_NUM_THREADS"  # the user's thread count, respected by prop_cli.threads
 ENV_STATE_DIR = "PROP_STATE_DIR"  # where prop keeps the bundle versions seen here (bundle/rollback.py)
 
+# The rollback state (bundle/rollback.py): one JSON file per bundle id, at most this big (a bigger one,
+# or one nested too deep, a link or not a plain file, is refused in one line), and the per-machine
+# secret its record ids are kept under (HMAC-SHA256), created once, mode 0600.
+STATE_MAX_BYTES = 4 * 2**20
+STATE_SECRET = "state.key"
+STATE_SECRET_BYTES = 32
+
+# One writer at a time (files/lock.py): every command that rewrites a bundle holds an flock on this file
+# in the bundle folder (it holds the writer's pid while it is held, and is removed when it is released);
+# another waits up to BUNDLE_LOCK_WAIT_S for it, then is refused in one line naming that pid.
+BUNDLE_LOCK = ".prop.lock"
+BUNDLE_LOCK_WAIT_S = 10.0
+
 # Key sizes accepted by keygen.
 KEY_BITS_DEFAULT = 128
 KEY_BITS_MIN = 32

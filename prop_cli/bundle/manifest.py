@@ -48,7 +48,10 @@ from prop_cli.errors import PropError, brief
 from prop_cli.files import dump_json
 
 FIX = "the bundle is damaged or was edited; restore it from a trusted copy or write it again"
-MAX_BUNDLE_VERSION = 1 << 53  # a bundle version stays an exact number in any JSON reader
+# The largest bundle version (issue 42, item 6): far below 2**53, where a JSON reader stops counting
+# exactly, so no field can brick a bundle; a write that would pass it is refused before anything is
+# written (``next_version``). A trillion writes: no bundle gets there by being written.
+MAX_BUNDLE_VERSION = 1 << 40
 BUNDLE_ID_BYTES = 16
 
 
@@ -249,13 +252,21 @@ def bundle_version(manifest: dict) -> int:
     return int(manifest.get(C.M_BUNDLE_VERSION, 0))
 
 
-def next_version(manifest: dict) -> dict:
+def next_version(manifest: dict, source: str = "the bundle") -> dict:
     """The manifest of the bundle's next write: its version one higher (a format 1-4 manifest, which has
     none, as it is). Every rewrite of a manifest goes through here; what it seals or enrols for the new
-    version (an added record) is sealed against this manifest."""
+    version (an added record) is sealed against this manifest. A version past ``MAX_BUNDLE_VERSION`` is
+    refused in one line (``source``: how it names the bundle), before anything is written."""
     if C.M_BUNDLE_VERSION not in manifest:
         return dict(manifest)
-    return {**manifest, C.M_BUNDLE_VERSION: bundle_version(manifest) + 1}
+    version = bundle_version(manifest)
+    if version >= MAX_BUNDLE_VERSION:
+        raise _doc(source, manifest.get(C.M_MODE, "unsealed")).bad(
+            C.M_BUNDLE_VERSION,
+            f"is {version}, the largest a bundle may have: it cannot be written again (nothing was written)",
+            "personalize it again (a new bundle, version 1), or restore it from a trusted copy",
+        )
+    return {**manifest, C.M_BUNDLE_VERSION: version + 1}
 
 
 # ---- reading --------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
-from prop_cli.files import dump_json, no_links, remove_inside, sha256_file, write_inside, write_text
+from prop_cli.files import bundle_lock, delete, dump_json, no_links, put, sha256_file, write_inside
 
 from . import rollback
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
@@ -317,22 +317,23 @@ def rewrite_records(bundle: Path, old: dict, new: dict, add: list[SealedRecord])
     (records in ``add`` sealed against ``next_version(old)``): the added records' files first, then the
     manifest, swapped atomically, then the dropped records' files are deleted; this machine remembers
     the version and the records removed (``rollback``). An interruption leaves a bundle that loads.
-    Nothing is written or deleted through a link (checked at each step: the bundle may have changed
-    since it was read)."""
+    Under the bundle's write lock (``files.bundle_lock``; the caller should hold it from before it read
+    ``old``), every file written and deleted through the folder it locked, never through a link."""
     kept = {e["id"] for e in new[C.M_RECORDS]}
     dropped = [e for e in old[C.M_RECORDS] if e["id"] not in kept]
-    for e in dropped:
-        no_links(bundle, e["file"])  # before anything is written
-    for rec in add:
-        write_record(bundle, rec)
     if C.M_BUNDLE_VERSION in old:
-        new = {**new, C.M_BUNDLE_VERSION: next_version(old)[C.M_BUNDLE_VERSION]}
+        new = {**new, C.M_BUNDLE_VERSION: next_version(old, str(bundle))[C.M_BUNDLE_VERSION]}
     new = restamp(new)
-    write_text(no_links(bundle, C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
-    added = {rec.id: bundle_version(new) for rec in add}
-    rollback.wrote(new, users=added, removed=[e["id"] for e in dropped])
-    for e in dropped:
-        remove_inside(bundle, e["file"])
+    with bundle_lock(bundle):
+        for e in dropped:
+            no_links(bundle, e["file"])  # before anything is written
+        for rec in add:
+            put(bundle, record_file(rec.id), rec.ciphertext)
+        put(bundle, C.MANIFEST, dump_json(new).encode(), output=True)
+        added = {rec.id: bundle_version(new) for rec in add}
+        rollback.wrote(new, users=added, removed=[e["id"] for e in dropped])
+        for e in dropped:
+            delete(bundle, e["file"])
     return new
 
 

@@ -25,7 +25,7 @@ from prop_cli.core.key_files import KeySource, kdf_record
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
-from prop_cli.files import check_output, dump_json, no_links, sha256_file, staged_dir, write_text
+from prop_cli.files import bundle_lock, check_output, dump_json, put, sha256_file, staged_dir
 
 from . import manifest as schema
 from . import rollback
@@ -103,7 +103,7 @@ def write_unsealed(
     from safetensors). Returns the manifest written."""
     out = Path(out)
     check_output(out, force)
-    with staged_dir(out) as tmp:
+    with bundle_lock(out), staged_dir(out) as tmp:  # --force over a bundle: not while another writes it
         _write_base(tmp, loaded, keyed.module, copy_base)
         enc = {k: v.detach().cpu().contiguous() for k, v in keyed.encoder.state_dict().items()}
         save_file(enc, str(tmp / C.ENCODER_WEIGHTS))
@@ -131,7 +131,7 @@ def write_sealed(
     manifest written."""
     out = Path(out)
     check_output(out, force)
-    with staged_dir(out) as tmp:
+    with bundle_lock(out), staged_dir(out) as tmp:  # --force over a bundle: not while another writes it
         copy_base = str(loaded.source).endswith(".safetensors")
         _write_base(tmp, loaded, loaded.module, copy_base)
         extra = _adapter_files(tmp, loaded, tmp / C.BASE_WEIGHTS)
@@ -154,13 +154,14 @@ def write_sealed(
 
 def update_manifest(path: Path, key: str, value: dict) -> None:
     """Set one manifest entry (e.g. the audit summary), atomically, as the bundle's next version; weights
-    are untouched."""
+    are untouched. Under the bundle's write lock, from the read to the write."""
     bundle = Path(path)
-    manifest = schema.next_version(read_manifest(bundle))
-    manifest[key] = value
-    manifest = schema.restamp(manifest)
-    write_text(no_links(bundle, C.MANIFEST), dump_json(manifest), what="manifest", flag="BUNDLE")
-    rollback.wrote(manifest)
+    with bundle_lock(bundle):
+        manifest = schema.next_version(read_manifest(bundle), str(bundle))
+        manifest[key] = value
+        manifest = schema.restamp(manifest)
+        put(bundle, C.MANIFEST, dump_json(manifest).encode(), output=True)
+        rollback.wrote(manifest)
 
 
 def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
@@ -184,7 +185,7 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     if manifest[C.M_FORMAT] >= C.ENROL_SINCE and opened is not None and not diff:
         return manifest, "already enrolled"
     if C.M_BUNDLE_ID in manifest:
-        new = schema.next_version(manifest)
+        new = schema.next_version(manifest, str(path))
     else:  # from before bundle ids: this write names the bundle
         new = {**manifest, **schema.new_identity()}
     new.update({C.M_FORMAT: C.FORMAT_VERSION, C.M_MODE: C.MODE_UNSEALED})
@@ -194,8 +195,9 @@ def enrol_key(path: Path, manifest: dict, bits: np.ndarray) -> tuple[dict, str]:
     uid = (opened or {}).get(ID) or new_id()
     new[C.M_ENROLMENTS] = kept + enrol(new, [bits], [uid])
     new = schema.validate(schema.stamp(new), str(path))
-    write_text(no_links(Path(path), C.MANIFEST), dump_json(new), what="manifest", flag="BUNDLE")
-    rollback.wrote(new, users={uid: new[C.M_BUNDLE_VERSION]})
+    with bundle_lock(Path(path)):  # the caller's (api.enrol holds it from before it read ``manifest``)
+        put(Path(path), C.MANIFEST, dump_json(new).encode(), output=True)
+        rollback.wrote(new, users={uid: new[C.M_BUNDLE_VERSION]})
     return new, ("re-enrolled (the bundle changed: " + ", ".join(diff) + ")" if diff else "enrolled")
 
 

@@ -27,7 +27,7 @@ SIGNATURE = C.SIGNATURE_FILE
 SIGN_EXTRA = "pip install 'prop-keys[sign]'"
 # Not part of what was published: huggingface_hub's bookkeeping in a `hf download --local-dir` copy
 # (model-signing itself leaves out .git, .gitattributes, .github and .gitignore).
-IGNORED = (".cache",)
+IGNORED = (".cache", C.BUNDLE_LOCK)  # the lock file a writer holds (files/lock.py): not the bundle's
 
 
 def _lib():

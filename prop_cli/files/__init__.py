@@ -1,6 +1,7 @@
 """What prop writes and reads on the user's disk, by job: ``atomic`` (never half a file; the outputs put in
 place so far), ``kinds`` (each kind of output recognised: what --force may replace), ``outputs`` (where a
-command may write), ``links`` (nothing through a symbolic link) and ``content`` (the JSON style, sha256).
+command may write), ``links`` (nothing through a symbolic link), ``lock`` (one writer of a bundle at a
+time) and ``content`` (the JSON style, sha256).
 Import from here: this is the one surface the rest of prop uses."""
 
 from .atomic import (
@@ -30,6 +31,7 @@ from .kinds import (
     check_replaceable,
 )
 from .links import RESTORE, TAMPERED, link_error, no_links, remove_inside, shown, write_inside
+from .lock import bundle_lock, delete, held, put, remove_at, write_at
 from .outputs import check_not_input, check_output
 
 __all__ = [
@@ -50,16 +52,22 @@ __all__ = [
     "check_not_input",
     "check_output",
     "check_replaceable",
+    "bundle_lock",
     "check_writable",
+    "delete",
     "dump_json",
+    "held",
     "link_error",
     "no_links",
+    "put",
+    "remove_at",
     "remove_inside",
     "replace_dir",
     "sha256_file",
     "shown",
     "staged_dir",
     "uninterrupted",
+    "write_at",
     "write_file",
     "write_inside",
     "write_text",

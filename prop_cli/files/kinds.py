@@ -122,7 +122,8 @@ def _own_folder(
 def _bundle_files(m: dict, folder: Path) -> set[str] | None:
     if not (isinstance(m.get(C.M_FORMAT), int) and C.M_PROP_VERSION in m):
         return None
-    known = {C.SIGNATURE_FILE, *_file_names(m.get(C.M_FILES)), *_record_files(m.get(C.M_RECORDS))}
+    known = {C.SIGNATURE_FILE, C.BUNDLE_LOCK, *_file_names(m.get(C.M_FILES))}
+    known |= set(_record_files(m.get(C.M_RECORDS)))
     return known | ({CARD_FILE} if CARD_MARK in _head(folder / CARD_FILE, 4096) else set())
 
 

@@ -270,7 +270,10 @@ def test_the_state_holds_no_key_material_and_survives_concurrent_writers(cli, wo
     for t in threads:
         t.join()
     state = json.loads((_own_state_dir / "bundles" / f"{m[C.M_BUNDLE_ID]}.json").read_text())
-    assert set(ids) <= set(state["users"]) and state["version"] == m[VERSION]
+    secret = (_own_state_dir / C.STATE_SECRET).read_bytes()  # the ids are kept HMAC'd under it
+    hids = {rollback._hid(secret, m[C.M_BUNDLE_ID], i) for i in ids}
+    assert hids <= set(state["users"]) and state["version"] == m[VERSION]
+    assert not any(i in json.dumps(state) for i in ids)
 
 
 def test_a_format_4_bundle_is_version_0_and_the_new_fields_have_rules(cli, workdir, _own_state_dir):
