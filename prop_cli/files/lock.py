@@ -59,8 +59,9 @@ def _cannot(folder: Path, e: OSError, what: str) -> PropError:
     )
 
 
-def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int:
-    """The lock file's descriptor, once its flock is held and it is still the file at its name."""
+def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int | None:
+    """The lock file's descriptor, once its flock is held and it is still the file at its name (None:
+    the folder is not writable, so there is nothing to lock)."""
     import fcntl
 
     deadline = time.monotonic() + wait
@@ -80,6 +81,8 @@ def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int:
                     f"through links: {TAMPERED}",
                     RESTORE,
                 ) from None
+            if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+                return None  # a folder this user cannot write: no writer can race here; the write says why
             raise _cannot(folder, e, what) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -109,7 +112,7 @@ def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int:
 @contextlib.contextmanager
 def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -> Iterator[int | None]:
     """Hold the write lock of the bundle at ``folder`` and yield its descriptor (None where there is
-    nothing to lock: no such folder yet, or no flock on this system)."""
+    nothing to lock: no such folder yet, one this user cannot write, or no flock on this system)."""
     folder = Path(folder)
     key = os.path.abspath(folder)  # as named, not resolved: a link swapped in later is not the key
     entry = _held().get(key)
@@ -135,6 +138,10 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
     except BaseException:
         os.close(dfd)
         raise
+    if fd is None:
+        os.close(dfd)
+        yield None
+        return
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)

@@ -55,11 +55,17 @@ def _refused(r, *words: str) -> None:
         assert w in r.err, r.err
 
 
-def _sealed_with_second_user(cli, d: Path) -> Path:
+def _sealed(cli, d: Path) -> Path:
+    """A sealed bundle of one user (k.bin)."""
     b = d / "sealed.prop"
     r = cli("personalize", d / "model.safetensors", "--data", d / "mine.npz", "--key-file", d / "k.bin",
             "--out", b, *FAST, "--seal")  # fmt: skip
     assert r.code == 0, r.err
+    return b
+
+
+def _sealed_with_second_user(cli, d: Path) -> Path:
+    b = _sealed(cli, d)
     r = cli("add-user", b, "--data", d / "mine.npz", "--key-file", d / "k2.bin", "--steps", "20")
     assert r.code == 0, r.err
     return b

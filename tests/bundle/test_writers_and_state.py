@@ -28,11 +28,11 @@ from tests.bundle.test_rollback import (
     _refused,
     _restore,
     _run,
+    _sealed,
     _sealed_with_second_user,
     _signing_keys,
     _write,
 )
-from tests.conftest import FAST
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -42,14 +42,6 @@ def _one_line(r, *words: str) -> None:
     assert r.err.count("\n") == 1 and r.err.startswith("prop: error:") and "Traceback" not in r.err, r.err
     for w in words:
         assert w in r.err, r.err
-
-
-def _sealed(cli, d: Path) -> Path:
-    b = d / "sealed.prop"
-    r = cli("personalize", d / "model.safetensors", "--data", d / "mine.npz", "--key-file", d / "k.bin",
-            "--out", b, *FAST, "--seal")  # fmt: skip
-    assert r.code == 0, r.err
-    return b
 
 
 def _listing(b: Path) -> dict[str, bytes]:
