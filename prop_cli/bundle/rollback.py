@@ -257,7 +257,7 @@ class _Ids:
         self.secret, self.bundle_id = secret, bundle_id
 
     def __call__(self, uid: str) -> str:
-        if self.secret is None:  # nothing is written (the folder is read-only) and nothing is held
+        if self.secret is None:  # no secret, no ids held (``_read``), and nothing is written (``_update``)
             return "-" + uid
         return _hid(self.secret, self.bundle_id, uid)
 
@@ -294,8 +294,8 @@ def _update(
             change(state, _Ids(secret, bundle_id))
             if json.dumps(state, sort_keys=True) == before:
                 return None
-            if not writable:
-                raise PermissionError(errno.EACCES, "the lock file cannot be made")
+            if not writable or secret is None:  # no ids are ever written in the clear
+                raise PermissionError(errno.EACCES, "the lock file or the secret cannot be made")
             _write(path, state)
     except OSError as e:
         why = e.strerror or type(e).__name__

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import stat
 import threading
 import time
 from collections.abc import Iterator
@@ -186,10 +187,21 @@ def _parent(dfd: int, rel: str, folder: Path, what: str, create: bool) -> Iterat
             os.close(fd)
 
 
+def _not_a_link(pfd: int, name: str, rel: str, folder: Path, what: str) -> None:
+    """A link where prop writes or deletes a file is a sign of tampering: refused, not replaced."""
+    try:
+        st = os.stat(name, dir_fd=pfd, follow_symlinks=False)
+    except FileNotFoundError:
+        return
+    if stat.S_ISLNK(st.st_mode):
+        raise _link_refused(folder, rel, what)
+
+
 def write_at(dfd: int, rel: str, data: bytes, folder: Path, what: str = "bundle") -> None:
     """Write ``data`` to ``rel`` below the locked folder ``dfd`` (``folder``: its path, for messages),
     atomically (a temporary sibling, flushed, renamed over it), never through a link."""
     with _parent(dfd, rel, folder, what, create=True) as (pfd, name):
+        _not_a_link(pfd, name, rel, folder, what)
         tmp = f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
         flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
         fd = os.open(tmp, flags, 0o666, dir_fd=pfd)
@@ -209,6 +221,7 @@ def remove_at(dfd: int, rel: str, folder: Path, what: str = "bundle") -> None:
     """Delete ``rel`` below the locked folder ``dfd`` if it is there, never through a linked folder."""
     try:
         with _parent(dfd, rel, folder, what, create=False) as (pfd, name):
+            _not_a_link(pfd, name, rel, folder, what)
             os.unlink(name, dir_fd=pfd)
     except FileNotFoundError:
         pass
