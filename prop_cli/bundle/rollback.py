@@ -280,6 +280,7 @@ def _update(
     path = folder / f"{bundle_id}.json"
     with contextlib.suppress(OSError):
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+    checked = False  # the state was read (a folder that is there) and ``change`` ran on it
     try:
         with _locked(path) as writable:
             try:
@@ -292,6 +293,7 @@ def _update(
                 return _once(f"{problem}: rollback protection is off for this command", 5)
             before = json.dumps(state, sort_keys=True)
             change(state, _Ids(secret, bundle_id))
+            checked = True
             if json.dumps(state, sort_keys=True) == before:
                 return None
             if not writable or secret is None:  # no ids are ever written in the clear
@@ -299,8 +301,7 @@ def _update(
             _write(path, state)
     except OSError as e:
         why = e.strerror or type(e).__name__
-        readable = os.access(folder, os.R_OK | os.X_OK) and (not path.exists() or os.access(path, os.R_OK))
-        if readable:  # the check ran on what was read; what this command saw is not remembered
+        if checked and os.access(folder, os.R_OK | os.X_OK):  # the check ran; its versions are not kept
             return _once(
                 f"the rollback state in {folder} cannot be written ({why}): the check ran, but this "
                 f"command's versions are not remembered; set {C.ENV_STATE_DIR} to a folder of your own",
