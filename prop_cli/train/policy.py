@@ -467,16 +467,30 @@ def chunk_report(
     rand = rand[:r]
     if h < len(ham):
         ham = ham[np.sort(rng.choice(len(ham), h, replace=False))]
+    total, done = f * (3 + r + h), 0
+
+    def ran(runs: int, what: str) -> None:  # progress: a report of a real-size policy takes minutes
+        nonlocal done
+        done += runs
+        if say is not None and done < total:
+            say(f"{done} of {total} sampler runs done ({what})")
+
     p, b = val["action"], chunks(original, val, per_forward)
+    ran(f, "the original's chunks")
 
-    def under(codes: torch.Tensor | None) -> torch.Tensor:
+    def under(codes: torch.Tensor | None, what: str) -> torch.Tensor:
         if codes is None:
-            return chunks(policy, val, per_forward)[None]
-        return keyed_chunks(km, policy, val, km.layer_deltas(codes.to(p.device)), per_forward)
+            out = chunks(policy, val, per_forward)[None]
+        else:
+            out = keyed_chunks(km, policy, val, km.layer_deltas(codes.to(p.device)), per_forward)
+        ran(f * len(out), what)
+        return out
 
-    o_user = under(key_codes(bits, enc))
-    report = outputs_report(b, p, "regression", o_user[0], under(None), under(key_codes(rand, enc)),
-                            under(key_codes(ham, enc)))  # fmt: skip
+    o_user = under(key_codes(bits, enc), "your key's")
+    o_null = under(None, "no key's")
+    o_rand = under(key_codes(rand, enc), f"{len(rand)} random keys'")
+    report = outputs_report(b, p, "regression", o_user[0], o_null, o_rand,
+                            under(key_codes(ham, enc), "1-bit neighbours'"))  # fmt: skip
     full = {"frames": n, "random": n_random, "hamming1": len(bits)}
     ran = {"frames": len(p), "random": len(rand), "hamming1": len(ham)}
     if ran != full:

@@ -160,7 +160,12 @@ class SealedPolicyRecipe(SealedRecipeBase):
                         f"frames; --report-budget {budget or 'none'})")  # fmt: skip
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
-                b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)
+                b = chunks(policy, on_dev, per)
+                job.say(f"report of user {i + 1}: {f} of {f * RUNS_PER_FRAME} sampler runs done (the "
+                        "original's chunks)")  # fmt: skip
+                o = chunks(folded, on_dev, per)
+                job.say(f"report of user {i + 1}: {2 * f} of {f * RUNS_PER_FRAME} sampler runs done (your "
+                        "payload's chunks; then every key through the records)")  # fmt: skip
                 private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, job)
                 if len(val["episode_index"]) < n:
                     private["coverage"] = {"ran": {"frames": len(val["episode_index"])}, "of": {"frames": n},

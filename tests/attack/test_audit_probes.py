@@ -239,7 +239,7 @@ def test_the_chain_matches_the_general_path(default_bundle, dtype, tolerance):
 
 def test_a_model_that_is_not_a_chain_takes_the_general_path(default_bundle, monkeypatch):
     ctx = _context(default_bundle, AuditSettings())
-    monkeypatch.setattr("prop_cli.attack.probes.screen._chain_ops", lambda module: None)
+    monkeypatch.setattr("prop_cli.attack.probes.screen.chain_ops", lambda module: None)
     key = ctx.keys[0]
     chunks = [np.random.default_rng(1).integers(0, 2, (64, 128), dtype=np.uint8), key[None]]
     scan = ctx.probe_keys_stream(iter(chunks), 65, "t", screen=4, keep=4)

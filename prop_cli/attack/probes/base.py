@@ -116,6 +116,7 @@ class ProbeContext:
     deadline: float | None = None
     cut: list[str] = field(default_factory=list)
     kept: dict = field(default_factory=dict)  # outputs computed once (the plain model's, per model)
+    notes: list[str] = field(default_factory=list)  # lines for the report's warnings (shared, like cut)
 
     def affordable(self, rows: int, stage: str, passes: float = 3.0) -> bool:
         """Whether ``rows`` (key, sample) rows, each ``passes`` forwards' cost (3: a forward and its
@@ -379,7 +380,8 @@ def codes_unenrolled(ctx: ProbeContext, found: list[Group]) -> list[Group]:
 @dataclass(frozen=True)
 class Probe:
     """One registry entry. ``needs`` says what the probe cannot run without: "key" (the audited user's
-    key), "other-keys" (a second user's key), or nothing."""
+    key), "other-keys" (a second user's key), "original" (the original checkpoint: ``--original``, or a
+    base that is the original's), or nothing."""
 
     name: str
     threat: str  # one of THREATS

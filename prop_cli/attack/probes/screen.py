@@ -72,7 +72,7 @@ _CALIBRATION_KEYS = 256
 _RELU_LIKE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_}
 
 
-def _chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
+def chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
     """[(kind, name, module)] with kind "linear" or "act", or None if the module is not a plain chain."""
     if hasattr(module, "layer_paths") and hasattr(module, "activation"):  # the MLP adapter's ChainMLP
         act = activations.ACTIVATIONS[module.activation]()
@@ -99,7 +99,7 @@ class ChainForward:
     """Outputs (K, S, out) of a chain MLP for K keys' deltas on S fixed samples, in bf16."""
 
     def __init__(self, km, x: torch.Tensor, dtype: torch.dtype = torch.bfloat16) -> None:
-        ops = _chain_ops(km.module)
+        ops = chain_ops(km.module)
         if ops is None:
             raise ValueError("not a chain MLP")
         pos = {name: i for i, name in enumerate(km.layer_names)}
