@@ -46,8 +46,9 @@ def distinct_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return torch.arange(n), torch.zeros(n, dtype=torch.long)
     flat = x.detach().reshape(n, -1)
     raw = flat.contiguous().view(torch.uint8)
-    gen = torch.Generator().manual_seed(0)
-    w = torch.rand(flat.shape[1], generator=gen, dtype=torch.float64).to(flat.device)
+    # Fixed weights, no random draw (a policy's training replays its draws: ``prop_cli.train.row_noise``).
+    golden = (5**0.5 - 1) / 2
+    w = torch.arange(1, flat.shape[1] + 1, dtype=torch.float64, device=flat.device).mul_(golden).frac_()
     proj = flat.to(torch.float64).nan_to_num(0.0, 1e300, -1e300) @ w
     _, group = torch.unique(proj, return_inverse=True)
     first = torch.full((int(group.max()) + 1,), n, dtype=torch.long, device=group.device)
