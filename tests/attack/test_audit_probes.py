@@ -326,3 +326,40 @@ def test_structure_reads_the_code_off_a_scan_of_random_codes_deltas(default_bund
     # off on this bundle (leakage 0.92).
     pca = st["search"]["methods"]["delta_pca"]
     assert pca["candidates"] == 8 and pca["min_code_distance"] <= 12 and pca["worst_leakage"] > 0.5, pca
+
+
+def test_the_originals_t2_search_runs_once_for_relaxed_and_latent(default_bundle, cli, monkeypatch):
+    """issue 44: relaxed's search row and latent are both gated beyond T2's search on the original (same
+    restarts, same steps, same random stream): it runs once per audit, and both rows get its figures."""
+    from prop_cli.attack.probes import latent
+
+    ran = []
+    search = latent._search
+    monkeypatch.setattr(latent, "_search", lambda ctx: ran.append(ctx.km) or search(ctx))
+    d = default_bundle
+    r, rep = _attack(cli, d, "--probes", "relaxed,latent", "--original", d / "model.safetensors")
+    assert r.code == 0, r.err
+    assert len(ran) == 2 and ran[0] is not ran[1]  # latent on the bundle, and once on the original
+    rows = {g["name"]: g for g in rep["groups"]}
+    assert rows["relaxed"]["control"]["available"] and rows["latent"]["control"]["available"]
+    assert rows["relaxed"]["control"]["leakage"] == rows["latent"]["control"]["leakage"]
+
+
+def test_a_t2_search_cut_short_is_not_reused(default_bundle, monkeypatch):
+    from prop_cli.attack.probes import latent
+
+    ctx = _context(default_bundle, AuditSettings(restarts=2, search_steps=3))
+    ctx.probe = "latent"
+    ran = []
+
+    def cut_short(c):
+        ran.append(1)
+        c.cut.append("latent")
+        return [latent.Group("latent", {}, is_key=False)]
+
+    monkeypatch.setattr(latent, "_search", cut_short)
+    latent.run(ctx), latent.run(ctx)
+    assert len(ran) == 2  # each ran its own search: the first did not end
+    monkeypatch.setattr(latent, "_search", lambda c: ran.append(1) or [latent.Group("latent", {}, False, search={})])
+    latent.run(ctx), latent.run(ctx)
+    assert len(ran) == 3  # the search that ended is kept for the same model, samples and settings
