@@ -42,6 +42,7 @@ def prepare(workdir: Path) -> tuple[Path, Path, Path]:
 
 
 def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -> dict[str, float]:
+    from prop_cli.attack.probes.screen import ChainKeys
     from prop_cli.bundle import load_bundle
     from prop_cli.core.keyed_model import key_codes, keys_per_forward
 
@@ -58,7 +59,10 @@ def throughput(bundle: Path, data: Path, keys: int, samples: int, repeat: int) -
     out = {}
     with torch.inference_mode():
         deltas = km.layer_deltas(codes)
-        for name, fn in (("run_keys (broadcast)", km.run_keys), ("run_rows (row per key x sample)", rows)):
+        fast = ChainKeys(km, x)
+        paths = (("run_keys (broadcast)", km.run_keys), ("run_rows (row per key x sample)", rows),
+                 ("ChainKeys (the key probes')", lambda x, deltas: fast(deltas)))  # fmt: skip
+        for name, fn in paths:
             best = float("inf")
             for _ in range(repeat):
                 t0 = time.perf_counter()

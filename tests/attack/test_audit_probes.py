@@ -360,6 +360,25 @@ def test_a_t2_search_cut_short_is_not_reused(default_bundle, monkeypatch):
     monkeypatch.setattr(latent, "_search", cut_short)
     latent.run(ctx), latent.run(ctx)
     assert len(ran) == 2  # each ran its own search: the first did not end
-    monkeypatch.setattr(latent, "_search", lambda c: ran.append(1) or [latent.Group("latent", {}, False, search={})])
+    done = [latent.Group("latent", {}, False, search={})]
+    monkeypatch.setattr(latent, "_search", lambda c: ran.append(1) or done)
     latent.run(ctx), latent.run(ctx)
     assert len(ran) == 3  # the search that ended is kept for the same model, samples and settings
+
+
+def test_the_key_probes_exact_chain_is_run_keys_bit_for_bit(default_bundle):
+    """issue 40/44: the exact key probes run a chain MLP through ``ChainKeys`` (buffers kept, activations
+    in place): the same outputs as run_keys, bit for bit, and each chunk's outputs kept apart."""
+    from prop_cli.attack.probes.screen import ChainKeys
+
+    ctx = _context(default_bundle, AuditSettings())
+    bits = np.random.default_rng(3).integers(0, 2, (40, 128), dtype=np.uint8)
+    with torch.inference_mode():
+        deltas = ctx.key_deltas(bits)
+        want = ctx.km.run_keys(ctx.ref.x, deltas)
+        assert torch.equal(ChainKeys(ctx.km, ctx.ref.x)(deltas), want)
+    assert ctx.chain() is ctx.chain()  # built once per model and inputs
+    ctx.keys_per_chunk = lambda: 8  # 40 keys in 5 chunks through the one buffer
+    got = ctx.probe_keys(bits, "t", outputs=True)
+    assert torch.equal(got["outputs"], want)
+    assert torch.equal(got["fidelity"], ctx.scores(want)["fidelity"])

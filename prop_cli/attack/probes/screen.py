@@ -161,6 +161,70 @@ class ChainForward:
         return y.view(k, s, -1)
 
 
+class ChainKeys:
+    """Outputs (K, B, out) of a chain MLP for K keys' deltas on B samples in fp32: ``run_keys``'s own
+    operations (the layers before the first keyed one once, each keyed layer's input times the key's
+    delta, ``addmm`` as ``nn.Linear`` runs it), without hooks, into buffers kept from chunk to chunk and
+    with the activations in place. The exact key probes' path (``ProbeContext._probe``): it leaves out
+    the fresh allocations and copies that cost run_keys as much as its matmuls on a small MLP.
+
+    The output is a buffer the next call overwrites: copy what outlives the chunk."""
+
+    def __init__(self, km, x: torch.Tensor) -> None:
+        ops = chain_ops(km.module)
+        if ops is None or x.dim() != 2:
+            raise ValueError("not a chain MLP on flat inputs")
+        pos = {name: i for i, name in enumerate(km.layer_names)}
+        lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
+        if len(lin_at) != len(pos):
+            raise ValueError("keyed layers are not all in the chain")
+        first = lin_at[0]
+        with torch.inference_mode():
+            z = x
+            for _, _, m in ops[:first]:
+                z = m(z)
+        self.z, self.samples = z, len(x)
+        self.ops = [(kind, m, pos.get(name) if kind == "linear" else None) for kind, name, m in ops[first:]]
+        self._buffers: dict[int, torch.Tensor] = {}
+
+    def _buffer(self, slot: int, rows: int, cols: int) -> torch.Tensor:
+        buf = self._buffers.get(slot)
+        if buf is None or buf.numel() < rows * cols:
+            buf = self._buffers[slot] = torch.empty(rows * cols, dtype=self.z.dtype, device=self.z.device)
+        return buf[: rows * cols].view(rows, cols)
+
+    @torch.inference_mode()
+    def __call__(self, deltas: list[torch.Tensor]) -> torch.Tensor:
+        k, b = deltas[0].shape[0], self.samples
+        y, slot = None, 0
+        for kind, m, kp in self.ops:
+            if kind == "act":
+                fn = _RELU_LIKE.get(type(m))
+                y = fn(y) if fn is not None else m(y)
+                continue
+            if y is None:  # the first keyed layer: every key on every sample's shared input
+                y = self._buffer(slot, k * b, self.z.shape[1])
+                slot += 1
+                torch.mul(self.z[None], deltas[kp][:, None, :], out=y.view(k, b, -1))
+            elif kp is not None:
+                y.view(k, b, -1).mul_(deltas[kp][:, None, :])
+            out = self._buffer(slot, k * b, m.out_features)
+            slot += 1
+            if m.bias is not None:
+                y = torch.addmm(m.bias, y, m.weight.t(), out=out)
+            else:
+                y = torch.mm(y, m.weight.t(), out=out)
+        return y.view(k, b, -1)
+
+
+def chain_keys(km, x: torch.Tensor) -> ChainKeys | None:
+    """``ChainKeys`` for ``km`` on ``x``, or None where the model is not a chain MLP (run_keys then)."""
+    try:
+        return ChainKeys(km, x)
+    except ValueError:
+        return None
+
+
 def _chunk_seconds(ctx: Scannable, fast: ChainForward, bits: np.ndarray, low: bool) -> float:
     """The fastest of 3 timed runs (after a warm-up) of one calibration chunk: deltas, then the chain."""
     best = float("inf")
