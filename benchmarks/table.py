@@ -160,7 +160,8 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
     from prop_cli.datasources import load_data
 
     bundle = load_bundle(bundle_path)
-    key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default]
+    # drift needs the original, which an unsealed bundle's own base is not (the audit below has none)
+    key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default and p.needs != "original"]
     settings = AuditSettings(
         probes=key_probes, random=1024 if quick else 4096, per_distance=64 if quick else 256
     )
