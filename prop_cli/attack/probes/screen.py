@@ -95,23 +95,30 @@ def chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
     return None
 
 
+def _keyed_chain(km, x: torch.Tensor) -> tuple[list, dict[str, int], int, torch.Tensor]:
+    """(the chain's ops, each keyed layer's position in ``km.layer_names``, the op index of the first
+    keyed layer, ``x`` through the layers before it), or ValueError where ``km`` is not a keyed chain."""
+    ops = chain_ops(km.module)
+    if ops is None:
+        raise ValueError("not a chain MLP")
+    pos = {name: i for i, name in enumerate(km.layer_names)}
+    lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
+    if len(lin_at) != len(pos):
+        raise ValueError("keyed layers are not all in the chain")
+    with torch.inference_mode():
+        z = x
+        for _, _, m in ops[: lin_at[0]]:
+            z = m(z)
+    return ops, pos, lin_at[0], z
+
+
 class ChainForward:
     """Outputs (K, S, out) of a chain MLP for K keys' deltas on S fixed samples, in bf16."""
 
     def __init__(self, km, x: torch.Tensor, dtype: torch.dtype = torch.bfloat16) -> None:
-        ops = chain_ops(km.module)
-        if ops is None:
-            raise ValueError("not a chain MLP")
-        pos = {name: i for i, name in enumerate(km.layer_names)}
-        lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
-        if len(lin_at) != len(pos):
-            raise ValueError("keyed layers are not all in the chain")
-        first = lin_at[0]
+        ops, pos, first, z = _keyed_chain(km, x)
         self.dtype = dtype
         with torch.inference_mode():
-            z = x
-            for _, _, m in ops[:first]:
-                z = m(z)
             w = ops[first][2].weight  # (h, d)
             s, d = z.shape
             h = w.shape[0]
@@ -171,18 +178,9 @@ class ChainKeys:
     The output is a buffer the next call overwrites: copy what outlives the chunk."""
 
     def __init__(self, km, x: torch.Tensor) -> None:
-        ops = chain_ops(km.module)
-        if ops is None or x.dim() != 2:
-            raise ValueError("not a chain MLP on flat inputs")
-        pos = {name: i for i, name in enumerate(km.layer_names)}
-        lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
-        if len(lin_at) != len(pos):
-            raise ValueError("keyed layers are not all in the chain")
-        first = lin_at[0]
-        with torch.inference_mode():
-            z = x
-            for _, _, m in ops[:first]:
-                z = m(z)
+        if x.dim() != 2:
+            raise ValueError("not flat inputs")
+        ops, pos, first, z = _keyed_chain(km, x)
         self.z, self.samples = z, len(x)
         self.ops = [(kind, m, pos.get(name) if kind == "linear" else None) for kind, name, m in ops[first:]]
         self._buffers: dict[int, torch.Tensor] = {}
