@@ -181,6 +181,8 @@ class ChainKeys:
         if x.dim() != 2:
             raise ValueError("not flat inputs")
         ops, pos, first, z = _keyed_chain(km, x)
+        if any(m.weight.dtype != z.dtype for kind, _, m in ops[first:] if kind == "linear"):
+            raise ValueError("weights in another dtype than the inputs: run_keys's promotions apply")
         self.z, self.samples = z, len(x)
         self.ops = [(kind, m, pos.get(name) if kind == "linear" else None) for kind, name, m in ops[first:]]
         self._buffers: dict[int, torch.Tensor] = {}
