@@ -55,7 +55,8 @@ def test_the_drift_of_a_default_bundle_points_at_the_users_quadrant(il, cli):
     # ... far beyond a random direction's, on average.
     c = row["control"]
     assert c["available"] and "random input directions" in c["model"]
-    assert row["beyond"] > 0.3 and row["gate"] == {"on": "beyond-control", "value": row["beyond"], "why": None}
+    assert row["beyond"] > 0.3
+    assert row["gate"] == {"on": "beyond-control", "value": row["beyond"], "why": None}
 
 
 def test_freeze_base_leaves_nothing_to_read(il, cli):
