@@ -14,8 +14,11 @@ Rows:
   report's ``speed``), against a bare loop of the same forwards (``KeyedModel.run_keys``).
 - audit wall: issue 44's `prop attack` command (--hamming 1..8 --search relaxed,latent, --json, --plot
   when matplotlib is there) run as a user runs it, on the IL and digits examples' unsealed bundles (default
-  personalize settings); seconds against the issue's 60 s goal. A tiny ACT's row: docs/speed.md (LeRobot's
-  own environment).
+  personalize settings); seconds against the issue's 60 s goal. The tiny ACT's row (``tests/plugin/tiny.py``:
+  LeRobot ACT with a ResNet-18 camera, unsealed) runs in LeRobot's own environment (``--lerobot-python``;
+  default: ``.venv-lerobot`` in the repository or beside the running environment), built and audited in
+  subprocesses (``prop attack BUNDLE --data user --key-file user.key --json``, default probes and budget);
+  without that environment the table says the row was skipped and why.
 - inference: per call after loading, keyed / no key, batch 1 and 256: torch (key folded in memory),
   onnxruntime split form (encoder.onnx once, policy.onnx per call) and onnxruntime folded in memory.
 - import: ``import torch, torch._dynamo`` vs ``import torch`` (what prop's own Adam avoids).
@@ -157,7 +160,8 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
     from prop_cli.datasources import load_data
 
     bundle = load_bundle(bundle_path)
-    key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default]
+    # drift needs the original, which an unsealed bundle's own base is not (the audit below has none)
+    key_probes = [p.name for p in probes.PROBES if p.kind == "key" and p.default and p.needs != "original"]
     settings = AuditSettings(
         probes=key_probes, random=1024 if quick else 4096, per_distance=64 if quick else 256
     )
@@ -183,6 +187,9 @@ def audit_rows(bundle_path: Path, il: dict, key: np.ndarray, quick: bool) -> lis
          f"{rate / 1e6:.2f}M/s in the audit vs {bare_rate / 1e6:.2f}M/s bare run_keys forwards (wall)"),
     ]  # fmt: skip
 
+
+# The table's row groups, in order (--rows).
+GROUPS = ("step", "personalize", "audit", "audit-wall", "inference", "import")
 
 # issue 44's goal for its command on a quiet 2-core machine.
 AUDIT_GOAL_S = 60.0
@@ -217,6 +224,66 @@ def audit_wall_rows(tmp: Path, il: dict, quick: bool) -> list[tuple[str, str, st
         out.append((f"audit wall, issue 44's command on {name}", f"{wall / AUDIT_GOAL_S:.2f}x",
                     f"{wall:.1f} s wall{probes} vs the {AUDIT_GOAL_S:.0f} s goal"))  # fmt: skip
     return out
+
+
+REPO = Path(__file__).resolve().parents[1]
+TINY_ACT_BUILD = (
+    "import sys; from pathlib import Path; from tests.plugin.tiny import build; build(Path(sys.argv[1]))"
+)
+
+
+def lerobot_python(given: Path | None) -> tuple[Path | None, str]:
+    """LeRobot's environment's python: ``given``, else ``.venv-lerobot`` in the repository, else beside
+    the running environment; (None, why) when there is none."""
+    if given is not None:
+        return (given, "") if given.is_file() else (None, f"--lerobot-python {given} does not exist")
+    for venv in (REPO / ".venv-lerobot", Path(sys.prefix).parent / ".venv-lerobot"):
+        if (venv / "bin" / "python").is_file():
+            return venv / "bin" / "python", ""
+    return None, (
+        f"no LeRobot environment ({REPO / '.venv-lerobot'}; scripts/setup-lerobot.sh makes it, or pass "
+        "--lerobot-python)"
+    )
+
+
+def tiny_act_row(tmp: Path, python: Path | None, why: str) -> tuple[tuple[str, str, str] | None, str | None]:
+    """The audit's wall time on a tiny ACT, as a user runs it, in LeRobot's environment: (row, None), or
+    (None, the line saying why it was skipped)."""
+    what = "audit wall, tiny ACT (unsealed, default probes)"
+    if python is None:
+        return None, f"{what}: skipped: {why}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH"))
+                                                       if p)}  # fmt: skip
+    work = tmp / "tiny-act"
+    built = subprocess.run([str(python), "-c", TINY_ACT_BUILD, str(work)], cwd=REPO, env=env,
+                           capture_output=True, text=True)  # fmt: skip
+    if built.returncode != 0:
+        last = (built.stderr.strip().splitlines() or ["(no output)"])[-1]
+        return None, f"{what}: skipped: building the tiny ACT in {python} failed: {last}"
+    report = tmp / "tiny-act.json"
+    prop = python.parent / "prop"  # the environment's command, as a user runs it
+    launch = [str(prop)] if prop.is_file() else [str(python), "-m", "prop_cli.cli.main"]
+    cmd = [*launch, "attack", str(work / "unsealed"), "--data",
+           str(work / "user"), "--key-file", str(work / "user.key"), "--json", str(report)]  # fmt: skip
+    t0 = time.perf_counter()
+    ran = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if ran.returncode != 0:
+        last = (ran.stderr.strip().splitlines() or ["(no output)"])[-1]
+        return None, f"{what}: skipped: prop attack exited {ran.returncode}: {last}"
+    rep = json.loads(report.read_text())
+    speed = rep.get("speed", {})
+    stages = speed.get("stage_seconds", {})
+    top = sorted(stages.items(), key=lambda kv: -kv[1])[:3]
+    inner = speed.get("wall_seconds")
+    parts = [f"the probes {inner:.1f} s" if inner is not None else None,
+             ", ".join(f"{k} {v:.1f} s" for k, v in top) or None]  # fmt: skip
+    cov = rep.get("coverage") or {}
+    if cov.get("cut_short") or cov.get("not_tried"):
+        parts.append(f"budget ran out: cut short {cov.get('cut_short')}, not tried {cov.get('not_tried')}")
+    detail = "; ".join(p for p in parts if p)
+    return (what, f"{wall / AUDIT_GOAL_S:.2f}x",
+            f"{wall:.1f} s wall ({detail}) vs the {AUDIT_GOAL_S:.0f} s goal"), None  # fmt: skip
 
 
 def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tuple[str, str, str]]:
@@ -286,7 +353,16 @@ def main(argv: list[str] | None = None) -> int:
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--quick", action="store_true", help="smallest sizes only: a smoke test")
     g.add_argument("--full", action="store_true", help="every size, up to 50M parameters and 512 users")
+    ap.add_argument("--rows", default=",".join(GROUPS),
+                    help=f"row groups to run, comma-separated (default: {','.join(GROUPS)})")  # fmt: skip
+    ap.add_argument("--lerobot-python", type=Path, default=None,
+                    help="LeRobot's environment's python, for the tiny ACT's audit row "
+                    "(default: .venv-lerobot)")  # fmt: skip
     args = ap.parse_args(argv)
+    chosen = [r.strip() for r in args.rows.split(",") if r.strip()]
+    unknown = [r for r in chosen if r not in GROUPS]
+    if unknown or not chosen:
+        ap.error(f"--rows {args.rows!r}: use a comma list of {', '.join(GROUPS)}")
     name = "quick" if args.quick else "full" if args.full else "default"
     mode = MODES[name]
     threads_env = os.environ.get("OMP_NUM_THREADS")
@@ -295,22 +371,36 @@ def main(argv: list[str] | None = None) -> int:
     configure(parameters=0)  # the IL example's base training: a small model (rows below set their own)
     t0 = time.perf_counter()
     torch.manual_seed(0)
+    skipped: list[str] = []
+    rows: list[tuple[str, str, str]] = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         il = write_example(tmp / "il", seed=0)
-        rows = step_rows(tmp, il, mode)
-        rows += personalize_rows(il, mode)
-        bundle, key = bundle_for(tmp, il, 200 if args.quick else 2000)
-        rows += audit_rows(bundle, il, key, args.quick)
-        rows += audit_wall_rows(tmp, il, args.quick)
-        rows += inference_rows(bundle, key, args.quick)
-        rows.append(import_row(args.quick))
+        if "step" in chosen:
+            rows += step_rows(tmp, il, mode)
+        if "personalize" in chosen:
+            rows += personalize_rows(il, mode)
+        if {"audit", "inference"} & set(chosen):
+            bundle, key = bundle_for(tmp, il, 200 if args.quick else 2000)
+        if "audit" in chosen:
+            rows += audit_rows(bundle, il, key, args.quick)
+        if "audit-wall" in chosen:
+            rows += audit_wall_rows(tmp, il, args.quick)
+            row, skip = tiny_act_row(tmp, *lerobot_python(args.lerobot_python))
+            rows += [row] if row else []
+            skipped += [skip] if skip else []
+        if "inference" in chosen:
+            rows += inference_rows(bundle, key, args.quick)
+        if "import" in chosen:
+            rows.append(import_row(args.quick))
     print(f"prop speed ({name} mode), {machine()}; OMP_NUM_THREADS={threads_env or 'unset'}\n")
-    width = max(len(r[0]) for r in rows)
+    width = max((len(r[0]) for r in rows), default=4)
     print(f"| {'what':{width}s} | ratio | figures |")
     print(f"|{'-' * (width + 2)}|-------|---------|")
     for what, ratio, fig in rows:
         print(f"| {what:{width}s} | {ratio} | {fig} |")
+    for line in skipped:
+        print(f"\n{line}")
     print(f"\n({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     return 0
 

@@ -160,6 +160,21 @@ def _settings(settings: AuditSettings, bundle: Bundle, has_key: bool) -> AuditSe
     return s
 
 
+def _with_original(chosen: list[str], known: bool, asked: bool) -> list[str]:
+    """``chosen`` without the probes that need the original where it is not known (named in --probes:
+    an error saying how to give it)."""
+    needing = [p for p in chosen if probes.probe_named(p).needs == "original"]
+    if known or not needing:
+        return chosen
+    if asked:
+        raise PropError(
+            f"--probes {','.join(needing)} need the original checkpoint (the bundle's base was trained "
+            "with the key)",
+            "pass --original with the checkpoint the bundle was personalized from, or leave those probes out",
+        )
+    return [p for p in chosen if p not in needing]
+
+
 def _check_inputs(bundle: Bundle, data: Dataset, keys: list[np.ndarray]) -> Dataset:
     if keys and data.y is None:
         raise PropError(
@@ -216,6 +231,7 @@ def audit(
             else None
         )
         control_km, control_from = _control_model(bundle, km, original)
+        s.probes = _with_original(s.probes, control_km is not None, settings.probes is not None)
         reference = original if original is not None else km.module  # what gives b
         unenrolled = target.unenrolled_model(km, reference, s.seed)
         models = {
@@ -269,6 +285,7 @@ def audit(
         finally:
             for prm, flag in zip(km.parameters(), grad_flags):
                 prm.requires_grad_(flag)
+    warnings += ctx.notes
     saturable = target.controls_can_saturate(bundle)
     for row in groups:
         row["gate"] = verdict.gate(row, saturable)

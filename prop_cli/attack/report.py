@@ -79,10 +79,11 @@ def sealed_summary(report: dict) -> dict:
 
 def default_probes(mode: str | None) -> list[str]:
     """The probes a default audit runs: every default probe, without those that need the user's key in
-    a no-key audit (``audit._settings`` chooses the same)."""
+    a no-key audit (``audit._settings`` chooses the same), and without those that run only where the
+    original is known (``--original``: an audit without it runs every other default probe)."""
     from . import probes
 
-    chosen = probes.select(None)
+    chosen = [p for p in probes.select(None) if probes.probe_named(p).needs != "original"]
     if mode == "no-key":
         chosen = [p for p in chosen if probes.probe_named(p).needs != "key"]
     return chosen

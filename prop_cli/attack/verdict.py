@@ -31,6 +31,7 @@ FINDINGS = {
     "hamming": "keys a few bits from yours show part of your behaviour",
     "blackbox": "a scan of random keys finds keys that show your behaviour",
     "structure": "your code can be read off the encoder's weights",
+    "drift": "the base's move from the original points at where your data lies",
     "relaxed": "a search through the encoder reaches your behaviour",
     "relaxed-rounded": "a search through the encoder finds a code that runs your behaviour",
     "latent": "optimising the keyed layers reaches your behaviour beyond what it reaches on the original",

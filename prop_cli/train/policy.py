@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -411,6 +412,13 @@ def report_plan(frames: int, n_random: int, n_ham: int, budget: int | None) -> t
     return f, r, max(1, min(n_ham, keys - r))
 
 
+def time_left(started: float, done: int, total: int) -> str:
+    """The estimate of a progress line: the sampler runs left at the speed of those done since
+    ``started`` (``time.perf_counter()``)."""
+    left = (time.perf_counter() - started) / max(done, 1) * (total - done)
+    return f"about {left:.0f} s left" if left >= 1 else "under a second left"
+
+
 def spaced_frames(val: dict, f: int) -> dict:
     """``f`` of the held-out frames of ``val``, evenly spaced (all of them when ``f`` covers them)."""
     n = len(val["episode_index"])
@@ -467,20 +475,34 @@ def chunk_report(
     rand = rand[:r]
     if h < len(ham):
         ham = ham[np.sort(rng.choice(len(ham), h, replace=False))]
+    total, done, started = f * (3 + r + h), 0, time.perf_counter()
+
+    def ran(runs: int, what: str) -> None:  # progress: a report of a real-size policy takes minutes
+        nonlocal done
+        done += runs
+        if say is not None and done < total:
+            say(f"{done} of {total} sampler runs done ({what}); {time_left(started, done, total)}")
+
     p, b = val["action"], chunks(original, val, per_forward)
+    ran(f, "the original's chunks")
 
-    def under(codes: torch.Tensor | None) -> torch.Tensor:
+    def under(codes: torch.Tensor | None, what: str) -> torch.Tensor:
         if codes is None:
-            return chunks(policy, val, per_forward)[None]
-        return keyed_chunks(km, policy, val, km.layer_deltas(codes.to(p.device)), per_forward)
+            out = chunks(policy, val, per_forward)[None]
+        else:
+            out = keyed_chunks(km, policy, val, km.layer_deltas(codes.to(p.device)), per_forward)
+        ran(f * len(out), what)
+        return out
 
-    o_user = under(key_codes(bits, enc))
-    report = outputs_report(b, p, "regression", o_user[0], under(None), under(key_codes(rand, enc)),
-                            under(key_codes(ham, enc)))  # fmt: skip
+    o_user = under(key_codes(bits, enc), "your key's")
+    o_null = under(None, "no key's")
+    o_rand = under(key_codes(rand, enc), f"{len(rand)} random keys'")
+    report = outputs_report(b, p, "regression", o_user[0], o_null, o_rand,
+                            under(key_codes(ham, enc), "1-bit neighbours'"))  # fmt: skip
     full = {"frames": n, "random": n_random, "hamming1": len(bits)}
-    ran = {"frames": len(p), "random": len(rand), "hamming1": len(ham)}
-    if ran != full:
-        report["coverage"] = {"ran": ran, "of": full, "budget": budget}
+    covered = {"frames": len(p), "random": len(rand), "hamming1": len(ham)}
+    if covered != full:
+        report["coverage"] = {"ran": covered, "of": full, "budget": budget}
     return report
 
 

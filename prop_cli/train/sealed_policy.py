@@ -11,6 +11,7 @@ On several processes each computes its share of a step's rows, as the unsealed r
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -38,6 +39,7 @@ from .policy import (
     rows,
     spaced_frames,
     split_episodes,
+    time_left,
     to_device,
     weighted,
 )
@@ -160,7 +162,14 @@ class SealedPolicyRecipe(SealedRecipeBase):
                         f"frames; --report-budget {budget or 'none'})")  # fmt: skip
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
-                b, o = chunks(policy, on_dev, per), chunks(folded, on_dev, per)
+                started, runs = time.perf_counter(), f * RUNS_PER_FRAME
+                b = chunks(policy, on_dev, per)
+                job.say(f"report of user {i + 1}: {f} of {runs} sampler runs done (the original's chunks); "
+                        f"{time_left(started, f, runs)}")  # fmt: skip
+                o = chunks(folded, on_dev, per)
+                left = time_left(started, 2 * f, runs)
+                job.say(f"report of user {i + 1}: {2 * f} of {runs} sampler runs done (your payload's "
+                        f"chunks; then every key through the records); {left}")  # fmt: skip
                 private = private_report(o.cpu(), val["action"], b.cpu(), "regression", losses, job)
                 if len(val["episode_index"]) < n:
                     private["coverage"] = {"ran": {"frames": len(val["episode_index"])}, "of": {"frames": n},

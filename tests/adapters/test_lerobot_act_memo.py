@@ -87,3 +87,36 @@ def test_a_copy_sharing_the_weights_shares_the_memo(act, monkeypatch):
         finally:
             protocol.policy.model = model
     assert rows == []  # the twin's frames came from the memo the original filled
+
+
+def test_batch_copies_of_a_few_frames_are_digested_and_run_once_each(act, monkeypatch):
+    """The audit runs keys as batch copies of its frames (``KeyedModel.run_keys``): each distinct frame is
+    digested once and run once, and the chunk is LeRobot's."""
+    from prop_adapters.lerobot import act as act_module
+
+    protocol, x = act
+    copies = {k: v.repeat(4, *[1] * (v.dim() - 1)) for k, v in x.items()}
+    digests = []
+    digest = act_module.row_digest
+    monkeypatch.setattr(act_module, "row_digest", lambda *t: (digests.append(1), digest(*t))[1])
+    rows = counting(protocol.model.backbone, monkeypatch)
+    with torch.no_grad():
+        plain = protocol.chunk(copies)
+        with protocol.memo():
+            got = protocol.chunk(copies)
+    assert rows == [24, 5] and len(digests) == 5  # 5 distinct frames in 24 rows
+    torch.testing.assert_close(got, plain, rtol=1e-5, atol=1e-6)
+
+
+def test_distinct_rows_compares_rows_bit_for_bit():
+    from prop_adapters.lerobot.act import distinct_rows
+
+    nan = float("nan")
+    x = torch.tensor([[0.0, 1.0], [-0.0, 1.0], [0.0, 1.0], [nan, 1.0], [1.0, 2.0], [1.0, 2.0]])
+    rows, which = distinct_rows(x)
+    raw = x.view(torch.int32)
+    assert all(torch.equal(raw[rows[w]], raw[i]) for i, w in enumerate(which.tolist()))  # each row's twin
+    assert rows.tolist() == sorted(set(rows.tolist())) and rows[0] == 0
+    assert which[2] == which[0] and which[1] != which[0]  # 0.0 twice is one row; -0.0 is another
+    assert which[5] == which[4] and len(rows) == 4
+    assert distinct_rows(torch.zeros(1, 3))[0].tolist() == [0]

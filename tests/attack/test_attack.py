@@ -76,7 +76,7 @@ def test_parse_hamming_rejects_bad_specs(spec):
 
 def test_probe_selection_and_the_older_search_flag():
     keys = ["null", "random", "hamming", "blackbox"]
-    assert select() == [*keys, "structure", "relaxed", "latent", "fewshot", "cross-user"]
+    assert select() == [*keys, "structure", "drift", "relaxed", "latent", "fewshot", "cross-user"]
     assert select(["latent", "null"]) == ["null", "latent"]  # registry order
     assert select(search=["latent"]) == [*keys, "latent", "cross-user"]  # black-box key probes + searches
     assert select(search=[]) == [*keys, "cross-user"]

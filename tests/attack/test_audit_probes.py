@@ -239,7 +239,7 @@ def test_the_chain_matches_the_general_path(default_bundle, dtype, tolerance):
 
 def test_a_model_that_is_not_a_chain_takes_the_general_path(default_bundle, monkeypatch):
     ctx = _context(default_bundle, AuditSettings())
-    monkeypatch.setattr("prop_cli.attack.probes.screen._chain_ops", lambda module: None)
+    monkeypatch.setattr("prop_cli.attack.probes.screen.chain_ops", lambda module: None)
     key = ctx.keys[0]
     chunks = [np.random.default_rng(1).integers(0, 2, (64, 128), dtype=np.uint8), key[None]]
     scan = ctx.probe_keys_stream(iter(chunks), 65, "t", screen=4, keep=4)
@@ -326,3 +326,59 @@ def test_structure_reads_the_code_off_a_scan_of_random_codes_deltas(default_bund
     # off on this bundle (leakage 0.92).
     pca = st["search"]["methods"]["delta_pca"]
     assert pca["candidates"] == 8 and pca["min_code_distance"] <= 12 and pca["worst_leakage"] > 0.5, pca
+
+
+def test_the_originals_t2_search_runs_once_for_relaxed_and_latent(default_bundle, cli, monkeypatch):
+    """issue 44: relaxed's search row and latent are both gated beyond T2's search on the original (same
+    restarts, same steps, same random stream): it runs once per audit, and both rows get its figures."""
+    from prop_cli.attack.probes import latent
+
+    ran = []
+    search = latent._search
+    monkeypatch.setattr(latent, "_search", lambda ctx: ran.append(ctx.km) or search(ctx))
+    d = default_bundle
+    r, rep = _attack(cli, d, "--probes", "relaxed,latent", "--original", d / "model.safetensors")
+    assert r.code == 0, r.err
+    assert len(ran) == 2 and ran[0] is not ran[1]  # latent on the bundle, and once on the original
+    rows = {g["name"]: g for g in rep["groups"]}
+    assert rows["relaxed"]["control"]["available"] and rows["latent"]["control"]["available"]
+    assert rows["relaxed"]["control"]["leakage"] == rows["latent"]["control"]["leakage"]
+
+
+def test_a_t2_search_cut_short_is_not_reused(default_bundle, monkeypatch):
+    from prop_cli.attack.probes import latent
+
+    ctx = _context(default_bundle, AuditSettings(restarts=2, search_steps=3))
+    ctx.probe = "latent"
+    ran = []
+
+    def cut_short(c):
+        ran.append(1)
+        c.cut.append("latent")
+        return [latent.Group("latent", {}, is_key=False)]
+
+    monkeypatch.setattr(latent, "_search", cut_short)
+    latent.run(ctx), latent.run(ctx)
+    assert len(ran) == 2  # each ran its own search: the first did not end
+    done = [latent.Group("latent", {}, False, search={})]
+    monkeypatch.setattr(latent, "_search", lambda c: ran.append(1) or done)
+    latent.run(ctx), latent.run(ctx)
+    assert len(ran) == 3  # the search that ended is kept for the same model, samples and settings
+
+
+def test_the_key_probes_exact_chain_is_run_keys_bit_for_bit(default_bundle):
+    """issue 40/44: the exact key probes run a chain MLP through ``ChainKeys`` (buffers kept, activations
+    in place): the same outputs as run_keys, bit for bit, and each chunk's outputs kept apart."""
+    from prop_cli.attack.probes.screen import ChainKeys
+
+    ctx = _context(default_bundle, AuditSettings())
+    bits = np.random.default_rng(3).integers(0, 2, (40, 128), dtype=np.uint8)
+    with torch.inference_mode():
+        deltas = ctx.key_deltas(bits)
+        want = ctx.km.run_keys(ctx.ref.x, deltas)
+        assert torch.equal(ChainKeys(ctx.km, ctx.ref.x)(deltas), want)
+    assert ctx.chain() is ctx.chain()  # built once per model and inputs
+    ctx.keys_per_chunk = lambda: 8  # 40 keys in 5 chunks through the one buffer
+    got = ctx.probe_keys(bits, "t", outputs=True)
+    assert torch.equal(got["outputs"], want)
+    assert torch.equal(got["fidelity"], ctx.scores(want)["fidelity"])

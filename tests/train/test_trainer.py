@@ -104,6 +104,15 @@ def test_the_policy_report_plan_stays_within_its_budget():
     assert report_budget(TrainConfig(), small) > 10**6 and report_budget(TrainConfig(), big) == 22
     assert report_budget(TrainConfig(report_budget=0), big) is None
     assert report_budget(TrainConfig(report_budget=7), small) == 7
+
+
+def test_a_report_progress_line_estimates_the_time_left_from_the_runs_done(monkeypatch):
+    from prop_cli.train import policy
+
+    monkeypatch.setattr(policy.time, "perf_counter", lambda: 130.0)
+    assert policy.time_left(100.0, 10, 50) == "about 120 s left"  # 30 s for 10 runs: 40 left take 120 s
+    assert policy.time_left(129.99, 10, 11) == "under a second left"
+    assert policy.time_left(100.0, 0, 5) == "about 150 s left"  # nothing done yet: no division by zero
     with pytest.raises(PropError, match="--report-budget"):
         PersonalizeConfig.of(report_budget=-1)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from prop_cli.errors import PropError
 
-from . import blackbox, cross_user, fewshot, hamming, latent, null, random_keys, relaxed, structure
+from . import blackbox, cross_user, drift, fewshot, hamming, latent, null, random_keys, relaxed, structure
 from .base import Group, Probe, ProbeContext, Reference
 
 PROBES: list[Probe] = [
@@ -14,6 +14,7 @@ PROBES: list[Probe] = [
     hamming.PROBE,
     blackbox.PROBE,
     structure.PROBE,
+    drift.PROBE,
     relaxed.PROBE,
     latent.PROBE,
     fewshot.PROBE,

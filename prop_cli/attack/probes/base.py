@@ -22,7 +22,7 @@ from prop_cli.core import metrics
 from prop_cli.core.key_sampling import random_keys
 from prop_cli.core.keyed_model import KeyedModel, key_codes, keys_per_forward
 
-from .screen import KeyScan, scan_keys
+from .screen import ChainKeys, KeyScan, chain_keys, scan_keys
 
 THREATS = ("T0", "T1", "T2", "T3", "structure", "cross-user")
 # key: concrete keys or codes anyone can run, scored on leakage; search: what an optimiser reaches,
@@ -116,6 +116,7 @@ class ProbeContext:
     deadline: float | None = None
     cut: list[str] = field(default_factory=list)
     kept: dict = field(default_factory=dict)  # outputs computed once (the plain model's, per model)
+    notes: list[str] = field(default_factory=list)  # lines for the report's warnings (shared, like cut)
 
     def affordable(self, rows: int, stage: str, passes: float = 3.0) -> bool:
         """Whether ``rows`` (key, sample) rows, each ``passes`` forwards' cost (3: a forward and its
@@ -160,6 +161,20 @@ class ProbeContext:
             self.counter.ran(len(x), time.perf_counter() - t0)
             held = self.kept[id(km.module)] = (km.module, x, out)  # the module held: its id stays its own
         return held[2]
+
+    def chain(self) -> ChainKeys | None:
+        """The attacked model's exact fp32 chain on the reference inputs (``screen.ChainKeys``), built
+        once per model, inputs and weights before the first keyed layer; None where the model is not a
+        chain MLP or runs within ``max_rows``."""
+        km, x = self.km, self.ref.x
+        if km.max_rows is not None:
+            return None
+        versions = tuple(p._version for p in km.module.parameters())
+        key = ("chain", id(km.module), id(x))
+        held = self.kept.get(key)
+        if held is None or held[2] != versions:
+            held = self.kept[key] = (km.module, x, versions, chain_keys(km, x))  # held: ids stay theirs
+        return held[3]
 
     @property
     def has_key(self) -> bool:
@@ -270,8 +285,11 @@ class ProbeContext:
                 o = base.expand(len(deltas[0]), *base.shape)
             else:
                 t1 = time.perf_counter()
-                o = self.km.run_keys(x, deltas)
+                fast = self.chain()
+                o = fast(deltas) if fast is not None else self.km.run_keys(x, deltas)
                 self.counter.ran(len(deltas[0]) * len(x), time.perf_counter() - t1)
+                if outputs and fast is not None:
+                    o = o.clone()  # the chain's buffer: the next chunk overwrites it
             parts.append({**self.scores(o), **({"outputs": o} if outputs else {})})
             done = min(i + per, rows)
             if self.progress:
@@ -379,7 +397,8 @@ def codes_unenrolled(ctx: ProbeContext, found: list[Group]) -> list[Group]:
 @dataclass(frozen=True)
 class Probe:
     """One registry entry. ``needs`` says what the probe cannot run without: "key" (the audited user's
-    key), "other-keys" (a second user's key), or nothing."""
+    key), "other-keys" (a second user's key), "original" (the original checkpoint: ``--original``, or a
+    base that is the original's), or nothing."""
 
     name: str
     threat: str  # one of THREATS

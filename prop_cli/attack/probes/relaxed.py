@@ -17,6 +17,8 @@ the user's behaviour into such a "control" (it reached 0.53-0.60 on the IL examp
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from . import latent
@@ -59,8 +61,8 @@ def run(ctx: ProbeContext) -> list[Group]:
 
 def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
     out = codes_unenrolled(ctx, [g for g in found if g.kind == "key"])
-    if ctx.original is not None:
-        [direct] = latent.run(ctx.on(ctx.original))
+    if ctx.original is not None:  # T2's own control search (its restarts): run once for both rows
+        [direct] = latent.run(replace(ctx.on(ctx.original), probe=latent.PROBE.name))
         out += [Group(g.name, direct.values, is_key=False, search=direct.search)
                 for g in found if g.kind is None]  # fmt: skip
     return out

@@ -72,7 +72,7 @@ _CALIBRATION_KEYS = 256
 _RELU_LIKE = {nn.ReLU: torch.relu_, nn.Tanh: torch.tanh_}
 
 
-def _chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
+def chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
     """[(kind, name, module)] with kind "linear" or "act", or None if the module is not a plain chain."""
     if hasattr(module, "layer_paths") and hasattr(module, "activation"):  # the MLP adapter's ChainMLP
         act = activations.ACTIVATIONS[module.activation]()
@@ -95,23 +95,30 @@ def _chain_ops(module: nn.Module) -> list[tuple[str, str, nn.Module]] | None:
     return None
 
 
+def _keyed_chain(km, x: torch.Tensor) -> tuple[list, dict[str, int], int, torch.Tensor]:
+    """(the chain's ops, each keyed layer's position in ``km.layer_names``, the op index of the first
+    keyed layer, ``x`` through the layers before it), or ValueError where ``km`` is not a keyed chain."""
+    ops = chain_ops(km.module)
+    if ops is None:
+        raise ValueError("not a chain MLP")
+    pos = {name: i for i, name in enumerate(km.layer_names)}
+    lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
+    if len(lin_at) != len(pos):
+        raise ValueError("keyed layers are not all in the chain")
+    with torch.inference_mode():
+        z = x
+        for _, _, m in ops[: lin_at[0]]:
+            z = m(z)
+    return ops, pos, lin_at[0], z
+
+
 class ChainForward:
     """Outputs (K, S, out) of a chain MLP for K keys' deltas on S fixed samples, in bf16."""
 
     def __init__(self, km, x: torch.Tensor, dtype: torch.dtype = torch.bfloat16) -> None:
-        ops = _chain_ops(km.module)
-        if ops is None:
-            raise ValueError("not a chain MLP")
-        pos = {name: i for i, name in enumerate(km.layer_names)}
-        lin_at = [i for i, (kind, name, _) in enumerate(ops) if kind == "linear" and name in pos]
-        if len(lin_at) != len(pos):
-            raise ValueError("keyed layers are not all in the chain")
-        first = lin_at[0]
+        ops, pos, first, z = _keyed_chain(km, x)
         self.dtype = dtype
         with torch.inference_mode():
-            z = x
-            for _, _, m in ops[:first]:
-                z = m(z)
             w = ops[first][2].weight  # (h, d)
             s, d = z.shape
             h = w.shape[0]
@@ -159,6 +166,63 @@ class ChainForward:
             if bias is not None:
                 y.add_(bias)
         return y.view(k, s, -1)
+
+
+class ChainKeys:
+    """Outputs (K, B, out) of a chain MLP for K keys' deltas on B samples in fp32: ``run_keys``'s own
+    operations (the layers before the first keyed one once, each keyed layer's input times the key's
+    delta, ``addmm`` as ``nn.Linear`` runs it), without hooks, into buffers kept from chunk to chunk and
+    with the activations in place. The exact key probes' path (``ProbeContext._probe``): it leaves out
+    the fresh allocations and copies that cost run_keys as much as its matmuls on a small MLP.
+
+    The output is a buffer the next call overwrites: copy what outlives the chunk."""
+
+    def __init__(self, km, x: torch.Tensor) -> None:
+        if x.dim() != 2:
+            raise ValueError("not flat inputs")
+        ops, pos, first, z = _keyed_chain(km, x)
+        if any(m.weight.dtype != z.dtype for kind, _, m in ops[first:] if kind == "linear"):
+            raise ValueError("weights in another dtype than the inputs: run_keys's promotions apply")
+        self.z, self.samples = z, len(x)
+        self.ops = [(kind, m, pos.get(name) if kind == "linear" else None) for kind, name, m in ops[first:]]
+        self._buffers: dict[int, torch.Tensor] = {}
+
+    def _buffer(self, slot: int, rows: int, cols: int) -> torch.Tensor:
+        buf = self._buffers.get(slot)
+        if buf is None or buf.numel() < rows * cols:
+            buf = self._buffers[slot] = torch.empty(rows * cols, dtype=self.z.dtype, device=self.z.device)
+        return buf[: rows * cols].view(rows, cols)
+
+    @torch.inference_mode()
+    def __call__(self, deltas: list[torch.Tensor]) -> torch.Tensor:
+        k, b = deltas[0].shape[0], self.samples
+        y, slot = None, 0
+        for kind, m, kp in self.ops:
+            if kind == "act":
+                fn = _RELU_LIKE.get(type(m))
+                y = fn(y) if fn is not None else m(y)
+                continue
+            if y is None:  # the first keyed layer: every key on every sample's shared input
+                y = self._buffer(slot, k * b, self.z.shape[1])
+                slot += 1
+                torch.mul(self.z[None], deltas[kp][:, None, :], out=y.view(k, b, -1))
+            elif kp is not None:
+                y.view(k, b, -1).mul_(deltas[kp][:, None, :])
+            out = self._buffer(slot, k * b, m.out_features)
+            slot += 1
+            if m.bias is not None:
+                y = torch.addmm(m.bias, y, m.weight.t(), out=out)
+            else:
+                y = torch.mm(y, m.weight.t(), out=out)
+        return y.view(k, b, -1)
+
+
+def chain_keys(km, x: torch.Tensor) -> ChainKeys | None:
+    """``ChainKeys`` for ``km`` on ``x``, or None where the model is not a chain MLP (run_keys then)."""
+    try:
+        return ChainKeys(km, x)
+    except ValueError:
+        return None
 
 
 def _chunk_seconds(ctx: Scannable, fast: ChainForward, bits: np.ndarray, low: bool) -> float:
