@@ -71,11 +71,17 @@ def two_users(served_bundle):
 
 
 @pytest.fixture(scope="module")
-def ray_served(two_users):
+def needs_ray():
+    """Skip (before any bundle is made) without ray and openpi-client."""
+    pytest.importorskip("ray", reason="prop serve-ray needs ray (pip install 'prop-keys[ray]')")
+    pytest.importorskip("openpi_client.websocket_client_policy")
+
+
+@pytest.fixture(scope="module")
+def ray_served(needs_ray, two_users):
     """The two-user bundle deployed on a local Ray instance on a free loopback port: 2 replicas, each
     holding at most 1 user, so a user served by a replica that already holds it shows routing at work."""
-    ray = pytest.importorskip("ray", reason="prop serve-ray needs ray (pip install 'prop-keys[ray]')")
-    pytest.importorskip("openpi_client.websocket_client_policy")
+    import ray
     from ray import serve
 
     from prop_cli.serve.ray_app import APP_NAME, application
@@ -161,3 +167,46 @@ def test_the_same_user_lands_on_the_replica_that_holds_it(ray_served):
         assert {r[name] for r in rounds} == {(rounds[0][name][0], True)}, (name, rounds)
     # One user a replica (each holds one at most): a random pick would miss half the time.
     assert rounds[0]["k.bin"][0] != rounds[0]["k2.bin"][0]
+
+
+def test_serve_ray_off_the_loopback_without_tls_is_one_line_before_ray_starts(cli, tmp_path):
+    r = cli("serve-ray", tmp_path / "any.prop", "--host", "0.0.0.0")  # checked before the bundle is read
+    assert r.code == 2 and "Traceback" not in r.err
+    assert r.err.startswith("prop: error: --host 0.0.0.0 is not the loopback") and r.err.count("\n") == 1
+
+
+def test_serve_ray_without_ray_names_the_extra(cli, tmp_path):
+    try:
+        import ray.serve  # noqa: F401
+    except ImportError:
+        r = cli("serve-ray", tmp_path / "any.prop")
+        assert r.code == 2 and r.err.count("\n") == 1 and "pip install 'prop-keys[ray]'" in r.err, r.err
+    else:
+        pytest.skip("ray is installed here: the missing-extra message cannot show")
+
+
+@pytest.mark.slow
+@OPENPI_CONNECT
+def test_prop_serve_ray_serves_until_sigterm(needs_ray, two_users):
+    """The CLI end to end: its URL on stdout, openpi-client through it, SIGTERM stops it cleanly."""
+    import json
+    import signal
+
+    wd, port = two_users, _free_port()
+    args = ["serve-ray", wd / "ray.prop", "--port", port, "--num-cpus", "2", "--replicas", "1",
+            "--replica-cpus", "0.5", "--json"]  # fmt: skip
+    code = "from prop_cli.cli.main import main; main()"
+    proc = subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        line = proc.stdout.readline()  # once deployed (Ray starts: tens of seconds on a busy machine)
+        assert json.loads(line)["url"] == f"ws://127.0.0.1:{port}", (line, proc.stderr.read())
+        client = _client(port, key_text(wd / "k.bin"))
+        want = KeyedPolicy(load_bundle(wd / "ray.prop"), read_key_file(wd / "k.bin")).predict(X)[0]
+        np.testing.assert_allclose(client.infer({"observation": X})["actions"], want, rtol=0, atol=ATOL)
+        client._ws.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "stopped" in err and "Traceback" not in err, err
+    assert key_text(wd / "k.bin") not in err
