@@ -101,6 +101,10 @@ class PolicyReplica:
         users = int(options.get("users_per_replica", USERS_PER_REPLICA))
         self.slot = serve.multiplexed(max_num_models_per_replica=users)(slot)
 
+    def _unchanged(self) -> None:
+        if bundle_stamp(self.path) != self.stamp:
+            raise PropError("the bundle changed on disk since the server started", "redeploy prop serve-ray")
+
     async def _session(self, key_text: str | None) -> tuple[Session, bool]:
         """(the request's session, whether this replica already held its user: no check, no decryption)."""
         if key_text is None:
@@ -112,9 +116,7 @@ class PolicyReplica:
         cache = await self.slot(route)
         held, _ = cache.get(bits)
         if not held:
-            if bundle_stamp(self.path) != self.stamp:
-                raise PropError("the bundle changed on disk since the server started",
-                                "redeploy prop serve-ray")  # fmt: skip
+            self._unchanged()  # a key is checked only against the bundle this replica loaded
             self.decrypted += 1
         return Session(self.bundle, bits, self.allow, cache), held
 
@@ -122,6 +124,7 @@ class PolicyReplica:
         """A connection's key checked: (openpi's server metadata, None), or (None, the refusal's line).
         The metadata says which replica answers and whether it already held this user (routing's work)."""
         try:
+            self._unchanged()  # as prop serve: no new connection once the bundle changed on disk
             session, held = await self._session(key_text)
         except PropError as e:
             return None, e.what.replace(str(self.path), self.path.name)
