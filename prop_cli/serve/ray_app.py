@@ -26,6 +26,7 @@ default install does not need ray (the ``ray`` extra).
 # No `from __future__ import annotations` here: Ray Serve's class-based FastAPI routes rewrite the
 # endpoint's signature, and a string annotation ("WebSocket") would no longer resolve (a 403 on connect).
 import asyncio
+import contextlib
 import logging
 import os
 import signal
@@ -46,7 +47,7 @@ from .batcher import Batcher
 from .cache import BehaviourCache
 from .route import NO_KEY, route_salt, routing_id
 from .rows import run_requests
-from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, bundle_stamp
+from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, _reason, bundle_stamp
 from .sessions import OBSERVATION, Session
 from .wire import WireError, packb, unpackb
 
@@ -66,10 +67,6 @@ def check_servable(bundle: Bundle) -> None:
             "queues live per connection in one process)",
             "serve it with prop serve",
         )
-
-
-def _reason(text: str) -> str:
-    return text.encode()[:120].decode(errors="ignore")
 
 
 class PolicyReplica:
@@ -223,6 +220,10 @@ class Gateway:
                 await (ws.send_bytes(reply) if isinstance(reply, bytes) else ws.send_text(reply))
         except WebSocketDisconnect:
             return
+        except Exception as e:  # a replica lost mid-request: one line, this connection closed, others go on
+            LOG.error("%s: the policy failed: %s", host, type(e).__name__)
+            with contextlib.suppress(Exception):
+                await ws.close(CLOSE_ERROR, "internal error: the policy failed; connect again")
 
 
 def application(
