@@ -169,7 +169,6 @@ def test_the_same_user_lands_on_the_replica_that_holds_it(ray_served):
     assert rounds[0]["k.bin"][0] != rounds[0]["k2.bin"][0]
 
 
-
 @pytest.mark.slow
 @OPENPI_CONNECT
 def test_a_bundle_changed_on_disk_refuses_new_connections(ray_served):
@@ -184,6 +183,7 @@ def test_a_bundle_changed_on_disk_refuses_new_connections(ray_served):
         with pytest.raises(ConnectionClosed) as e:
             _client(port, key_text(wd / name) if name else None)
         assert e.value.rcvd.code == 1008 and "changed on disk" in e.value.rcvd.reason
+
 
 def test_serve_ray_off_the_loopback_without_tls_is_one_line_before_ray_starts(cli, tmp_path):
     r = cli("serve-ray", tmp_path / "any.prop", "--host", "0.0.0.0")  # checked before the bundle is read
