@@ -47,7 +47,7 @@ from .batcher import Batcher
 from .cache import BehaviourCache
 from .route import NO_KEY, route_salt, routing_id
 from .rows import run_requests
-from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, _reason, bundle_stamp
+from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, bundle_stamp
 from .sessions import OBSERVATION, Session
 from .wire import WireError, packb, unpackb
 
@@ -60,13 +60,19 @@ _SLOT_BYTES = 2**62
 
 
 def check_servable(bundle: Bundle) -> None:
-    """A LeRobot policy's episode state is per connection in one process: Ray replicas do not share it."""
-    if bundle.loaded.policy is not None:
+    """A LeRobot policy's episode state is per connection in one process: Ray replicas do not share it
+    (``Session`` tells the two kinds apart: a policy's session has a controller)."""
+    if Session(bundle, None, False).controller is not None:
         raise PropError(
             f"{bundle.path} is a LeRobot policy; prop serve-ray serves array models (a policy's action "
             "queues live per connection in one process)",
             "serve it with prop serve",
         )
+
+
+def close_reason(text: str) -> str:
+    """A close reason: RFC 6455 allows 123 bytes."""
+    return text.encode()[:120].decode(errors="ignore")
 
 
 class PolicyReplica:
@@ -198,7 +204,7 @@ class Gateway:
         if refused is not None:
             self.backoff.failed(host)
             LOG.warning("%s: refused: %s", host, refused)
-            await ws.close(CLOSE_POLICY, _reason(f"refused: {refused}"))
+            await ws.close(CLOSE_POLICY, close_reason(f"refused: {refused}"))
             return
         if key_text is not None:
             self.backoff.opened(host)
