@@ -101,6 +101,7 @@ __all__ = [
     "run_file",
     "select_probes",
     "serve_bundle",
+    "serve_ray",
     "user_keys",
     "verify_bundle",
 ]
@@ -573,3 +574,40 @@ def remove_user(
             drop_record(export, record, version or None)
         new = rewrite_records(Path(bundle_path), bundle.manifest, new, [])
     return UserChange(Path(bundle_path), record, len(new[C.M_RECORDS]))
+
+
+def serve_ray(
+    bundle_path: Path, *, replicas: int = 2, users_per_replica: int = 64, address: str | None = None,
+    num_cpus: int | None = None, replica_cpus: float = 1.0, host: str = C.SERVE_HOST,
+    port: int = C.SERVE_PORT, tls_cert: Path | None = None, tls_key: Path | None = None,
+    allow_unenrolled_key: bool = False, batch_window_ms: float = C.SERVE_BATCH_WINDOW_MS,
+    max_batch: int = C.SERVE_MAX_BATCH, trust_remote_code: bool = False, arch: str | None = None,
+    allow_rollback: bool = False, ready: Callable[[str], None] | None = None,
+) -> None:  # fmt: skip
+    """`prop serve-ray`: `prop serve` as a Ray Serve application (``prop_cli.serve.ray_app``) on a local
+    Ray instance, or on the cluster at ``address``, until SIGINT/SIGTERM; ``ready(url)`` once deployed.
+    The bundle, the options, the address and TLS are checked before Ray starts."""
+    try:
+        from prop_cli.serve.server import tls_context
+    except ImportError as e:
+        raise PropError(f"prop serve-ray needs {e.name}, which is not installed",
+                        "pip install 'prop-keys[ray]'") from None  # fmt: skip
+    tls_context(host, tls_cert, tls_key)  # a refused address says so before Ray or the model load
+    try:
+        from prop_cli.serve import ray_app
+    except ImportError as e:
+        raise PropError(f"prop serve-ray needs Ray Serve ({e.name} is not installed)",
+                        "pip install 'prop-keys[ray]'") from None  # fmt: skip
+    if address is not None and num_cpus is not None:
+        raise PropError("--num-cpus sizes a local Ray instance; a cluster (--address) has its own",
+                        "drop --num-cpus, or --address")  # fmt: skip
+    bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch,
+                         allow_rollback=allow_rollback)  # fmt: skip
+    app = ray_app.application(
+        Path(bundle_path), replicas=replicas, users_per_replica=users_per_replica,
+        allow_unenrolled=allow_unenrolled_key, batch_window_ms=batch_window_ms, max_batch=max_batch,
+        replica_cpus=replica_cpus, trust_remote_code=trust_remote_code, arch=arch,
+        allow_rollback=allow_rollback, bundle=bundle,
+    )  # fmt: skip
+    ray_app.run_app(app, address=address, host=host, port=port, tls_cert=tls_cert, tls_key=tls_key,
+                    num_cpus=num_cpus, ready=ready)  # fmt: skip

@@ -146,10 +146,13 @@ def installing_scripts() -> list[str]:
 
 
 def test_the_set_up_scripts_install_through_pip_install() -> None:
-    assert installing_scripts() == ["setup-lerobot.sh", "setup.sh"]
+    assert installing_scripts() == ["setup-lerobot.sh", "setup-ray.sh", "setup.sh"]
 
 
-@pytest.mark.parametrize("script", ["demo.sh", "setup.sh", "setup-lerobot.sh", "test.sh", "test-lerobot.sh"])
+@pytest.mark.parametrize(
+    "script",
+    ["demo.sh", "setup.sh", "setup-lerobot.sh", "setup-ray.sh", "test.sh", "test-lerobot.sh", "test-ray.sh"],
+)
 def test_each_set_up_script_says_its_total(script: str) -> None:
     lines = [line.strip() for line in (SCRIPTS / script).read_text().splitlines()]
     name = script.removesuffix(".sh")

@@ -24,6 +24,7 @@ from . import (
     push_cmd,
     run_cmd,
     serve_cmd,
+    serve_ray_cmd,
     users_cmd,
     verify_cmd,
 )
@@ -112,6 +113,7 @@ COMMANDS = {
     "attack": attack_cmd.attack,
     "eval": eval_cmd.eval_,
     "serve": serve_cmd.serve,
+    "serve-ray": serve_ray_cmd.serve_ray,
     "export": export_cmd.export,
     "push": push_cmd.push,
     "verify": verify_cmd.verify,

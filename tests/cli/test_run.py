@@ -62,7 +62,7 @@ def test_a_key_enrolled_in_nothing_fails_unless_allowed(cli, workdir, bundle):
     assert cli("run", bundle, "--input", workdir / "x.npy", "--output", workdir / "y0.npy").code == 0
     np.testing.assert_array_equal(np.load(workdir / "y.npy"), np.load(workdir / "y0.npy"))
     takes = {c.name for c in app.registered_commands if "--allow-unenrolled-key" in cli(c.name, "--help").out}
-    assert takes == {"run", "eval", "export", "attack", "serve"}
+    assert takes == {"run", "eval", "export", "attack", "serve", "serve-ray"}
 
 
 def test_wrong_input_shape_for_run(cli, workdir, bundle):
