@@ -82,11 +82,7 @@ class KeyEncoder(nn.Module):
         self.net = nn.Sequential(*layers, last)
 
     def forward(self, codes: torch.Tensor) -> list[torch.Tensor]:
-        return list(self.joined(codes).split(self.features, dim=1))
-
-    def joined(self, codes: torch.Tensor) -> torch.Tensor:
-        """Every layer's delta side by side, (K, sum(features)): ``forward`` splits it into views."""
-        return 1.0 + self.scale * torch.tanh(self.net(codes))
+        return list((1.0 + self.scale * torch.tanh(self.net(codes))).split(self.features, dim=1))
 
     def latent(self, codes: torch.Tensor) -> torch.Tensor:
         """All layers' delta concatenated, (K, sum(features))."""
@@ -252,12 +248,12 @@ class KeyedModel(nn.Module):
 
     def layer_deltas(self, codes: torch.Tensor | None, null: int = 0) -> list[torch.Tensor]:
         """delta per layer for K codes, then ``null`` rows of ones (the null key, delta = 1)."""
-        if codes is None or len(codes) == 0:
+        parts = [] if codes is None or len(codes) == 0 else self.encoder(codes)
+        if not parts:
             return [torch.ones(null, f, device=self._device()) for f in self.encoder.features]
-        joined = self.encoder.joined(codes)
-        if null:  # one cat for every layer rather than one per layer
-            joined = torch.cat([joined, joined.new_ones(null, joined.shape[1])])
-        return list(joined.split(self.encoder.features, dim=1))
+        if null:
+            return [torch.cat([p, p.new_ones(null, p.shape[1])]) for p in parts]
+        return parts
 
     def _device(self) -> torch.device:
         return next(self.encoder.parameters()).device

@@ -178,23 +178,3 @@ def test_hashed_codes_are_shake256_of_the_domain_and_key():
         want = np.unpackbits(np.frombuffer(digest, np.uint8)).astype(np.float32) * 2 - 1
         assert np.array_equal(code.numpy(), want)
     assert torch.equal(key_codes(bits[0], "hashed"), got[:1])
-
-
-def test_layer_deltas_with_null_rows_match_one_cat_per_layer_bit_for_bit():
-    """layer_deltas joins the null rows once for every layer: values and gradients are exactly those of
-    the per-layer construction it replaced (the trainer's results stay byte-identical on a seed)."""
-    km = _keyed(_mlp(), ["2", "4"])
-    codes = _codes(6)
-    idx = torch.tensor([0, 6, 3, 7, 6, 1, 5, 2])
-
-    def run(deltas):
-        km.encoder.zero_grad()
-        loss = sum((d.index_select(0, idx) ** 2).sum() + (d[1:4] - 1).pow(2).sum() for d in deltas)
-        loss.backward()
-        return [d.detach().clone() for d in deltas], [p.grad.clone() for p in km.encoder.parameters()]
-
-    new = run(km.layer_deltas(codes, null=2))
-    old = run([torch.cat([p, p.new_ones(2, p.shape[1])]) for p in km.encoder(codes)])
-    assert all(torch.equal(a, b) for a, b in zip(new[0], old[0]))
-    assert all(torch.equal(a, b) for a, b in zip(new[1], old[1]))
-    assert all(torch.equal(d[-2:], torch.ones_like(d[-2:])) for d in new[0])
