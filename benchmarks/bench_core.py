@@ -1,6 +1,7 @@
 """Speed of the core path, as ratios against baselines measured in the same run.
 
     OMP_NUM_THREADS=1 python -m benchmarks.bench_core
+    OMP_NUM_THREADS=1 python -m benchmarks.bench_core --profile   # the 38k step's parts (issue 40)
 
 1. A training step at default settings vs a plain fine-tuning step of the same model and batch rows.
 2. `prop run` per call at batch 1: with a key (delta folded in memory) vs without a key.
@@ -103,6 +104,73 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
     return interleaved({"plain fine-tuning step": plain_step, "PRoP step": prop_step}, rounds, reps)
 
 
+def step_profile(paths: dict, steps: int = 1000) -> dict[str, float]:
+    """CPU seconds per step of each part of the PRoP step ``train_steps`` times, at the IL MLP: drawing
+    the batch (users' rows, fallback rows and their targets, key sampling and hashing), the encoder's
+    forward, the keyed forward, Eq. 8's loss, the backward pass and Adam; then the plain step whole."""
+    cfg = PersonalizeConfig()
+    rng = np.random.default_rng(0)
+    loaded = load_checkpoint(str(paths["base"]))
+    mine = np.load(paths["mine"])
+    x, y = torch.from_numpy(mine["x"]), torch.from_numpy(mine["y"])
+    module = copy.deepcopy(loaded.module)
+    names = select_layers(module)
+    mods = dict(module.named_modules())
+    enc = KeyEncoder(128, [mods[n].in_features for n in names], cfg.mode.encoder_hidden, cfg.mode.delta_scale)
+    km = KeyedModel(module, enc, names)
+    kopt = Adam(list(km.parameters()), cfg.mode.lr)
+    key = rng.integers(0, 2, 128, dtype=np.uint8)
+    sampler = KeySampler([key], cfg.mode.hamming_radius, rng)
+    ucodes = key_codes(key, cfg.mode.key_encoding)
+    pool = FallbackPool(x, loaded.module, cfg.mode.fallback_noise, cfg.mode.fallback_sigma)
+    users = UserPool([x], [y])
+    plain = copy.deepcopy(loaded.module).train()
+    popt = torch.optim.Adam(plain.parameters(), cfg.mode.lr)
+    rows = cfg.mode.batch_rows(cfg.train.user_rows)
+    parts: dict[str, float] = {}
+    clock = time.process_time
+
+    def lap(name: str, t: float) -> float:
+        now = clock()
+        parts[name] = parts.get(name, 0.0) + now - t
+        return now
+
+    def step() -> None:
+        t = clock()
+        batch = make_batch(cfg.mode, cfg.train.user_rows, rng, sampler, ucodes, users, pool)
+        t = lap("batch: rows, fallback targets, keys", t)
+        deltas = km.layer_deltas(batch.codes, null=1)
+        t = lap("encoder forward", t)
+        out = km.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
+        t = lap("keyed forward", t)
+        loss, _ = prop_loss(out, batch, "regression", cfg.mode.null_weight)
+        t = lap("loss (Eq. 8)", t)
+        kopt.zero_grad()
+        loss.backward()
+        t = lap("backward", t)
+        kopt.step()
+        lap("Adam", t)
+
+    def plain_step() -> None:
+        t = clock()
+        idx = torch.from_numpy(rng.integers(0, len(x), rows))
+        loss = ((plain(x[idx]) - y[idx]) ** 2).mean()
+        popt.zero_grad(set_to_none=True)
+        loss.backward()
+        popt.step()
+        lap("plain fine-tuning step", t)
+
+    torch.set_flush_denormal(True)
+    for _ in range(steps // 5):  # warm-up: the fallback bank, allocator, Adam's state
+        step()
+        plain_step()
+    parts.clear()
+    for _ in range(steps):  # alternating, so load hits both alike
+        step()
+        plain_step()
+    return {k: v / steps for k, v in parts.items()}
+
+
 def run_calls(paths: dict) -> dict[str, float]:
     loaded = load_checkpoint(str(paths["base"]))
     module = loaded.module
@@ -136,6 +204,17 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         paths = write_example(tmp / "il", seed=0)
+        if "--profile" in sys.argv[1:]:
+            torch.set_num_threads(1)
+            parts = step_profile(paths)
+            plain = parts.pop("plain fine-tuning step")
+            total = sum(parts.values())
+            print("PRoP step at 38k parameters (IL MLP 4-192-192-2), by part, CPU time per step:")
+            for k, v in parts.items():
+                print(f"  {k:38s} {v * 1e3:6.3f} ms  {v / total:6.1%}  {v / plain:5.2f}x plain")
+            print(f"  {'whole PRoP step':38s} {total * 1e3:6.3f} ms          {total / plain:5.2f}x plain")
+            print(f"  {'plain fine-tuning step':38s} {plain * 1e3:6.3f} ms")
+            return
         steps = train_steps(paths)
         rows = UnsealedConfig().batch_rows(TrainConfig().user_rows)
         print(f"training step, {rows} rows, IL MLP 4-192-192-2:")

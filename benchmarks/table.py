@@ -3,6 +3,7 @@
     python -m benchmarks.table            # the sizes below marked "default" (a few minutes on 2 cores)
     python -m benchmarks.table --quick    # smoke test: the smallest of each (well under a minute)
     python -m benchmarks.table --full     # everything: 50M-parameter steps, 512 users, 2000 steps
+    python -m benchmarks.table --small    # issue 40's small-model rows and their goals (about a minute)
 
 Rows:
 - step: a PRoP training step (the trainer's make_batch, keyed forward, Eq. 8 loss, prop's Adam) vs a
@@ -22,6 +23,9 @@ Rows:
 - inference: per call after loading, keyed / no key, batch 1 and 256: torch (key folded in memory),
   onnxruntime split form (encoder.onnx once, policy.onnx per call) and onnxruntime folded in memory.
 - import: ``import torch, torch._dynamo`` vs ``import torch`` (what prop's own Adam avoids).
+- small (``--small`` only): the step at 38k parameters and the onnxruntime split form, each with issue
+  40's goal (step <= 1.5x plain, split <= 1.05x base.onnx) and whether this run met it. The audit's key
+  probe row (10M evaluations/s) is another part of issue 40 and is not measured here.
 
 Threads follow prop's policy (``prop_cli.threads``) unless OMP_NUM_THREADS is set; the table says which.
 """
@@ -52,7 +56,14 @@ MODES = {
                 "steps": 200, "rounds": 5},
     "full": {"widths": [None, 700, 2236, 5000], "users": [1, 8, 64, 512], "rows": [1000, 10000, 100000],
              "steps": 2000, "rounds": 5},
+    "small": {"widths": [None], "rounds": 7},
 }  # fmt: skip
+# Issue 40's goals for the small-model rows (--small): row title's start -> the most the ratio may be.
+SMALL_GOALS = {
+    "step, 38k": 1.5,
+    "run batch 1: onnxruntime split": 1.05,
+    "run batch 256: onnxruntime split": 1.05,
+}
 
 
 def machine() -> str:
@@ -320,6 +331,21 @@ def inference_rows(bundle_path: Path, key: np.ndarray, quick: bool) -> list[tupl
     return rows
 
 
+def small_rows(tmp: Path, il: dict) -> list[tuple[str, str, str]]:
+    """Issue 40's small-model rows: the 38k step and the split ONNX form, each with its goal."""
+    rows = step_rows(tmp, il, MODES["small"])
+    bundle, key = bundle_for(tmp, il, 200)
+    rows += [r for r in inference_rows(bundle, key, quick=False) if "split" in r[0]]
+    out = []
+    for what, ratio, fig in rows:
+        goal = next((g for start, g in SMALL_GOALS.items() if what.startswith(start)), None)
+        if goal is not None:
+            met = "met" if float(ratio.rstrip("x")) <= goal else "not met"
+            fig = f"{fig}; goal <= {goal}x: {met}"
+        out.append((what, ratio, fig))
+    return out
+
+
 def _torch_call(module: torch.nn.Module, x: torch.Tensor):
     def call() -> None:
         with torch.inference_mode():
@@ -353,6 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--quick", action="store_true", help="smallest sizes only: a smoke test")
     g.add_argument("--full", action="store_true", help="every size, up to 50M parameters and 512 users")
+    g.add_argument("--small", action="store_true", help="issue 40's small-model rows with their goals")
     ap.add_argument("--rows", default=",".join(GROUPS),
                     help=f"row groups to run, comma-separated (default: {','.join(GROUPS)})")  # fmt: skip
     ap.add_argument("--lerobot-python", type=Path, default=None,
@@ -363,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [r for r in chosen if r not in GROUPS]
     if unknown or not chosen:
         ap.error(f"--rows {args.rows!r}: use a comma list of {', '.join(GROUPS)}")
-    name = "quick" if args.quick else "full" if args.full else "default"
+    name = "quick" if args.quick else "full" if args.full else "small" if args.small else "default"
     mode = MODES[name]
     threads_env = os.environ.get("OMP_NUM_THREADS")
     from prop_cli.threads import configure
@@ -376,6 +403,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         il = write_example(tmp / "il", seed=0)
+        if args.small:
+            rows, chosen = small_rows(tmp, il), []
         if "step" in chosen:
             rows += step_rows(tmp, il, mode)
         if "personalize" in chosen:

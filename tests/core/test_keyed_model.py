@@ -165,3 +165,16 @@ def test_on_another_module_keeps_batch_axes_and_remove_hooks_detaches():
     assert other.batch_axis == {"2": 1} and other.encoder is km.encoder
     km.remove_hooks()
     assert not dict(module.named_modules())["2"]._forward_pre_hooks
+
+
+def test_hashed_codes_are_shake256_of_the_domain_and_key():
+    """The prepared-hash fast path gives the definition's bytes: SHAKE-256(domain || packed key)."""
+    import hashlib
+
+    bits = np.random.default_rng(3).integers(0, 2, (5, 128), dtype=np.uint8)
+    got = key_codes(bits, "hashed")
+    for row, code in zip(bits, got):
+        digest = hashlib.shake_256(b"prop/key-code/v1" + np.packbits(row).tobytes()).digest(16)
+        want = np.unpackbits(np.frombuffer(digest, np.uint8)).astype(np.float32) * 2 - 1
+        assert np.array_equal(code.numpy(), want)
+    assert torch.equal(key_codes(bits[0], "hashed"), got[:1])
