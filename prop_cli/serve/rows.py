@@ -62,26 +62,35 @@ class _Mismatch(RuntimeError):
     """A keyed layer saw a batch whose first axis is not the rows: run the groups apart."""
 
 
-def _payload_hooks(module: nn.Module, payloads: list[Payload], index: list[torch.Tensor], rows: int):
-    """Hooks that give row group g (``index[g]``) payload ``payloads[g]`` on every keyed linear layer."""
+def _payload_hooks(
+    module: nn.Module, payloads: list[Payload], index: list[torch.Tensor], rows: int,
+    axes: dict[str, int] | None = None,
+):  # fmt: skip
+    """Hooks that give row group g (``index[g]``) payload ``payloads[g]`` on every keyed linear layer.
+    ``axes``: the batch axis of a layer's input where it is not 0 (a sequence-first transformer layer,
+    LeRobot's ACT: (S, B, D)); the rows are gathered along it."""
     spec = payloads[0].spec
     mods = dict(module.named_modules())
+    axes = axes or {}
     handles = []
     for layer in spec.layers:
         name = layer["name"]
         lin = mods[name]
         parts = set(spec.variant.shapes(layer, spec.rank))
+        axis = axes.get(name, 0)
 
         if "delta" in parts:
             scale = torch.ones(rows, lin.in_features, dtype=lin.weight.dtype)
             for p, idx in zip(payloads, index):
                 scale[idx] = p.tensor(name, "delta").detach().to(scale.dtype)
 
-            def pre(mod, args, scale=scale):
+            def pre(mod, args, scale=scale, axis=axis):
                 z = args[0]
-                if z.shape[0] != rows:
+                if z.dim() < 2 or z.shape[axis] != rows:
                     raise _Mismatch()
-                return (z * scale.view(rows, *([1] * (z.dim() - 2)), -1), *args[1:])
+                shape = [1] * z.dim()
+                shape[axis], shape[-1] = rows, scale.shape[1]
+                return (z * scale.to(z.dtype).view(shape), *args[1:])
 
             handles.append(lin.register_forward_pre_hook(pre))
 
@@ -92,28 +101,33 @@ def _payload_hooks(module: nn.Module, payloads: list[Payload], index: list[torch
             a_rows = torch.stack([p.tensor(name, "lora_a").detach() for p in payloads]).index_select(0, user)
             b_rows = torch.stack([p.tensor(name, "lora_b").detach() for p in payloads]).index_select(0, user)
 
-            def post(mod, args, out, keyed=keyed, a_rows=a_rows, b_rows=b_rows):
+            def post(mod, args, out, keyed=keyed, a_rows=a_rows, b_rows=b_rows, axis=axis):
                 z = args[0]
-                if z.shape[0] != rows:
+                if z.dim() < 2 or z.shape[axis] != rows:
                     raise _Mismatch()
-                zk = z.index_select(0, keyed)
+                zk = z.movedim(axis, 0).index_select(0, keyed)
                 flat = zk.reshape(zk.shape[0], -1, zk.shape[-1])  # (K, M, in)
-                extra = torch.bmm(torch.bmm(flat, a_rows.transpose(1, 2)), b_rows.transpose(1, 2))
-                return out.index_add(0, keyed, extra.reshape(*zk.shape[:-1], -1).to(out.dtype))
+                a, b = a_rows.to(flat.dtype), b_rows.to(flat.dtype)
+                extra = torch.bmm(torch.bmm(flat, a.transpose(1, 2)), b.transpose(1, 2))
+                moved = out.movedim(axis, 0)
+                moved = moved.index_add(0, keyed, extra.reshape(*zk.shape[:-1], -1).to(out.dtype))
+                return moved.movedim(0, axis)
 
             handles.append(lin.register_forward_hook(post))
 
         if "weight_delta" in parts:  # a whole weight per user: rows of one user at a time
 
-            def post(mod, args, out, name=name):
+            def post(mod, args, out, name=name, axis=axis):
                 z = args[0]
-                if z.shape[0] != rows:
+                if z.dim() < 2 or z.shape[axis] != rows:
                     raise _Mismatch()
+                z, moved = z.movedim(axis, 0), out.movedim(axis, 0)
                 for p, idx in zip(payloads, index):
                     zi = z.index_select(0, idx)
-                    extra = zi @ p.tensor(name, "weight_delta").detach().T + p.tensor(name, "bias_delta")
-                    out = out.index_add(0, idx, extra.to(out.dtype))
-                return out
+                    w, b = p.tensor(name, "weight_delta").detach(), p.tensor(name, "bias_delta").detach()
+                    extra = zi @ w.to(zi.dtype).T + b.to(zi.dtype)
+                    moved = moved.index_add(0, idx, extra.to(out.dtype))
+                return moved.movedim(0, axis)
 
             handles.append(lin.register_forward_hook(post))
     return handles
@@ -158,23 +172,18 @@ def _together(module: nn.Module, keyed, requests: Sequence[Request]) -> list[tor
     return list(torch.split(y, sizes))
 
 
-def _deltas(keyed, x: torch.Tensor, requests: Sequence[Request]) -> torch.Tensor:
-    """Unsealed: every row's delta (ones for the base) in one ``run_rows``."""
+def row_deltas(keyed, requests: Sequence) -> list[torch.Tensor]:
+    """Every row's delta per keyed layer (ones for a row without one), one row per batch row."""
     ones = [torch.ones(1, f) for f in keyed.encoder.features]
-    per_layer = [
+    return [
         torch.cat([(r.behaviour.deltas[i] if isinstance(r.behaviour, Deltas) else ones[i]).to(ones[i].dtype)
                    .expand(r.rows, -1) for r in requests])
         for i in range(len(ones))
     ]  # fmt: skip
-    rows = torch.arange(x.shape[0])
-    try:
-        return keyed.run_rows(x, per_layer, rows)
-    except RuntimeError as e:  # keyed_model's row mismatch
-        raise _Mismatch() from e
 
 
-def _payloads(module: nn.Module, x: torch.Tensor, requests: Sequence[Request]) -> torch.Tensor:
-    """Sealed: the base once, each user's payload on their rows (the base's rows untouched)."""
+def payload_groups(requests: Sequence) -> tuple[list[Payload], list[torch.Tensor]]:
+    """The distinct payloads among ``requests`` and the batch rows of each (rows numbered in order)."""
     groups: dict[int, tuple[Payload, list[int]]] = {}
     start = 0
     for r in requests:
@@ -182,7 +191,21 @@ def _payloads(module: nn.Module, x: torch.Tensor, requests: Sequence[Request]) -
             groups.setdefault(id(r.behaviour), (r.behaviour, []))[1].extend(range(start, start + r.rows))
         start += r.rows
     payloads = [p for p, _ in groups.values()]
-    index = [torch.tensor(rows, dtype=torch.long) for _, rows in groups.values()]
+    return payloads, [torch.tensor(rows, dtype=torch.long) for _, rows in groups.values()]
+
+
+def _deltas(keyed, x: torch.Tensor, requests: Sequence[Request]) -> torch.Tensor:
+    """Unsealed: every row's delta (ones for the base) in one ``run_rows``."""
+    rows = torch.arange(x.shape[0])
+    try:
+        return keyed.run_rows(x, row_deltas(keyed, requests), rows)
+    except RuntimeError as e:  # keyed_model's row mismatch
+        raise _Mismatch() from e
+
+
+def _payloads(module: nn.Module, x: torch.Tensor, requests: Sequence[Request]) -> torch.Tensor:
+    """Sealed: the base once, each user's payload on their rows (the base's rows untouched)."""
+    payloads, index = payload_groups(requests)
     handles = _payload_hooks(module, payloads, index, x.shape[0])
     try:
         return module(x)

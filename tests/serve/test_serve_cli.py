@@ -58,3 +58,33 @@ def test_a_served_process_answers_openpi_client_and_stops_on_sigterm(served_bund
     assert "connected (keyed)" in err and "stopped after 1 connection" in err and "Traceback" not in err
     key_bytes = (served_bundle / "k.bin").read_bytes()
     assert text not in err + out and text.upper() not in err + out and key_bytes.hex() not in err + out
+
+
+def test_sigterm_drains_the_requests_waiting_in_a_batch(served_bundle):
+    """A request waiting in its batch window when SIGTERM comes is answered; then the process exits 0."""
+    import concurrent.futures as cf
+    import time
+
+    code = "from prop_cli.cli.main import main; main()"
+    args = [sys.executable, "-c", code, "serve", str(served_bundle / "mine.prop"), "--port", "0", "--json",
+            "--batch-window-ms", "800"]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        url = json.loads(line)["url"] if line.startswith("{") else line
+        assert url.startswith("ws://127.0.0.1:"), (url, proc.stderr.read() if proc.poll() is not None else "")
+        client = client_policy.WebsocketClientPolicy(host=url, api_key=key_text(served_bundle / "k.bin"))
+        x = {"observation": np.zeros(4, np.float32)}
+        want = client.infer(x)["actions"]  # the first: its window passes alone
+        with cf.ThreadPoolExecutor(1) as pool:
+            job = pool.submit(client.infer, x)
+            time.sleep(0.3)  # the request is in its window (800 ms)
+            proc.send_signal(signal.SIGTERM)
+            np.testing.assert_array_equal(job.result(timeout=30)["actions"], want)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "drained" in err and "Traceback" not in err

@@ -67,3 +67,102 @@ def test_act_answers_its_whole_chunk_per_connection(act_bundle, start_bundle):
     assert keyed.infer({"reset": True}) == {"reset": True}
     for c in (keyed, nokey):
         c._ws.close()
+
+
+# Batched rows against each key's own KeyedPolicy chunk: (W diag d) x against W (d x), B (A x) against
+# (W + B A) x, over a larger batch, and ACT's (S, B, D) attention summed over more rows. Measured here
+# (float32, CPU): see the print of each test; held under 1e-5.
+ATOL = 1e-5
+KEY2 = np.random.default_rng(2).integers(0, 2, 128).astype(np.uint8)
+WRONG = np.random.default_rng(3).integers(0, 2, 128).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def sealed_act(act_bundle, tmp_path_factory):
+    """ACT sealed (LoRA payloads) for two users, KEY and KEY2."""
+    d = act_bundle.parent
+    if not (d / "user2").exists():
+        task.record(d / "user2", 3, 60_000, -task.USER_OFFSET)
+    out = tmp_path_factory.mktemp("serve-lerobot-sealed") / "bundle"
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "payload": "lora", "payload_rank": 2}))
+    api.personalize_checkpoint(
+        str(d / "act"), [(d / "user", KeySource(KEY, "file")), (d / "user2", KeySource(KEY2, "file"))], out,
+        cfg,
+    )  # fmt: skip
+    return out
+
+
+def _frames(bundle, n: int, seed: int = 0) -> list[dict]:
+    features = bundle.loaded.policy.config.input_features
+    rng = np.random.default_rng(seed)
+    return [{k: rng.uniform(-1, 1, tuple(f.shape)).astype(np.float32) for k, f in features.items()}
+            for _ in range(n)]  # fmt: skip
+
+
+def _alone(bundle, key, frame, allow=False) -> np.ndarray:
+    """What KeyedPolicy's controller gives for ``frame`` on a fresh episode (the first call's noise)."""
+    policy = KeyedPolicy(bundle, key, allow_unenrolled=allow)
+    policy.reset()
+    return policy.controller.action_chunk(frame)
+
+
+@pytest.mark.parametrize("sealed", [False, True])
+def test_mixed_users_share_one_forward_and_equal_their_own_runs(sealed, act_bundle, sealed_act):
+    from prop_cli.serve.cache import BehaviourCache
+    from prop_cli.serve.chunks import ChunkRunner, batchable
+    from prop_cli.serve.rows import Deltas
+    from prop_cli.serve.sessions import Session
+
+    bundle = load_bundle(sealed_act if sealed else act_bundle)
+    assert batchable(bundle)
+    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    assert runner.axes.get("model.encoder.layers.0.linear1") == 1  # ACT's encoder is sequence-first
+    who = [KEY, None, KEY2, WRONG, KEY] if sealed else [KEY, None, WRONG, KEY]
+    sessions = [Session(bundle, k, True, cache, runner) for k in who]
+    if sealed:
+        from prop_cli.core.payload import Payload
+
+        assert isinstance(sessions[0].behaviour, Payload) and sessions[0].behaviour is sessions[4].behaviour
+        assert sessions[2].behaviour is not sessions[0].behaviour
+    else:
+        assert isinstance(sessions[0].behaviour, Deltas)
+    assert sessions[1].behaviour is None and sessions[3 if sealed else 2].behaviour is None
+    frames = _frames(bundle, len(who))
+    before = runner.batches
+    got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
+    assert runner.batches == before + 1  # one forward of the base for every user's rows
+    worst = 0.0
+    for k, f, y in zip(who, frames, got):
+        want = _alone(bundle, k, f, allow=True)
+        assert y.shape == want.shape == (runner.steps, want.shape[-1])
+        worst = max(worst, float(np.abs(y - want).max()))
+        if k is not None and k is not WRONG:
+            assert not np.allclose(want, _alone(bundle, None, f), atol=1e-4)  # the key changes the chunk
+    print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}")
+    assert worst <= ATOL, worst
+    # A no-key request alone in its forward is the original's chunk bit for bit.
+    base = Session(bundle, None, False, cache, runner)
+    np.testing.assert_array_equal(runner.run([base.chunk_request(frames[1])])[0], _alone(bundle, None, frames[1]))
+
+
+def test_concurrent_clients_of_two_users_are_batched_over_openpi(sealed_act, start_bundle):
+    import concurrent.futures as cf
+
+    bundle = load_bundle(sealed_act)
+    frames = _frames(bundle, 1, seed=5)
+    want = {name: _alone(bundle, k, frames[0]) for name, k in (("a", KEY), ("b", KEY2), ("-", None))}
+    running = start_bundle(sealed_act, batch_window_ms=30)
+    Client = client_policy.WebsocketClientPolicy
+    clients = [(name, Client(host="127.0.0.1", port=running.port,
+                             api_key=np.packbits(k).tobytes().hex() if k is not None else None))
+               for name, k in (("a", KEY), ("b", KEY2), ("-", None), ("a", KEY))]  # fmt: skip
+    assert clients[0][1].get_server_metadata()["action_horizon"] == running.server.runner.steps
+    before = running.server.batcher.batches
+    with cf.ThreadPoolExecutor(len(clients)) as pool:
+        for _ in range(2):
+            outs = list(pool.map(lambda c: c[1].infer({"reset": True}) and c[1].infer(frames[0]), clients))
+            for (name, _), y in zip(clients, outs):
+                np.testing.assert_allclose(y["actions"], want[name], rtol=0, atol=ATOL)
+    assert running.server.batcher.batches - before < 2 * len(clients)  # users shared forwards
+    for _, c in clients:
+        c._ws.close()
