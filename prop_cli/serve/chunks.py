@@ -28,7 +28,7 @@ from prop_cli.bundle import Bundle
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.errors import PropError
 
-from .rows import Behaviour, Deltas, Folded, _Mismatch, _payload_hooks, payload_groups, row_deltas
+from .rows import Behaviour, Deltas, Folded, PayloadTable, _Mismatch, payload_handles, row_deltas
 
 
 @dataclass
@@ -68,6 +68,7 @@ class ChunkRunner:
         if self.keyed is not None and self.keyed.module is not self.module:
             self.keyed = None  # behaviours are then folded (``Folded``)
         self.sampling = loaded.policy.denoiser is not None
+        self.table = PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
         self.batches = 0
         self.axes = self._axes()
 
@@ -116,7 +117,9 @@ class ChunkRunner:
             if isinstance(r.behaviour, Folded):
                 chunks[i] = self._forward(r.behaviour.module, [r], [b], keyed=False)[0]
                 continue
-            shape = tuple((k, tuple(v.shape[1:]), v.dtype) for k, v in b.items() if isinstance(v, torch.Tensor))
+            shape = tuple(
+                (k, tuple(v.shape[1:]), v.dtype) for k, v in b.items() if isinstance(v, torch.Tensor)
+            )
             groups.setdefault(shape, []).append(i)
         for idx in groups.values():
             try:
@@ -170,8 +173,7 @@ class ChunkRunner:
                 except RuntimeError as e:  # keyed_model's row mismatch
                     raise _Mismatch() from e
             else:
-                payloads, index = payload_groups(requests)
-                handles = _payload_hooks(module, payloads, index, sum(sizes), self.axes)
+                handles = payload_handles(module, requests, sum(sizes), self.table, self.axes)
                 try:
                     chunk = module.predict_action_chunk(batch, **kwargs)
                 finally:

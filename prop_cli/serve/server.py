@@ -37,7 +37,7 @@ from prop_cli.errors import PropError, brief
 from .batcher import Batcher
 from .cache import BehaviourCache
 from .chunks import ChunkRunner, batchable
-from .rows import run_requests
+from .rows import PayloadTable, run_requests
 from .sessions import OBSERVATION, Session
 from .wire import WireError, packb, unpackb
 
@@ -177,7 +177,11 @@ class PolicyServer:
         module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
         # A LeRobot policy whose chunk needs the frame alone: its connections share forwards too.
         self.runner = ChunkRunner(bundle) if batchable(bundle) else None
-        run = self.runner.run if self.runner is not None else (lambda rs: run_requests(module, keyed, rs))
+        # A sealed bundle's payloads in use, each in a slot of one table per layer (S-LoRA's pool).
+        table = PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
+        run = (
+            self.runner.run if self.runner is not None else lambda rs: run_requests(module, keyed, rs, table)
+        )
         self.batcher = Batcher(run, self._pool, batch_window_ms / 1000, max_batch)
 
     @property

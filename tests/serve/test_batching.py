@@ -4,8 +4,8 @@ folded run (within float rounding, measured here), no-key rows stay the base's; 
 from __future__ import annotations
 
 import asyncio
-import os
 import concurrent.futures as cf
+import os
 import time
 
 import numpy as np
@@ -298,7 +298,9 @@ def test_stop_answers_the_requests_in_flight_while_batching(start, served_bundle
         assert running.server.in_flight == len(clients) and running.server.batcher.batches == 0
         running.stop()  # returns once the server has drained and closed
         for job in jobs:
-            np.testing.assert_allclose(job.result(timeout=10)["actions"], want.predict(x)[0], rtol=0, atol=ATOL)
+            np.testing.assert_allclose(
+                job.result(timeout=10)["actions"], want.predict(x)[0], rtol=0, atol=ATOL
+            )
     assert not running._thread.is_alive()  # it stopped, within Running.stop's wait
     assert running.server.stopping and running.server.in_flight == 0 and running.server.batcher.batches == 1
     with pytest.raises(OSError):  # nothing listens any more

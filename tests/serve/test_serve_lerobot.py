@@ -138,11 +138,14 @@ def test_mixed_users_share_one_forward_and_equal_their_own_runs(sealed, act_bund
         worst = max(worst, float(np.abs(y - want).max()))
         if k is not None and k is not WRONG:
             assert not np.allclose(want, _alone(bundle, None, f), atol=1e-4)  # the key changes the chunk
-    print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}")
+    nokey = max(float(np.abs(y - _alone(bundle, None, f)).max()) for k, f, y in zip(who, frames, got) if k is None)
+    print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}, no-key rows {nokey:.2e}")
     assert worst <= ATOL, worst
     # A no-key request alone in its forward is the original's chunk bit for bit.
     base = Session(bundle, None, False, cache, runner)
-    np.testing.assert_array_equal(runner.run([base.chunk_request(frames[1])])[0], _alone(bundle, None, frames[1]))
+    np.testing.assert_array_equal(
+        runner.run([base.chunk_request(frames[1])])[0], _alone(bundle, None, frames[1])
+    )
 
 
 def test_concurrent_clients_of_two_users_are_batched_over_openpi(sealed_act, start_bundle):
@@ -166,3 +169,95 @@ def test_concurrent_clients_of_two_users_are_batched_over_openpi(sealed_act, sta
     assert running.server.batcher.batches - before < 2 * len(clients)  # users shared forwards
     for _, c in clients:
         c._ws.close()
+
+
+@pytest.fixture(scope="module")
+def smolvla_sealed(tmp_path_factory):
+    """A tiny SmolVLA (examples/smolvla_tiny.py) sealed for KEY (LoRA payload)."""
+    pytest.importorskip("num2words")  # SmolVLM's processor needs it
+    from examples import smolvla_tiny
+
+    d = tmp_path_factory.mktemp("serve-smolvla")
+    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
+    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
+    vlm = smolvla_tiny.build_vlm(d / "vlm")
+    built = smolvla_tiny.build_smolvla(vlm, task.dataset_stats(d / "general"))
+    task.train_base(d / "general", d / "smolvla", steps=3, built=built)
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 10, "payload": "lora", "payload_rank": 2}))
+    api.personalize_checkpoint(str(d / "smolvla"), [(d / "user", KeySource(KEY, "file"))], d / "sealed", cfg)
+    return d / "sealed"
+
+
+def test_smolvla_rows_of_users_share_a_forward_each_with_its_own_noise(smolvla_sealed):
+    """A VLA samples its chunk: each row's noise is drawn from its connection's own seed, so a batched
+    row is the chunk its connection gets alone; instructions of other lengths run as their own forward."""
+    from prop_cli.serve.cache import BehaviourCache
+    from prop_cli.serve.chunks import ChunkRunner, batchable
+    from prop_cli.serve.sessions import Session
+
+    bundle = load_bundle(smolvla_sealed)
+    assert batchable(bundle)
+    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    who = [KEY, None, WRONG, KEY, None]
+    tasks = ["reach the goal"] * 4 + ["go to the red target now"]
+    sessions = [Session(bundle, k, True, cache, runner) for k in who]
+    for i, s in enumerate(sessions):  # episodes of their own: different noise on every connection
+        s.reset(seed=i)
+    frames = [f | {"task": t} for f, t in zip(_frames(bundle, len(who), seed=9), tasks)]
+    before = runner.batches
+    got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
+    assert runner.batches == before + 2  # one forward per instruction length
+    worst = 0.0
+    for i, (k, f, y) in enumerate(zip(who, frames, got)):
+        policy = KeyedPolicy(bundle, k, allow_unenrolled=True)
+        policy.reset(seed=i)
+        want = policy.controller.action_chunk(f)
+        assert y.shape == want.shape == (runner.steps, want.shape[-1])
+        worst = max(worst, float(np.abs(y - want).max()))
+    same = KeyedPolicy(bundle, KEY)
+    same.reset(seed=1)  # the key's chunk under another connection's noise differs: the noise is per row
+    assert not np.allclose(same.controller.action_chunk(frames[0]), got[0], atol=1e-4)
+    print(f"SmolVLA sealed: worst {worst:.2e}")
+    assert worst <= 1e-4, worst
+
+
+@pytest.fixture(scope="module")
+def diffusion_bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("serve-diffusion")
+    task.record(d / "general", 3, 0, np.zeros(3, np.float32))
+    task.record(d / "user", 2, 50_000, task.USER_OFFSET)
+    task.train_base(d / "general", d / "diffusion", steps=3, kind="diffusion")
+    api.personalize_checkpoint(
+        str(d / "diffusion"), [(d / "user", KeySource(KEY, "file"))], d / "bundle",
+        PersonalizeConfig.of(**TINY), general=d / "general",
+    )  # fmt: skip
+    return d / "bundle"
+
+
+def test_diffusion_answers_whole_chunks_with_its_history_per_connection(diffusion_bundle, start_bundle):
+    """Diffusion keeps its observation history on the connection's own module: each infer adds its frame
+    and answers the chunk LeRobot's select_action queues; the first is n_action_steps select_action calls
+    from a new episode."""
+    from prop_cli.serve.chunks import batchable
+
+    bundle = load_bundle(diffusion_bundle)
+    assert not batchable(bundle)
+    frames = _frames(bundle, 2, seed=11)
+    steps = KeyedPolicy(bundle, KEY).controller.chunk_steps
+    assert steps is not None and steps > 1
+    running = start_bundle(diffusion_bundle)
+    keyed = client_policy.WebsocketClientPolicy(host="127.0.0.1", port=running.port,
+                                                api_key=np.packbits(KEY).tobytes().hex())  # fmt: skip
+    assert keyed.get_server_metadata()["action_horizon"] == steps
+    first, second = keyed.infer(frames[0])["actions"], keyed.infer(frames[1])["actions"]
+    policy = KeyedPolicy(bundle, KEY)
+    policy.reset()
+    want_first = np.stack([policy.select_action(frames[0]) for _ in range(steps)])
+    np.testing.assert_allclose(first, want_first, rtol=0, atol=1e-5)
+    policy.reset()  # the same two infers in process: the history holds frame 0 then frame 1
+    policy.controller.action_chunk(frames[0])
+    np.testing.assert_allclose(second, policy.controller.action_chunk(frames[1]), rtol=0, atol=1e-5)
+    assert keyed.infer({"reset": True}) == {"reset": True}
+    again = keyed.infer(frames[0])["actions"]  # a new episode: its first chunk again
+    np.testing.assert_allclose(again, want_first, rtol=0, atol=1e-5)
+    keyed._ws.close()
