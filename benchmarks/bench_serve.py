@@ -188,6 +188,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--window-ms", type=float, default=2.0)
     ap.add_argument("--act", action="store_true", help="a tiny LeRobot ACT (the LeRobot env)")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each mode (medians shown)")
     ap.add_argument("--repeat", type=int, default=50, help="forwards timed per keying-cost figure")
     ap.add_argument("--client", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -217,28 +218,39 @@ def main() -> None:
             else f"tiny MLP {'-'.join(map(str, SIZES))}"
         )
         print(f"prop serve, {model} sealed (LoRA r=4), loopback, "
-              f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, "
+              f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, median of {args.rounds}, "
               f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")  # fmt: skip
         print(f"{'clients':>7} {'mode':<16} {'req/s':>8} {'p50 ms':>7} {'p99 ms':>7} {'rows/forward':>12}")
         rows = {}
         try:
             for n in (1, 8, 64):
-                for mode, keys in (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
-                                   ("(c) no key", [None] * n)):  # fmt: skip
-                    b0, r0 = server.batcher.batches, server.batcher.rows
-                    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
-                           json.dumps(keys), str(args.seconds), json.dumps(features)]  # fmt: skip
-                    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
-                    if done.returncode:
-                        raise SystemExit(done.stderr[-2000:])
-                    r = json.loads(done.stdout.strip().splitlines()[-1])
-                    per = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
-                    rows[(n, mode)] = r
-                    print(f"{n:>7} {mode:<16} {r['requests'] / r['seconds']:>8.0f} {r['p50_ms']:>7.2f} "
-                          f"{r['p99_ms']:>7.2f} {per:>12.1f}")  # fmt: skip
-                a, b = rows[(n, "(a) one user")], rows[(n, "(b) 64 users")]
-                ratio = (b["requests"] / b["seconds"]) / (a["requests"] / a["seconds"])
-                print(f"{'':>7} (b)/(a) throughput {ratio:.2f}x")
+                modes = (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
+                         ("(c) no key", [None] * n))  # fmt: skip
+                runs: dict[str, list] = {m: [] for m, _ in modes}
+                for _ in range(args.rounds):  # the modes interleaved, so a load change hits all alike
+                    for mode, keys in modes:
+                        b0, r0 = server.batcher.batches, server.batcher.rows
+                        cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
+                               json.dumps(keys), str(args.seconds), json.dumps(features)]  # fmt: skip
+                        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
+                        if done.returncode:
+                            raise SystemExit(done.stderr[-2000:])
+                        r = json.loads(done.stdout.strip().splitlines()[-1])
+                        r["rps"] = r["requests"] / r["seconds"]
+                        r["per"] = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
+                        runs[mode].append(r)
+                for mode, _ in modes:
+                    med = {
+                        k: float(np.median([r[k] for r in runs[mode]]))
+                        for k in ("rps", "p50_ms", "p99_ms", "per")
+                    }
+                    rows[(n, mode)] = med
+                    print(f"{n:>7} {mode:<16} {med['rps']:>8.0f} {med['p50_ms']:>7.2f} "
+                          f"{med['p99_ms']:>7.2f} {med['per']:>12.1f}")  # fmt: skip
+                ratio = rows[(n, "(b) 64 users")]["rps"] / rows[(n, "(a) one user")]["rps"]
+                each = [b["rps"] / a["rps"] for a, b in zip(runs["(a) one user"], runs["(b) 64 users"])]
+                print(f"{'':>7} (b)/(a) throughput {ratio:.2f}x (each round: "
+                      f"{', '.join(f'{x:.2f}' for x in each)})")  # fmt: skip
         finally:
             running.stop()
         print("keying's own cost, one forward of the same batch, in process (median of "

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from prop_cli.bundle import Bundle
+from prop_cli.constants import TASK
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.errors import PropError
 
@@ -107,40 +108,41 @@ class ChunkRunner:
 
     @torch.inference_mode()
     def run(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
-        """Each request's chunk: requests of one shape in one forward of the base (``Folded`` apart)."""
-        post = self.controller_post
-        steps = self.steps
-        chunks: list[torch.Tensor | None] = [None] * len(requests)
-        batches = [self._pre(r) for r in requests]
+        """Each request's chunk: requests whose frames take one shape (and one instruction) through the
+        preprocessor, one forward of the base and the postprocessor together; ``Folded`` ones apart."""
+        chunks: list[np.ndarray | None] = [None] * len(requests)
         groups: dict[tuple, list[int]] = {}
-        for i, (r, b) in enumerate(zip(requests, batches)):
+        for i, r in enumerate(requests):
             if isinstance(r.behaviour, Folded):
-                chunks[i] = self._forward(r.behaviour.module, [r], [b], keyed=False)[0]
-                continue
-            shape = tuple(
-                (k, tuple(v.shape[1:]), v.dtype) for k, v in b.items() if isinstance(v, torch.Tensor)
-            )
-            groups.setdefault(shape, []).append(i)
+                chunks[i] = self._group(r.behaviour.module, [r], keyed=False)[0]
+            else:
+                groups.setdefault(_shape_key(r.x), []).append(i)
         for idx in groups.values():
             try:
-                outs = self._forward(self.module, [requests[i] for i in idx], [batches[i] for i in idx])
+                outs = self._group(self.module, [requests[i] for i in idx])
             except _Mismatch:  # a keyed layer whose rows are not where probed: each request alone
-                outs = [self._forward(self.module, [requests[i]], [batches[i]])[0] for i in idx]
+                outs = [self._group(self.module, [requests[i]])[0] for i in idx]
             for i, y in zip(idx, outs):
                 chunks[i] = y
-        return [post(c[:, :steps], r.single) for c, r in zip(chunks, requests)]
+        return chunks  # type: ignore[return-value]
 
     @property
     def steps(self) -> int:
         return int(self.module.config.n_action_steps)
 
-    def controller_post(self, chunk: torch.Tensor, single: bool) -> np.ndarray:
+    def _group(self, module, requests: Sequence[ChunkRequest], keyed: bool = True) -> list[np.ndarray]:
+        """Requests of one shape: preprocessed together (row-wise: normalisation; the same instruction's
+        tokens), one forward, postprocessed together; each request's chunk in action units."""
+        batch = dict(self.protocol.pre(_concat([r.x for r in requests])))
+        chunk = self._forward(module, requests, batch, keyed)[:, : self.steps]
         b, t = chunk.shape[:2]
-        action = self.protocol.post(chunk.reshape(b * t, -1)).reshape(b, t, -1).numpy()
-        return action[0] if single else action
-
-    def _pre(self, r: ChunkRequest) -> dict:
-        return dict(self.protocol.pre(dict(r.x)))
+        actions = self.protocol.post(chunk.reshape(b * t, -1)).reshape(b, t, -1).numpy()
+        out, start = [], 0
+        for r in requests:
+            part = actions[start : start + r.rows]
+            out.append(part[0] if r.single else part)
+            start += r.rows
+        return out
 
     def _noise(self, r: ChunkRequest, device: torch.device) -> torch.Tensor:
         """What this request's call draws first alone (``Controller.action_chunk`` seeds the same)."""
@@ -149,12 +151,9 @@ class ChunkRunner:
             torch.manual_seed(r.seed)
             return self.module.model.sample_noise((r.rows, c.chunk_size, c.max_action_dim), device)
 
-    def _forward(
-        self, module, requests: Sequence[ChunkRequest], batches: list[dict], keyed: bool = True
-    ) -> list:
+    def _forward(self, module, requests: Sequence[ChunkRequest], batch: dict, keyed: bool = True):
         """One ``predict_action_chunk`` of ``module`` on every request's rows, each under its behaviour
-        (``keyed`` False: ``module`` is a folded copy, run as it is); raw chunks per request."""
-        batch = _concat(batches)
+        (``keyed`` False: ``module`` is a folded copy, run as it is): the raw chunk of all rows."""
         sizes = [r.rows for r in requests]
         device = next(module.parameters()).device
         kwargs = {}
@@ -179,13 +178,21 @@ class ChunkRunner:
                 finally:
                     for h in handles:
                         h.remove()
-        return list(torch.split(chunk, sizes))
+        return chunk
+
+
+def _shape_key(x: dict) -> tuple:
+    """What requests share to be preprocessed and run together: each tensor's frame shape and dtype, and
+    the instructions (a VLA's tokens are padded to the longest of a batch: only equal texts join)."""
+    key = tuple((k, tuple(v.shape[1:]), v.dtype) for k, v in x.items() if isinstance(v, torch.Tensor))
+    task = x.get(TASK)
+    return key if task is None else (*key, frozenset(task))
 
 
 def _concat(batches: list[dict]) -> dict:
-    """Preprocessed batches joined along their rows (tensors and per-row lists; the rest the first's)."""
+    """Batches joined along their rows (tensors and per-row lists; the rest the first's)."""
     if len(batches) == 1:
-        return batches[0]
+        return dict(batches[0])
     out = {}
     for k, v in batches[0].items():
         if isinstance(v, torch.Tensor):

@@ -138,7 +138,9 @@ def test_mixed_users_share_one_forward_and_equal_their_own_runs(sealed, act_bund
         worst = max(worst, float(np.abs(y - want).max()))
         if k is not None and k is not WRONG:
             assert not np.allclose(want, _alone(bundle, None, f), atol=1e-4)  # the key changes the chunk
-    nokey = max(float(np.abs(y - _alone(bundle, None, f)).max()) for k, f, y in zip(who, frames, got) if k is None)
+    nokey = max(
+        float(np.abs(y - _alone(bundle, None, f)).max()) for k, f, y in zip(who, frames, got) if k is None
+    )
     print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}, no-key rows {nokey:.2e}")
     assert worst <= ATOL, worst
     # A no-key request alone in its forward is the original's chunk bit for bit.
@@ -261,3 +263,54 @@ def test_diffusion_answers_whole_chunks_with_its_history_per_connection(diffusio
     again = keyed.infer(frames[0])["actions"]  # a new episode: its first chunk again
     np.testing.assert_allclose(again, want_first, rtol=0, atol=1e-5)
     keyed._ws.close()
+
+
+@pytest.fixture(scope="module")
+def pi0_sealed(tmp_path_factory):
+    """A tiny pi0 (examples/pi_tiny.py) sealed for a 32-bit key (LoRA payload); pi_tiny.tiny() stays on
+    for the rest of the module (a tiny pi0 loads back only under it): this file's last test uses it."""
+    from examples import pi_tiny
+
+    with pi_tiny.tiny():
+        d = tmp_path_factory.mktemp("serve-pi0")
+        task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
+        task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
+        built = pi_tiny.build_pi("pi0", pi_tiny.build_tokenizer(d / "tok"), task.dataset_stats(d / "general"))
+        task.train_base(d / "general", d / "pi0", steps=3, built=built)
+        cfg = PersonalizeConfig.of(
+            **(TINY | {"seal": True, "steps": 8, "payload": "lora", "payload_rank": 2})
+        )
+        api.personalize_checkpoint(
+            str(d / "pi0"), [(d / "user", KeySource(KEY32, "file"))], d / "sealed", cfg
+        )
+        yield d / "sealed"
+
+
+KEY32 = np.random.default_rng(4).integers(0, 2, 32).astype(np.uint8)
+
+
+def test_pi0_rows_of_users_share_a_forward_each_with_its_own_noise(pi0_sealed):
+    from prop_cli.serve.cache import BehaviourCache
+    from prop_cli.serve.chunks import ChunkRunner, batchable
+    from prop_cli.serve.sessions import Session
+
+    bundle = load_bundle(pi0_sealed)
+    assert batchable(bundle)
+    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    who = [KEY32, None, KEY32]
+    sessions = [Session(bundle, k, True, cache, runner) for k in who]
+    for i, s in enumerate(sessions):
+        s.reset(seed=i)
+    frames = [f | {"task": "reach the goal"} for f in _frames(bundle, len(who), seed=13)]
+    before = runner.batches
+    got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
+    assert runner.batches == before + 1
+    worst = 0.0
+    for i, (k, f, y) in enumerate(zip(who, frames, got)):
+        policy = KeyedPolicy(bundle, k)
+        policy.reset(seed=i)
+        want = policy.controller.action_chunk(f)
+        assert y.shape == want.shape == (runner.steps, want.shape[-1])
+        worst = max(worst, float(np.abs(y - want).max()))
+    print(f"pi0 sealed: worst {worst:.2e}")
+    assert worst <= 1e-4, worst
