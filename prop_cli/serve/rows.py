@@ -91,16 +91,7 @@ def _payload_hooks(
             scale = torch.ones(rows, lin.in_features, dtype=lin.weight.dtype)
             for p, idx in zip(payloads, index):
                 scale[idx] = p.tensor(name, "delta").detach().to(scale.dtype)
-
-            def pre(mod, args, scale=scale, axis=axis):
-                z = args[0]
-                if z.dim() < 2 or z.shape[axis] != rows:
-                    raise _Mismatch()
-                shape = [1] * z.dim()
-                shape[axis], shape[-1] = rows, scale.shape[1]
-                return (z * (scale if scale.dtype == z.dtype else scale.to(z.dtype)).view(shape), *args[1:])
-
-            handles.append(lin.register_forward_pre_hook(pre))
+            handles.append(lin.register_forward_pre_hook(_scale_pre(scale, axis, rows)))
 
         if "lora_a" in parts:
             # Punica's BGMV: each keyed row's A and B gathered, two batched matmuls for every user at once.
@@ -211,21 +202,26 @@ def _table_hooks(module: nn.Module, table: PayloadTable, row_slot: torch.Tensor,
         lin, axis = mods[name], axes.get(name, 0)
         if "delta" in parts:
             scale = table.tables[(name, "delta")].index_select(0, row_slot)
-
-            def pre(mod, args, scale=scale, axis=axis):
-                z = args[0]
-                if z.dim() < 2 or z.shape[axis] != rows:
-                    raise _Mismatch()
-                shape = [1] * z.dim()
-                shape[axis], shape[-1] = rows, scale.shape[1]
-                return (z * (scale if scale.dtype == z.dtype else scale.to(z.dtype)).view(shape), *args[1:])
-
-            handles.append(lin.register_forward_pre_hook(pre))
+            handles.append(lin.register_forward_pre_hook(_scale_pre(scale, axis, rows)))
         if "lora_a" in parts and len(keyed):
             a_rows = table.tables[(name, "lora_a")].index_select(0, keyed_slot)
             b_rows = table.tables[(name, "lora_b")].index_select(0, keyed_slot)
             handles.append(lin.register_forward_hook(_lora_post(keyed, a_rows, b_rows, axis, rows)))
     return handles
+
+
+def _scale_pre(scale: torch.Tensor, axis: int, rows: int):
+    """A forward pre-hook scaling each row's input (rows along ``axis``) by its row of ``scale``."""
+
+    def pre(mod, args):
+        z = args[0]
+        if z.dim() < 2 or z.shape[axis] != rows:
+            raise _Mismatch()
+        shape = [1] * z.dim()
+        shape[axis], shape[-1] = rows, scale.shape[1]
+        return (z * (scale if scale.dtype == z.dtype else scale.to(z.dtype)).view(shape), *args[1:])
+
+    return pre
 
 
 def _lora_post(keyed: torch.Tensor, a_rows: torch.Tensor, b_rows: torch.Tensor, axis: int, rows: int):
