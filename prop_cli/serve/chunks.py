@@ -65,7 +65,7 @@ class ChunkRunner:
     def __init__(self, bundle: Bundle) -> None:
         loaded = bundle.loaded
         self.bundle, self.module, self.protocol = bundle, loaded.module.eval(), loaded.policy
-        self.keyed = bundle.mode.keyed if bundle.mode.keyed is not None else None
+        self.keyed = bundle.mode.keyed  # an unsealed bundle's encoder over the base: rows' deltas
         if self.keyed is not None and self.keyed.module is not self.module:
             self.keyed = None  # behaviours are then folded (``Folded``)
         self.sampling = loaded.policy.denoiser is not None
