@@ -455,7 +455,7 @@ class Controller:
     def select_action(self, obs: Mapping) -> np.ndarray:
         """The action for ``obs`` in the dataset's action units: (action_dim,) for one frame, (N,
         action_dim) for a batch."""
-        x, single = self._inputs(obs)
+        x, single = self.inputs(obs)
         seed = call_seed(self.noise_seed, self.episode, self.calls)
         self.calls += 1
         with torch.random.fork_rng(devices=[]):
@@ -502,7 +502,7 @@ class Controller:
         steps = self.chunk_steps
         if steps is None:
             raise PropError("this policy answers one action at a time (select_action)", "call select_action")
-        x, single = self._inputs(obs)
+        x, single = self.inputs(obs)
         seed = self.call_noise_seed()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
@@ -529,7 +529,7 @@ class Controller:
         queue.clear()
         return torch.stack([first, *rest], dim=1)[:, :steps]
 
-    def _inputs(self, obs: Mapping) -> tuple[dict, bool]:
+    def inputs(self, obs: Mapping) -> tuple[dict, bool]:
         """``obs`` as the preprocessor takes it, with a batch axis; and whether it came without one."""
         names = ", ".join(self.features)
         if not isinstance(obs, Mapping):

@@ -29,7 +29,7 @@ from prop_cli.constants import TASK
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.errors import PropError
 
-from .rows import Behaviour, Deltas, Folded, PayloadTable, _Mismatch, payload_handles, row_deltas
+from .rows import Behaviour, Deltas, Folded, PayloadTable, RowMismatch, payload_handles, row_deltas
 
 
 @dataclass
@@ -44,10 +44,8 @@ class ChunkRequest:
 
 
 def batchable(bundle: Bundle) -> bool:
-    """Whether ``bundle``'s connections can share forwards (``ChunkRunner``)."""
+    """Whether a LeRobot ``bundle``'s connections can share forwards (``ChunkRunner``)."""
     loaded = bundle.loaded
-    if loaded.policy is None:
-        return False
     controller = loaded.policy.on(loaded.module).controller(loaded.module)
     if not controller.stateless_chunk:
         return False
@@ -60,16 +58,16 @@ def batchable(bundle: Bundle) -> bool:
 class ChunkRunner:
     """``run(requests) -> [chunk (steps, dim) or (N, steps, dim) in action units]`` for a LeRobot bundle
     that ``batchable`` accepts; ``controller()`` makes a connection's own controller (its episode, its
-    noise count) over the shared base module."""
+    noise count) over the shared base module. ``table``: the server's payload slots (a sealed bundle)."""
 
-    def __init__(self, bundle: Bundle) -> None:
+    def __init__(self, bundle: Bundle, table: PayloadTable | None = None) -> None:
         loaded = bundle.loaded
         self.bundle, self.module, self.protocol = bundle, loaded.module.eval(), loaded.policy
         self.keyed = bundle.mode.keyed  # an unsealed bundle's encoder over the base: rows' deltas
         if self.keyed is not None and self.keyed.module is not self.module:
             self.keyed = None  # behaviours are then folded (``Folded``)
         self.sampling = loaded.policy.denoiser is not None
-        self.table = PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
+        self.table = table  # a sealed bundle's payload slots (the server's); None: stacked per batch
         self.batches = 0
         self.axes = self._axes()
 
@@ -91,7 +89,7 @@ class ChunkRunner:
             obs = {k: np.zeros((b, *s), np.float32) for k, s in features.items()}
             if probe.instruction is not None or self.protocol.takes_instruction:
                 obs["task"] = ["probe"] * b
-            x, _ = probe._inputs(obs)
+            x, _ = probe.inputs(obs)
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(0)
                 self.module.predict_action_chunk(probe.pre(x))
@@ -102,7 +100,7 @@ class ChunkRunner:
         """A connection's ``obs`` checked (a PropError in one line) and its call's noise seed counted."""
         if not isinstance(obs, Mapping):
             raise PropError(f"an observation is a dict, not {type(obs).__name__}", "send {name: array}")
-        x, single = controller._inputs(obs)
+        x, single = controller.inputs(obs)
         rows = int(next(v for v in x.values() if isinstance(v, torch.Tensor)).shape[0])
         return ChunkRequest(behaviour, x, rows, single, controller.call_noise_seed())
 
@@ -120,7 +118,7 @@ class ChunkRunner:
         for idx in groups.values():
             try:
                 outs = self._group(self.module, [requests[i] for i in idx])
-            except _Mismatch:  # a keyed layer whose rows are not where probed: each request alone
+            except RowMismatch:  # a keyed layer whose rows are not where probed: each request alone
                 outs = [self._group(self.module, [requests[i]])[0] for i in idx]
             for i, y in zip(idx, outs):
                 chunks[i] = y
@@ -170,7 +168,7 @@ class ChunkRunner:
                 try:
                     chunk = self.keyed.call_rows(deltas, module.predict_action_chunk, batch, **kwargs)
                 except RuntimeError as e:  # keyed_model's row mismatch
-                    raise _Mismatch() from e
+                    raise RowMismatch() from e
             else:
                 handles = payload_handles(module, requests, sum(sizes), self.table, self.axes)
                 try:

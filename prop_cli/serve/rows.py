@@ -60,7 +60,7 @@ class Request:
         self.rows = int(self.x.shape[0])
 
 
-class _Mismatch(RuntimeError):
+class RowMismatch(RuntimeError):
     """A keyed layer saw a batch whose first axis is not the rows: run the groups apart."""
 
 
@@ -107,7 +107,7 @@ def _payload_hooks(
             def post(mod, args, out, name=name, axis=axis):
                 z = args[0]
                 if z.dim() < 2 or z.shape[axis] != rows:
-                    raise _Mismatch()
+                    raise RowMismatch()
                 z, moved = z.movedim(axis, 0), out.movedim(axis, 0)
                 for p, idx in zip(payloads, index):
                     zi = z.index_select(0, idx)
@@ -216,7 +216,7 @@ def _scale_pre(scale: torch.Tensor, axis: int, rows: int):
     def pre(mod, args):
         z = args[0]
         if z.dim() < 2 or z.shape[axis] != rows:
-            raise _Mismatch()
+            raise RowMismatch()
         shape = [1] * z.dim()
         shape[axis], shape[-1] = rows, scale.shape[1]
         return (z * (scale if scale.dtype == z.dtype else scale.to(z.dtype)).view(shape), *args[1:])
@@ -230,7 +230,7 @@ def _lora_post(keyed: torch.Tensor, a_rows: torch.Tensor, b_rows: torch.Tensor, 
     def post(mod, args, out):
         z = args[0]
         if z.dim() < 2 or z.shape[axis] != rows:
-            raise _Mismatch()
+            raise RowMismatch()
         zk = (z.movedim(axis, 0) if axis else z).index_select(0, keyed)
         flat = zk.reshape(zk.shape[0], -1, zk.shape[-1])  # (K, M, in)
         a, b = a_rows, b_rows
@@ -282,7 +282,7 @@ def _together(module: nn.Module, keyed, requests: Sequence[Request], table=None)
             y = _deltas(keyed, x, requests)
         else:
             y = _payloads(module, x, requests, table)
-    except _Mismatch:  # a layer whose rows are not on axis 0: each request on its own
+    except RowMismatch:  # a layer whose rows are not on axis 0: each request on its own
         return [_together(module, keyed, [r], table)[0] for r in requests]
     return list(torch.split(y, sizes))
 
@@ -315,7 +315,7 @@ def _deltas(keyed, x: torch.Tensor, requests: Sequence[Request]) -> torch.Tensor
     try:
         return keyed.run_rows(x, row_deltas(keyed, requests), rows)
     except RuntimeError as e:  # keyed_model's row mismatch
-        raise _Mismatch() from e
+        raise RowMismatch() from e
 
 
 def payload_handles(module: nn.Module, requests: Sequence, rows: int, table: PayloadTable | None,

@@ -36,9 +36,8 @@ from prop_cli.errors import PropError, brief
 
 from .batcher import Batcher
 from .cache import BehaviourCache
-from .chunks import ChunkRunner, batchable
-from .rows import PayloadTable, run_requests
-from .sessions import OBSERVATION, Session
+from .rows import run_requests
+from .sessions import OBSERVATION, Session, chunk_runner, payload_table
 from .wire import WireError, packb, unpackb
 
 LOG = logging.getLogger("prop.serve")
@@ -175,10 +174,10 @@ class PolicyServer:
         self.stamp = bundle_stamp(Path(str(bundle.path)))  # the bundle as loaded (and checked)
         self.backoff = backoff or Backoff()
         module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
-        # A LeRobot policy whose chunk needs the frame alone: its connections share forwards too.
-        self.runner = ChunkRunner(bundle) if batchable(bundle) else None
         # A sealed bundle's payloads in use, each in a slot of one table per layer (S-LoRA's pool).
-        table = PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
+        table = payload_table(bundle)
+        # A LeRobot policy whose chunk needs the frame alone: its connections share forwards too.
+        self.runner = chunk_runner(bundle, table)
         run = (
             self.runner.run if self.runner is not None else lambda rs: run_requests(module, keyed, rs, table)
         )

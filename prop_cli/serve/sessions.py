@@ -23,8 +23,23 @@ from prop_cli.run import KeyedPolicy
 from prop_cli.run.policy import WrongKeyWarning, key_opens_nothing, require_enrolled
 
 from .cache import BehaviourCache
-from .chunks import ChunkRequest, ChunkRunner
-from .rows import Behaviour, Deltas, Folded, Request, gathered, run_requests
+from .chunks import ChunkRequest, ChunkRunner, batchable
+from .rows import Behaviour, Deltas, Folded, PayloadTable, Request, gathered, run_requests
+
+
+def payload_table(bundle: Bundle) -> PayloadTable | None:
+    """A sealed bundle's table of payload slots, shared by the server's batches (``rows.PayloadTable``);
+    None for an unsealed one."""
+    return PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
+
+
+def chunk_runner(bundle: Bundle, table: PayloadTable | None) -> ChunkRunner | None:
+    """The runner of a LeRobot bundle whose connections can share forwards (``chunks``); None for an
+    array model (``rows``) or a policy with an observation history (Diffusion: a module per connection)."""
+    if bundle.loaded.policy is None or not batchable(bundle):
+        return None
+    return ChunkRunner(bundle, table)
+
 
 # An array model's observation entry (openpi's observations are dicts; a LeRobot policy's are its features).
 OBSERVATION = "observation"

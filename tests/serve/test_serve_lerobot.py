@@ -109,13 +109,13 @@ def _alone(bundle, key, frame, allow=False) -> np.ndarray:
 @pytest.mark.parametrize("sealed", [False, True])
 def test_mixed_users_share_one_forward_and_equal_their_own_runs(sealed, act_bundle, sealed_act):
     from prop_cli.serve.cache import BehaviourCache
-    from prop_cli.serve.chunks import ChunkRunner, batchable
+    from prop_cli.serve.chunks import batchable
     from prop_cli.serve.rows import Deltas
-    from prop_cli.serve.sessions import Session
+    from prop_cli.serve.sessions import Session, chunk_runner, payload_table
 
     bundle = load_bundle(sealed_act if sealed else act_bundle)
     assert batchable(bundle)
-    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    runner, cache = chunk_runner(bundle, payload_table(bundle)), BehaviourCache(2**26)
     assert runner.axes.get("model.encoder.layers.0.linear1") == 1  # ACT's encoder is sequence-first
     who = [KEY, None, KEY2, WRONG, KEY] if sealed else [KEY, None, WRONG, KEY]
     sessions = [Session(bundle, k, True, cache, runner) for k in who]
@@ -194,12 +194,12 @@ def test_smolvla_rows_of_users_share_a_forward_each_with_its_own_noise(smolvla_s
     """A VLA samples its chunk: each row's noise is drawn from its connection's own seed, so a batched
     row is the chunk its connection gets alone; instructions of other lengths run as their own forward."""
     from prop_cli.serve.cache import BehaviourCache
-    from prop_cli.serve.chunks import ChunkRunner, batchable
-    from prop_cli.serve.sessions import Session
+    from prop_cli.serve.chunks import batchable
+    from prop_cli.serve.sessions import Session, chunk_runner, payload_table
 
     bundle = load_bundle(smolvla_sealed)
     assert batchable(bundle)
-    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    runner, cache = chunk_runner(bundle, payload_table(bundle)), BehaviourCache(2**26)
     who = [KEY, None, WRONG, KEY, None]
     tasks = ["reach the goal"] * 4 + ["go to the red target now"]
     sessions = [Session(bundle, k, True, cache, runner) for k in who]
@@ -291,12 +291,12 @@ KEY32 = np.random.default_rng(4).integers(0, 2, 32).astype(np.uint8)
 
 def test_pi0_rows_of_users_share_a_forward_each_with_its_own_noise(pi0_sealed):
     from prop_cli.serve.cache import BehaviourCache
-    from prop_cli.serve.chunks import ChunkRunner, batchable
-    from prop_cli.serve.sessions import Session
+    from prop_cli.serve.chunks import batchable
+    from prop_cli.serve.sessions import Session, chunk_runner, payload_table
 
     bundle = load_bundle(pi0_sealed)
     assert batchable(bundle)
-    runner, cache = ChunkRunner(bundle), BehaviourCache(2**26)
+    runner, cache = chunk_runner(bundle, payload_table(bundle)), BehaviourCache(2**26)
     who = [KEY32, None, KEY32]
     sessions = [Session(bundle, k, True, cache, runner) for k in who]
     for i, s in enumerate(sessions):
