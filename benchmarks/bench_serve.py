@@ -1,8 +1,14 @@
 """`prop serve` under load on the loopback (issue 39): throughput and p50/p99 latency with 1, 8 and 64
-concurrent clients, (a) all one user, (b) 64 different users, (c) no key; then the memory of 1,000 users'
-payloads in a 256 MB cache.
+concurrent clients, (a) all one user, (b) 64 different users, (c) no key; the keying's own cost on one
+forward of the same batch (keyed rows against the base alone, in process); then the memory of 1,000
+users' payloads in a 256 MB cache.
 
     OMP_NUM_THREADS=1 python -m benchmarks.bench_serve [--seconds 3] [--window-ms 2]
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_serve --act   # a tiny ACT instead
+
+``--act``: a tiny LeRobot ACT (examples/lerobot_reach_task.py, sealed, LoRA rank 4) served the same way,
+each request one frame answered with its whole chunk, every connection's frame a row of one
+``predict_action_chunk`` (``prop_cli/serve/chunks.py``).
 
 The bundle: a tiny MLP (8-64-64-4), sealed with a LoRA payload (rank 4) for one enrolled key. Users 2..64
 of (b) and the 1,000 of the memory figure are payloads put in the server's cache under their keys (what a
@@ -63,13 +69,40 @@ def random_payload(spec, seed: int):
     return p
 
 
-async def _clients(url: str, keys: list[str | None], seconds: float) -> dict:
+def make_act_bundle(d: Path) -> tuple[Path, Path]:
+    """A tiny ACT sealed (LoRA rank 4) for one key: (bundle, key file)."""
+    from examples import lerobot_reach_task as task
+    from prop_cli import api
+    from prop_cli.config import PersonalizeConfig
+    from prop_cli.core.key_files import KeySource
+
+    task.record(d / "general", 4, 0, np.zeros(3, np.float32))
+    task.record(d / "user", 3, 50_000, task.USER_OFFSET)
+    task.train_base(d / "general", d / "act", steps=5)
+    bits = np.random.default_rng(1).integers(0, 2, 128).astype(np.uint8)
+    key = d / "k.bin"
+    key.write_bytes(np.packbits(bits).tobytes())
+    key.chmod(0o600)
+    cfg = PersonalizeConfig.of(seal=True, payload="lora", payload_rank=4, steps=10, user_rows=8)
+    api.personalize_checkpoint(str(d / "act"), [(d / "user", KeySource(bits, "file"))], d / "b.prop", cfg)
+    return d / "b.prop", key
+
+
+def observation(features: dict, rows: int | None) -> dict:
+    """A frame per feature (``features``: name -> shape); ``rows`` None: the array model's observation."""
+    rng = np.random.default_rng(0)
+    if rows is None:
+        return {k: rng.uniform(-1, 1, tuple(s)).astype(np.float32) for k, s in features.items()}
+    return {"observation": rng.uniform(-1, 1, (rows, SIZES[0])).astype(np.float32)}
+
+
+async def _clients(url: str, keys: list[str | None], seconds: float, features: dict | None) -> dict:
     import msgpack
     from websockets.asyncio.client import connect
 
     from prop_cli.serve.wire import packb
 
-    x = packb({"observation": np.random.default_rng(0).uniform(-1, 1, (1, SIZES[0])).astype(np.float32)})
+    x = packb(observation(features, None) if features else observation({}, 1))
     latencies: list[float] = []
 
     box = {"deadline": float("inf")}  # set once every client is connected
@@ -99,8 +132,51 @@ async def _clients(url: str, keys: list[str | None], seconds: float) -> dict:
             "p99_ms": 1e3 * float(np.percentile(latencies, 99))}  # fmt: skip
 
 
-def client_main(url: str, keys_json: str, seconds: float) -> None:
-    print(json.dumps(asyncio.run(_clients(url, json.loads(keys_json), seconds))))
+def client_main(url: str, keys_json: str, seconds: float, features_json: str) -> None:
+    features = json.loads(features_json) or None
+    print(json.dumps(asyncio.run(_clients(url, json.loads(keys_json), seconds, features))))
+
+
+def _time(fn, repeat: int) -> float:
+    """Median seconds of ``fn()`` over ``repeat`` calls (after two warm-up calls)."""
+    fn(), fn()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def keying_cost(bundle, server, others: list, repeat: int) -> None:
+    """One forward of the same batch (1, 8, 64 rows, one observation per request): the base alone
+    (no key), all rows one user (a), each row another user (b); the keyed forward's extra time as a share
+    of the base's own."""
+    from prop_cli.serve.rows import Request
+
+    user = others[0]
+    print(f"{'rows':>5} {'base ms':>8} {'(a) one user':>14} {'(b) distinct users':>19}")
+    for n in (1, 8, 64):
+        if server.runner is not None:
+            runner = server.runner
+            controller = runner.controller()
+            features = controller.features
+            frame = observation(features, None)
+
+            def run(who, runner=runner, controller=controller, frame=frame):
+                return runner.run([runner.request(controller, b, frame) for b in who])
+        else:
+            x = observation({}, 1)["observation"]
+
+            def run(who, x=x):
+                return server.batcher.run([Request(b, x) for b in who])
+
+        nobody, one, many = [None] * n, [user] * n, [others[i % len(others)] for i in range(n)]
+        base = _time(lambda who=nobody: run(who), repeat)
+        a = _time(lambda who=one: run(who), repeat)
+        b = _time(lambda who=many: run(who), repeat)
+        print(f"{n:>5} {1e3 * base:>8.2f} {1e3 * a:>8.2f} ({100 * (a / base - 1):+4.0f}%) "
+              f"{1e3 * b:>10.2f} ({100 * (b / base - 1):+4.0f}%)")  # fmt: skip
 
 
 def rss_mb() -> float:
@@ -111,10 +187,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--window-ms", type=float, default=2.0)
-    ap.add_argument("--client", nargs=3, help=argparse.SUPPRESS)
+    ap.add_argument("--act", action="store_true", help="a tiny LeRobot ACT (the LeRobot env)")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each mode (medians shown)")
+    ap.add_argument("--repeat", type=int, default=50, help="forwards timed per keying-cost figure")
+    ap.add_argument("--client", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
-        client_main(args.client[0], args.client[1], float(args.client[2]))
+        client_main(args.client[0], args.client[1], float(args.client[2]), args.client[3])
         return
     torch.set_num_threads(1)
     from prop_cli.bundle import load_bundle
@@ -122,40 +201,62 @@ def main() -> None:
     from prop_cli.serve import PolicyServer, start_in_thread
 
     with tempfile.TemporaryDirectory() as tmp:
-        bundle_path, key_file = make_bundle(Path(tmp))
+        bundle_path, key_file = (make_act_bundle if args.act else make_bundle)(Path(tmp))
         bundle = load_bundle(bundle_path)
+        features = {k: list(s) for k, s in bundle.loaded.policy.input_features.items()} if args.act else {}
         server = PolicyServer(bundle, port=0, batch_window_ms=args.window_ms, max_connections=128)
         spec = bundle.mode.state.spec
         user = key_file.read_bytes().hex()
         others = [os.urandom(16).hex() for _ in range(63)]
-        for i, k in enumerate(others):
-            server.cache.put(key_from_text(k, 128), random_payload(spec, i))
+        payloads = [random_payload(spec, i) for i in range(len(others))]
+        for k, p in zip(others, payloads):
+            server.cache.put(key_from_text(k, 128), p)
         running = start_in_thread(server)
-        print(f"prop serve, tiny MLP {'-'.join(map(str, SIZES))} sealed (LoRA r=4), loopback, "
-              f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, "
+        model = (
+            "tiny ACT (examples/lerobot_reach_task.py)"
+            if args.act
+            else f"tiny MLP {'-'.join(map(str, SIZES))}"
+        )
+        print(f"prop serve, {model} sealed (LoRA r=4), loopback, "
+              f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, median of {args.rounds}, "
               f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")  # fmt: skip
         print(f"{'clients':>7} {'mode':<16} {'req/s':>8} {'p50 ms':>7} {'p99 ms':>7} {'rows/forward':>12}")
         rows = {}
         try:
             for n in (1, 8, 64):
-                for mode, keys in (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
-                                   ("(c) no key", [None] * n)):  # fmt: skip
-                    b0, r0 = server.batcher.batches, server.batcher.rows
-                    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
-                           json.dumps(keys), str(args.seconds)]  # fmt: skip
-                    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
-                    if done.returncode:
-                        raise SystemExit(done.stderr[-2000:])
-                    r = json.loads(done.stdout.strip().splitlines()[-1])
-                    per = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
-                    rows[(n, mode)] = r
-                    print(f"{n:>7} {mode:<16} {r['requests'] / r['seconds']:>8.0f} {r['p50_ms']:>7.2f} "
-                          f"{r['p99_ms']:>7.2f} {per:>12.1f}")  # fmt: skip
-                a, b = rows[(n, "(a) one user")], rows[(n, "(b) 64 users")]
-                ratio = (b["requests"] / b["seconds"]) / (a["requests"] / a["seconds"])
-                print(f"{'':>7} (b)/(a) throughput {ratio:.2f}x")
+                modes = (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
+                         ("(c) no key", [None] * n))  # fmt: skip
+                runs: dict[str, list] = {m: [] for m, _ in modes}
+                for _ in range(args.rounds):  # the modes interleaved, so a load change hits all alike
+                    for mode, keys in modes:
+                        b0, r0 = server.batcher.batches, server.batcher.rows
+                        cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
+                               json.dumps(keys), str(args.seconds), json.dumps(features)]  # fmt: skip
+                        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
+                        if done.returncode:
+                            raise SystemExit(done.stderr[-2000:])
+                        r = json.loads(done.stdout.strip().splitlines()[-1])
+                        r["rps"] = r["requests"] / r["seconds"]
+                        r["per"] = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
+                        runs[mode].append(r)
+                for mode, _ in modes:
+                    med = {
+                        k: float(np.median([r[k] for r in runs[mode]]))
+                        for k in ("rps", "p50_ms", "p99_ms", "per")
+                    }
+                    rows[(n, mode)] = med
+                    print(f"{n:>7} {mode:<16} {med['rps']:>8.0f} {med['p50_ms']:>7.2f} "
+                          f"{med['p99_ms']:>7.2f} {med['per']:>12.1f}")  # fmt: skip
+                # Each round's (b)/(a), (a) and (b) run one after the other; the median of the rounds.
+                each = [b["rps"] / a["rps"] for a, b in zip(runs["(a) one user"], runs["(b) 64 users"])]
+                ratio = float(np.median(each))
+                print(f"{'':>7} (b)/(a) throughput {ratio:.2f}x, median of the rounds ("
+                      f"{', '.join(f'{x:.2f}' for x in each)})")  # fmt: skip
         finally:
             running.stop()
+        print("keying's own cost, one forward of the same batch, in process (median of "
+              f"{args.repeat}):")  # fmt: skip
+        keying_cost(bundle, server, payloads, args.repeat)
         before = rss_mb()
         big = PolicyServer(bundle, port=0, cache_mb=256)
         t = time.perf_counter()

@@ -149,3 +149,4 @@ SERVE_BATCH_WINDOW_MS = 2.0  # requests arriving within it run as one forward
 SERVE_MAX_BATCH = 256  # observations per forward at most
 SERVE_CACHE_MB = 256.0  # decrypted behaviours kept between connections
 SERVE_HOST = "127.0.0.1"  # the loopback: any other address needs TLS
+SERVE_DRAIN_S = 30.0  # on SIGTERM, how long requests in flight may take to be answered

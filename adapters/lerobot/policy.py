@@ -455,7 +455,7 @@ class Controller:
     def select_action(self, obs: Mapping) -> np.ndarray:
         """The action for ``obs`` in the dataset's action units: (action_dim,) for one frame, (N,
         action_dim) for a batch."""
-        x, single = self._inputs(obs)
+        x, single = self.inputs(obs)
         seed = call_seed(self.noise_seed, self.episode, self.calls)
         self.calls += 1
         with torch.random.fork_rng(devices=[]):
@@ -463,39 +463,73 @@ class Controller:
             action = self.post(self.module.select_action(self.pre(x))).numpy()
         return action[0] if single else action
 
-    # Policies whose predict_action_chunk needs nothing but the frame (no observation history, no
-    # temporal ensembling): ``action_chunk`` answers their whole chunk.
-    CHUNKED: tuple[str, ...] = ("act",)
+    # Policies whose whole chunk ``action_chunk`` answers: those whose predict_action_chunk needs nothing
+    # but the frame (ACT, SmolVLA, pi0, pi0.5; stateless: ``stateless_chunk``), and those that keep an
+    # observation history on their module (Diffusion: ``HISTORY``), whose chunk is LeRobot's own
+    # select_action from an empty action queue, the queue then handed out whole.
+    CHUNKED: tuple[str, ...] = ("act", "smolvla", "pi0", "pi05", "diffusion")
+    HISTORY: tuple[str, ...] = ("diffusion",)
 
     @property
     def chunk_steps(self) -> int | None:
-        """Actions per ``action_chunk`` (the policy's ``n_action_steps``); None where it has none here."""
+        """Actions per ``action_chunk`` (the policy's ``n_action_steps``); None where it has none here
+        (ACT with temporal ensembling; pi0 with relative actions, whose postprocessor reads the state)."""
         config = getattr(self.module, "config", None)
         if getattr(config, "type", None) not in self.CHUNKED or getattr(
             config, "temporal_ensemble_coeff", None
-        ):
+        ) or getattr(config, "use_relative_actions", False):  # fmt: skip
             return None
         return int(config.n_action_steps)
+
+    @property
+    def stateless_chunk(self) -> bool:
+        """Whether the chunk depends on this frame alone (and the noise): many connections' frames can
+        then share one forward of one module (``prop serve``'s batching)."""
+        return self.chunk_steps is not None and self.module.config.type not in self.HISTORY
+
+    def call_noise_seed(self) -> int:
+        """The seed of this call's noise (``call_seed``), counting the call."""
+        seed = call_seed(self.noise_seed, self.episode, self.calls)
+        self.calls += 1
+        return seed
 
     @torch.no_grad()
     def action_chunk(self, obs: Mapping) -> np.ndarray:
         """The next ``chunk_steps`` actions for ``obs``, in the dataset's action units: what as many
         ``select_action`` calls from an empty queue give, in one call ((steps, action_dim) for one frame,
-        (N, steps, action_dim) for a batch). The queues are left as they are."""
+        (N, steps, action_dim) for a batch). A stateless chunk leaves the queues as they are; a policy
+        with an observation history adds ``obs`` to it, as select_action does."""
         steps = self.chunk_steps
         if steps is None:
             raise PropError("this policy answers one action at a time (select_action)", "call select_action")
-        x, single = self._inputs(obs)
-        seed = call_seed(self.noise_seed, self.episode, self.calls)
-        self.calls += 1
+        x, single = self.inputs(obs)
+        seed = self.call_noise_seed()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            chunk = self.module.predict_action_chunk(self.pre(x))[:, :steps]
+            batch = self.pre(x)
+            if self.module.config.type in self.HISTORY:
+                chunk = self._history_chunk(batch, steps)
+            else:
+                chunk = self.module.predict_action_chunk(batch)[:, :steps]
+        return self.post_chunk(chunk, single)
+
+    def post_chunk(self, chunk: torch.Tensor, single: bool) -> np.ndarray:
+        """A raw (N, steps, dim) chunk through the postprocessor: dataset units, one frame's unbatched."""
         b, t = chunk.shape[:2]
         action = self.post(chunk.reshape(b * t, -1)).reshape(b, t, -1).numpy()
         return action[0] if single else action
 
-    def _inputs(self, obs: Mapping) -> tuple[dict, bool]:
+    def _history_chunk(self, batch: dict, steps: int) -> torch.Tensor:
+        """LeRobot's select_action from an empty action queue (it adds the frame to the observation
+        history and fills the queue with the chunk), then the whole queue: (N, steps, dim)."""
+        queue = self.module._queues[ACTION]
+        queue.clear()
+        first = self.module.select_action(batch)
+        rest = list(queue)
+        queue.clear()
+        return torch.stack([first, *rest], dim=1)[:, :steps]
+
+    def inputs(self, obs: Mapping) -> tuple[dict, bool]:
         """``obs`` as the preprocessor takes it, with a batch axis; and whether it came without one."""
         names = ", ".join(self.features)
         if not isinstance(obs, Mapping):

@@ -8,8 +8,9 @@ traceback, and the server keeps serving. A peer whose keys keep failing waits lo
 
 Inference runs on one worker thread. An array model's requests, from any connection, that arrive within
 ``batch_window_s`` run as one forward of the base, each row under its own user's behaviour (``batcher``,
-``rows``); decrypted behaviours are kept in an LRU cache capped at ``cache_bytes`` (``cache``). A LeRobot
-policy's connections run one at a time, each on its own folded module and queues."""
+``rows``); so do a LeRobot policy's whose chunk needs the frame alone (ACT, SmolVLA, pi0: ``chunks``).
+Decrypted behaviours are kept in an LRU cache capped at ``cache_bytes`` (``cache``). A LeRobot policy with
+an observation history (Diffusion) runs each connection on its own module and queues."""
 
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ from prop_cli.errors import PropError, brief
 from .batcher import Batcher
 from .cache import BehaviourCache
 from .rows import run_requests
-from .sessions import OBSERVATION, Session
+from .sessions import OBSERVATION, Session, chunk_runner, payload_table
 from .wire import WireError, packb, unpackb
 
 LOG = logging.getLogger("prop.serve")
@@ -165,13 +166,22 @@ class PolicyServer:
         self.max_message_bytes = max_message_bytes
         self.open = 0
         self.served = 0  # connections accepted since start
+        self.in_flight = 0  # requests received and not yet answered
+        self.stopping = False  # SIGTERM: no new request starts; those in flight are answered
+        self.drain_s = C.SERVE_DRAIN_S
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prop-serve")
         self.cache = BehaviourCache(int(cache_mb * 2**20))
         self.stamp = bundle_stamp(Path(str(bundle.path)))  # the bundle as loaded (and checked)
         self.backoff = backoff or Backoff()
         module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
-        self.batcher = Batcher(lambda requests: run_requests(module, keyed, requests), self._pool,
-                               batch_window_ms / 1000, max_batch)  # fmt: skip
+        # A sealed bundle's payloads in use, each in a slot of one table per layer (S-LoRA's pool).
+        table = payload_table(bundle)
+        # A LeRobot policy whose chunk needs the frame alone: its connections share forwards too.
+        self.runner = chunk_runner(bundle, table)
+        run = (
+            self.runner.run if self.runner is not None else lambda rs: run_requests(module, keyed, rs, table)
+        )
+        self.batcher = Batcher(run, self._pool, batch_window_ms / 1000, max_batch)
 
     @property
     def scheme(self) -> str:
@@ -186,9 +196,9 @@ class PolicyServer:
             "kind": "lerobot" if policy is not None else "array",
             "observation": list(policy.input_features) if policy is not None else OBSERVATION,
             "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
-            # Steps per infer (openpi's ActionChunkBroker action_horizon): ACT answers its chunk
-            # (n_action_steps); other LeRobot policies one step at a time from their own queues; an array
-            # model one action per observation.
+            # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers its
+            # chunk (n_action_steps; ACT with temporal ensembling one step from its own queues); an
+            # array model one action per observation.
             "action_horizon": session.chunk_steps or 1,
         }  # fmt: skip
 
@@ -212,7 +222,7 @@ class PolicyServer:
             if given and (wait := self.backoff.delay(host)):
                 await asyncio.sleep(wait)  # this peer's keys kept failing: its next try waits
             session = await loop.run_in_executor(
-                self._pool, Session, self.bundle, key, self.allow_unenrolled, self.cache
+                self._pool, Session, self.bundle, key, self.allow_unenrolled, self.cache, self.runner
             )
             del key
             if given:
@@ -256,7 +266,14 @@ class PolicyServer:
             self.served += 1
             await ws.send(packb(self.metadata(session)))
             async for message in ws:
-                await ws.send(await self._answer(session, message))
+                if self.stopping:  # draining: what is in flight is answered, nothing new starts
+                    await ws.send("prop serve: error: the server is stopping: reconnect to another")
+                    continue
+                self.in_flight += 1
+                try:
+                    await ws.send(await self._answer(session, message))
+                finally:
+                    self.in_flight -= 1
         except ConnectionClosed:
             pass
         finally:
@@ -276,6 +293,9 @@ class PolicyServer:
                     raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
                 await loop.run_in_executor(self._pool, session.reset, seed)
                 return packb({RESET: True})
+            if session.runner is not None:  # a LeRobot chunk, batched with other connections'
+                chunk = await self.batcher.submit(session.chunk_request(obs))
+                return packb({"actions": chunk.astype("float32")})
             if session.controller is not None:
                 return packb(await loop.run_in_executor(self._pool, session.infer, obs))
             x, single = session.observation(obs)
@@ -306,11 +326,28 @@ class PolicyServer:
                 if ready is not None:
                     ready(self.url)
                 await stop.wait()
+                await self._drain(server)
         except OSError as e:
             raise PropError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e})",
                             "pick another --port, or stop what holds this one") from None  # fmt: skip
         finally:
             self._pool.shutdown(wait=True)  # in-flight inferences finish before the process exits
+
+    async def _drain(self, server) -> None:
+        """Stop: no new connection, no new request; every request in flight (waiting in a batch window
+        or running) answered, for up to ``drain_s``; then the connections close (1001, going away)."""
+        self.stopping = True
+        server.close(close_connections=False)  # stop listening; open connections stay for their answers
+        waited = 0.0
+        while self.in_flight and waited < self.drain_s:
+            await asyncio.sleep(0.01)
+            waited += 0.01
+        if self.in_flight:
+            LOG.warning("stopping with %d requests unanswered after %.0f s", self.in_flight, self.drain_s)
+        LOG.info("drained: %d connections open, closing", self.open)
+        # close() again is a no-op once called: the connections are closed here (1001, going away).
+        await asyncio.gather(*(ws.close(1001, "the server is stopping") for ws in list(server.connections)),
+                             return_exceptions=True)  # fmt: skip
 
     @property
     def url(self) -> str:

@@ -23,7 +23,23 @@ from prop_cli.run import KeyedPolicy
 from prop_cli.run.policy import WrongKeyWarning, key_opens_nothing, require_enrolled
 
 from .cache import BehaviourCache
-from .rows import Behaviour, Deltas, Folded, Request, gathered, run_requests
+from .chunks import ChunkRequest, ChunkRunner, batchable
+from .rows import Behaviour, Deltas, Folded, PayloadTable, Request, gathered, run_requests
+
+
+def payload_table(bundle: Bundle) -> PayloadTable | None:
+    """A sealed bundle's table of payload slots, shared by the server's batches (``rows.PayloadTable``);
+    None for an unsealed one."""
+    return PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
+
+
+def chunk_runner(bundle: Bundle, table: PayloadTable | None) -> ChunkRunner | None:
+    """The runner of a LeRobot bundle whose connections can share forwards (``chunks``); None for an
+    array model (``rows``) or a policy with an observation history (Diffusion: a module per connection)."""
+    if bundle.loaded.policy is None or not batchable(bundle):
+        return None
+    return ChunkRunner(bundle, table)
+
 
 # An array model's observation entry (openpi's observations are dicts; a LeRobot policy's are its features).
 OBSERVATION = "observation"
@@ -35,7 +51,7 @@ class Session:
 
     def __init__(
         self, bundle: Bundle, key: np.ndarray | None, allow_unenrolled: bool,
-        cache: BehaviourCache | None = None,
+        cache: BehaviourCache | None = None, runner: ChunkRunner | None = None,
     ) -> None:  # fmt: skip
         loaded = bundle.loaded
         self.bundle = bundle
@@ -43,6 +59,13 @@ class Session:
         self.controller = None
         self.chunk_steps: int | None = None  # a LeRobot policy's actions per infer; None: one step
         self.cached = False  # the behaviour came from the cache (no decryption)
+        self.runner = runner  # a LeRobot bundle whose connections share forwards (``chunks``)
+        if runner is not None:  # a behaviour for batched rows, and a controller of its own on the base
+            self.behaviour = self._behaviour(key, allow_unenrolled, cache)
+            self.keyed = self.behaviour is not None
+            self.controller = runner.controller()
+            self.chunk_steps = self.controller.chunk_steps
+            return
         if loaded.policy is None:  # an array model: a behaviour for batched rows
             self.behaviour = self._behaviour(key, allow_unenrolled, cache)
             self.keyed = self.behaviour is not None
@@ -58,8 +81,9 @@ class Session:
             self.policy.module = module
             self.policy.controller = loaded.policy.on(module).controller(module)
         self.controller = self.policy.controller
-        # openpi clients take a chunk per infer (ActionChunkBroker): ACT answers its whole chunk; the
-        # others one step at a time from their own queues on this connection.
+        # openpi clients take a chunk per infer (ActionChunkBroker): the policy's whole chunk (Diffusion:
+        # with its observation history on this connection's module); ACT with temporal ensembling, one
+        # step at a time from its own queues.
         self.chunk_steps = getattr(self.controller, "chunk_steps", None)
 
     def _behaviour(self, key, allow: bool, cache: BehaviourCache | None) -> Behaviour:
@@ -130,8 +154,11 @@ class Session:
 
     def infer(self, obs) -> dict:
         """openpi's ``infer``: an array model's ``{"observation": x}`` (one observation or a batch) ->
-        ``{"actions": KeyedPolicy.predict(x)}``; a LeRobot policy's feature dict -> ``{"actions":
-        select_action(obs)[None]}`` (a chunk of one step: the policy's own queues, kept per connection)."""
+        ``{"actions": KeyedPolicy.predict(x)}``; a LeRobot policy's feature dict -> ``{"actions": its
+        chunk}`` (``Controller.action_chunk``; a policy without one: ``select_action(obs)[None]``, a chunk
+        of one step from the policy's own queues, kept per connection)."""
+        if self.runner is not None:
+            return {"actions": self.runner.run([self.chunk_request(obs)])[0].astype(np.float32)}
         if self.controller is not None:
             if not isinstance(obs, Mapping):
                 raise PropError(f"an observation is a dict, not {type(obs).__name__}", "send {name: array}")
@@ -143,7 +170,13 @@ class Session:
         y = run_requests(loaded.module, self.bundle.mode.keyed, [self.request(x)])[0]
         return self.answer(y, single)
 
+    def chunk_request(self, obs) -> ChunkRequest:
+        """A batched LeRobot connection's ``obs`` as a row group of the next forward."""
+        return self.runner.request(self.controller, self.behaviour, obs)
+
     def reset(self, seed: int | None = None) -> None:
         """A new episode for this connection: a LeRobot policy's queues emptied (``seed``: its noise)."""
-        if self.controller is not None:
+        if self.runner is not None:
+            self.controller.episode, self.controller.calls = int(seed or 0), 0  # its queues are unused
+        elif self.controller is not None:
             self.policy.reset(seed)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures as cf
+import os
 import time
 
 import numpy as np
@@ -277,3 +278,91 @@ def test_a_reset_message_is_answered_and_a_bad_seed_refused_in_one_line(start):
         client.infer({"reset": True, "seed": "x"})
     assert client.infer({"observation": np.zeros(4, np.float32)})["actions"].shape == (2,)
     client._ws.close()
+
+
+@OPENPI_CONNECT
+def test_stop_answers_the_requests_in_flight_while_batching(start, served_bundle):
+    """SIGTERM's drain (Running.stop sets the same event): a request waiting in its batch window when the
+    server is told to stop is answered before the connections close; nothing new is accepted."""
+    running = start(batch_window_ms=400)
+    Client = client_policy.WebsocketClientPolicy
+    x = np.random.default_rng(7).uniform(-1, 1, (2, 4)).astype(np.float32)
+    want = KeyedPolicy(load_bundle(served_bundle / "mine.prop"), read_key_file(served_bundle / "k.bin"))
+    clients = [Client(host="127.0.0.1", port=running.port, api_key=key_text(served_bundle / "k.bin"))
+               for _ in range(3)]  # fmt: skip
+    with cf.ThreadPoolExecutor(len(clients)) as pool:
+        jobs = [pool.submit(c.infer, {"observation": x}) for c in clients]
+        deadline = time.perf_counter() + 5
+        while running.server.in_flight < len(clients) and time.perf_counter() < deadline:
+            time.sleep(0.005)
+        assert running.server.in_flight == len(clients) and running.server.batcher.batches == 0
+        running.stop()  # returns once the server has drained and closed
+        for job in jobs:
+            np.testing.assert_allclose(
+                job.result(timeout=10)["actions"], want.predict(x)[0], rtol=0, atol=ATOL
+            )
+    assert not running._thread.is_alive()  # it stopped, within Running.stop's wait
+    assert running.server.stopping and running.server.in_flight == 0 and running.server.batcher.batches == 1
+    with pytest.raises(OSError):  # nothing listens any more
+        Client(host="127.0.0.1", port=running.port)
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _wrong_key_soak(start, served_bundle, n: int) -> None:
+    """``n`` wrong-key connections, one after another from one peer, while a good client keeps being
+    served: each is refused in one line, the good client's latency stays low, and the server's memory
+    and its per-peer state stay bounded."""
+    from websockets.exceptions import ConnectionClosed
+
+    running = start()
+    server = running.server
+    server.backoff.first_s, server.backoff.cap_s = 0.001, 0.002  # the backoff itself is tested above
+    Client = client_policy.WebsocketClientPolicy
+    good = Client(host="127.0.0.1", port=running.port, api_key=key_text(served_bundle / "k.bin"))
+    x = {"observation": np.zeros((1, 4), np.float32)}
+    want = good.infer(x)["actions"]
+    stop, latencies, wrong_answers = False, [], []
+
+    def serve_good():
+        while not stop:
+            t = time.perf_counter()
+            y = good.infer(x)["actions"]
+            latencies.append(time.perf_counter() - t)
+            wrong_answers.append(not np.array_equal(y, want))
+
+    wrong = key_text(served_bundle / "k2.bin")
+    rss = []
+    with cf.ThreadPoolExecutor(1) as pool:
+        job = pool.submit(serve_good)
+        for i in range(n):
+            with pytest.raises(ConnectionClosed) as e:
+                Client(host="127.0.0.1", port=running.port, api_key=wrong)
+            assert e.value.rcvd.code == 1008 and "enrolled in nothing" in e.value.rcvd.reason
+            if i in (n // 5, n - 1):
+                rss.append(_rss_mb())
+        stop = True
+        job.result(timeout=30)
+    assert server.backoff.failures["127.0.0.1"] == n and len(server.backoff.failures) == 1
+    assert server.open == 1 and len(server.cache) == 1  # the good key only: wrong keys leave nothing
+    assert len(latencies) > 10 and not any(wrong_answers)
+    assert float(np.percentile(latencies, 50)) < 0.05
+    growth = rss[1] - rss[0]
+    print(f"{n} wrong keys: RSS {rss[0]:.0f} -> {rss[1]:.0f} MB, good client p50 "
+          f"{1e3 * float(np.percentile(latencies, 50)):.1f} ms over {len(latencies)} requests")  # fmt: skip
+    assert growth < 30, growth  # no per-connection leak (a leak of even 50 kB each would show)
+    good._ws.close()
+
+
+@OPENPI_CONNECT
+def test_fifty_wrong_key_connections_leave_the_server_serving(start, served_bundle):
+    _wrong_key_soak(start, served_bundle, 50)
+
+
+@pytest.mark.slow
+@OPENPI_CONNECT
+def test_a_thousand_wrong_key_connections_soak(start, served_bundle):
+    _wrong_key_soak(start, served_bundle, 1000)
