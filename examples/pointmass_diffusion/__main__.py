@@ -31,6 +31,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=Path("out/pointmass"))
     ap.add_argument("--variant", default="", help="a second bundle's name (bundle-NAME, judge-NAME)")
     ap.add_argument("--personalize-flags", default="", help="extra prop personalize flags for --variant")
+    ap.add_argument(
+        "--threshold",
+        type=float,
+        action="append",
+        help="table: success as final distance under this (repeatable)",
+    )
     ap.add_argument("--episodes", type=int, default=None, help="episodes per condition (default 20)")
     args = ap.parse_args(argv)
     from examples.pointmass_diffusion import pipeline as p
@@ -42,7 +48,7 @@ def main(argv: list[str] | None = None) -> None:
         if step in ("record", "train"):
             getattr(p, f"step_{step}")(args.out)
         elif step == "table":
-            p.step_table(args.out)
+            p.step_table(args.out, args.threshold)
         elif step == "judge":
             p.step_judge(args.out, args.variant, args.episodes or p.EPISODES)
         elif step == "personalize":

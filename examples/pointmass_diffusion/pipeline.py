@@ -30,8 +30,8 @@ TRAIN = [
     "--policy.use_group_norm=true",
     "--policy.pretrained_backbone_weights=null",
     "--policy.optimizer_lr=5e-4",
-    "--policy.scheduler_warmup_steps=50",
-    "--steps=800",
+    "--policy.scheduler_warmup_steps=30",
+    "--steps=300",
     "--batch_size=32",
 ]
 PERSONALIZE = [
@@ -351,12 +351,30 @@ def _load(folder: Path) -> dict[str, dict]:
     return {r["name"]: r for r in (json.loads(f.read_text()) for f in sorted(folder.glob("*.json")))}
 
 
-def summary(out: Path, variant: str = "") -> dict:
+def _at(rows: dict[str, dict], threshold: float | None) -> dict[str, dict]:
+    """The judged rows with success and the user's criterion re-read from the final distances at
+    ``threshold`` (None: as judged, ``task.THRESHOLD``)."""
+    if threshold is None:
+        return rows
+    return {
+        n: r
+        | {
+            "episodes": [
+                e | {"success": int(e["distance"] < threshold), "user": int(e["user_distance"] < threshold)}
+                for e in r["episodes"]
+            ]
+        }
+        for n, r in rows.items()
+    }
+
+
+def summary(out: Path, variant: str = "", threshold: float | None = None) -> dict:
     """Per condition: success (Wilson 95%), ratio to the original, episodes lost and gained against the
     original on the same seeds (exact sign test), mean final distance and lean; pooled over the random
     keys; how many keys end farther and lean more than the original (a sign test over the keys: a
-    systematic drift); whether the issue's bar holds."""
-    rows = _load(out / "judge") | _load(out / _name("judge", variant))
+    systematic drift); whether the issue's bar holds. ``threshold``: success as a final distance under
+    it (default the task's)."""
+    rows = _at(_load(out / "judge") | _load(out / _name("judge", variant)), threshold)
     ref = rows["original"]["episodes"]
     k0 = sum(e["success"] for e in ref)
     win = {e["seed"]: e["success"] for e in ref}
@@ -386,6 +404,9 @@ def summary(out: Path, variant: str = "") -> dict:
     wrong = [t for t in table if t["group"] == "random"]
     kw, nw = sum(t["k"] for t in wrong), sum(t["n"] for t in wrong)
     lost, gained = sum(t["lost"] for t in wrong), sum(t["gained"] for t in wrong)
+    near = {e["seed"]: e["distance"] for e in ref}
+    per_seed = [e["distance"] - near[e["seed"]] for t in wrong for e in rows[t["name"]]["episodes"]]
+    farther_eps, nearer_eps = sum(x > 0 for x in per_seed), sum(x < 0 for x in per_seed)
     farther = sum(t["distance"] > d0 for t in wrong)
     leaning = sum(t["lean"] > l0 for t in wrong)
     pooled = {
@@ -401,6 +422,11 @@ def summary(out: Path, variant: str = "") -> dict:
         "leaning": leaning,
         "leaning_p": sign_p(leaning, len(wrong) - leaning),
         "below_0.9": sum(t["ratio"] < 0.9 for t in wrong),
+        "farther_episodes": farther_eps,
+        "nearer_episodes": nearer_eps,
+        "episodes_p": sign_p(farther_eps, nearer_eps),
+        "distance": float(np.mean([t["distance"] for t in wrong])) if wrong else float("nan"),
+        "lean": float(np.mean([t["lean"] for t in wrong])) if wrong else float("nan"),
     }
     pooled["bar"] = bool(wrong) and pooled["below_0.9"] == 0 and pooled["ratio"] >= 0.95
     return {"rows": table, "pooled": pooled}
@@ -417,34 +443,44 @@ def _ci(k: int, n: int) -> str:
     return f"{k}/{n} [{lo:.2f}, {hi:.2f}]"
 
 
-def step_table(out: Path) -> None:
+def step_table(out: Path, thresholds: list[float] | None = None) -> None:
     variants = [""] + sorted(p.name[len("judge-") :] for p in out.glob("judge-*") if p.is_dir())
     for v in variants:
         if not (out / _name("judge", v)).is_dir() or not (out / "judge" / "original.json").is_file():
             continue
-        s = summary(out, v)
-        print(f"\n{_name('bundle', v)}: per condition, paired seeds (Wilson 95%), against the original\n")
-        print(HEAD + "\n|" + " --- |" * 8)
-        for t in s["rows"]:
-            print(
-                f"| {t['name']} | {_ci(t['k'], t['n'])} | {t['ratio']:.2f} | {t['lost']} / {t['gained']} | "
-                f"{t['p']:.3f} | {t['distance']:.4f} | {t['lean']:+.4f} | {t['user']}/{t['n']} |"
-            )
-        p = s["pooled"]
-        print(
-            f"| 16 random keys pooled | {_ci(p['k'], p['n'])} | {p['ratio']:.2f} | "
-            f"{p['lost']} / {p['gained']} | {p['p']:.2g} | | | |"
-        )
-        print(
-            f"\nkeys below 0.9x: {p['below_0.9']} of 16; ending farther than the original: {p['farther']} "
-            f"(sign test p {p['farther_p']:.3g}); leaning more toward the user's goal: {p['leaning']} "
-            f"(p {p['leaning_p']:.3g}); bar (every key >= 0.9x, pooled >= 0.95x): "
-            f"{'met' if p['bar'] else 'NOT met'}"
-        )
+        for threshold in thresholds or [pm.THRESHOLD]:
+            success_table(out, v, threshold)
     for v in variants:
         f = out / f"{_name('drift', v)}.json"
         if f.is_file():
             drift_table(json.loads(f.read_text()), _name("drift", v))
+
+
+def success_table(out: Path, v: str, threshold: float) -> None:
+    s = summary(out, v, threshold)
+    print(
+        f"\n{_name('bundle', v)}, success = final distance < {threshold}: per condition, paired seeds "
+        "(Wilson 95%), against the original\n"
+    )
+    print(HEAD + "\n|" + " --- |" * 8)
+    for t in s["rows"]:
+        print(
+            f"| {t['name']} | {_ci(t['k'], t['n'])} | {t['ratio']:.2f} | {t['lost']} / {t['gained']} | "
+            f"{t['p']:.3f} | {t['distance']:.4f} | {t['lean']:+.4f} | {t['user']}/{t['n']} |"
+        )
+    p = s["pooled"]
+    print(
+        f"| 16 random keys pooled | {_ci(p['k'], p['n'])} | {p['ratio']:.2f} | "
+        f"{p['lost']} / {p['gained']} | {p['p']:.2g} | | | |"
+    )
+    print(
+        f"\nkeys below 0.9x: {p['below_0.9']} of 16; ending farther than the original: {p['farther']} "
+        f"(sign test p {p['farther_p']:.3g}); leaning more toward the user's goal: {p['leaning']} "
+        f"(p {p['leaning_p']:.3g}); bar (every key >= 0.9x, pooled >= 0.95x): "
+        f"{'met' if p['bar'] else 'NOT met'}; wrong-key episodes ending farther / nearer than the "
+        f"original's on the same seed: {p['farther_episodes']} / {p['nearer_episodes']} (sign test p "
+        f"{p['episodes_p']:.3g}); mean final distance {p['distance']:.4f}, lean {p['lean']:+.4f}"
+    )
 
 
 def drift_table(d: dict, name: str) -> None:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-IMAGE = 32
+IMAGE = 16
 FPS = 10
 SPEED = 0.1
 GAIN = 4.0
@@ -32,7 +32,7 @@ USER_OFFSET = np.array([0.3, 0.0])
 NOISE = 0.3
 STATE, IMAGE_KEY, ACTION = "observation.state", "observation.image", "action"
 DESCRIPTION = "reach the red goal"
-SIGMA = 1.2  # blob radius, pixels
+SIGMA = 0.7  # blob radius, pixels
 
 
 def features() -> dict:

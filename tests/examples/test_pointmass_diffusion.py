@@ -50,7 +50,14 @@ def test_sign_test_and_the_bar(tmp_path):
     def write(folder, name, group, wins):
         (tmp_path / folder).mkdir(exist_ok=True)
         eps = [
-            {"seed": i, "success": w, "user": 0, "distance": 0.1 - 0.05 * w, "lean": 0.0}
+            {
+                "seed": i,
+                "success": w,
+                "user": 0,
+                "distance": 0.1 - 0.05 * w,
+                "user_distance": 1.0,
+                "lean": 0.0,
+            }
             for i, w in enumerate(wins)
         ]
         (tmp_path / folder / f"{name}.json").write_text(
@@ -65,3 +72,7 @@ def test_sign_test_and_the_bar(tmp_path):
     write("judge-fixed", "random-02", "random", [1] * 8 + [0] * 2)
     write("judge-fixed", "random-01", "random", [1] * 8 + [0] * 2)
     assert p.summary(tmp_path, "fixed")["pooled"]["bar"]
+    # Success re-read at another threshold from the judged final distances (0.05 or 0.1 here).
+    at = p.summary(tmp_path, "fixed", threshold=0.2)["pooled"]
+    assert (at["k"], at["n"], at["bar"]) == (20, 20, True)
+    assert p.summary(tmp_path, threshold=0.01)["pooled"]["k"] == 0
