@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from examples.metaworld.pipeline import PERSONALIZE as MW_PERSONALIZE
 from examples.pointmass_diffusion import task as pm
 
 BIN = Path(sys.executable).parent
@@ -34,26 +35,8 @@ TRAIN = [
     "--steps=300",
     "--batch_size=32",
 ]
-PERSONALIZE = [
-    "--steps",
-    "300",
-    "--user-rows",
-    "16",
-    "--null-rows",
-    "8",
-    "--neighbour-keys",
-    "4",
-    "--random-keys",
-    "4",
-    "--samples-per-key",
-    "1",
-    "--null-weight",
-    "2",
-    "--lr",
-    "1e-3",
-    "--base-lr-scale",
-    "0.1",
-]
+# prop personalize: the MetaWorld example's Eq. 8 batch (examples/metaworld/pipeline.py), 300 steps.
+PERSONALIZE = ["--steps", "300", *MW_PERSONALIZE[2:]]
 
 
 def policy_dir(out: Path) -> Path:
@@ -213,13 +196,8 @@ def step_judge(out: Path, variant: str = "", n: int = EPISODES) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         eps = pm.rollouts(controller(out, variant, c), seeds)
-        row = {
-            "name": c["name"],
-            "group": c["group"],
-            "id": c.get("id"),
-            "episodes": eps,
-            "seconds": round(time.perf_counter() - t0, 1),
-        }
+        seconds = round(time.perf_counter() - t0, 1)
+        row = dict(name=c["name"], group=c["group"], id=c.get("id"), episodes=eps, seconds=seconds)
         path.write_text(json.dumps(row, indent=1))
         print(
             f"judge {c['name']:10s} success {sum(e['success'] for e in eps)}/{n}  distance "
