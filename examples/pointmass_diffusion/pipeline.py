@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from examples.metaworld.pipeline import PERSONALIZE as MW_PERSONALIZE
 from examples.pointmass_diffusion import task as pm
 
 BIN = Path(sys.executable).parent
@@ -35,8 +34,12 @@ TRAIN = [
     "--steps=300",
     "--batch_size=32",
 ]
-# prop personalize: the MetaWorld example's Eq. 8 batch (examples/metaworld/pipeline.py), 300 steps.
-PERSONALIZE = ["--steps", "300", *MW_PERSONALIZE[2:]]
+# prop personalize: the MetaWorld example's Eq. 8 batch (examples/metaworld/pipeline.py), 300 steps. Not
+# imported from it: importing examples.metaworld sets HF_HUB_OFFLINE in this process.
+PERSONALIZE = (
+    "--steps 300 --user-rows 16 --null-rows 8 --neighbour-keys 4 --random-keys 4 --samples-per-key 1 "
+    "--null-weight 2 --lr 1e-3 --base-lr-scale 0.1"
+).split()
 
 
 def policy_dir(out: Path) -> Path:
@@ -311,9 +314,11 @@ def step_drift(out: Path, variant: str = "") -> None:
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    from examples.metaworld.pipeline import wilson as w
-
-    return w(k, n, z)
+    """The Wilson score interval of k successes in n (95% at z = 1.96)."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    centre, spread = (k + z * z / 2) / (n + z * z), z * math.sqrt(k * (n - k) / n + z * z / 4) / (n + z * z)
+    return (max(0.0, centre - spread), min(1.0, centre + spread))
 
 
 def sign_p(a: int, b: int) -> float:

@@ -4,6 +4,7 @@ table's statistics (the paired sign test, the pooled ratio and the bar)."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -45,6 +46,7 @@ def test_episodes_of_one_seed_are_the_same_in_any_batch():
 
 
 def test_sign_test_and_the_bar(tmp_path):
+    offline = os.environ.get("HF_HUB_OFFLINE")  # the table imports nothing that sets it for the process
     assert p.sign_p(0, 0) == 1.0 and abs(p.sign_p(0, 10) - 2 / 1024) < 1e-12 and p.sign_p(5, 5) == 1.0
 
     def write(folder, name, group, wins):
@@ -76,3 +78,4 @@ def test_sign_test_and_the_bar(tmp_path):
     at = p.summary(tmp_path, "fixed", threshold=0.2)["pooled"]
     assert (at["k"], at["n"], at["bar"]) == (20, 20, True)
     assert p.summary(tmp_path, threshold=0.01)["pooled"]["k"] == 0
+    assert os.environ.get("HF_HUB_OFFLINE") == offline
