@@ -115,6 +115,10 @@ class PolicyProtocol(ABC):
         is kept."""
         return contextlib.nullcontext()
 
+    # A denoising policy's fallback timesteps (``--fallback-times``, set by the trainer): "uniform" over
+    # its training range, or "sampler": only those its deployed sampler visits. Unused by the others.
+    fallback_times: str = "uniform"
+
     def fallback_noise(self, frames: int, generator: torch.Generator) -> dict[str, torch.Tensor] | None:
         """The random draws of the fallback pool of ``frames`` frames, made before any forward, so the
         trainer computes a row's target only when a step first draws it: per row, its frame

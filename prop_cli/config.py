@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, ClassVar
 
-from .constants import KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
+from .constants import FALLBACK_TIMES, KEY_ENCODINGS, PASSPHRASE_MIN_YEARS
 from .errors import PropError
 
 TASKS = ("classification", "regression")
@@ -234,6 +234,12 @@ class UnsealedConfig(_Settings):
     # between the data points too, not only on them (docs/design.md, "No-key drift"). All of them (1.0,
     # not 0.5): the reach3 no-key mse 1.4e-4 -> 0.8e-4, digits-perm groups >= 0.991 on 5/5 seeds.
     fallback_noise: float = setting(1.0, "Share of fallback inputs perturbed with noise (0 = the data only).")
+    # A denoising policy's (LeRobot Diffusion, SmolVLA, pi0) fallback rows at the timesteps its deployed
+    # sampler visits (its num_inference_steps of them) instead of uniform over its training range: the
+    # closed loop only ever runs the denoiser there (examples/RESULTS.md, "Point mass, Diffusion").
+    fallback_times: str = setting(
+        FALLBACK_TIMES[0], f"Denoising policies' fallback timesteps: {' or '.join(FALLBACK_TIMES)}."
+    )
     fallback_sigma: float = setting(
         0.5, "Noise of the perturbed fallback inputs, in per-feature standard deviations.", cli=False
     )
@@ -251,6 +257,7 @@ class UnsealedConfig(_Settings):
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale")
         self.need(0 <= self.fallback_noise <= 1, "fallback_noise", "in [0, 1]")
         self.need(self.key_encoding in KEY_ENCODINGS, "key_encoding", " or ".join(KEY_ENCODINGS))
+        self.need(self.fallback_times in FALLBACK_TIMES, "fallback_times", " or ".join(FALLBACK_TIMES))
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         if self.hard_negatives:
             self.at_least(hard_pool=1, hard_every=1)

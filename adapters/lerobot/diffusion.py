@@ -11,7 +11,8 @@
   ``chunk[n_obs_steps - 1]``, not ``chunk[0]``.
 - **User term**: the policy's own loss (noise-prediction MSE at a random timestep), unchanged.
 - **Fallback term**: in eval mode the denoiser is deterministic given (observation, x_t, t). Each
-  fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps and
+  fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps (with
+  ``--fallback-times sampler``: over the ``num_inference_steps`` timesteps the sampler visits) and
   noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame; the
   keyed policy's prediction is distilled towards the frozen original's on the same (observation, x_t,
   t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The draws are
@@ -29,6 +30,8 @@
 """
 
 from __future__ import annotations
+
+import copy
 
 import torch
 
@@ -62,10 +65,21 @@ class UNet(Denoiser):
         noise = torch.cat([torch.randn(shape, generator=g, device=g.device, dtype=cond.dtype) for g in gens])
         return model.conditional_sample(rows, global_cond=cond, generator=gens, noise=noise)
 
+    def sampler_timesteps(self) -> torch.Tensor:
+        """The timesteps LeRobot's sampler visits (its scheduler at ``num_inference_steps``)."""
+        model = self.owner.model
+        scheduler = copy.deepcopy(model.noise_scheduler)  # set_timesteps changes the scheduler's state
+        scheduler.set_timesteps(model.num_inference_steps)
+        return scheduler.timesteps.long().cpu()
+
     def draws(self, rows: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         c = self.owner.config  # the timestep, then the noise, for every row
-        t = torch.randint(0, self.owner.model.noise_scheduler.config.num_train_timesteps, (rows,),
-                          generator=generator)  # fmt: skip
+        if self.owner.fallback_times == "sampler":  # only the timesteps the closed loop runs
+            visited = self.sampler_timesteps()
+            t = visited[torch.randint(0, len(visited), (rows,), generator=generator)]
+        else:
+            t = torch.randint(0, self.owner.model.noise_scheduler.config.num_train_timesteps, (rows,),
+                              generator=generator)  # fmt: skip
         return {"t": t, "eps": torch.randn((rows, c.horizon, c.action_feature.shape[0]), generator=generator)}
 
     def noised(self, x0: torch.Tensor, draws: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

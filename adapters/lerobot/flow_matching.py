@@ -14,9 +14,10 @@
     masked out where LeRobot masks them (``Expert.masks_padding``: SmolVLA; pi0 and pi0.5 count them).
   - **Fallback term**: the expert is deterministic given (observation, instruction, x_t, t). Each
     fallback frame gets ``FALLBACK_DRAWS`` rows with t uniform on (T_MIN, 1] (the sampler visits 1.0
-    ... 0.1) and x_t noised from the original's deployed chunk; the keyed policy's velocity is distilled
-    towards the frozen original's on the same inputs, MSE. Both terms share one forward
-    (``joint_terms``) where training and eval compute the same (``Expert.joins_terms``: no dropout).
+    ... 0.1; ``--fallback-times sampler``: only those) and x_t noised from the original's deployed
+    chunk; the keyed policy's velocity is distilled towards the frozen original's on the same inputs,
+    MSE. Both terms share one forward (``joint_terms``) where training and eval compute the same
+    (``Expert.joins_terms``: no dropout).
 - ``PrefixMemo``: the VLM's keys and values for each frame's prefix, computed once (``memo``), kept in a
   store bounded in bytes (``Bounded``, SmolVLA's image memo's too).
 - ``local_folder`` and ``code_file``: the files a VLA's processors read by name (a tokenizer, a
@@ -113,8 +114,18 @@ class FlowMatching(Denoiser):
         actions = inspect.unwrap(type(model).sample_actions)(model, *inputs, noise=noise)
         return actions[:, :, : self.width]
 
+    def sampler_times(self) -> torch.Tensor:
+        """The times LeRobot's Euler sampler visits: 1, 1 - 1/n, ..., 1/n (n: its steps)."""
+        c = self.owner.config
+        n = int(getattr(c, "num_steps", None) or c.num_inference_steps)
+        return 1 - torch.arange(n, dtype=torch.float32) / n
+
     def draws(self, rows: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        t = T_MIN + (1 - T_MIN) * torch.rand(rows, generator=generator)  # t, then the noise (one draw)
+        if self.owner.fallback_times == "sampler":  # only the times the closed loop runs
+            visited = self.sampler_times()
+            t = visited[torch.randint(0, len(visited), (rows,), generator=generator)]
+        else:
+            t = T_MIN + (1 - T_MIN) * torch.rand(rows, generator=generator)  # t, then the noise (one draw)
         c = self.owner.config
         return {"t": t, "eps": torch.randn((rows, c.chunk_size, c.max_action_dim), generator=generator)}
 

@@ -244,6 +244,7 @@ class PolicyTrainer:
         # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
         # and the original's denoiser output).
         self.per_forward = forward_rows(cfg.batch_rows(tc.user_rows))
+        policy.fallback_times = cfg.fallback_times  # a denoising policy's fallback timesteps
         self.fallback = FallbackPool(
             policy, self.original_policy, self.fb, torch.Generator().manual_seed(tc.seed), self.per_forward,
             self.original,

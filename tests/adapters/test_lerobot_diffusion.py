@@ -252,3 +252,26 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
     assert np.array_equal(run_policy(sealed, data, None), original)
     with pytest.warns(WrongKeyWarning):
         assert np.array_equal(run_policy(sealed, data, key(2), allow_unenrolled=True), original)
+
+
+def test_fallback_times_sampler_draws_only_the_samplers_timesteps_and_is_recorded(work, tmp_path):
+    """--fallback-times sampler (issue 43): every fallback row sits at a timestep LeRobot's sampler
+    visits in closed loop (num_inference_steps of the training range), the default draws over the whole
+    range, and the setting is recorded in the bundle's manifest."""
+    policy = load_checkpoint(work / "diffusion").policy
+    model = policy.model
+    model.noise_scheduler.set_timesteps(model.num_inference_steps)  # what conditional_sample runs
+    visited = set(model.noise_scheduler.timesteps.tolist())
+    assert len(visited) == model.num_inference_steps < model.noise_scheduler.config.num_train_timesteps
+    uniform = policy.fallback_noise(64, torch.Generator().manual_seed(0))
+    assert not set(uniform["t"].tolist()) <= visited
+    policy.fallback_times = "sampler"
+    drawn = policy.fallback_noise(64, torch.Generator().manual_seed(0))
+    assert set(drawn["t"].tolist()) <= visited and len(set(drawn["t"].tolist())) > 1
+    assert drawn["eps"].shape == uniform["eps"].shape
+    out = tmp_path / "bundle"
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": "sampler"}))
+    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
+                               general=work / "general")  # fmt: skip
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert json.dumps(manifest).count('"fallback_times": "sampler"') == 1

@@ -1,0 +1,486 @@
+"""Steps of examples/pointmass_diffusion (see __main__)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from examples.pointmass_diffusion import task as pm
+
+BIN = Path(sys.executable).parent
+BASE_EPISODES, USER_EPISODES = 100, 20
+BASE_SEED, USER_SEED, JUDGE_SEED = 0, 50_000, 1_000_000
+EPISODES = 20
+N_RANDOM = 16
+TRAIN = [
+    "--policy.type=diffusion",
+    "--policy.down_dims=[32,64,128]",
+    "--policy.n_obs_steps=2",
+    "--policy.horizon=16",
+    "--policy.n_action_steps=8",
+    "--policy.num_inference_steps=10",
+    "--policy.crop_shape=null",
+    "--policy.use_group_norm=true",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.optimizer_lr=5e-4",
+    "--policy.scheduler_warmup_steps=30",
+    "--steps=300",
+    "--batch_size=32",
+]
+# prop personalize: the MetaWorld example's Eq. 8 batch (examples/metaworld/pipeline.py), 300 steps. Not
+# imported from it: importing examples.metaworld sets HF_HUB_OFFLINE in this process.
+PERSONALIZE = (
+    "--steps 300 --user-rows 16 --null-rows 8 --neighbour-keys 4 --random-keys 4 --samples-per-key 1 "
+    "--null-weight 2 --lr 1e-3 --base-lr-scale 0.1"
+).split()
+
+
+def policy_dir(out: Path) -> Path:
+    return out / "train" / "checkpoints" / "last" / "pretrained_model"
+
+
+def run(cmd: list, log: Path) -> None:
+    print("$ " + " ".join(map(str, cmd)), flush=True)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as f:
+        subprocess.run(list(map(str, cmd)), check=True, stdout=f, stderr=subprocess.STDOUT)
+
+
+def prop(*args) -> str:
+    print("$ prop " + " ".join(map(str, args)), flush=True)
+    cmd = [sys.executable, "-m", "prop_cli.cli.main", *map(str, args)]
+    return subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
+
+
+def step_record(out: Path) -> None:
+    for name, n, seed, offset in (
+        ("base", BASE_EPISODES, BASE_SEED, None),
+        ("user", USER_EPISODES, USER_SEED, pm.USER_OFFSET),
+    ):
+        root, done = out / name, out / f"{name}.json"
+        if done.is_file():
+            print(f"record: {root} done")
+            continue
+        shutil.rmtree(root, ignore_errors=True)
+        t0 = time.perf_counter()
+        counts = pm.record(root, n, seed, offset)
+        counts["seconds"] = round(time.perf_counter() - t0, 1)
+        done.write_text(json.dumps(counts))
+        print(f"record: {root}: {counts}", flush=True)
+
+
+def step_train(out: Path) -> None:
+    if (policy_dir(out) / "model.safetensors").is_file():
+        print(f"train: {policy_dir(out)} done")
+        return
+    steps = int(next(a for a in TRAIN if a.startswith("--steps=")).split("=")[1])
+    shutil.rmtree(out / "train", ignore_errors=True)
+    t0 = time.perf_counter()
+    run(
+        [
+            BIN / "lerobot-train",
+            "--dataset.repo_id=local/base",
+            f"--dataset.root={out / 'base'}",
+            *TRAIN,
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--num_workers=0",
+            f"--save_freq={steps}",
+            "--log_freq=100",
+            "--wandb.enable=false",
+            f"--output_dir={out / 'train'}",
+            "--job_name=pointmass-diffusion",
+            "--seed=0",
+        ],
+        out / "train.log",
+    )
+    (out / "train.json").write_text(json.dumps({"seconds": round(time.perf_counter() - t0, 1)}))
+    print(f"train: {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def _name(base: str, variant: str) -> str:
+    return f"{base}-{variant}" if variant else base
+
+
+def step_personalize(out: Path, variant: str = "", extra: list[str] | None = None) -> None:
+    key = out / "user.key"
+    if not key.is_file():
+        prop("keygen", key)
+    dest = out / _name("bundle", variant)
+    if (dest / "manifest.json").is_file():
+        print(f"personalize: {dest} done")
+        return
+    shutil.rmtree(dest, ignore_errors=True)
+    t0 = time.perf_counter()
+    report = json.loads(
+        prop(
+            "personalize",
+            policy_dir(out),
+            "--data",
+            out / "user",
+            "--key-file",
+            key,
+            "--out",
+            dest,
+            *PERSONALIZE,
+            *(extra or []),
+            "--general-data",
+            out / "base",
+            "--json",
+        )
+    )
+    report["seconds"] = round(time.perf_counter() - t0, 1)
+    (out / f"{_name('bundle', variant)}.json").write_text(json.dumps(report, indent=1, default=str))
+    print(f"personalize: {dest} {report['seconds']} s", flush=True)
+
+
+def original_controller(path: Path):
+    """The trained checkpoint as LeRobot loads it, in prop's closed-loop controller."""
+    from examples.metaworld.pipeline import original_controller as load
+
+    return load(path)
+
+
+def conditions(key: np.ndarray) -> list[dict]:
+    from examples.lerobot_wrong_keys import key_conditions
+
+    wrong = [w for w in key_conditions(key, N_RANDOM, 0, 1, 0) if w["group"] == "random"]
+    return [
+        {"name": "original", "group": "original"},
+        {"name": "no_key", "group": "no_key"},
+        {"name": "user_key", "group": "user_key"},
+        *[{"name": f"random-{i + 1:02d}", **w} for i, w in enumerate(wrong)],
+    ]
+
+
+def controller(out: Path, variant: str, c: dict):
+    import warnings
+
+    from prop_cli.bundle import load_bundle
+    from prop_cli.core.key_files import key_for_bundle
+    from prop_cli.run import KeyedPolicy
+
+    if c["group"] == "original":
+        return original_controller(policy_dir(out))
+    bundle = load_bundle(out / _name("bundle", variant))
+    if c["group"] == "no_key":
+        return KeyedPolicy(bundle, None)
+    if c["group"] == "user_key":
+        return KeyedPolicy(bundle, key_for_bundle(bundle.manifest, out / "user.key"))
+    with warnings.catch_warnings():  # through the encoder, unchecked: what someone holding the files runs
+        warnings.simplefilter("ignore")
+        return KeyedPolicy(bundle, c["bits"], method=True)
+
+
+def user_bits(out: Path, variant: str) -> np.ndarray:
+    from prop_cli.bundle import load_bundle
+    from prop_cli.core.key_files import key_for_bundle
+
+    return key_for_bundle(load_bundle(out / _name("bundle", variant)).manifest, out / "user.key")
+
+
+def step_judge(out: Path, variant: str = "", n: int = EPISODES) -> None:
+    """Every condition on the same seeds (one batch, the same sampler noise): judge[-variant]/NAME.json.
+    The original is judged once (judge/original.json) and shared by the variants."""
+    judged = out / _name("judge", variant)
+    judged.mkdir(parents=True, exist_ok=True)
+    seeds = [JUDGE_SEED + i for i in range(n)]
+    for c in conditions(user_bits(out, variant)):
+        path = (out / "judge" if c["group"] == "original" else judged) / f"{c['name']}.json"
+        if path.is_file():
+            continue
+        path.parent.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        eps = pm.rollouts(controller(out, variant, c), seeds)
+        seconds = round(time.perf_counter() - t0, 1)
+        row = dict(name=c["name"], group=c["group"], id=c.get("id"), episodes=eps, seconds=seconds)
+        path.write_text(json.dumps(row, indent=1))
+        print(
+            f"judge {c['name']:10s} success {sum(e['success'] for e in eps)}/{n}  distance "
+            f"{np.mean([e['distance'] for e in eps]):.4f}  lean {np.mean([e['lean'] for e in eps]):+.4f}  "
+            f"({row['seconds']} s)",
+            flush=True,
+        )
+
+
+def _sample(diffusion, batch: dict, seed: int, along: list | None = None) -> dict:
+    """LeRobot's ``conditional_sample`` step by step (its scheduler, its prior and step noise drawn from
+    torch's generator seeded with ``seed``): each step's (x_t, t, the U-Net's prediction). ``along``:
+    another run's steps, on whose x_t this model's prediction is also taken (a one-step error)."""
+    import torch
+
+    c = diffusion.config
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        torch.manual_seed(seed)
+        cond = diffusion._prepare_global_conditioning(batch)
+        n = cond.shape[0]
+        x = torch.randn((n, c.horizon, c.action_feature.shape[0]))
+        sched = diffusion.noise_scheduler
+        sched.set_timesteps(diffusion.num_inference_steps)
+        steps, at = [], []
+        for k, t in enumerate(sched.timesteps):
+            tt = torch.full((n,), int(t), dtype=torch.long)
+            eps = diffusion.unet(x, tt, global_cond=cond)
+            steps.append({"x": x, "t": int(t), "eps": eps})
+            if along is not None:
+                at.append(diffusion.unet(along[k]["x"], tt, global_cond=cond))
+            x = sched.step(eps, t, x).prev_sample
+    return {"steps": steps, "chunk": x, "at": at}
+
+
+def step_drift(out: Path, variant: str = "") -> None:
+    """Per denoising step, how far each key's noise prediction is from the original's on the original's
+    own sampler states (one-step error), how far its own sampler's state ends from the original's (the
+    error compounded over the steps), and the executed actions' bias along the user's offset (x), on the
+    closed-loop observations of the original's judged episodes: out/drift[-variant].json."""
+
+    dest = out / f"{_name('drift', variant)}.json"
+    if dest.is_file():
+        print(f"drift: {dest} done")
+        return
+    ctl = original_controller(policy_dir(out))
+    original = ctl.module.diffusion
+    seen: list[dict] = []
+    generate = original.generate_actions
+
+    def record(batch, noise=None):
+        seen.append({k: v.clone() for k, v in batch.items()})
+        return generate(batch, noise=noise)
+
+    original.generate_actions = record
+    pm.rollouts(ctl, [JUDGE_SEED + i for i in range(EPISODES)])
+    original.generate_actions = generate
+    c = original.config
+    start, stop = c.n_obs_steps - 1, c.n_obs_steps - 1 + c.n_action_steps
+    refs = [_sample(original, b, 7 + i) for i, b in enumerate(seen)]
+    rows = []
+    for cnd in conditions(user_bits(out, variant))[1:]:
+        model = controller(out, variant, cnd).module.diffusion
+        one, gap, bias, size = [], [], [], []
+        for i, b in enumerate(seen):
+            run = _sample(model, b, 7 + i, along=refs[i]["steps"])
+            ref = refs[i]
+            one.append(
+                [
+                    float(
+                        (a - s["eps"]).flatten(1).norm(dim=1).mean() / s["eps"].flatten(1).norm(dim=1).mean()
+                    )
+                    for a, s in zip(run["at"], ref["steps"])
+                ]
+            )
+            gap.append(
+                [
+                    float((r["x"] - s["x"]).flatten(1).norm(dim=1).mean())
+                    for r, s in zip(run["steps"][1:], ref["steps"][1:])
+                ]
+                + [float((run["chunk"] - ref["chunk"]).flatten(1).norm(dim=1).mean())]
+            )
+            d = run["chunk"][:, start:stop] - ref["chunk"][:, start:stop]
+            bias.append(float(d[..., 0].mean()))
+            size.append(float(d.norm(dim=-1).mean()))
+        rows.append(
+            {
+                "name": cnd["name"],
+                "group": cnd["group"],
+                "one_step": np.mean(one, 0).round(5).tolist(),
+                "gap": np.mean(gap, 0).round(5).tolist(),
+                "action_bias_x": round(float(np.mean(bias)), 5),
+                "action_change": round(float(np.mean(size)), 5),
+            }
+        )
+        print(
+            f"drift {cnd['name']:10s} one-step {rows[-1]['one_step'][0]:.4f}..{rows[-1]['one_step'][-1]:.4f} "
+            f"chunk gap {rows[-1]['gap'][-1]:.4f} action change {rows[-1]['action_change']:.4f} "
+            f"bias x {rows[-1]['action_bias_x']:+.4f}",
+            flush=True,
+        )
+    timesteps = [s["t"] for s in refs[0]["steps"]]
+    first = sum(bool((b["observation.state"][:, 0] == b["observation.state"][:, -1]).all()) for b in seen)
+    report = {
+        "timesteps": timesteps,
+        "train_timesteps": int(original.noise_scheduler.config.num_train_timesteps),
+        "calls": len(seen),
+        "calls_with_repeated_history": first,
+        "rows": rows,
+    }
+    dest.write_text(json.dumps(report, indent=1))
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of k successes in n (95% at z = 1.96)."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    centre, spread = (k + z * z / 2) / (n + z * z), z * math.sqrt(k * (n - k) / n + z * z / 4) / (n + z * z)
+    return (max(0.0, centre - spread), min(1.0, centre + spread))
+
+
+def sign_p(a: int, b: int) -> float:
+    """Two-sided exact sign test: ``a`` and ``b`` pairs on either side, ties left out."""
+    n = a + b
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(0, min(a, b) + 1)) / 2**n
+    return min(1.0, 2 * tail)
+
+
+def _load(folder: Path) -> dict[str, dict]:
+    return {r["name"]: r for r in (json.loads(f.read_text()) for f in sorted(folder.glob("*.json")))}
+
+
+def _at(rows: dict[str, dict], threshold: float | None) -> dict[str, dict]:
+    """The judged rows with success and the user's criterion re-read from the final distances at
+    ``threshold`` (None: as judged, ``task.THRESHOLD``)."""
+    if threshold is None:
+        return rows
+    return {
+        n: r
+        | {
+            "episodes": [
+                e | {"success": int(e["distance"] < threshold), "user": int(e["user_distance"] < threshold)}
+                for e in r["episodes"]
+            ]
+        }
+        for n, r in rows.items()
+    }
+
+
+def summary(out: Path, variant: str = "", threshold: float | None = None) -> dict:
+    """Per condition: success (Wilson 95%), ratio to the original, episodes lost and gained against the
+    original on the same seeds (exact sign test), mean final distance and lean; pooled over the random
+    keys; how many keys end farther and lean more than the original (a sign test over the keys: a
+    systematic drift); whether the issue's bar holds. ``threshold``: success as a final distance under
+    it (default the task's)."""
+    rows = _at(_load(out / "judge") | _load(out / _name("judge", variant)), threshold)
+    ref = rows["original"]["episodes"]
+    k0 = sum(e["success"] for e in ref)
+    win = {e["seed"]: e["success"] for e in ref}
+    d0, l0 = np.mean([e["distance"] for e in ref]), np.mean([e["lean"] for e in ref])
+    table = []
+    for name, r in rows.items():
+        eps = r["episodes"]
+        k, n = sum(e["success"] for e in eps), len(eps)
+        lost = sum(win[e["seed"]] and not e["success"] for e in eps)
+        gained = sum(e["success"] and not win[e["seed"]] for e in eps)
+        table.append(
+            {
+                "name": name,
+                "group": r["group"],
+                "k": k,
+                "n": n,
+                "ci": wilson(k, n),
+                "ratio": k / k0 if k0 else float("nan"),
+                "lost": lost,
+                "gained": gained,
+                "p": sign_p(lost, gained),
+                "distance": float(np.mean([e["distance"] for e in eps])),
+                "lean": float(np.mean([e["lean"] for e in eps])),
+                "user": sum(e["user"] for e in eps),
+            }
+        )
+    wrong = [t for t in table if t["group"] == "random"]
+    kw, nw = sum(t["k"] for t in wrong), sum(t["n"] for t in wrong)
+    lost, gained = sum(t["lost"] for t in wrong), sum(t["gained"] for t in wrong)
+    near = {e["seed"]: e["distance"] for e in ref}
+    per_seed = [e["distance"] - near[e["seed"]] for t in wrong for e in rows[t["name"]]["episodes"]]
+    farther_eps, nearer_eps = sum(x > 0 for x in per_seed), sum(x < 0 for x in per_seed)
+    farther = sum(t["distance"] > d0 for t in wrong)
+    leaning = sum(t["lean"] > l0 for t in wrong)
+    pooled = {
+        "k": kw,
+        "n": nw,
+        "ci": wilson(kw, nw),
+        "ratio": kw / nw / (k0 / len(ref)) if k0 else float("nan"),
+        "lost": lost,
+        "gained": gained,
+        "p": sign_p(lost, gained),
+        "farther": farther,
+        "farther_p": sign_p(farther, len(wrong) - farther),
+        "leaning": leaning,
+        "leaning_p": sign_p(leaning, len(wrong) - leaning),
+        "below_0.9": sum(t["ratio"] < 0.9 for t in wrong),
+        "farther_episodes": farther_eps,
+        "nearer_episodes": nearer_eps,
+        "episodes_p": sign_p(farther_eps, nearer_eps),
+        "distance": float(np.mean([t["distance"] for t in wrong])) if wrong else float("nan"),
+        "lean": float(np.mean([t["lean"] for t in wrong])) if wrong else float("nan"),
+    }
+    pooled["bar"] = bool(wrong) and pooled["below_0.9"] == 0 and pooled["ratio"] >= 0.95
+    return {"rows": table, "pooled": pooled}
+
+
+HEAD = (
+    "| condition | success | x original | lost / gained | sign test p | final distance | lean to user "
+    "| user's criterion |"
+)
+
+
+def _ci(k: int, n: int) -> str:
+    lo, hi = wilson(k, n)
+    return f"{k}/{n} [{lo:.2f}, {hi:.2f}]"
+
+
+def step_table(out: Path, thresholds: list[float] | None = None) -> None:
+    variants = [""] + sorted(p.name[len("judge-") :] for p in out.glob("judge-*") if p.is_dir())
+    for v in variants:
+        if not (out / _name("judge", v)).is_dir() or not (out / "judge" / "original.json").is_file():
+            continue
+        for threshold in thresholds or [pm.THRESHOLD]:
+            success_table(out, v, threshold)
+    for v in variants:
+        f = out / f"{_name('drift', v)}.json"
+        if f.is_file():
+            drift_table(json.loads(f.read_text()), _name("drift", v))
+
+
+def success_table(out: Path, v: str, threshold: float) -> None:
+    s = summary(out, v, threshold)
+    print(
+        f"\n{_name('bundle', v)}, success = final distance < {threshold}: per condition, paired seeds "
+        "(Wilson 95%), against the original\n"
+    )
+    print(HEAD + "\n|" + " --- |" * 8)
+    for t in s["rows"]:
+        print(
+            f"| {t['name']} | {_ci(t['k'], t['n'])} | {t['ratio']:.2f} | {t['lost']} / {t['gained']} | "
+            f"{t['p']:.3f} | {t['distance']:.4f} | {t['lean']:+.4f} | {t['user']}/{t['n']} |"
+        )
+    p = s["pooled"]
+    print(
+        f"| 16 random keys pooled | {_ci(p['k'], p['n'])} | {p['ratio']:.2f} | "
+        f"{p['lost']} / {p['gained']} | {p['p']:.2g} | | | |"
+    )
+    print(
+        f"\nkeys below 0.9x: {p['below_0.9']} of 16; ending farther than the original: {p['farther']} "
+        f"(sign test p {p['farther_p']:.3g}); leaning more toward the user's goal: {p['leaning']} "
+        f"(p {p['leaning_p']:.3g}); bar (every key >= 0.9x, pooled >= 0.95x): "
+        f"{'met' if p['bar'] else 'NOT met'}; wrong-key episodes ending farther / nearer than the "
+        f"original's on the same seed: {p['farther_episodes']} / {p['nearer_episodes']} (sign test p "
+        f"{p['episodes_p']:.3g}); mean final distance {p['distance']:.4f}, lean {p['lean']:+.4f}"
+    )
+
+
+def drift_table(d: dict, name: str) -> None:
+    print(
+        f"\n{name}: sampler timesteps {d['timesteps']} of {d['train_timesteps']}; {d['calls']} sampler "
+        f"calls, {d['calls_with_repeated_history']} with a repeated (padded) history\n"
+    )
+    print(
+        "| condition | one-step error per sampler step | state gap after each step | executed action change "
+        "| bias along the user's offset |\n|" + " --- |" * 5
+    )
+    for label, names in {"no key": ["no_key"], "user key": ["user_key"], "random keys (mean)": None}.items():
+        rs = [r for r in d["rows"] if (r["name"] in names if names else r["group"] == "random")]
+        if not rs:
+            continue
+        one = " / ".join(f"{x:.3f}" for x in np.mean([r["one_step"] for r in rs], 0))
+        gap = " / ".join(f"{x:.3f}" for x in np.mean([r["gap"] for r in rs], 0))
+        change = np.mean([r["action_change"] for r in rs])
+        bias = np.mean([r["action_bias_x"] for r in rs])
+        print(f"| {label} | {one} | {gap} | {change:.4f} | {bias:+.4f} |")
