@@ -47,7 +47,7 @@ from .batcher import Batcher
 from .cache import BehaviourCache
 from .route import NO_KEY, route_salt, routing_id
 from .rows import run_requests
-from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, bundle_stamp
+from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, bundle_stamp, check_batching
 from .sessions import OBSERVATION, Session
 from .wire import WireError, packb, unpackb
 
@@ -245,10 +245,7 @@ def application(
         raise PropError(f"--replicas {replicas}", "pass 1 or more")
     if users_per_replica < 1:
         raise PropError(f"--users-per-replica {users_per_replica}", "pass 1 or more")
-    if not 0 <= batch_window_ms <= 1000:
-        raise PropError(f"--batch-window-ms {batch_window_ms}", "pass 0 to 1000 (0: no waiting)")
-    if max_batch < 1:
-        raise PropError(f"--max-batch {max_batch}", "pass 1 or more observations")
+    check_batching(batch_window_ms, max_batch)
     if bundle is None:
         bundle = load_bundle(bundle_path, trust_remote_code=trust_remote_code, arch=arch,
                              allow_rollback=allow_rollback)  # fmt: skip

@@ -140,6 +140,14 @@ def _peer(ws: ServerConnection) -> str:
     return f"{address[0]}:{address[1]}" if isinstance(address, tuple) else "peer"
 
 
+def check_batching(batch_window_ms: float, max_batch: int) -> None:
+    """The batch options, checked alike by ``prop serve`` and ``prop serve-ray``."""
+    if not 0 <= batch_window_ms <= 1000:
+        raise PropError(f"--batch-window-ms {batch_window_ms}", "pass 0 to 1000 (0: no waiting)")
+    if max_batch < 1:
+        raise PropError(f"--max-batch {max_batch}", "pass 1 or more observations")
+
+
 class PolicyServer:
     """``bundle`` served on ``host:port`` (0: a free port). ``max_connections``: more are closed at once
     (1013, try again later); ``max_message_bytes``: a bigger message closes its connection (1009)."""
@@ -154,10 +162,7 @@ class PolicyServer:
     ) -> None:  # fmt: skip
         if max_connections < 1:
             raise PropError(f"--max-connections {max_connections}", "pass 1 or more")
-        if not 0 <= batch_window_ms <= 1000:
-            raise PropError(f"--batch-window-ms {batch_window_ms}", "pass 0 to 1000 (0: no waiting)")
-        if max_batch < 1:
-            raise PropError(f"--max-batch {max_batch}", "pass 1 or more observations")
+        check_batching(batch_window_ms, max_batch)
         if cache_mb < 0:
             raise PropError(f"--cache-mb {cache_mb}", "pass 0 (no cache) or more megabytes")
         self.ssl = tls_context(host, tls_cert, tls_key)
