@@ -52,28 +52,15 @@ r = subprocess.run(
 )
 assert r.returncode == 0, r.stderr
 t = time.time()
-ps = [
-    subprocess.Popen(
-        [
-            *P,
-            "add-user",
-            d / "b.prop",
-            "--data",
-            d / "mine.npz",
-            "--key-file",
-            d / f"{k}.bin",
-            "--steps",
-            "20",
-            "--device",
-            "cpu",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    for k in ("k2", "k3")
-]
+
+
+def start(k: str) -> subprocess.Popen:
+    cmd = [*P, "add-user", d / "b.prop", "--data", d / "mine.npz", "--key-file", d / f"{k}.bin",
+           "--steps", "20", "--device", "cpu"]  # fmt: skip
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+ps = [start(k) for k in ("k2", "k3")]
 for k, p in zip(("k2", "k3"), ps):
     out, err = p.communicate()
     print(k, "exit", p.returncode, err.strip().splitlines()[-1][:160] if err.strip() else "")
