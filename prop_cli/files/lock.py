@@ -85,6 +85,16 @@ def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int | None:
             if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
                 return None  # a folder this user cannot write: no writer can race here; the write says why
             raise _cannot(folder, e, what) from None
+        opened = os.fstat(fd)
+        if not stat.S_ISREG(opened.st_mode) or opened.st_nlink != 1:
+            # A hard link to another file (the manifest, a record, a file outside the bundle) or a FIFO
+            # put there by whoever made the bundle: writing the pid would truncate that file.
+            os.close(fd)
+            raise PropError(
+                f"{what} {folder}: {C.BUNDLE_LOCK} is not a plain file of its own (a hard link or a special "
+                f"file); prop writes nothing through it: {TAMPERED}",
+                RESTORE,
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

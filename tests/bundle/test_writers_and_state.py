@@ -169,6 +169,25 @@ def test_a_link_swapped_in_mid_command_is_not_followed(workdir, tmp_path):
     assert not any(elsewhere.rglob("*.sealed"))
 
 
+@pytest.mark.parametrize("kind", ["hard link to the manifest", "hard link outside", "fifo"])
+def test_a_lock_file_planted_in_the_bundle_is_not_written_through(tmp_path, kind):
+    """Whoever made the bundle plants its lock file as a hard link (to the manifest, or to a file of the
+    receiver's outside the bundle, e.g. a tar entry) or a FIFO: taking the lock would truncate that file.
+    Refused in one line, and the linked file keeps its bytes."""
+    b = tmp_path / "b"
+    b.mkdir()
+    victim = (b / C.MANIFEST) if kind == "hard link to the manifest" else tmp_path / "k.bin"
+    victim.write_bytes(b"precious")
+    if kind == "fifo":
+        os.mkfifo(b / C.BUNDLE_LOCK)
+    else:
+        os.link(victim, b / C.BUNDLE_LOCK)
+    with pytest.raises(PropError, match=r"not a plain file of its own .*tampered"):
+        with bundle_lock(b):
+            pass
+    assert victim.read_bytes() == b"precious"
+
+
 # ---- items 5, 8, 11: the state fails closed, is bounded, is absolute ------------------------------
 
 
