@@ -31,7 +31,7 @@ from .kinds import (
     check_replaceable,
 )
 from .links import RESTORE, TAMPERED, link_error, no_links, remove_inside, shown, write_inside
-from .lock import bundle_lock, delete, held, put, remove_at, write_at
+from .lock import bundle_lock, delete, held, held_at, opened, put, read, remove_at, sha256_inside, write_at
 from .outputs import check_not_input, check_output
 
 __all__ = [
@@ -57,13 +57,17 @@ __all__ = [
     "delete",
     "dump_json",
     "held",
+    "held_at",
     "link_error",
     "no_links",
+    "opened",
     "put",
+    "read",
     "remove_at",
     "remove_inside",
     "replace_dir",
     "sha256_file",
+    "sha256_inside",
     "shown",
     "staged_dir",
     "uninterrupted",

@@ -9,6 +9,9 @@ written. Nested use in one thread (add-user's ``rewrite_records`` inside ``api.a
 lock held. ``write_at`` and ``remove_at`` write and delete relative to that descriptor, each folder
 below it opened with ``O_NOFOLLOW``: a bundle folder (or ``users/``) swapped for a link while the
 command runs is not followed (the write goes to the folder that was locked, or is refused in one line).
+``put``, ``delete`` and ``opened`` go through the lock held on the folder named or on a folder above it
+(``<bundle>/onnx`` through its bundle's), and ``opened`` reads a file below a folder with no lock the
+same way, from a descriptor of that folder: no part below it is followed if it is a link.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 from prop_cli import constants as C
 from prop_cli.errors import PropError
@@ -166,19 +170,38 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
         os.close(dfd)
 
 
-def _link_refused(folder: Path, rel: str, what: str) -> PropError:
+def held_at(folder: Path) -> tuple[int, str, Path] | None:
+    """The lock this thread holds on ``folder`` or on the nearest folder above it (as named): that
+    folder's descriptor, the path of ``folder`` below it ("" for itself) and its path; None if none."""
+    path = here = os.path.abspath(folder)
+    locks = _held()
+    while True:
+        entry = locks.get(here)
+        if entry is not None:
+            below = "" if here == path else os.path.relpath(path, here).replace(os.sep, "/")
+            return entry[0], below, Path(here)
+        up = os.path.dirname(here)
+        if up == here:
+            return None
+        here = up
+
+
+def _link_refused(folder: Path, rel: str, what: str, while_writing: bool = True) -> PropError:
+    when = " (put there while prop wrote the bundle)" if while_writing else ""
     return PropError(
-        f"{what} {folder}: {shown(rel)} is a symbolic link (put there while prop wrote the bundle); prop "
-        f"reads and writes nothing through links: {TAMPERED}",
+        f"{what} {folder}: {shown(rel)} is a symbolic link{when}; prop reads and writes nothing through "
+        f"links: {TAMPERED}",
         RESTORE,
     )
 
 
 @contextlib.contextmanager
-def _parent(dfd: int, rel: str, folder: Path, what: str, create: bool) -> Iterator[tuple[int, str]]:
+def _parent(
+    dfd: int, rel: str, folder: Path, what: str, create: bool, while_writing: bool = True
+) -> Iterator[tuple[int, str]]:
     """The descriptor of ``rel``'s folder below ``dfd`` (each part opened with O_NOFOLLOW, created if
     ``create``) and ``rel``'s last part."""
-    *parts, name = rel.split("/")
+    *parts, name = [p for p in rel.split("/") if p not in ("", ".")]
     fds = [dfd]
     try:
         for i, part in enumerate(parts):
@@ -189,7 +212,7 @@ def _parent(dfd: int, rel: str, folder: Path, what: str, create: bool) -> Iterat
                 fds.append(os.open(part, _DIR | _NOFOLLOW, dir_fd=fds[-1]))
             except OSError as e:
                 if e.errno in (errno.ELOOP, errno.ENOTDIR):
-                    raise _link_refused(folder, "/".join(parts[: i + 1]), what) from None
+                    raise _link_refused(folder, "/".join(parts[: i + 1]), what, while_writing) from None
                 raise
         yield fds[-1], name
     finally:
@@ -237,29 +260,85 @@ def remove_at(dfd: int, rel: str, folder: Path, what: str = "bundle") -> None:
         pass
 
 
+def _below(below: str, rel: str) -> str:
+    return f"{below}/{rel}" if below else rel
+
+
 def put(folder: Path, rel: str, data: bytes, what: str = "bundle", output: bool = False) -> None:
-    """Write ``folder / rel`` atomically: through the locked folder when this thread holds its lock
-    (``bundle_lock``), else by path (a folder being staged, that no one else sees), never through a
-    link. ``output``: name it among what this process wrote (``atomic.written``)."""
+    """Write ``folder / rel`` atomically: through the locked folder when this thread holds the lock of
+    ``folder`` or of a folder above it (``bundle_lock``), else by path (a folder being staged, that no
+    one else sees), never through a link. ``output``: name it among what this process wrote
+    (``atomic.written``)."""
     from .atomic import write_file, wrote
     from .links import no_links
 
-    dfd = held(folder)
-    if dfd is None:
+    at = held_at(folder)
+    if at is None:
         write_file(no_links(folder, rel, what), lambda p: p.write_bytes(data), what, "BUNDLE")
         return
-    write_at(dfd, rel, data, Path(folder), what)
+    dfd, below, root = at
+    write_at(dfd, _below(below, rel), data, root, "bundle" if below else what)
     if output:
         wrote(Path(folder) / rel)
 
 
 def delete(folder: Path, rel: str, what: str = "bundle") -> None:
-    """Delete ``folder / rel`` if it is there: through the locked folder when this thread holds its
-    lock, else by path; never through a linked folder."""
+    """Delete ``folder / rel`` if it is there: through the locked folder when this thread holds the lock
+    of ``folder`` or of a folder above it, else by path; never through a linked folder."""
     from .links import remove_inside
 
-    dfd = held(folder)
-    if dfd is None:
+    at = held_at(folder)
+    if at is None:
         remove_inside(folder, rel, what)
     else:
-        remove_at(dfd, rel, Path(folder), what)
+        dfd, below, root = at
+        remove_at(dfd, _below(below, rel), root, "bundle" if below else what)
+
+
+@contextlib.contextmanager
+def opened(folder: Path, rel: str, what: str = "bundle") -> Iterator[BinaryIO]:
+    """``folder / rel`` open for reading, reached from a descriptor of ``folder`` (the lock's, if this
+    thread holds it or one above it; else ``folder`` opened now, as named) with every part below it
+    opened with O_NOFOLLOW: a link anywhere below ``folder``, there from the start or swapped in since a
+    check, is refused in one line, never followed. FileNotFoundError where a part is missing."""
+    at = held_at(folder)
+    if at is None:
+        dfd, below, root = os.open(folder, _DIR), "", Path(folder)
+    else:
+        dfd, below, root = at
+        what = "bundle" if below else what
+    rel = _below(below, rel)
+    try:
+        with _parent(dfd, rel, root, what, create=False, while_writing=False) as (pfd, name):
+            try:
+                fd = os.open(name, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0), dir_fd=pfd)
+            except OSError as e:
+                if e.errno == errno.ELOOP:
+                    raise _link_refused(root, rel, what, while_writing=False) from None
+                raise
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                os.close(fd)
+                raise PropError(f"{what} {root}: {shown(rel)} is not a plain file: {TAMPERED}", RESTORE)
+            with os.fdopen(fd, "rb") as f:
+                yield f
+    finally:
+        if at is None:
+            os.close(dfd)
+
+
+def read(folder: Path, rel: str, what: str = "bundle", limit: int | None = None) -> bytes:
+    """The bytes of ``folder / rel``, read as ``opened`` reads them (no link below ``folder`` followed);
+    ``limit``: at most that many bytes are read (a caller refuses a file that reaches it)."""
+    with opened(folder, rel, what) as f:
+        return f.read() if limit is None else f.read(limit)
+
+
+def sha256_inside(folder: Path, rel: str, what: str = "bundle") -> str:
+    """The sha256 of ``folder / rel``, read as ``opened`` reads it."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with opened(folder, rel, what) as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
