@@ -173,7 +173,24 @@ def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator
     goes there, wherever the folders above it are moved. If the parent folder no longer is the one its
     path names when the block ends, the command is refused (``_still_there``); under a bundle's lock,
     the locked folder is the one written (as ``lock.write_at`` writes)."""
-    out = Path(out)
+    with _staged(Path(out), what, flag, file=False) as tmp:
+        yield tmp
+
+
+def write_file(
+    out: Path, write: Callable[[Path], None], what: str = "output", flag: str = "--output"
+) -> Path:
+    """Call ``write(tmp)`` on a temporary file named as ``out`` (same suffix) in a stage folder beside
+    it, then rename it to ``out``: through descriptors, as ``staged_dir`` writes a folder."""
+    with _staged(Path(out), what, flag, file=True) as tmp:
+        write(tmp)
+    return Path(out)
+
+
+@contextlib.contextmanager
+def _staged(out: Path, what: str, flag: str, file: bool) -> Iterator[Path]:
+    """``staged_dir`` (``file``: a file named as ``out`` in the stage, renamed to ``out``, the stage
+    then removed)."""
     if out.name in ("", ".", ".."):
         out = out.resolve()
     checked = _CHECKED.pop(os.path.abspath(out), None)
@@ -182,6 +199,7 @@ def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator
             _still_there(pfd, parent, out, what, flag, checked)
         name = f".{out.name}.{secrets.token_hex(4)}.tmp"
         here = name if pfd is not None else str(parent / name)
+        target = out.name if pfd is not None else str(parent / out.name)
         try:
             os.mkdir(here, 0o700, dir_fd=pfd)  # as mkdtemp: the stage is this user's alone
         except OSError as e:
@@ -190,11 +208,18 @@ def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator
         try:
             if pfd is not None:
                 sfd = os.open(name, _DIR | _NOFOLLOW, dir_fd=pfd)
-            yield _by_descriptor(sfd, parent / name) if sfd is not None else parent / name
+            stage = _by_descriptor(sfd, parent / name) if sfd is not None else parent / name
+            if file:  # there even if ``write`` writes nothing (as mkstemp's file was)
+                os.close(os.open(stage / out.name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o666))
+            yield stage / out.name if file else stage
             with uninterrupted():
                 if pfd is not None and not locked:
                     _still_there(pfd, parent, out, what, flag)
-                _replace_at(pfd, here, out.name if pfd is not None else str(parent / out.name))
+                if file:
+                    os.rename(f"{here}/{out.name}", target, src_dir_fd=pfd, dst_dir_fd=pfd)
+                    os.rmdir(here, dir_fd=pfd)
+                else:
+                    _replace_at(pfd, here, target)
                 wrote(out)
         except BaseException:
             with contextlib.suppress(OSError):
@@ -203,35 +228,6 @@ def staged_dir(out: Path, what: str = "bundle", flag: str = "--out") -> Iterator
         finally:
             if sfd is not None:
                 os.close(sfd)
-
-
-def write_file(
-    out: Path, write: Callable[[Path], None], what: str = "output", flag: str = "--output"
-) -> Path:
-    """Call ``write(tmp)`` on a temporary sibling of ``out`` (same suffix), then rename it to ``out``."""
-    out = Path(out)
-    try:
-        fd, name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.resolve().parent)
-    except OSError as e:
-        raise _cannot_write(what, out, e, flag) from None
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give what a plain open() would
-        with uninterrupted():
-            os.replace(tmp, out)
-            wrote(out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return out
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def write_text(out: Path, text: str, what: str = "output", flag: str = "--output") -> Path:

@@ -88,6 +88,40 @@ def test_a_parent_moved_after_the_check_still_gets_nothing_outside(tmp_path, mon
     assert _tree(moved[0]) == {"b": None, "b/new": b"new"}
 
 
+def test_a_single_file_output_follows_no_parent_swapped_mid_write(tmp_path):
+    """write_file (run --output, audit JSON and plots, manifests of staged bundles): the output's folder
+    swapped for a link while the file is written (a twin of the stage made at the link's target). The
+    file is written in its stage by descriptor, with its suffix; the rename is refused in one line and
+    the old output is kept; nothing outside is written."""
+    import numpy as np
+
+    from prop_cli.files import ARRAY, check_output, write_file
+
+    work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    work.mkdir()
+    elsewhere.mkdir()
+    np.save(work / "y.npy", np.zeros(1))
+    old = (work / "y.npy").read_bytes()
+    check_output(work / "y.npy", force=True, what="output", flag="--output", kind=ARRAY)
+    moved = []
+
+    def save(p: Path) -> None:
+        assert p.suffix == ".npy"
+        stage = next(n for n in os.listdir(work) if n.endswith(".tmp"))
+        (elsewhere / stage).mkdir()
+        moved.append(_swap_for_link(work, elsewhere))
+        np.save(p, np.zeros(3))
+
+    with pytest.raises(PropError, match="was replaced or moved while prop wrote it"):
+        write_file(work / "y.npy", save)
+    assert not any(p.is_file() for p in elsewhere.rglob("*"))
+    assert _tree(moved[0]) == {"y.npy": old}
+    os.unlink(work)
+    os.rename(moved[0], work)
+    write_file(work / "y.npy", lambda p: np.save(p, np.ones(3)))  # no swap: written, the stage gone
+    assert np.load(work / "y.npy").tolist() == [1, 1, 1] and sorted(os.listdir(work)) == ["y.npy"]
+
+
 def test_replacing_an_output_removes_no_file_a_link_in_it_names(tmp_path):
     """--force over an old output that holds links (to a folder and to a file outside): the links go,
     never what they name."""
@@ -141,23 +175,30 @@ def test_a_thread_swapping_the_parent_at_a_random_moment_never_gets_a_byte_outsi
     assert refused + landed == 40 and refused and landed, (refused, landed)  # both moments were hit
 
 
-def test_export_into_the_bundle_goes_to_the_locked_bundle_only(cli, workdir, monkeypatch):
-    """`prop export --onnx` into the bundle (its onnx/): the bundle path swapped for a link to another
-    folder mid-export. The export is renamed through the locked bundle's descriptor: the other folder
-    gets nothing."""
+def _swap_at_first_graph(monkeypatch, folder: Path, target: Path) -> list[Path]:
+    """Swap ``folder`` for a link to ``target`` when the export writes its first graph (mid-command);
+    returns the list that receives where ``folder`` was moved."""
     from prop_cli.run.onnx import unsealed
 
-    b, elsewhere = workdir / "u.prop", workdir / "elsewhere"
-    _personalize(cli, workdir, b)
-    elsewhere.mkdir()
     real, moved = unsealed.export_graph, []
 
     def swap_then_export(*args, **kw):
         if not moved:
-            moved.append(_swap_for_link(b, elsewhere))
+            moved.append(_swap_for_link(folder, target))
         return real(*args, **kw)
 
     monkeypatch.setattr(unsealed, "export_graph", swap_then_export)
+    return moved
+
+
+def test_export_into_the_bundle_goes_to_the_locked_bundle_only(cli, workdir, monkeypatch):
+    """`prop export --onnx` into the bundle (its onnx/): the bundle path swapped for a link to another
+    folder mid-export. The export is renamed through the locked bundle's descriptor: the other folder
+    gets nothing."""
+    b, elsewhere = workdir / "u.prop", workdir / "elsewhere"
+    _personalize(cli, workdir, b)
+    elsewhere.mkdir()
+    moved = _swap_at_first_graph(monkeypatch, b, elsewhere)
     r = cli("export", b, "--onnx")
     assert r.code == 0, r.err
     assert _tree(elsewhere) == {}
@@ -168,20 +209,11 @@ def test_export_to_a_folder_swapped_mid_export_is_refused_in_one_line(cli, workd
     """`prop export --onnx --out work/x`: work/ swapped for a link to the attacker's folder while the
     graphs are written. Refused in one line naming work/; nothing in the attacker's folder, nothing
     left in work/."""
-    from prop_cli.run.onnx import unsealed
-
     b, work, elsewhere = workdir / "u.prop", workdir / "work", workdir / "elsewhere"
     _personalize(cli, workdir, b)
     work.mkdir()
     elsewhere.mkdir()
-    real, moved = unsealed.export_graph, []
-
-    def swap_then_export(*args, **kw):
-        if not moved:
-            moved.append(_swap_for_link(work, elsewhere))
-        return real(*args, **kw)
-
-    monkeypatch.setattr(unsealed, "export_graph", swap_then_export)
+    moved = _swap_at_first_graph(monkeypatch, work, elsewhere)
     r = cli("export", b, "--onnx", "--out", work / "x")
     _one_line(r, f"folder {work} was replaced or moved while prop wrote it", "nothing was written there")
     assert _tree(elsewhere) == {} and _tree(moved[0]) == {}
