@@ -98,7 +98,6 @@ def _out_parent(out: Path, what: str, flag: str) -> Iterator[tuple[int | None, P
     """The folder ``out`` is written in, opened once: its descriptor (None: no ``dir_fd`` here), its
     path and whether it is (or lies below) a bundle this thread has locked, whose descriptor it then is
     reached from (every part below the locked folder opened with O_NOFOLLOW: a link is refused)."""
-    from .lock import _DIR as DIR
     from .lock import _parent, held_at
 
     parent = out.absolute().parent
@@ -115,7 +114,7 @@ def _out_parent(out: Path, what: str, flag: str) -> Iterator[tuple[int | None, P
         yield None, parent, False
         return
     try:
-        pfd = os.open(parent, DIR)
+        pfd = os.open(parent, _DIR)
     except OSError as e:
         raise _cannot_write(what, out, e, flag, parent) from None
     try:

@@ -202,6 +202,8 @@ def _parent(
     """The descriptor of ``rel``'s folder below ``dfd`` (each part opened with O_NOFOLLOW, created if
     ``create``) and ``rel``'s last part."""
     *parts, name = [p for p in rel.split("/") if p not in ("", ".")]
+    if ".." in parts or name == "..":  # below ``dfd`` only (manifests and exports never name one)
+        raise PropError(f"{what} {folder}: {shown(rel)} leaves the folder: {TAMPERED}", RESTORE)
     fds = [dfd]
     try:
         for i, part in enumerate(parts):
@@ -311,7 +313,9 @@ def opened(folder: Path, rel: str, what: str = "bundle") -> Iterator[BinaryIO]:
     try:
         with _parent(dfd, rel, root, what, create=False, while_writing=False) as (pfd, name):
             try:
-                fd = os.open(name, os.O_RDONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0), dir_fd=pfd)
+                # O_NONBLOCK: a FIFO swapped in is refused below, not waited on (no effect on files)
+                flags = os.O_RDONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0)
+                fd = os.open(name, flags, dir_fd=pfd)
             except OSError as e:
                 if e.errno == errno.ELOOP:
                     raise _link_refused(root, rel, what, while_writing=False) from None

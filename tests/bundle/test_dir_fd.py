@@ -358,3 +358,22 @@ def test_reads_under_a_lock_go_through_the_locked_folder(tmp_path):
         put(b / C.EXPORT_DIR, C.EXPORT_META, b"updated")
     assert (elsewhere / C.EXPORT_DIR / C.EXPORT_META).read_bytes() == b"planted"
     assert (tmp_path / "b.moved" / C.EXPORT_DIR / C.EXPORT_META).read_bytes() == b"updated"
+
+
+def test_a_fifo_swapped_in_for_a_listed_file_is_refused_not_waited_on(tmp_path):
+    """A FIFO put in place of a listed file after check_tree would block a plain open for ever (no
+    writer comes): opened non-blocking and refused in one line as not a plain file. A path that
+    leaves the folder is refused before anything is opened."""
+    from prop_cli.bundle import check_files
+
+    b = tmp_path / "b"
+    b.mkdir()
+    (b / "base.safetensors").write_bytes(b"weights")
+    manifest = {C.M_FILES: {"base.safetensors": sha256_inside(b, "base.safetensors")}}
+    os.unlink(b / "base.safetensors")
+    os.mkfifo(b / "base.safetensors")
+    with pytest.raises(PropError, match=r"base\.safetensors is not a plain file: .*tampered"):
+        check_files(b, manifest)
+    (tmp_path / "secret").write_bytes(b"not the bundle's")
+    with pytest.raises(PropError, match=r"\.\./secret leaves the folder"):
+        read(b, "../secret")
