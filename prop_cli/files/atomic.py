@@ -18,6 +18,7 @@ from pathlib import Path
 
 from prop_cli.errors import PropError
 
+from .descriptors import DIR, NOFOLLOW, below, held_at
 from .links import shown
 
 # What this process has put in place so far (final paths, in order): the CLI names them if interrupted.
@@ -88,8 +89,6 @@ def _cannot_write(what: str, out: Path, e: OSError, flag: str, folder: Path | No
 
 # Folder writes go through descriptors (the output's parent opened once, ``dir_fd`` renames) where the
 # system has them; elsewhere (no ``dir_fd`` support) by absolute path, as before.
-_DIR = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
-_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _FD_OK = {os.open, os.mkdir, os.rename, os.unlink, os.rmdir, os.stat} <= os.supports_dir_fd
 
 
@@ -98,23 +97,21 @@ def _out_parent(out: Path, what: str, flag: str) -> Iterator[tuple[int | None, P
     """The folder ``out`` is written in, opened once: its descriptor (None: no ``dir_fd`` here), its
     path and whether it is (or lies below) a bundle this thread has locked, whose descriptor it then is
     reached from (every part below the locked folder opened with O_NOFOLLOW: a link is refused)."""
-    from .lock import _parent, held_at
-
     parent = out.absolute().parent
     at = held_at(parent) if _FD_OK else None
     if at is not None:
-        dfd, below, root = at
-        if not below:
+        dfd, sub, root = at
+        if not sub:
             yield dfd, parent, True
             return
-        with _parent(dfd, f"{below}/{out.name}", root, what, create=False) as (pfd, _):
+        with below(dfd, f"{sub}/{out.name}", root, what, create=False) as (pfd, _):
             yield pfd, parent, True
         return
     if not _FD_OK:
         yield None, parent, False
         return
     try:
-        pfd = os.open(parent, _DIR)
+        pfd = os.open(parent, DIR)
     except OSError as e:
         raise _cannot_write(what, out, e, flag, parent) from None
     try:
@@ -206,10 +203,10 @@ def _staged(out: Path, what: str, flag: str, file: bool) -> Iterator[Path]:
         sfd = None
         try:
             if pfd is not None:
-                sfd = os.open(name, _DIR | _NOFOLLOW, dir_fd=pfd)
+                sfd = os.open(name, DIR | NOFOLLOW, dir_fd=pfd)
             stage = _by_descriptor(sfd, parent / name) if sfd is not None else parent / name
             if file:  # there even if ``write`` writes nothing (as mkstemp's file was)
-                os.close(os.open(stage / out.name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o666))
+                os.close(os.open(stage / out.name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | NOFOLLOW, 0o666))
             yield stage / out.name if file else stage
             with uninterrupted():
                 if pfd is not None and not locked:
@@ -241,7 +238,7 @@ def replace_dir(new: Path, out: Path) -> None:
     if not _FD_OK:
         _replace_at(None, str(new), str(out))
         return
-    pfd = os.open(out.absolute().parent, _DIR)
+    pfd = os.open(out.absolute().parent, DIR)
     try:
         _replace_at(pfd, new.name, out.name)
     finally:
@@ -273,7 +270,7 @@ def _rmtree_at(pfd: int | None, name: str) -> None:
     if pfd is None:
         shutil.rmtree(name)  # no dir_fd here: shutil's own guard against links
         return
-    fd = os.open(name, _DIR | _NOFOLLOW, dir_fd=pfd)
+    fd = os.open(name, DIR | NOFOLLOW, dir_fd=pfd)
     try:
         with os.scandir(fd) as it:
             entries = [e.name for e in it]

@@ -9,9 +9,9 @@ written. Nested use in one thread (add-user's ``rewrite_records`` inside ``api.a
 lock held. ``write_at`` and ``remove_at`` write and delete relative to that descriptor, each folder
 below it opened with ``O_NOFOLLOW``: a bundle folder (or ``users/``) swapped for a link while the
 command runs is not followed (the write goes to the folder that was locked, or is refused in one line).
-``put``, ``delete`` and ``opened`` go through the lock held on the folder named or on a folder above it
-(``<bundle>/onnx`` through its bundle's), and ``opened`` reads a file below a folder with no lock the
-same way, from a descriptor of that folder: no part below it is followed if it is a link.
+``put`` and ``delete`` go through the lock held on the folder named or on a folder above it
+(``<bundle>/onnx`` through its bundle's); the locks held and the walk below a descriptor are
+``descriptors``' (which reads the same way: ``descriptors.opened``).
 """
 
 from __future__ import annotations
@@ -24,28 +24,12 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
 
 from prop_cli import constants as C
 from prop_cli.errors import PropError
 
-from .links import RESTORE, TAMPERED, shown
-
-_HELD = threading.local()  # .locks: {folder's absolute path, as named: [dir fd, depth]} of this thread
-_DIR = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
-_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
-
-
-def _held() -> dict[str, list[int]]:
-    if not hasattr(_HELD, "locks"):
-        _HELD.locks = {}
-    return _HELD.locks
-
-
-def held(folder: Path) -> int | None:
-    """The descriptor of ``folder`` if this thread holds its lock (None: it does not)."""
-    entry = _held().get(os.path.abspath(folder))
-    return entry[0] if entry else None
+from .descriptors import DIR, NOFOLLOW, below, held_at, holding, link_refused, under
+from .links import RESTORE, TAMPERED
 
 
 def _holder(fd: int) -> str:
@@ -70,7 +54,7 @@ def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int | None:
     import fcntl
 
     deadline = time.monotonic() + wait
-    flags = os.O_RDWR | os.O_CREAT | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+    flags = os.O_RDWR | os.O_CREAT | NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
     while True:
         try:
             fd = os.open(C.BUNDLE_LOCK, flags, 0o600, dir_fd=dfd)
@@ -130,7 +114,7 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
     nothing to lock: no such folder yet, one this user cannot write, or no flock on this system)."""
     folder = Path(folder)
     key = os.path.abspath(folder)  # as named, not resolved: a link swapped in later is not the key
-    entry = _held().get(key)
+    entry = holding().get(key)
     if entry is not None:  # this thread holds it already: a nested write of the same command
         entry[1] += 1
         try:
@@ -144,7 +128,7 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
         yield None
         return
     try:
-        dfd = os.open(folder, _DIR)
+        dfd = os.open(folder, DIR)
     except (FileNotFoundError, NotADirectoryError):  # nothing to lock: the command's own check says why
         yield None
         return
@@ -160,66 +144,14 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        _held()[key] = [dfd, 1]
+        holding()[key] = [dfd, 1]
         yield dfd
     finally:
-        _held().pop(key, None)
+        holding().pop(key, None)
         with contextlib.suppress(OSError):
             os.unlink(C.BUNDLE_LOCK, dir_fd=dfd)  # while held: a waiter then sees it is gone and retries
         os.close(fd)  # releases the flock
         os.close(dfd)
-
-
-def held_at(folder: Path) -> tuple[int, str, Path] | None:
-    """The lock this thread holds on ``folder`` or on the nearest folder above it (as named): that
-    folder's descriptor, the path of ``folder`` below it ("" for itself) and its path; None if none."""
-    path = here = os.path.abspath(folder)
-    locks = _held()
-    while True:
-        entry = locks.get(here)
-        if entry is not None:
-            below = "" if here == path else os.path.relpath(path, here).replace(os.sep, "/")
-            return entry[0], below, Path(here)
-        up = os.path.dirname(here)
-        if up == here:
-            return None
-        here = up
-
-
-def _link_refused(folder: Path, rel: str, what: str, while_writing: bool = True) -> PropError:
-    when = " (put there while prop wrote the bundle)" if while_writing else ""
-    return PropError(
-        f"{what} {folder}: {shown(rel)} is a symbolic link{when}; prop reads and writes nothing through "
-        f"links: {TAMPERED}",
-        RESTORE,
-    )
-
-
-@contextlib.contextmanager
-def _parent(
-    dfd: int, rel: str, folder: Path, what: str, create: bool, while_writing: bool = True
-) -> Iterator[tuple[int, str]]:
-    """The descriptor of ``rel``'s folder below ``dfd`` (each part opened with O_NOFOLLOW, created if
-    ``create``) and ``rel``'s last part."""
-    *parts, name = [p for p in rel.split("/") if p not in ("", ".")]
-    if ".." in parts or name == "..":  # below ``dfd`` only (manifests and exports never name one)
-        raise PropError(f"{what} {folder}: {shown(rel)} leaves the folder: {TAMPERED}", RESTORE)
-    fds = [dfd]
-    try:
-        for i, part in enumerate(parts):
-            if create:
-                with contextlib.suppress(FileExistsError):
-                    os.mkdir(part, 0o777, dir_fd=fds[-1])
-            try:
-                fds.append(os.open(part, _DIR | _NOFOLLOW, dir_fd=fds[-1]))
-            except OSError as e:
-                if e.errno in (errno.ELOOP, errno.ENOTDIR):
-                    raise _link_refused(folder, "/".join(parts[: i + 1]), what, while_writing) from None
-                raise
-        yield fds[-1], name
-    finally:
-        for fd in fds[1:]:
-            os.close(fd)
 
 
 def _not_a_link(pfd: int, name: str, rel: str, folder: Path, what: str) -> None:
@@ -229,16 +161,16 @@ def _not_a_link(pfd: int, name: str, rel: str, folder: Path, what: str) -> None:
     except FileNotFoundError:
         return
     if stat.S_ISLNK(st.st_mode):
-        raise _link_refused(folder, rel, what)
+        raise link_refused(folder, rel, what)
 
 
 def write_at(dfd: int, rel: str, data: bytes, folder: Path, what: str = "bundle") -> None:
     """Write ``data`` to ``rel`` below the locked folder ``dfd`` (``folder``: its path, for messages),
     atomically (a temporary sibling, flushed, renamed over it), never through a link."""
-    with _parent(dfd, rel, folder, what, create=True) as (pfd, name):
+    with below(dfd, rel, folder, what, create=True) as (pfd, name):
         _not_a_link(pfd, name, rel, folder, what)
         tmp = f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
-        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
         fd = os.open(tmp, flags, 0o666, dir_fd=pfd)
         try:
             with os.fdopen(fd, "wb") as f:
@@ -255,15 +187,11 @@ def write_at(dfd: int, rel: str, data: bytes, folder: Path, what: str = "bundle"
 def remove_at(dfd: int, rel: str, folder: Path, what: str = "bundle") -> None:
     """Delete ``rel`` below the locked folder ``dfd`` if it is there, never through a linked folder."""
     try:
-        with _parent(dfd, rel, folder, what, create=False) as (pfd, name):
+        with below(dfd, rel, folder, what, create=False) as (pfd, name):
             _not_a_link(pfd, name, rel, folder, what)
             os.unlink(name, dir_fd=pfd)
     except FileNotFoundError:
         pass
-
-
-def _below(below: str, rel: str) -> str:
-    return f"{below}/{rel}" if below else rel
 
 
 def put(folder: Path, rel: str, data: bytes, what: str = "bundle", output: bool = False) -> None:
@@ -278,8 +206,8 @@ def put(folder: Path, rel: str, data: bytes, what: str = "bundle", output: bool 
     if at is None:
         write_file(no_links(folder, rel, what), lambda p: p.write_bytes(data), what, "BUNDLE")
         return
-    dfd, below, root = at
-    write_at(dfd, _below(below, rel), data, root, "bundle" if below else what)
+    dfd, sub, root = at
+    write_at(dfd, under(sub, rel), data, root, "bundle" if sub else what)
     if output:
         wrote(Path(folder) / rel)
 
@@ -293,56 +221,5 @@ def delete(folder: Path, rel: str, what: str = "bundle") -> None:
     if at is None:
         remove_inside(folder, rel, what)
     else:
-        dfd, below, root = at
-        remove_at(dfd, _below(below, rel), root, "bundle" if below else what)
-
-
-@contextlib.contextmanager
-def opened(folder: Path, rel: str, what: str = "bundle") -> Iterator[BinaryIO]:
-    """``folder / rel`` open for reading, reached from a descriptor of ``folder`` (the lock's, if this
-    thread holds it or one above it; else ``folder`` opened now, as named) with every part below it
-    opened with O_NOFOLLOW: a link anywhere below ``folder``, there from the start or swapped in since a
-    check, is refused in one line, never followed. FileNotFoundError where a part is missing."""
-    at = held_at(folder)
-    if at is None:
-        dfd, below, root = os.open(folder, _DIR), "", Path(folder)
-    else:
-        dfd, below, root = at
-        what = "bundle" if below else what
-    rel = _below(below, rel)
-    try:
-        with _parent(dfd, rel, root, what, create=False, while_writing=False) as (pfd, name):
-            try:
-                # O_NONBLOCK: a FIFO swapped in is refused below, not waited on (no effect on files)
-                flags = os.O_RDONLY | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NONBLOCK", 0)
-                fd = os.open(name, flags, dir_fd=pfd)
-            except OSError as e:
-                if e.errno == errno.ELOOP:
-                    raise _link_refused(root, rel, what, while_writing=False) from None
-                raise
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                os.close(fd)
-                raise PropError(f"{what} {root}: {shown(rel)} is not a plain file: {TAMPERED}", RESTORE)
-            with os.fdopen(fd, "rb") as f:
-                yield f
-    finally:
-        if at is None:
-            os.close(dfd)
-
-
-def read(folder: Path, rel: str, what: str = "bundle", limit: int | None = None) -> bytes:
-    """The bytes of ``folder / rel``, read as ``opened`` reads them (no link below ``folder`` followed);
-    ``limit``: at most that many bytes are read (a caller refuses a file that reaches it)."""
-    with opened(folder, rel, what) as f:
-        return f.read() if limit is None else f.read(limit)
-
-
-def sha256_inside(folder: Path, rel: str, what: str = "bundle") -> str:
-    """The sha256 of ``folder / rel``, read as ``opened`` reads it."""
-    import hashlib
-
-    h = hashlib.sha256()
-    with opened(folder, rel, what) as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+        dfd, sub, root = at
+        remove_at(dfd, under(sub, rel), root, "bundle" if sub else what)
