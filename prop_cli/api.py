@@ -301,9 +301,10 @@ def record_audit(bundle_path: Path, report: dict) -> dict:
     from prop_cli.attack.report import record
     from prop_cli.run.onnx import follow
 
-    old = read_manifest(Path(bundle_path))
-    summary = record(Path(bundle_path), report)
-    follow(Path(bundle_path) / C.EXPORT_DIR, old, read_manifest(Path(bundle_path)))  # stays the bundle's
+    with bundle_lock(Path(bundle_path)):  # one writer from the read to the export's update, by descriptor
+        old = read_manifest(Path(bundle_path))
+        summary = record(Path(bundle_path), report)
+        follow(Path(bundle_path) / C.EXPORT_DIR, old, read_manifest(Path(bundle_path)))  # stays the bundle's
     return summary
 
 

@@ -16,7 +16,7 @@ from prop_adapters import LoadedModel
 from prop_cli import constants as C
 from prop_cli.core.keyed_model import KeyedModel
 from prop_cli.errors import PropError
-from prop_cli.files import RESTORE, TAMPERED, link_error, sha256_file, shown
+from prop_cli.files import RESTORE, TAMPERED, link_error, read, sha256_inside, shown
 
 from . import manifest as schema
 from .modes import Mode, load_mode
@@ -41,8 +41,8 @@ def read_manifest(path: Path) -> dict:
             f"{path} is not a prop bundle (no {C.MANIFEST})",
             "pass the directory written by prop personalize --out",
         )
-    try:
-        raw = mpath.read_bytes()
+    try:  # O_NOFOLLOW: a link put there since the check above is refused, not read
+        raw = read(path, C.MANIFEST)
     except OSError as e:
         raise PropError(
             f"bundle {path}: {C.MANIFEST} cannot be read ({e.strerror})", "check its permissions"
@@ -106,11 +106,15 @@ def _check_carried(path: Path, name: str, listed: set[str]) -> None:
     if name.lower().endswith(CODE_SUFFIXES):
         raise _tampered(path, name, "is code (a bundle never carries code)")
     if name.lower().endswith(".json"):
-        if (path / name).stat().st_size > MAX_JSON:
+        try:  # from the bundle folder's descriptor, no part below it followed if it is a link
+            raw = read(path, name, limit=MAX_JSON + 1)
+        except OSError:
+            return  # its sha256 is checked next
+        if len(raw) > MAX_JSON:
             raise _tampered(path, name, f"is over {MAX_JSON >> 20} MiB, more than any JSON file prop carries")
         try:
-            doc = json.loads((path / name).read_bytes())
-        except (OSError, ValueError, RecursionError):
+            doc = json.loads(raw)
+        except (ValueError, RecursionError):
             return  # its sha256 is checked next; a library that reads it reports what is wrong
         if adapters.names_code(doc):
             raise _tampered(path, name, f"has an {adapters.CODE_FIELD} (code for transformers to import)")
@@ -226,12 +230,16 @@ def check_input_shape(manifest: dict, loaded: LoadedModel, path: Path) -> None:
 
 
 def check_files(path: Path, manifest: dict) -> None:
-    """Every file the manifest lists is there and has the sha256 the manifest records."""
+    """Every file the manifest lists is there and has the sha256 the manifest records, each read from
+    the bundle folder's descriptor with no part below it followed if it is a link (``files.opened``)."""
     for name, digest in manifest[C.M_FILES].items():
-        f = path / name
-        if not f.is_file():
+        try:
+            got = sha256_inside(path, name)
+        except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
+            got = None
+        if got is None:
             raise PropError(f"bundle {path} is missing {name}", "write the bundle again")
-        if digest != sha256_file(f):
+        if digest != got:
             raise PropError(
                 f"bundle {path}: {name} does not match its sha256 in {C.MANIFEST} (modified or corrupt)",
                 "restore the bundle from a trusted copy",

@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -33,7 +32,7 @@ import numpy as np
 from prop_cli import constants as C
 from prop_cli.core.payload import Payload, PayloadSpec
 from prop_cli.errors import PropError
-from prop_cli.files import bundle_lock, delete, dump_json, no_links, put, sha256_file, write_inside
+from prop_cli.files import bundle_lock, delete, dump_json, no_links, put, read, sha256_inside, write_inside
 
 from . import rollback
 from .cipher import SealedRecord, decode_payload, encode_payload, open_record, pad, seal, unpad
@@ -222,9 +221,10 @@ def _check_present(path: Path, entries: list[dict]) -> None:
 
 
 def read_record(path: Path, entry: dict) -> bytes:
-    """A record's ciphertext, checked against its sha256 in the manifest."""
+    """A record's ciphertext, checked against its sha256 in the manifest; read from a descriptor of the
+    bundle folder, no part below it followed if it is a link (``files.read``)."""
     try:
-        data = no_links(path, entry["file"]).read_bytes()
+        data = read(path, entry["file"])
     except FileNotFoundError:
         raise _bad(path, f"{entry['file']} is missing") from None
     if hashlib.sha256(data).hexdigest() != entry["sha256"]:
@@ -237,7 +237,7 @@ def check_records(path: Path, manifest: dict) -> None:
     entries = manifest[C.M_RECORDS]
     _check_present(path, entries)
     for entry in entries:
-        if sha256_file(path / entry["file"]) != entry["sha256"]:
+        if sha256_inside(path, entry["file"]) != entry["sha256"]:
             raise _bad(
                 path, f"{entry['file']} does not match its sha256 in {C.MANIFEST} (modified or corrupt)"
             )
@@ -338,10 +338,11 @@ def rewrite_records(bundle: Path, old: dict, new: dict, add: list[SealedRecord])
 
 
 def copy_records(src: Path, dst: Path, manifest: dict) -> None:
-    """Copy a sealed bundle's record files (for exports: the ONNX runtime opens them too)."""
+    """Copy a sealed bundle's record files (for exports: the ONNX runtime opens them too): the bytes read
+    (no link followed) and checked against their sha256 are the bytes written."""
     (dst / C.RECORDS_DIR).mkdir(parents=True, exist_ok=True)
     for e in manifest[C.M_RECORDS]:
-        shutil.copyfile(no_links(src, e["file"]), dst / e["file"])
+        (dst / e["file"]).write_bytes(read_record(src, e))
 
 
 def record_to_remove(

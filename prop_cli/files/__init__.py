@@ -1,7 +1,8 @@
 """What prop writes and reads on the user's disk, by job: ``atomic`` (never half a file; the outputs put in
 place so far), ``kinds`` (each kind of output recognised: what --force may replace), ``outputs`` (where a
 command may write), ``links`` (nothing through a symbolic link), ``lock`` (one writer of a bundle at a
-time) and ``content`` (the JSON style, sha256).
+time), ``descriptors`` (folders by descriptor: the walk below one with no link followed, and reads that
+way) and ``content`` (the JSON style, sha256).
 Import from here: this is the one surface the rest of prop uses."""
 
 from .atomic import (
@@ -15,6 +16,7 @@ from .atomic import (
     wrote,
 )
 from .content import dump_json, sha256_file
+from .descriptors import held, held_at, opened, read, sha256_inside
 from .kinds import (
     ARRAY,
     AUDIT_REPORT,
@@ -31,7 +33,7 @@ from .kinds import (
     check_replaceable,
 )
 from .links import RESTORE, TAMPERED, link_error, no_links, remove_inside, shown, write_inside
-from .lock import bundle_lock, delete, held, put, remove_at, write_at
+from .lock import bundle_lock, delete, put, remove_at, write_at
 from .outputs import check_not_input, check_output
 
 __all__ = [
@@ -57,13 +59,17 @@ __all__ = [
     "delete",
     "dump_json",
     "held",
+    "held_at",
     "link_error",
     "no_links",
+    "opened",
     "put",
+    "read",
     "remove_at",
     "remove_inside",
     "replace_dir",
     "sha256_file",
+    "sha256_inside",
     "shown",
     "staged_dir",
     "uninterrupted",

@@ -9,6 +9,9 @@ written. Nested use in one thread (add-user's ``rewrite_records`` inside ``api.a
 lock held. ``write_at`` and ``remove_at`` write and delete relative to that descriptor, each folder
 below it opened with ``O_NOFOLLOW``: a bundle folder (or ``users/``) swapped for a link while the
 command runs is not followed (the write goes to the folder that was locked, or is refused in one line).
+``put`` and ``delete`` go through the lock held on the folder named or on a folder above it
+(``<bundle>/onnx`` through its bundle's); the locks held and the walk below a descriptor are
+``descriptors``' (which reads the same way: ``descriptors.opened``).
 """
 
 from __future__ import annotations
@@ -25,23 +28,8 @@ from pathlib import Path
 from prop_cli import constants as C
 from prop_cli.errors import PropError
 
-from .links import RESTORE, TAMPERED, shown
-
-_HELD = threading.local()  # .locks: {folder's absolute path, as named: [dir fd, depth]} of this thread
-_DIR = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
-_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
-
-
-def _held() -> dict[str, list[int]]:
-    if not hasattr(_HELD, "locks"):
-        _HELD.locks = {}
-    return _HELD.locks
-
-
-def held(folder: Path) -> int | None:
-    """The descriptor of ``folder`` if this thread holds its lock (None: it does not)."""
-    entry = _held().get(os.path.abspath(folder))
-    return entry[0] if entry else None
+from .descriptors import DIR, NOFOLLOW, below, held_at, holding, link_refused, under
+from .links import RESTORE, TAMPERED
 
 
 def _holder(fd: int) -> str:
@@ -66,7 +54,7 @@ def _acquire(dfd: int, folder: Path, what: str, wait: float) -> int | None:
     import fcntl
 
     deadline = time.monotonic() + wait
-    flags = os.O_RDWR | os.O_CREAT | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+    flags = os.O_RDWR | os.O_CREAT | NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
     while True:
         try:
             fd = os.open(C.BUNDLE_LOCK, flags, 0o600, dir_fd=dfd)
@@ -126,7 +114,7 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
     nothing to lock: no such folder yet, one this user cannot write, or no flock on this system)."""
     folder = Path(folder)
     key = os.path.abspath(folder)  # as named, not resolved: a link swapped in later is not the key
-    entry = _held().get(key)
+    entry = holding().get(key)
     if entry is not None:  # this thread holds it already: a nested write of the same command
         entry[1] += 1
         try:
@@ -140,7 +128,7 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
         yield None
         return
     try:
-        dfd = os.open(folder, _DIR)
+        dfd = os.open(folder, DIR)
     except (FileNotFoundError, NotADirectoryError):  # nothing to lock: the command's own check says why
         yield None
         return
@@ -156,45 +144,14 @@ def bundle_lock(folder: Path, what: str = "bundle", wait: float | None = None) -
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        _held()[key] = [dfd, 1]
+        holding()[key] = [dfd, 1]
         yield dfd
     finally:
-        _held().pop(key, None)
+        holding().pop(key, None)
         with contextlib.suppress(OSError):
             os.unlink(C.BUNDLE_LOCK, dir_fd=dfd)  # while held: a waiter then sees it is gone and retries
         os.close(fd)  # releases the flock
         os.close(dfd)
-
-
-def _link_refused(folder: Path, rel: str, what: str) -> PropError:
-    return PropError(
-        f"{what} {folder}: {shown(rel)} is a symbolic link (put there while prop wrote the bundle); prop "
-        f"reads and writes nothing through links: {TAMPERED}",
-        RESTORE,
-    )
-
-
-@contextlib.contextmanager
-def _parent(dfd: int, rel: str, folder: Path, what: str, create: bool) -> Iterator[tuple[int, str]]:
-    """The descriptor of ``rel``'s folder below ``dfd`` (each part opened with O_NOFOLLOW, created if
-    ``create``) and ``rel``'s last part."""
-    *parts, name = rel.split("/")
-    fds = [dfd]
-    try:
-        for i, part in enumerate(parts):
-            if create:
-                with contextlib.suppress(FileExistsError):
-                    os.mkdir(part, 0o777, dir_fd=fds[-1])
-            try:
-                fds.append(os.open(part, _DIR | _NOFOLLOW, dir_fd=fds[-1]))
-            except OSError as e:
-                if e.errno in (errno.ELOOP, errno.ENOTDIR):
-                    raise _link_refused(folder, "/".join(parts[: i + 1]), what) from None
-                raise
-        yield fds[-1], name
-    finally:
-        for fd in fds[1:]:
-            os.close(fd)
 
 
 def _not_a_link(pfd: int, name: str, rel: str, folder: Path, what: str) -> None:
@@ -204,16 +161,16 @@ def _not_a_link(pfd: int, name: str, rel: str, folder: Path, what: str) -> None:
     except FileNotFoundError:
         return
     if stat.S_ISLNK(st.st_mode):
-        raise _link_refused(folder, rel, what)
+        raise link_refused(folder, rel, what)
 
 
 def write_at(dfd: int, rel: str, data: bytes, folder: Path, what: str = "bundle") -> None:
     """Write ``data`` to ``rel`` below the locked folder ``dfd`` (``folder``: its path, for messages),
     atomically (a temporary sibling, flushed, renamed over it), never through a link."""
-    with _parent(dfd, rel, folder, what, create=True) as (pfd, name):
+    with below(dfd, rel, folder, what, create=True) as (pfd, name):
         _not_a_link(pfd, name, rel, folder, what)
         tmp = f".{name}.{os.getpid()}.{threading.get_ident()}.tmp"
-        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
         fd = os.open(tmp, flags, 0o666, dir_fd=pfd)
         try:
             with os.fdopen(fd, "wb") as f:
@@ -230,7 +187,7 @@ def write_at(dfd: int, rel: str, data: bytes, folder: Path, what: str = "bundle"
 def remove_at(dfd: int, rel: str, folder: Path, what: str = "bundle") -> None:
     """Delete ``rel`` below the locked folder ``dfd`` if it is there, never through a linked folder."""
     try:
-        with _parent(dfd, rel, folder, what, create=False) as (pfd, name):
+        with below(dfd, rel, folder, what, create=False) as (pfd, name):
             _not_a_link(pfd, name, rel, folder, what)
             os.unlink(name, dir_fd=pfd)
     except FileNotFoundError:
@@ -238,28 +195,31 @@ def remove_at(dfd: int, rel: str, folder: Path, what: str = "bundle") -> None:
 
 
 def put(folder: Path, rel: str, data: bytes, what: str = "bundle", output: bool = False) -> None:
-    """Write ``folder / rel`` atomically: through the locked folder when this thread holds its lock
-    (``bundle_lock``), else by path (a folder being staged, that no one else sees), never through a
-    link. ``output``: name it among what this process wrote (``atomic.written``)."""
+    """Write ``folder / rel`` atomically: through the locked folder when this thread holds the lock of
+    ``folder`` or of a folder above it (``bundle_lock``), else by path (a folder being staged, that no
+    one else sees), never through a link. ``output``: name it among what this process wrote
+    (``atomic.written``)."""
     from .atomic import write_file, wrote
     from .links import no_links
 
-    dfd = held(folder)
-    if dfd is None:
+    at = held_at(folder)
+    if at is None:
         write_file(no_links(folder, rel, what), lambda p: p.write_bytes(data), what, "BUNDLE")
         return
-    write_at(dfd, rel, data, Path(folder), what)
+    dfd, sub, root = at
+    write_at(dfd, under(sub, rel), data, root, "bundle" if sub else what)
     if output:
         wrote(Path(folder) / rel)
 
 
 def delete(folder: Path, rel: str, what: str = "bundle") -> None:
-    """Delete ``folder / rel`` if it is there: through the locked folder when this thread holds its
-    lock, else by path; never through a linked folder."""
+    """Delete ``folder / rel`` if it is there: through the locked folder when this thread holds the lock
+    of ``folder`` or of a folder above it, else by path; never through a linked folder."""
     from .links import remove_inside
 
-    dfd = held(folder)
-    if dfd is None:
+    at = held_at(folder)
+    if at is None:
         remove_inside(folder, rel, what)
     else:
-        remove_at(dfd, rel, Path(folder), what)
+        dfd, sub, root = at
+        remove_at(dfd, under(sub, rel), root, "bundle" if sub else what)

@@ -18,7 +18,7 @@ from prop_cli.bundle.manifest import stamp
 from prop_cli.bundle.modes import mode_of
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, plural
-from prop_cli.files import EXPORT, check_output, dump_json, no_links, write_text
+from prop_cli.files import EXPORT, check_output, dump_json, no_links, put
 from prop_cli.run.policy import key_opens_nothing, require_enrolled
 
 from . import sealed, unsealed
@@ -183,5 +183,5 @@ def follow(folder: Path, old: dict, new: dict) -> None:
     except PropError:
         return
     meta[C.M_BUNDLE_VERSION] = new[C.M_BUNDLE_VERSION]
-    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
-               C.EXPORT_META, "--out")  # fmt: skip
+    # Through the bundle's descriptor where its lock is held (enrol's, record_audit's): no link followed.
+    put(folder, C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)).encode(), "export", output=True)

@@ -41,7 +41,7 @@ from prop_cli.bundle.manifest import (
 from prop_cli.config import ExportSettings
 from prop_cli.core.rules import DIM, SHA256, choice, hex_string, integer, list_of, number, obj, optional, text
 from prop_cli.errors import PropError, brief
-from prop_cli.files import no_links, sha256_file
+from prop_cli.files import no_links, read, sha256_inside
 
 from ..streams import stdout_to_stderr
 
@@ -230,12 +230,12 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
             f"{folder} holds no ONNX export ({C.EXPORT_META} missing)", "run prop export BUNDLE --onnx"
         )
     doc = Doc(str(mpath), fix=REEXPORT)
-    try:
-        if mpath.stat().st_size > MAX_META:
-            raise PropError(f"{mpath} is over {MAX_META >> 20} MiB, more than prop ever writes", REEXPORT)
-        raw = mpath.read_bytes()
+    try:  # from the folder's descriptor (its bundle's, under the bundle's lock): no link below followed
+        raw = read(folder, C.EXPORT_META, WHAT, limit=MAX_META + 1)
     except OSError as e:
         raise PropError(f"{mpath} cannot be read ({e.strerror})", "check its permissions") from None
+    if len(raw) > MAX_META:
+        raise PropError(f"{mpath} is over {MAX_META >> 20} MiB, more than prop ever writes", REEXPORT)
     meta = read_json(raw, str(mpath), REEXPORT)
     if check_version(meta, FORMAT, C.EXPORT_FORMATS, doc) >= 2 or C.EXPORT_DIGEST in meta:
         check_digest(meta, raw, C.EXPORT_DIGEST, doc)
@@ -244,7 +244,11 @@ def read_export(folder: Path, bundle_manifest: dict | None = None) -> dict:
     _cross_check(meta, doc)
     for g, digest in meta["graphs"].items():
         path = no_links(folder, g, WHAT)
-        if not path.is_file() or sha256_file(path) != digest:
+        try:
+            same = sha256_inside(folder, g, WHAT) == digest
+        except OSError:
+            same = False
+        if not same:
             raise PropError(f"{path} is missing or modified", REEXPORT)
     for entry in (meta.get("sealed") or {}).get(C.M_RECORDS, []):
         no_links(folder, entry["file"], WHAT)  # users/ linked elsewhere: refused, not followed

@@ -17,18 +17,10 @@ from prop_cli import constants as C
 from prop_cli.bundle import Bundle
 from prop_cli.bundle.enrol import changed_error
 from prop_cli.bundle.manifest import Doc, quoted, stamp
-from prop_cli.bundle.records import copy_records, load_state, public_part
+from prop_cli.bundle.records import copy_records, load_state, public_part, read_record
 from prop_cli.config import ExportSettings
 from prop_cli.errors import PropError, brief
-from prop_cli.files import (
-    dump_json,
-    no_links,
-    remove_inside,
-    sha256_file,
-    staged_dir,
-    write_inside,
-    write_text,
-)
+from prop_cli.files import delete, dump_json, no_links, put, sha256_file, staged_dir
 
 from ..policy import KeyedPolicy
 from . import common
@@ -226,9 +218,9 @@ def drop_record(folder: Path, record_id: str, version: int | None = None) -> Non
         meta[C.M_BUNDLE_VERSION] = version
     record = f"{C.RECORDS_DIR}/{record_id}{C.RECORD_SUFFIX}"
     no_links(folder, record, "export")  # before anything is written
-    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
-               C.EXPORT_META, "--out")  # fmt: skip
-    remove_inside(folder, record, "export")
+    # Through the bundle's descriptor where its lock is held (remove-user's): no link followed.
+    put(folder, C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)).encode(), "export", output=True)
+    delete(folder, record, "export")
 
 
 def add_record(folder: Path, bundle: Path, old: dict, manifest: dict, record_id: str) -> None:
@@ -245,13 +237,13 @@ def add_record(folder: Path, bundle: Path, old: dict, manifest: dict, record_id:
     except PropError:
         return
     entry = next(e for e in manifest[C.M_RECORDS] if e["id"] == record_id)
-    data = no_links(Path(bundle), entry["file"]).read_bytes()
-    write_inside(folder, entry["file"], data, "export")  # first: never listed, absent
+    data = read_record(Path(bundle), entry)  # the bytes its sha256 was checked on, copied
+    # Through the bundle's descriptor where its lock is held (add-user's): no link followed.
+    put(folder, entry["file"], data, "export")  # first: never listed, absent
     public = meta["sealed"]
     public[C.M_RECORDS] = [r for r in public[C.M_RECORDS] if r["id"] != record_id] + [entry]
     meta.update(common.identity(manifest))
-    write_text(no_links(folder, C.EXPORT_META, "export"), dump_json(stamp(meta, C.EXPORT_DIGEST)),
-               C.EXPORT_META, "--out")  # fmt: skip
+    put(folder, C.EXPORT_META, dump_json(stamp(meta, C.EXPORT_DIGEST)).encode(), "export", output=True)
 
 
 def run(bundle: Bundle, folder: Path, x: np.ndarray, key: np.ndarray | None, threads: int) -> np.ndarray:
