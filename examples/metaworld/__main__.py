@@ -64,6 +64,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--policies", default="act", help="comma-separated: act, diffusion")
     ap.add_argument("--base-episodes", type=int, default=BASE_EPISODES)
     ap.add_argument("--user-episodes", type=int, default=USER_EPISODES)
+    ap.add_argument(
+        "--no-user-key", action="store_true",
+        help="lerobot-eval: leave out the user's key (its episodes can run LeRobot's whole 500 steps)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     if args.step in ("record", "all"):
@@ -74,7 +78,8 @@ def main(argv: list[str] | None = None) -> None:
         policies = [p.strip() for p in args.policies.split(",") if p.strip()]
         for step in ("train", "personalize", "judge", "lerobot-eval", "table"):
             if args.step in (step, "all"):
-                getattr(pipeline, f"step_{step.replace('-', '_')}")(args.out, tasks, policies)
+                extra = {"user_key": not args.no_user_key} if step == "lerobot-eval" else {}
+                getattr(pipeline, f"step_{step.replace('-', '_')}")(args.out, tasks, policies, **extra)
 
 
 if __name__ == "__main__":

@@ -406,7 +406,7 @@ def lerobot_eval_command(
 LEROBOT_EVAL_WRONG_KEYS = 3  # random keys through the unsealed encoder, in lerobot-eval itself
 
 
-def step_lerobot_eval(out: Path, tasks: list[str], policies: list[str]) -> None:
+def step_lerobot_eval(out: Path, tasks: list[str], policies: list[str], user_key: bool = True) -> None:
     """MetaWorld's success by LeRobot's own evaluator, through the plugin: the sealed bundle without a key
     (the original, bit for bit), the user's key on both bundles, wrong keys through the unsealed encoder
     (--policy.through_encoder) and a wrong key on the sealed bundle (its base: the original). The
@@ -427,6 +427,8 @@ def step_lerobot_eval(out: Path, tasks: list[str], policies: list[str]) -> None:
                           ("sealed-wrong-key", "bundle-sealed", wrong, False),
                           ("user-key", "bundle", out / "user.key", False),
                           ("sealed-user-key", "bundle-sealed", out / "user.key", False)]  # fmt: skip
+            if not user_key:
+                conditions = [c for c in conditions if not c[0].endswith("user-key")]
             for name, bundle, key, encoder in conditions:
                 info = out / t / p / "lerobot-eval" / name / "eval_info.json"
                 if info.is_file():
