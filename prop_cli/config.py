@@ -237,6 +237,9 @@ class UnsealedConfig(_Settings):
     # A denoising policy's (LeRobot Diffusion, SmolVLA, pi0) fallback rows at the timesteps its deployed
     # sampler visits (its num_inference_steps of them) instead of uniform over its training range: the
     # closed loop only ever runs the denoiser there (examples/RESULTS.md, "Point mass, Diffusion").
+    # "trajectory": at those timesteps, on the original's own sampler state there (its sampler run on
+    # the fallback frame from the row's noise), where the closed loop runs the wrong keys (LeRobot
+    # Diffusion; other policies refuse it).
     fallback_times: str = setting(
         FALLBACK_TIMES[0], f"Denoising policies' fallback timesteps: {' or '.join(FALLBACK_TIMES)}."
     )
