@@ -241,7 +241,9 @@ class UnsealedConfig(_Settings):
     # the fallback frame from the row's noise), where the closed loop runs the wrong keys (LeRobot
     # Diffusion; other policies refuse it).
     fallback_times: str = setting(
-        FALLBACK_TIMES[0], f"Denoising policies' fallback timesteps: {' or '.join(FALLBACK_TIMES)}."
+        FALLBACK_TIMES[0],
+        "Denoising policies' fallback timesteps: uniform, sampler (the sampler's timesteps) or trajectory "
+        "(those, on the original's own sampler states; LeRobot Diffusion).",
     )
     fallback_sigma: float = setting(
         0.5, "Noise of the perturbed fallback inputs, in per-feature standard deviations.", cli=False
