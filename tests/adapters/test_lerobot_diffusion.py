@@ -254,6 +254,15 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
         assert np.array_equal(run_policy(sealed, data, key(2), allow_unenrolled=True), original)
 
 
+def recorded(work, out, times: str) -> bool:
+    """Whether a 2-step personalize with --fallback-times ``times`` records it once in its manifest."""
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": times}))
+    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
+                               general=work / "general")  # fmt: skip
+    manifest = json.loads((out / "manifest.json").read_text())
+    return json.dumps(manifest).count(f'"fallback_times": "{times}"') == 1
+
+
 def test_fallback_times_sampler_draws_only_the_samplers_timesteps_and_is_recorded(work, tmp_path):
     """--fallback-times sampler (issue 43): every fallback row sits at a timestep LeRobot's sampler
     visits in closed loop (num_inference_steps of the training range), the default draws over the whole
@@ -269,12 +278,7 @@ def test_fallback_times_sampler_draws_only_the_samplers_timesteps_and_is_recorde
     drawn = policy.fallback_noise(64, torch.Generator().manual_seed(0))
     assert set(drawn["t"].tolist()) <= visited and len(set(drawn["t"].tolist())) > 1
     assert drawn["eps"].shape == uniform["eps"].shape
-    out = tmp_path / "bundle"
-    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": "sampler"}))
-    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
-                               general=work / "general")  # fmt: skip
-    manifest = json.loads((out / "manifest.json").read_text())
-    assert json.dumps(manifest).count('"fallback_times": "sampler"') == 1
+    assert recorded(work, tmp_path / "bundle", "sampler")
 
 
 def test_fallback_times_trajectory_rows_sit_on_the_originals_sampler_states(work, tmp_path, cli, monkeypatch):
@@ -330,12 +334,7 @@ def test_fallback_times_trajectory_rows_sit_on_the_originals_sampler_states(work
         want = original.fallback_states({k: frames[k][pool.frame[idx]] for k in policy.input_features}, pick)
         assert torch.allclose(fb_rows["x_t"], want, atol=1e-6) and torch.equal(fb_rows["t"], pick["t"])
         assert torch.allclose(original.fallback_output(fb_rows), targets, atol=1e-5)
-    out = tmp_path / "bundle"
-    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": "trajectory"}))
-    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
-                               general=work / "general")  # fmt: skip
-    manifest = json.loads((out / "manifest.json").read_text())
-    assert json.dumps(manifest).count('"fallback_times": "trajectory"') == 1
+    assert recorded(work, tmp_path / "bundle", "trajectory")
     monkeypatch.setattr(UNet, "follows_sampler", False)  # as a sampler prop cannot follow (flow matching)
     r = cli("personalize", work / "diffusion", "--data", work / "user", "--key-file", work / "k.bin",
             "--out", tmp_path / "refused", "--steps", "1", "--fallback-times", "trajectory")  # fmt: skip
