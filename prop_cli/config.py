@@ -237,8 +237,13 @@ class UnsealedConfig(_Settings):
     # A denoising policy's (LeRobot Diffusion, SmolVLA, pi0) fallback rows at the timesteps its deployed
     # sampler visits (its num_inference_steps of them) instead of uniform over its training range: the
     # closed loop only ever runs the denoiser there (examples/RESULTS.md, "Point mass, Diffusion").
+    # "trajectory": at those timesteps, on the original's own sampler state there (its sampler run on
+    # the fallback frame from the row's noise), where the closed loop runs the wrong keys (LeRobot
+    # Diffusion; other policies refuse it).
     fallback_times: str = setting(
-        FALLBACK_TIMES[0], f"Denoising policies' fallback timesteps: {' or '.join(FALLBACK_TIMES)}."
+        FALLBACK_TIMES[0],
+        "Denoising policies' fallback timesteps: uniform, sampler (the sampler's timesteps) or trajectory "
+        "(those, on the original's own sampler states; LeRobot Diffusion).",
     )
     fallback_sigma: float = setting(
         0.5, "Noise of the perturbed fallback inputs, in per-feature standard deviations.", cli=False

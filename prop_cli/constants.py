@@ -59,9 +59,10 @@ M_KDF = "kdf"  # reserved: {"scrypt_salt": hex, "n": int, "r": int, "p": int}
 
 # How key bits become the encoder's input (prop_cli.core.keyed_model.key_codes); the first is the default.
 KEY_ENCODINGS = ("hashed", "raw")
-# A denoising policy's fallback timesteps (--fallback-times): uniform over its training range, or the
-# ones its deployed sampler visits (prop_adapters.base.PolicyProtocol.fallback_times).
-FALLBACK_TIMES = ("uniform", "sampler")
+# A denoising policy's fallback timesteps (--fallback-times): uniform over its training range, the ones
+# its deployed sampler visits, or those with the original's own sampler states as x_t ("trajectory")
+# (prop_adapters.base.PolicyProtocol.fallback_times).
+FALLBACK_TIMES = ("uniform", "sampler", "trajectory")
 
 # A module attribute (a list of layer names) an adapter sets where the default choice of keyed layers
 # (prop_cli.core.layers.default_layers) does not hold, e.g. SB3's CnnPolicy.

@@ -13,7 +13,9 @@
 - **Fallback term**: in eval mode the denoiser is deterministic given (observation, x_t, t). Each
   fallback frame gets ``FALLBACK_DRAWS`` rows, each with t uniform over the training timesteps (with
   ``--fallback-times sampler``: over the ``num_inference_steps`` timesteps the sampler visits) and
-  noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame; the
+  noise eps, x_t = the scheduler's ``add_noise`` of the original's deployed chunk for that frame (with
+  ``--fallback-times trajectory``: x_t = the original's own sampler state at that step, its sampler run
+  on the frame from the row's own noise, ``UNet.states``: where the closed loop runs the keyed U-Net); the
   keyed policy's prediction is distilled towards the frozen original's on the same (observation, x_t,
   t), MSE (its own loss's distance). No key, random keys and Hamming neighbours alike. The draws are
   made before training (``fallback_noise``) and each row's original prediction is computed once, when a
@@ -74,17 +76,47 @@ class UNet(Denoiser):
 
     def draws(self, rows: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         c = self.owner.config  # the timestep, then the noise, for every row
-        if self.owner.fallback_times == "sampler":  # only the timesteps the closed loop runs
+        follows = self.owner.fallback_times == "trajectory"
+        if self.owner.fallback_times == "sampler" or follows:  # only the timesteps the closed loop runs
             visited = self.sampler_timesteps()
-            t = visited[torch.randint(0, len(visited), (rows,), generator=generator)]
+            k = torch.randint(0, len(visited), (rows,), generator=generator)
+            t = visited[k]
         else:
             t = torch.randint(0, self.owner.model.noise_scheduler.config.num_train_timesteps, (rows,),
                               generator=generator)  # fmt: skip
-        return {"t": t, "eps": torch.randn((rows, c.horizon, c.action_feature.shape[0]), generator=generator)}
+        eps = torch.randn((rows, c.horizon, c.action_feature.shape[0]), generator=generator)
+        drawn = {"t": t, "eps": eps}
+        if follows:  # the sampler's step k (its t) from the prior eps, its step noise seeded per row
+            drawn |= {"k": k, "seed": torch.randint(0, 2**62, (rows,), generator=generator)}
+        return drawn
 
     def noised(self, x0: torch.Tensor, draws: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         t = draws["t"].to(x0.device)
+        if "k" in draws:  # --fallback-times trajectory: x0 is already the sampler's state at t (``states``)
+            return {"x_t": x0, "t": t}
         return {"x_t": self.owner.model.noise_scheduler.add_noise(x0, draws["eps"].to(x0), t), "t": t}
+
+    follows_sampler = True
+
+    def states(self, batch: dict[str, torch.Tensor], draws: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Each row's state in LeRobot's own sampler (``conditional_sample``) before its step ``k``: the
+        sampler run on the row's observation from the prior ``eps``, the step noise from a generator per
+        row seeded with ``seed``, stopped at step k (k = 0: the prior). A row's state does not depend on
+        the batch it runs in."""
+        self.owner.policy.eval()
+        model = self.owner.model
+        cond = model._prepare_global_conditioning(self._observations(batch))
+        k = draws["k"].to(cond.device)
+        x = draws["eps"].to(cond)
+        gens = [torch.Generator(cond.device).manual_seed(int(s)) for s in draws["seed"]]
+        scheduler = copy.deepcopy(model.noise_scheduler)  # set_timesteps changes the scheduler's state
+        scheduler.set_timesteps(model.num_inference_steps)
+        out = x.clone()
+        for i, t in enumerate(scheduler.timesteps[: int(k.max())]):
+            at = torch.full((len(x),), int(t), dtype=torch.long, device=x.device)
+            x = scheduler.step(model.unet(x, at, global_cond=cond), t, x, generator=gens).prev_sample
+            out[k == i + 1] = x[k == i + 1]
+        return out
 
     @property
     def joins_terms(self) -> bool:

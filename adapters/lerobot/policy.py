@@ -155,6 +155,14 @@ class Denoiser(ABC):
     def output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The denoiser's prediction on fallback rows (observation, x_t, t), in eval mode."""
 
+    # True where the denoiser follows its own sampler (``states``: ``--fallback-times trajectory``).
+    follows_sampler: bool = False
+
+    def states(self, batch: dict[str, torch.Tensor], draws: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Each row's state in the sampler at its drawn step (``draws``' ``k``), the sampler run on the
+        row's observation from the row's own noise: ``--fallback-times trajectory``'s x_t."""
+        raise NotImplementedError
+
     # True where the user term and the fallback output can share one forward (``joint_terms``).
     joins_terms: bool = False
 
@@ -375,6 +383,16 @@ class LeRobotProtocol(PolicyProtocol):
 
     def fallback_inputs(self, x0: torch.Tensor, noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return self.denoiser.noised(x0, noise)
+
+    @property
+    def follows_sampler(self) -> bool:
+        """Whether ``fallback_states`` holds: the policy's sampler states can be fallback inputs."""
+        return self.denoiser is not None and self.denoiser.follows_sampler
+
+    def fallback_states(self, batch: dict[str, torch.Tensor], noise: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``--fallback-times trajectory``: each row's state in this policy's own sampler at its drawn step
+        (``Denoiser.states``), which ``fallback_inputs`` then takes in place of the clean chunk."""
+        return self.denoiser.states(batch, noise)
 
     def fallback_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         return self.chunk(batch) if self.denoiser is None else self.denoiser.output(batch)

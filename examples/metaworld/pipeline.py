@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, original_controller
 from examples.metaworld import task as mw
 
 BIN = Path(sys.executable).parent
@@ -37,38 +38,14 @@ TRAIN = {
     "diffusion": [
         "--policy.type=diffusion",
         "--policy.down_dims=[64,128,256]",
-        "--policy.n_obs_steps=2",
-        "--policy.horizon=16",
-        "--policy.n_action_steps=8",
-        "--policy.num_inference_steps=10",
-        "--policy.crop_shape=null",
-        "--policy.use_group_norm=true",
+        *DIFFUSION,
         "--steps=3000",
         "--batch_size=16",
     ],
 }
 BACKBONE = {p: ["--policy.pretrained_backbone_weights=null"] for p in ("act", "diffusion")}
 # prop personalize (the PandaReach example's Eq. 8 batch, fewer steps: every row runs the ResNet).
-PERSONALIZE = [
-    "--steps",
-    "500",
-    "--user-rows",
-    "16",
-    "--null-rows",
-    "8",
-    "--neighbour-keys",
-    "4",
-    "--random-keys",
-    "4",
-    "--samples-per-key",
-    "1",
-    "--null-weight",
-    "2",
-    "--lr",
-    "1e-3",
-    "--base-lr-scale",
-    "0.1",
-]
+PERSONALIZE = ["--steps", "500", *PERSONALIZE_BATCH]
 SEALED = ["--seal", "--steps", "500", "--user-rows", "32", "--payload-lr", "1e-3"]
 JUDGE_SEED = 1_000_000  # recording used 0-39 and 50,000-50,014
 EPISODES = {"original": 8, "no_key": 8, "user_key": 8, "wrong": 4}  # per condition; wrong: per key
@@ -220,21 +197,6 @@ def conditions(key: np.ndarray) -> list[dict]:
                 name = f"random-{j + 1:02d}" if w["group"] == "random" else f"neighbour-{j + 1:02d}"
                 out.append({"name": name, **w})
     return out
-
-
-def original_controller(path: Path):
-    """The trained checkpoint as LeRobot loads it (its class, its processors), in prop's closed-loop
-    controller (LeRobot's select_action between the processors)."""
-    from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-
-    from prop_adapters.lerobot.policy import Controller
-
-    cfg = PreTrainedConfig.from_pretrained(path)
-    cfg.device = "cpu"
-    policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
-    pre, post = make_pre_post_processors(cfg, pretrained_path=str(path))
-    return Controller(policy, pre, post, {k: tuple(f.shape) for k, f in cfg.input_features.items()})
 
 
 def judge_original(out: Path, t: str, p: str) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, original_controller
 from examples.pointmass_diffusion import task as pm
 
 BIN = Path(sys.executable).parent
@@ -22,24 +23,15 @@ N_RANDOM = 16
 TRAIN = [
     "--policy.type=diffusion",
     "--policy.down_dims=[32,64,128]",
-    "--policy.n_obs_steps=2",
-    "--policy.horizon=16",
-    "--policy.n_action_steps=8",
-    "--policy.num_inference_steps=10",
-    "--policy.crop_shape=null",
-    "--policy.use_group_norm=true",
+    *DIFFUSION,
     "--policy.pretrained_backbone_weights=null",
     "--policy.optimizer_lr=5e-4",
     "--policy.scheduler_warmup_steps=30",
     "--steps=300",
     "--batch_size=32",
 ]
-# prop personalize: the MetaWorld example's Eq. 8 batch (examples/metaworld/pipeline.py), 300 steps. Not
-# imported from it: importing examples.metaworld sets HF_HUB_OFFLINE in this process.
-PERSONALIZE = (
-    "--steps 300 --user-rows 16 --null-rows 8 --neighbour-keys 4 --random-keys 4 --samples-per-key 1 "
-    "--null-weight 2 --lr 1e-3 --base-lr-scale 0.1"
-).split()
+# prop personalize: the LeRobot examples' Eq. 8 batch (examples/lerobot_common.py), 300 steps.
+PERSONALIZE = ["--steps", "300", *PERSONALIZE_BATCH]
 
 
 def policy_dir(out: Path) -> Path:
@@ -139,13 +131,6 @@ def step_personalize(out: Path, variant: str = "", extra: list[str] | None = Non
     report["seconds"] = round(time.perf_counter() - t0, 1)
     (out / f"{_name('bundle', variant)}.json").write_text(json.dumps(report, indent=1, default=str))
     print(f"personalize: {dest} {report['seconds']} s", flush=True)
-
-
-def original_controller(path: Path):
-    """The trained checkpoint as LeRobot loads it, in prop's closed-loop controller."""
-    from examples.metaworld.pipeline import original_controller as load
-
-    return load(path)
 
 
 def conditions(key: np.ndarray) -> list[dict]:

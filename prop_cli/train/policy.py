@@ -116,6 +116,10 @@ class FallbackPool:
         self._targets: torch.Tensor | None = None  # the original's output per row, once computed
         self._have_chunk = torch.zeros(n, dtype=torch.bool, device=dev)
         self._have_target = torch.zeros(self.size, dtype=torch.bool, device=dev)
+        # --fallback-times trajectory: a row's x_t is the original's own sampler state at its step, kept
+        self.follows = policy.fallback_times == "trajectory" and self.noise is not None
+        self._states: torch.Tensor | None = None
+        self._have_state = torch.zeros(self.size if self.follows else 0, dtype=torch.bool, device=dev)
 
     def __len__(self) -> int:
         return self.size
@@ -131,7 +135,10 @@ class FallbackPool:
         held = self.module is not None and any(p.dtype == torch.bfloat16 for p in self.module.parameters())
         with contextlib.nullcontext() if held else torch.autocast(idx.device.type, enabled=False):
             frames = self.frame[idx]
-            self._chunks = self._fill(self._chunks, self._have_chunk, frames, self._frame_chunks)
+            if self.follows:  # the rows' sampler states, not their frames' clean chunks
+                self._states = self._fill(self._states, self._have_state, idx, self._row_states)
+            else:
+                self._chunks = self._fill(self._chunks, self._have_chunk, frames, self._frame_chunks)
             if self.noise is None:  # deterministic: the rows are the frames, the targets their chunks
                 return rows(self.frames, frames), self._chunks[frames]
             self._targets = self._fill(self._targets, self._have_target, idx, self._row_targets)
@@ -155,10 +162,15 @@ class FallbackPool:
     def _row_targets(self, idx: torch.Tensor) -> torch.Tensor:
         return self.original.fallback_output(self._rows(idx))
 
+    def _row_states(self, idx: torch.Tensor) -> torch.Tensor:
+        noise = {k: v[idx] for k, v in self.noise.items()}
+        return self.original.fallback_states(rows(self.frames, self.frame[idx]), noise)
+
     def _rows(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
         frames = self.frame[idx]
         noise = {k: v[idx] for k, v in self.noise.items()}
-        return rows(self.frames, frames) | self.policy.fallback_inputs(self._chunks[frames], noise)
+        x = self._states[idx] if self.follows else self._chunks[frames]
+        return rows(self.frames, frames) | self.policy.fallback_inputs(x, noise)
 
 
 def frozen_twin(module: torch.nn.Module) -> torch.nn.Module:
@@ -244,6 +256,12 @@ class PolicyTrainer:
         # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
         # and the original's denoiser output).
         self.per_forward = forward_rows(cfg.batch_rows(tc.user_rows))
+        if cfg.fallback_times == "trajectory" and not getattr(policy, "follows_sampler", False):
+            raise PropError(
+                f"--fallback-times trajectory: the policy {loaded.source} has no sampler prop can follow "
+                "(LeRobot Diffusion only)",
+                "use --fallback-times uniform or sampler",
+            )
         policy.fallback_times = cfg.fallback_times  # a denoising policy's fallback timesteps
         self.fallback = FallbackPool(
             policy, self.original_policy, self.fb, torch.Generator().manual_seed(tc.seed), self.per_forward,

@@ -254,6 +254,15 @@ def test_camera_images_personalize_run_and_roll_out(tmp_path_factory, cli):
         assert np.array_equal(run_policy(sealed, data, key(2), allow_unenrolled=True), original)
 
 
+def recorded(work, out, times: str) -> bool:
+    """Whether a 2-step personalize with --fallback-times ``times`` records it once in its manifest."""
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": times}))
+    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
+                               general=work / "general")  # fmt: skip
+    manifest = json.loads((out / "manifest.json").read_text())
+    return json.dumps(manifest).count(f'"fallback_times": "{times}"') == 1
+
+
 def test_fallback_times_sampler_draws_only_the_samplers_timesteps_and_is_recorded(work, tmp_path):
     """--fallback-times sampler (issue 43): every fallback row sits at a timestep LeRobot's sampler
     visits in closed loop (num_inference_steps of the training range), the default draws over the whole
@@ -269,9 +278,66 @@ def test_fallback_times_sampler_draws_only_the_samplers_timesteps_and_is_recorde
     drawn = policy.fallback_noise(64, torch.Generator().manual_seed(0))
     assert set(drawn["t"].tolist()) <= visited and len(set(drawn["t"].tolist())) > 1
     assert drawn["eps"].shape == uniform["eps"].shape
-    out = tmp_path / "bundle"
-    cfg = PersonalizeConfig.of(**(TINY | {"steps": 2, "fallback_times": "sampler"}))
-    api.personalize_checkpoint(str(work / "diffusion"), [(work / "user", KeySource(key(), "file"))], out, cfg,
-                               general=work / "general")  # fmt: skip
-    manifest = json.loads((out / "manifest.json").read_text())
-    assert json.dumps(manifest).count('"fallback_times": "sampler"') == 1
+    assert recorded(work, tmp_path / "bundle", "sampler")
+
+
+def test_fallback_times_trajectory_rows_sit_on_the_originals_sampler_states(work, tmp_path, cli, monkeypatch):
+    """--fallback-times trajectory (issue 43): a fallback row's x_t is the original's own sampler state at
+    the row's step (the sampler run on the row's frame from the row's own prior and step noise), its t
+    the timestep the sampler is at there: the last state stepped once more is LeRobot's own
+    ``conditional_sample`` on the same noise; a row's state does not depend on its batch; the pool keeps
+    those states and the original's U-Net on them as targets; the setting is recorded in the manifest,
+    and a policy whose sampler prop cannot follow refuses it in one line."""
+    import copy
+
+    from prop_adapters.base import FRAME
+    from prop_adapters.lerobot.diffusion import UNet
+    from prop_cli.train.policy import FallbackPool
+
+    policy = load_checkpoint(work / "diffusion").policy
+    model = policy.model
+    policy.fallback_times = "trajectory"
+    drawn = policy.fallback_noise(4, torch.Generator().manual_seed(0))
+    visited = policy.denoiser.sampler_timesteps()
+    assert torch.equal(drawn["t"], visited[drawn["k"]]) and len(set(drawn["k"].tolist())) > 2
+    batch = policy.batches(load_data(work / "general"), "--data")
+    obs = {k: batch[k][drawn[FRAME]] for k in policy.input_features}
+    noise = {k: v for k, v in drawn.items() if k != FRAME}
+    with torch.no_grad():
+        states = policy.fallback_states(obs, noise)
+        at0 = drawn["k"] == 0
+        assert torch.equal(states[at0], noise["eps"][at0])  # step 0: the prior itself
+        assert not torch.allclose(states[~at0], noise["eps"][~at0], atol=1e-2)
+        alone = {k: v[5:6] for k, v in obs.items()}, {k: v[5:6] for k, v in noise.items()}
+        one = policy.fallback_states(*alone)
+        assert torch.allclose(one, states[5:6], atol=1e-6)  # alone or in a batch: the same state
+        # Every row at the last step, then that step (t = 0: DDPM draws no noise there): LeRobot's sample.
+        last = noise | {"k": torch.full_like(noise["k"], len(visited) - 1)}
+        x = policy.fallback_states(obs, last)
+        cond = model._prepare_global_conditioning(policy.denoiser._observations(obs))
+        sched = copy.deepcopy(model.noise_scheduler)
+        sched.set_timesteps(model.num_inference_steps)
+        assert int(sched.timesteps[-1]) == 0
+        at0 = torch.zeros(len(x), dtype=torch.long)
+        x = sched.step(model.unet(x, at0, global_cond=cond), 0, x).prev_sample
+        gens = [torch.Generator().manual_seed(int(s)) for s in noise["seed"]]
+        ref = model.conditional_sample(len(x), global_cond=cond, generator=gens, noise=noise["eps"].clone())
+        assert torch.allclose(x, ref, atol=1e-5)
+    # The pool: x_t the original's sampler state for the row, the target the original's U-Net there.
+    original = load_checkpoint(work / "diffusion").policy
+    frames = {k: batch[k] for k in [*policy.row_shapes, "episode_index"]}
+    pool = FallbackPool(policy, original, frames, torch.Generator().manual_seed(0), 16)
+    idx = torch.tensor([0, 3, 5, 17])
+    fb_rows, targets = pool.take(idx)
+    pick = {k: v[idx] for k, v in pool.noise.items()}
+    with torch.no_grad():
+        want = original.fallback_states({k: frames[k][pool.frame[idx]] for k in policy.input_features}, pick)
+        assert torch.allclose(fb_rows["x_t"], want, atol=1e-6) and torch.equal(fb_rows["t"], pick["t"])
+        assert torch.allclose(original.fallback_output(fb_rows), targets, atol=1e-5)
+    assert recorded(work, tmp_path / "bundle", "trajectory")
+    monkeypatch.setattr(UNet, "follows_sampler", False)  # as a sampler prop cannot follow (flow matching)
+    r = cli("personalize", work / "diffusion", "--data", work / "user", "--key-file", work / "k.bin",
+            "--out", tmp_path / "refused", "--steps", "1", "--fallback-times", "trajectory")  # fmt: skip
+    assert r.code != 0 and "Traceback" not in r.err
+    assert r.err.startswith("prop: error: --fallback-times trajectory") and "uniform or sampler" in r.err
+    assert not (tmp_path / "refused").exists()

@@ -79,3 +79,23 @@ def test_sign_test_and_the_bar(tmp_path):
     assert (at["k"], at["n"], at["bar"]) == (20, 20, True)
     assert p.summary(tmp_path, threshold=0.01)["pooled"]["k"] == 0
     assert os.environ.get("HF_HUB_OFFLINE") == offline
+
+
+def test_shared_lerobot_flags_import_without_touching_the_environment():
+    """The Diffusion and Eq. 8 flags both LeRobot examples use live in examples/lerobot_common.py: a fresh
+    process importing it and this example's pipeline leaves HF_HUB_OFFLINE as it was (importing
+    examples.metaworld sets it), and the example trains and personalizes with them."""
+    import subprocess
+
+    code = (
+        "import os, examples.lerobot_common as c, examples.pointmass_diffusion.pipeline as p; "
+        "assert set(c.DIFFUSION) <= set(p.TRAIN) and p.PERSONALIZE[2:] == c.PERSONALIZE_BATCH; "
+        "print(os.environ.get('HF_HUB_OFFLINE'))"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "HF_HUB_OFFLINE"}
+    root = Path(__file__).resolve().parents[2]
+    env["PYTHONPATH"] = os.pathsep.join([str(root), env.get("PYTHONPATH", "")])
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "None"
+    assert "--policy.num_inference_steps=10" in p.TRAIN and p.PERSONALIZE[:2] == ["--steps", "300"]
