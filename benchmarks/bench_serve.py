@@ -205,6 +205,8 @@ def median_run(runs: list[dict]) -> dict:
 
 
 def no_key_table(server_of, user: str, others: list[str], features: dict, args) -> None:
+    from prop_cli.core.key_files import key_from_text
+
     """(c) no key and (m) half the clients no key, half users, served with each no-key request alone
     (exact: the original's output bit for bit, the default) and with no-key rows batched
     (``--batch-no-key``); the two servers' runs interleaved; exact's throughput as a share of batched's."""
@@ -229,6 +231,29 @@ def no_key_table(server_of, user: str, others: list[str], features: dict, args) 
     finally:
         for _, running in servers.values():
             running.stop()
+    print(f"one batch in process, no-key requests alone (exact) against batched (median of {args.repeat}):")
+    print(f"{'rows':>5} {'mode':<13} {'exact ms':>9} {'batched ms':>11} {'exact/batched':>14}")
+    _, user_payload = servers["exact"][0].cache.get(key_from_text(others[0], 128))
+    for n in (1, 8, 64):
+        mixed = [None if i % 2 else user_payload for i in range(n)]
+        for mode, who in (("(c) no key", [None] * n), ("(m) mixed", mixed)):
+            ms = {name: 1e3 * _time(lambda s=server, who=who: one_batch(s, who, features), args.repeat)
+                  for name, (server, _) in servers.items()}  # fmt: skip
+            print(f"{n:>5} {mode:<13} {ms['exact']:>9.2f} {ms['batched']:>11.2f} "
+                  f"{ms['exact'] / ms['batched']:>13.2f}x")  # fmt: skip
+
+
+def one_batch(server, who: list, features: dict) -> list:
+    """One batch of one observation per request (``who``: each request's behaviour), as the server's
+    worker runs it."""
+    from prop_cli.serve.rows import Request
+
+    if server.runner is not None:
+        controller = server.runner.controller()
+        frame = observation(features, None)
+        return server.runner.run([server.runner.request(controller, b, frame) for b in who])
+    x = observation({}, 1)["observation"]
+    return server.batcher.run([Request(b, x) for b in who])
 
 
 def rss_mb() -> float:
