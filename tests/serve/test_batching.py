@@ -374,3 +374,29 @@ def test_fifty_wrong_key_connections_leave_the_server_serving(start, served_bund
 @OPENPI_CONNECT
 def test_a_thousand_wrong_key_connections_soak(start, served_bundle):
     _wrong_key_soak(start, served_bundle, 1000)
+
+
+def test_the_server_runs_no_key_requests_alone_unless_told_to_batch_them(served_bundle):
+    from prop_cli.serve import PolicyServer
+
+    bundle = load_bundle(served_bundle / "mine.prop")
+    module = bundle.loaded.module
+    x = np.random.default_rng(6).uniform(-1, 1, (2, 4)).astype(np.float32)
+    key = read_key_file(served_bundle / "k.bin")
+    for batch_no_key, forwards in ((False, 3), (True, 1)):
+        server = PolicyServer(bundle, port=0, batch_no_key=batch_no_key)
+        user, base = Session(bundle, key, False, server.cache), Session(bundle, None, False, server.cache)
+        calls: list[int] = []
+        hook = module.register_forward_hook(lambda m, a, o, calls=calls: calls.append(a[0].shape[0]))
+        try:
+            got = server.batcher.run([base.request(x), user.request(x), base.request(x[:1])])
+        finally:
+            hook.remove()
+        assert len(calls) == forwards, calls  # alone: one forward per no-key request, one for the user
+        want = KeyedPolicy(bundle, None)(x)
+        if batch_no_key:
+            np.testing.assert_allclose(got[0].numpy(), want, rtol=0, atol=ATOL)
+        else:
+            np.testing.assert_array_equal(got[0].numpy(), want)
+            # The original on that request's one row (not row 0 of a two-row forward: BLAS may differ).
+            np.testing.assert_array_equal(got[2].numpy(), KeyedPolicy(bundle, None)(x[:1]))
