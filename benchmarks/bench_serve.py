@@ -10,6 +10,10 @@ users' payloads in a 256 MB cache.
 each request one frame answered with its whole chunk, every connection's frame a row of one
 ``predict_action_chunk`` (``prop_cli/serve/chunks.py``).
 
+``--no-key``: the cost of answering no-key connections bit for bit: (c) all no key and (m) half no key,
+half users, at 1, 8 and 64 clients, served with each no-key request as its own forward (the default)
+against no-key rows batched with the others (``prop serve --batch-no-key``).
+
 The bundle: a tiny MLP (8-64-64-4), sealed with a LoRA payload (rank 4) for one enrolled key. Users 2..64
 of (b) and the 1,000 of the memory figure are payloads put in the server's cache under their keys (what a
 connection's first decryption leaves there), so (b) measures serving, not enrolment. The server runs in
@@ -149,16 +153,17 @@ def _time(fn, repeat: int) -> float:
 
 
 def keying_cost(bundle, server, others: list, repeat: int) -> None:
-    """One forward of the same batch (1, 8, 64 rows, one observation per request): the base alone
-    (no key), all rows one user (a), each row another user (b); the keyed forward's extra time as a share
-    of the base's own."""
-    from prop_cli.serve.rows import Request
+    """One forward of the same batch (1, 8, 64 rows, one observation per request): the base on the whole
+    batch (no key, rows batched: the base policy's own forward), all rows one user (a), each row another
+    user (b); the keyed forward's extra time as a share of the base's own."""
+    from prop_cli.serve.rows import Request, run_requests
 
     user = others[0]
     print(f"{'rows':>5} {'base ms':>8} {'(a) one user':>14} {'(b) distinct users':>19}")
     for n in (1, 8, 64):
         if server.runner is not None:
             runner = server.runner
+            runner.batch_no_key = True  # the base's rows as one forward, as the keyed rows run
             controller = runner.controller()
             features = controller.features
             frame = observation(features, None)
@@ -167,9 +172,11 @@ def keying_cost(bundle, server, others: list, repeat: int) -> None:
                 return runner.run([runner.request(controller, b, frame) for b in who])
         else:
             x = observation({}, 1)["observation"]
+            module, keyed = bundle.loaded.module, bundle.mode.keyed
 
-            def run(who, x=x):
-                return server.batcher.run([Request(b, x) for b in who])
+            def run(who, x=x, module=module, keyed=keyed):
+                requests = [Request(b, x) for b in who]
+                return run_requests(module, keyed, requests, server.table, batch_no_key=True)
 
         nobody, one, many = [None] * n, [user] * n, [others[i % len(others)] for i in range(n)]
         base = _time(lambda who=nobody: run(who), repeat)
@@ -177,6 +184,76 @@ def keying_cost(bundle, server, others: list, repeat: int) -> None:
         b = _time(lambda who=many: run(who), repeat)
         print(f"{n:>5} {1e3 * base:>8.2f} {1e3 * a:>8.2f} ({100 * (a / base - 1):+4.0f}%) "
               f"{1e3 * b:>10.2f} ({100 * (b / base - 1):+4.0f}%)")  # fmt: skip
+
+
+def load_run(server, running, keys: list, features: dict, seconds: float) -> dict:
+    """One run of the clients (``keys``: one per client, None: no key) against ``running``."""
+    b0, r0 = server.batcher.batches, server.batcher.rows
+    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url, json.dumps(keys),
+           str(seconds), json.dumps(features)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + seconds)
+    if done.returncode:
+        raise SystemExit(done.stderr[-2000:])
+    r = json.loads(done.stdout.strip().splitlines()[-1])
+    r["rps"] = r["requests"] / r["seconds"]
+    r["per"] = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
+    return r
+
+
+def median_run(runs: list[dict]) -> dict:
+    return {k: float(np.median([r[k] for r in runs])) for k in ("rps", "p50_ms", "p99_ms", "per")}
+
+
+def no_key_table(server_of, user: str, others: list[str], features: dict, args) -> None:
+    from prop_cli.core.key_files import key_from_text
+
+    """(c) no key and (m) half the clients no key, half users, served with each no-key request alone
+    (exact: the original's output bit for bit, the default) and with no-key rows batched
+    (``--batch-no-key``); the two servers' runs interleaved; exact's throughput as a share of batched's."""
+    servers = {name: server_of(batched) for name, batched in (("exact", False), ("batched", True))}
+    print(f"{'clients':>7} {'mode':<13} {'no-key':<8} {'req/s':>8} {'p50 ms':>7} {'p99 ms':>7} "
+          f"{'rows/batch':>10}")  # fmt: skip
+    try:
+        for n in (1, 8, 64):
+            mixed = [None if i % 2 else k for i, k in enumerate(([user, *others] * 64)[:n])]
+            for mode, keys in (("(c) no key", [None] * n), ("(m) mixed", mixed)):
+                runs: dict[str, list] = {name: [] for name in servers}
+                for _ in range(args.rounds):
+                    for name, (server, running) in servers.items():
+                        runs[name].append(load_run(server, running, keys, features, args.seconds))
+                for name in servers:
+                    med = median_run(runs[name])
+                    print(f"{n:>7} {mode:<13} {name:<8} {med['rps']:>8.0f} {med['p50_ms']:>7.2f} "
+                          f"{med['p99_ms']:>7.2f} {med['per']:>10.1f}")  # fmt: skip
+                each = [e["rps"] / b["rps"] for e, b in zip(runs["exact"], runs["batched"])]
+                print(f"{'':>7} exact/batched throughput {float(np.median(each)):.2f}x, median of the "
+                      f"rounds ({', '.join(f'{x:.2f}' for x in each)})")  # fmt: skip
+    finally:
+        for _, running in servers.values():
+            running.stop()
+    print(f"one batch in process, no-key requests alone (exact) against batched (median of {args.repeat}):")
+    print(f"{'rows':>5} {'mode':<13} {'exact ms':>9} {'batched ms':>11} {'exact/batched':>14}")
+    _, user_payload = servers["exact"][0].cache.get(key_from_text(others[0], 128))
+    for n in (1, 8, 64):
+        mixed = [None if i % 2 else user_payload for i in range(n)]
+        for mode, who in (("(c) no key", [None] * n), ("(m) mixed", mixed)):
+            ms = {name: 1e3 * _time(lambda s=server, who=who: one_batch(s, who, features), args.repeat)
+                  for name, (server, _) in servers.items()}  # fmt: skip
+            print(f"{n:>5} {mode:<13} {ms['exact']:>9.2f} {ms['batched']:>11.2f} "
+                  f"{ms['exact'] / ms['batched']:>13.2f}x")  # fmt: skip
+
+
+def one_batch(server, who: list, features: dict) -> list:
+    """One batch of one observation per request (``who``: each request's behaviour), as the server's
+    worker runs it."""
+    from prop_cli.serve.rows import Request
+
+    if server.runner is not None:
+        controller = server.runner.controller()
+        frame = observation(features, None)
+        return server.runner.run([server.runner.request(controller, b, frame) for b in who])
+    x = observation({}, 1)["observation"]
+    return server.batcher.run([Request(b, x) for b in who])
 
 
 def rss_mb() -> float:
@@ -190,6 +267,11 @@ def main() -> None:
     ap.add_argument("--act", action="store_true", help="a tiny LeRobot ACT (the LeRobot env)")
     ap.add_argument("--rounds", type=int, default=3, help="runs of each mode (medians shown)")
     ap.add_argument("--repeat", type=int, default=50, help="forwards timed per keying-cost figure")
+    ap.add_argument(
+        "--no-key",
+        action="store_true",
+        help="(c) no key and a mixed load, no-key requests each alone (exact) against batched",
+    )
     ap.add_argument("--client", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
@@ -204,14 +286,18 @@ def main() -> None:
         bundle_path, key_file = (make_act_bundle if args.act else make_bundle)(Path(tmp))
         bundle = load_bundle(bundle_path)
         features = {k: list(s) for k, s in bundle.loaded.policy.input_features.items()} if args.act else {}
-        server = PolicyServer(bundle, port=0, batch_window_ms=args.window_ms, max_connections=128)
         spec = bundle.mode.state.spec
         user = key_file.read_bytes().hex()
         others = [os.urandom(16).hex() for _ in range(63)]
         payloads = [random_payload(spec, i) for i in range(len(others))]
-        for k, p in zip(others, payloads):
-            server.cache.put(key_from_text(k, 128), p)
-        running = start_in_thread(server)
+
+        def server_of(batch_no_key: bool):
+            s = PolicyServer(bundle, port=0, batch_window_ms=args.window_ms, max_connections=128,
+                             batch_no_key=batch_no_key)  # fmt: skip
+            for k, p in zip(others, payloads):
+                s.cache.put(key_from_text(k, 128), p)
+            return s, start_in_thread(s)
+
         model = (
             "tiny ACT (examples/lerobot_reach_task.py)"
             if args.act
@@ -220,31 +306,21 @@ def main() -> None:
         print(f"prop serve, {model} sealed (LoRA r=4), loopback, "
               f"--batch-window-ms {args.window_ms}, {args.seconds:g} s per run, median of {args.rounds}, "
               f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")  # fmt: skip
+        if args.no_key:
+            no_key_table(server_of, user, others, features, args)
+            return
+        server, running = server_of(False)
         print(f"{'clients':>7} {'mode':<16} {'req/s':>8} {'p50 ms':>7} {'p99 ms':>7} {'rows/forward':>12}")
-        rows = {}
         try:
             for n in (1, 8, 64):
                 modes = (("(a) one user", [user] * n), ("(b) 64 users", ([user, *others] * 64)[:n]),
                          ("(c) no key", [None] * n))  # fmt: skip
-                runs: dict[str, list] = {m: [] for m, _ in modes}
+                runs = {m: [] for m, _ in modes}
                 for _ in range(args.rounds):  # the modes interleaved, so a load change hits all alike
                     for mode, keys in modes:
-                        b0, r0 = server.batcher.batches, server.batcher.rows
-                        cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", running.url,
-                               json.dumps(keys), str(args.seconds), json.dumps(features)]  # fmt: skip
-                        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120 + args.seconds)
-                        if done.returncode:
-                            raise SystemExit(done.stderr[-2000:])
-                        r = json.loads(done.stdout.strip().splitlines()[-1])
-                        r["rps"] = r["requests"] / r["seconds"]
-                        r["per"] = (server.batcher.rows - r0) / max(1, server.batcher.batches - b0)
-                        runs[mode].append(r)
+                        runs[mode].append(load_run(server, running, keys, features, args.seconds))
                 for mode, _ in modes:
-                    med = {
-                        k: float(np.median([r[k] for r in runs[mode]]))
-                        for k in ("rps", "p50_ms", "p99_ms", "per")
-                    }
-                    rows[(n, mode)] = med
+                    med = median_run(runs[mode])
                     print(f"{n:>7} {mode:<16} {med['rps']:>8.0f} {med['p50_ms']:>7.2f} "
                           f"{med['p99_ms']:>7.2f} {med['per']:>12.1f}")  # fmt: skip
                 # Each round's (b)/(a), (a) and (b) run one after the other; the median of the rounds.

@@ -438,11 +438,12 @@ def serve_bundle(
     max_connections: int = C.SERVE_MAX_CONNECTIONS, trust_remote_code: bool = False, arch: str | None = None,
     allow_rollback: bool = False, ready: Callable[[str], None] | None = None,
     batch_window_ms: float = C.SERVE_BATCH_WINDOW_MS, max_batch: int = C.SERVE_MAX_BATCH,
-    cache_mb: float = C.SERVE_CACHE_MB,
+    cache_mb: float = C.SERVE_CACHE_MB, batch_no_key: bool = False,
 ) -> int:  # fmt: skip
     """`prop serve`: the bundle as an openpi websocket policy server until SIGINT/SIGTERM
     (``prop_cli.serve``); ``ready(url)`` once it listens. Returns the connections it served. The address
-    and TLS are checked before the bundle is loaded."""
+    and TLS are checked before the bundle is loaded. ``batch_no_key``: no-key requests share forwards
+    (within float rounding of the original; by default each runs alone, bit for bit)."""
     try:
         from prop_cli.serve import PolicyServer
         from prop_cli.serve import serve_bundle as run_server
@@ -457,7 +458,7 @@ def serve_bundle(
     server = PolicyServer(bundle, host=host, port=port, tls_cert=tls_cert, tls_key=tls_key,
                           allow_unenrolled=allow_unenrolled_key, max_connections=max_connections,
                           batch_window_ms=batch_window_ms, max_batch=max_batch,
-                          cache_mb=cache_mb)  # fmt: skip
+                          cache_mb=cache_mb, batch_no_key=batch_no_key)  # fmt: skip
     return run_server(server, ready)
 
 

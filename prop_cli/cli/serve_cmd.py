@@ -37,6 +37,14 @@ BatchWindow = Annotated[
     opt("--batch-window-ms", "Requests (any users) arriving within this window run as one forward.", min=0),
 ]
 MaxBatch = Annotated[int, opt("--max-batch", "Observations per forward at most.", min=1)]
+BatchNoKey = Annotated[
+    bool,
+    opt(
+        "--batch-no-key",
+        "No-key requests share the batch's forward: faster, but within float rounding "
+        "(~1e-7) of the original instead of bit for bit (default: each runs alone).",
+    ),
+]
 CacheMb = Annotated[
     float, opt("--cache-mb", "Memory for decrypted users' payloads kept between connections (LRU).", min=0)
 ]
@@ -48,7 +56,7 @@ def serve(
     max_connections: MaxConnections = SERVE_MAX_CONNECTIONS, trust_remote_code: TrustRemoteCode = False,
     arch: BundleArch = None, allow_rollback: AllowRollback = False, as_json: JsonLines = False,
     batch_window_ms: BatchWindow = SERVE_BATCH_WINDOW_MS, max_batch: MaxBatch = SERVE_MAX_BATCH,
-    cache_mb: CacheMb = SERVE_CACHE_MB,
+    cache_mb: CacheMb = SERVE_CACHE_MB, batch_no_key: BatchNoKey = False,
 ) -> None:  # fmt: skip
     """Serve BUNDLE to openpi-client's WebsocketClientPolicy until Ctrl-C or SIGTERM: each connection's key
     (Authorization: Api-Key <key file bytes in hex>) runs its holder's behaviour; no key, the base."""
@@ -72,6 +80,7 @@ def serve(
             allow_unenrolled_key=allow_unenrolled_key, max_connections=max_connections,
             trust_remote_code=trust_remote_code, arch=arch, allow_rollback=allow_rollback, ready=ready,
             batch_window_ms=batch_window_ms, max_batch=max_batch, cache_mb=cache_mb,
+            batch_no_key=batch_no_key,
         )  # fmt: skip
     finally:
         log.removeHandler(handler)

@@ -29,7 +29,16 @@ from prop_cli.constants import TASK
 from prop_cli.core.batch_axes import probe_batch_axes
 from prop_cli.errors import PropError
 
-from .rows import Behaviour, Deltas, Folded, PayloadTable, RowMismatch, payload_handles, row_deltas
+from .rows import (
+    Behaviour,
+    Deltas,
+    Folded,
+    PayloadTable,
+    RowMismatch,
+    payload_handles,
+    row_deltas,
+    runs_alone,
+)
 
 
 @dataclass
@@ -58,9 +67,10 @@ def batchable(bundle: Bundle) -> bool:
 class ChunkRunner:
     """``run(requests) -> [chunk (steps, dim) or (N, steps, dim) in action units]`` for a LeRobot bundle
     that ``batchable`` accepts; ``controller()`` makes a connection's own controller (its episode, its
-    noise count) over the shared base module. ``table``: the server's payload slots (a sealed bundle)."""
+    noise count) over the shared base module. ``table``: the server's payload slots (a sealed bundle);
+    ``batch_no_key``: no-key requests share the forward too (else each runs alone: bit for bit)."""
 
-    def __init__(self, bundle: Bundle, table: PayloadTable | None = None) -> None:
+    def __init__(self, bundle: Bundle, table: PayloadTable | None = None, batch_no_key: bool = False) -> None:
         loaded = bundle.loaded
         self.bundle, self.module, self.protocol = bundle, loaded.module.eval(), loaded.policy
         self.keyed = bundle.mode.keyed  # an unsealed bundle's encoder over the base: rows' deltas
@@ -68,6 +78,7 @@ class ChunkRunner:
             self.keyed = None  # behaviours are then folded (``Folded``)
         self.sampling = loaded.policy.denoiser is not None
         self.table = table  # a sealed bundle's payload slots (the server's); None: stacked per batch
+        self.batch_no_key = batch_no_key  # no-key rows join the others' forward (within float rounding)
         self.batches = 0
         self.axes = self._axes()
 
@@ -107,12 +118,15 @@ class ChunkRunner:
     @torch.inference_mode()
     def run(self, requests: Sequence[ChunkRequest]) -> list[np.ndarray]:
         """Each request's chunk: requests whose frames take one shape (and one instruction) through the
-        preprocessor, one forward of the base and the postprocessor together; ``Folded`` ones apart."""
+        preprocessor, one forward of the base and the postprocessor together; ``Folded`` ones apart, and
+        each no-key request alone unless ``batch_no_key`` (``rows.runs_alone``)."""
         chunks: list[np.ndarray | None] = [None] * len(requests)
         groups: dict[tuple, list[int]] = {}
         for i, r in enumerate(requests):
             if isinstance(r.behaviour, Folded):
                 chunks[i] = self._group(r.behaviour.module, [r], keyed=False)[0]
+            elif runs_alone(r.behaviour, self.batch_no_key):  # no key: the original's chunk, bit for bit
+                chunks[i] = self._group(self.module, [r])[0]
             else:
                 groups.setdefault(_shape_key(r.x), []).append(i)
         for idx in groups.values():

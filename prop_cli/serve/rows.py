@@ -14,7 +14,8 @@ A row's ``Behaviour`` is one of:
   here): its rows run apart, in the same call.
 
 The batched rows differ from ``KeyedPolicy``'s folded weights by float rounding only ((W diag d) x against
-W (d x)): tests/serve/test_batching.py measures it. Rows of the base alone run the plain base module.
+W (d x)): tests/serve/test_batching.py measures it. A no-key request runs the plain base module on its
+own rows (its own forward, the original's output bit for bit) unless the server batches no-key rows too.
 """
 
 from __future__ import annotations
@@ -225,22 +226,32 @@ def _scale_pre(scale: torch.Tensor, axis: int, rows: int):
 
 
 def _lora_post(keyed: torch.Tensor, a_rows: torch.Tensor, b_rows: torch.Tensor, axis: int, rows: int):
-    """A forward hook adding each keyed row's B (A x) (rows ``keyed`` along ``axis``) to the output."""
+    """A forward hook adding each keyed row's B (A x) (rows ``keyed`` along ``axis``) to the output.
+
+    The output keeps the base layer's own layout (the update is added along ``axis`` in place, where no
+    gradient is kept): a sequence-first layer's output moved to batch-first and back would leave the
+    next layer a strided input, which cost ACT at its published size 12% of its forward at 8 rows
+    (its next linear ran as a copy, ``mm`` and an add instead of one ``addmm``). Where every row is
+    keyed, in order, nothing is gathered."""
+    every = keyed.numel() == rows and torch.equal(keyed, torch.arange(rows))
 
     def post(mod, args, out):
         z = args[0]
         if z.dim() < 2 or z.shape[axis] != rows:
             raise RowMismatch()
-        zk = (z.movedim(axis, 0) if axis else z).index_select(0, keyed)
+        zk = z if every else z.index_select(axis, keyed)
+        zk = zk.movedim(axis, 0) if axis else zk  # (K, ..., in)
         flat = zk.reshape(zk.shape[0], -1, zk.shape[-1])  # (K, M, in)
         a, b = a_rows, b_rows
         if a.dtype != flat.dtype:
             a, b = a.to(flat.dtype), b.to(flat.dtype)
         extra = torch.bmm(torch.bmm(flat, a.transpose(1, 2)), b.transpose(1, 2)).reshape(*zk.shape[:-1], -1)
-        if axis == 0:
-            return out.index_add(0, keyed, extra if extra.dtype == out.dtype else extra.to(out.dtype))
-        moved = out.movedim(axis, 0).index_add(0, keyed, extra.to(out.dtype))
-        return moved.movedim(0, axis)
+        extra = extra.movedim(0, axis) if axis else extra  # the output's own axes (a view)
+        if extra.dtype != out.dtype:
+            extra = extra.to(out.dtype)
+        if torch.is_grad_enabled():  # keep autograd's graph whole: out of place
+            return out + extra if every else out.index_add(axis, keyed, extra)
+        return out.add_(extra) if every else out.index_add_(axis, keyed, extra)
 
     return post
 
@@ -251,19 +262,31 @@ def gathered(module: nn.Module, payload: Payload) -> bool:
     return all(type(mods.get(x["name"])) is nn.Linear for x in payload.spec.layers)
 
 
+def runs_alone(behaviour: Behaviour, batch_no_key: bool) -> bool:
+    """Whether a request runs as its own forward: a ``Folded`` behaviour (a module of its own) always; a
+    no-key request (None) unless ``batch_no_key``, so its output is the original's bit for bit: a matmul
+    over more rows may be summed in another order by BLAS (its blocking depends on the batch size), which
+    puts a batched base row within ~1e-7 of the original alone, not equal to it."""
+    return isinstance(behaviour, Folded) or (behaviour is None and not batch_no_key)
+
+
 @torch.inference_mode()
 def run_requests(
-    module: nn.Module, keyed, requests: Sequence[Request], table: PayloadTable | None = None
-) -> list[torch.Tensor]:
+    module: nn.Module, keyed, requests: Sequence[Request], table: PayloadTable | None = None,
+    batch_no_key: bool = False,
+) -> list[torch.Tensor]:  # fmt: skip
     """Raw outputs, one per request, from as few forwards as the behaviours allow: one of ``module`` (the
-    base; ``keyed``, an unsealed bundle's KeyedModel over it, or None) for every base, Deltas and Payload
-    row together, plus one per Folded request. ``table``: the server's payload slots (a sealed bundle);
-    without it each batch stacks its users' tensors."""
+    base; ``keyed``, an unsealed bundle's KeyedModel over it, or None) for every Deltas and Payload row
+    together, plus one per Folded request and one per no-key request (the original alone: bit for bit;
+    ``batch_no_key``: no-key rows join the others, within float rounding). ``table``: the server's payload
+    slots (a sealed bundle); without it each batch stacks its users' tensors."""
     out: list[torch.Tensor | None] = [None] * len(requests)
-    together = [i for i, r in enumerate(requests) if not isinstance(r.behaviour, Folded)]
+    together = [i for i, r in enumerate(requests) if not runs_alone(r.behaviour, batch_no_key)]
     for i, r in enumerate(requests):
         if isinstance(r.behaviour, Folded):
             out[i] = r.behaviour.module(torch.from_numpy(r.x))
+        elif runs_alone(r.behaviour, batch_no_key):  # no key: the base on this request's rows alone
+            out[i] = module(torch.from_numpy(r.x))
     if together:
         ys = _together(module, keyed, [requests[i] for i in together], table)
         for i, y in zip(together, ys):

@@ -150,7 +150,9 @@ def check_batching(batch_window_ms: float, max_batch: int) -> None:
 
 class PolicyServer:
     """``bundle`` served on ``host:port`` (0: a free port). ``max_connections``: more are closed at once
-    (1013, try again later); ``max_message_bytes``: a bigger message closes its connection (1009)."""
+    (1013, try again later); ``max_message_bytes``: a bigger message closes its connection (1009).
+    ``batch_no_key``: no-key requests share the batch's forward (faster; within float rounding of the
+    original) instead of each running alone (the original's output bit for bit, the default)."""
 
     def __init__(
         self, bundle: Bundle, *, host: str = C.SERVE_HOST, port: int = C.SERVE_PORT,
@@ -158,7 +160,7 @@ class PolicyServer:
         max_connections: int = C.SERVE_MAX_CONNECTIONS,
         max_message_bytes: int = C.SERVE_MAX_MESSAGE_BYTES,
         batch_window_ms: float = C.SERVE_BATCH_WINDOW_MS, max_batch: int = C.SERVE_MAX_BATCH,
-        cache_mb: float = C.SERVE_CACHE_MB, backoff: Backoff | None = None,
+        cache_mb: float = C.SERVE_CACHE_MB, backoff: Backoff | None = None, batch_no_key: bool = False,
     ) -> None:  # fmt: skip
         if max_connections < 1:
             raise PropError(f"--max-connections {max_connections}", "pass 1 or more")
@@ -180,12 +182,13 @@ class PolicyServer:
         self.backoff = backoff or Backoff()
         module, keyed = bundle.loaded.module.eval(), bundle.mode.keyed
         # A sealed bundle's payloads in use, each in a slot of one table per layer (S-LoRA's pool).
-        table = payload_table(bundle)
+        self.table = table = payload_table(bundle)
         # A LeRobot policy whose chunk needs the frame alone: its connections share forwards too.
-        self.runner = chunk_runner(bundle, table)
-        run = (
-            self.runner.run if self.runner is not None else lambda rs: run_requests(module, keyed, rs, table)
-        )
+        # A no-key request runs alone (the original's output bit for bit) unless batch_no_key.
+        self.runner = chunk_runner(bundle, table, batch_no_key)
+        run = self.runner.run if self.runner is not None else (
+            lambda rs: run_requests(module, keyed, rs, table, batch_no_key)
+        )  # fmt: skip
         self.batcher = Batcher(run, self._pool, batch_window_ms / 1000, max_batch)
 
     @property

@@ -33,12 +33,14 @@ def payload_table(bundle: Bundle) -> PayloadTable | None:
     return PayloadTable(bundle.mode.state.spec) if bundle.mode.is_sealed else None
 
 
-def chunk_runner(bundle: Bundle, table: PayloadTable | None) -> ChunkRunner | None:
+def chunk_runner(
+    bundle: Bundle, table: PayloadTable | None, batch_no_key: bool = False
+) -> ChunkRunner | None:
     """The runner of a LeRobot bundle whose connections can share forwards (``chunks``); None for an
     array model (``rows``) or a policy with an observation history (Diffusion: a module per connection)."""
     if bundle.loaded.policy is None or not batchable(bundle):
         return None
-    return ChunkRunner(bundle, table)
+    return ChunkRunner(bundle, table, batch_no_key)
 
 
 # An array model's observation entry (openpi's observations are dicts; a LeRobot policy's are its features).

@@ -26,6 +26,7 @@ from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.errors import PropError  # noqa: E402
 from tests.adapters import closed_loop as loop  # noqa: E402
+from tests.lerobot_bases import act_base  # noqa: E402
 
 TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=4, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -34,9 +35,7 @@ TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2,
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("lerobot")
-    task.record(d / "general", 4, 0, np.zeros(3, np.float32))
-    task.record(d / "user", 3, 50_000, task.USER_OFFSET)
-    task.train_base(d / "general", d / "act", steps=5)
+    act_base(d)
     return d
 
 

@@ -24,6 +24,7 @@ from prop_cli.config import AuditSettings, EvalSettings, PersonalizeConfig  # no
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from tests.adapters import closed_loop as loop  # noqa: E402
+from tests.lerobot_bases import diffusion_base  # noqa: E402
 
 TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -37,9 +38,7 @@ def key(seed: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("diffusion")
-    task.record(d / "general", 3, 0, np.zeros(3, np.float32))
-    task.record(d / "user", 2, 50_000, task.USER_OFFSET)
-    task.train_base(d / "general", d / "diffusion", steps=5, kind="diffusion")
+    diffusion_base(d)
     path = d / "k.bin"
     path.write_bytes(np.packbits(key()).tobytes())
     path.chmod(0o600)

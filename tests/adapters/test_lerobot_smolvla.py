@@ -20,7 +20,6 @@ pytest.importorskip("num2words")  # SmolVLM's processor needs it (scripts/setup-
 pytestmark = pytest.mark.lerobot
 
 from examples import lerobot_reach_task as task  # noqa: E402
-from examples import smolvla_tiny  # noqa: E402
 from prop_adapters import load_checkpoint  # noqa: E402
 from prop_cli import api  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
@@ -29,6 +28,7 @@ from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.train.policy import chunks  # noqa: E402
 from tests.adapters.shares import buffers_as_built, memo_terms  # noqa: E402
+from tests.lerobot_bases import smolvla_base  # noqa: E402
 
 TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -42,11 +42,7 @@ def key(seed: int = 1) -> np.ndarray:
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     d = tmp_path_factory.mktemp("smolvla")
-    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
-    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
-    vlm = smolvla_tiny.build_vlm(d / "vlm")
-    built = smolvla_tiny.build_smolvla(vlm, task.dataset_stats(d / "general"))
-    task.train_base(d / "general", d / "smolvla", steps=3, built=built)
+    smolvla_base(d)
     path = d / "k.bin"
     path.write_bytes(np.packbits(key()).tobytes())
     path.chmod(0o600)

@@ -28,9 +28,10 @@ from tests.serve.shares import OPENPI_CONNECT, personalize_here
 client_policy = pytest.importorskip("openpi_client.websocket_client_policy")
 
 # Batched rows against each user's folded weights: (W diag d) x + b against W (d x) + b, and W x + B (A x)
-# against (W + B A) x; a no-key row in a batch of others against the base alone: the same matmul over more
-# rows, which BLAS may sum in another order. Measured on these models (float32, CPU): at most 1.2e-7.
-# A request that runs alone (one connection in its window) is the original's bit for bit (test_serve).
+# against (W + B A) x. Measured on these models (float32, CPU): at most 1.2e-7. A no-key request runs
+# alone (its own forward of the base), so it is the original's output bit for bit however many others
+# share its batch; with batch_no_key (prop serve --batch-no-key) its rows join the others' forward: the
+# same matmul over more rows, which BLAS may sum in another order (measured: within 1.2e-7).
 ATOL = 1e-5
 
 
@@ -51,8 +52,9 @@ def _payload(module: nn.Module, kind: str, seed: int) -> Payload:
     return p
 
 
+@pytest.mark.parametrize("batch_no_key", [False, True])
 @pytest.mark.parametrize("kind", list(KINDS))
-def test_mixed_users_in_one_forward_equal_their_own_runs(kind):
+def test_mixed_users_in_one_forward_equal_their_own_runs(kind, batch_no_key):
     module = _mlp()
     users = [_payload(module, kind, s) for s in range(3)]
     rng = np.random.default_rng(0)
@@ -62,13 +64,17 @@ def test_mixed_users_in_one_forward_equal_their_own_runs(kind):
     requests = [Request(b, rng.normal(size=(n, 6)).astype(np.float32)) for b, n in zip(who, sizes)]
     calls = []
     hook = module.register_forward_hook(lambda m, a, o: calls.append(a[0].shape[0]))
-    got = run_requests(module, None, requests)
+    got = run_requests(module, None, requests, batch_no_key=batch_no_key)
     hook.remove()
-    assert calls == [13]  # the base ran once, on every row
+    # The base ran once on every keyed row; each no-key request alone (bit for bit) unless batched too.
+    assert calls == ([13] if batch_no_key else [2, 1, 10]), calls
     worst = 0.0
     with torch.inference_mode():
         for r, y in zip(requests, got):
             x = torch.from_numpy(r.x)
+            if r.behaviour is None and not batch_no_key:  # the original alone, bit for bit
+                assert torch.equal(y, module(x))
+                continue
             if r.behaviour is None:  # the base's rows: float rounding of a larger matmul only
                 worst = max(worst, (y - module(x)).abs().max().item())
                 continue
@@ -102,7 +108,7 @@ def test_unsealed_users_and_no_key_rows_in_one_forward_equal_keyed_policy(served
     assert not np.allclose(want_user, want_base, atol=1e-3)
     np.testing.assert_allclose(got[0].numpy(), want_user, rtol=0, atol=ATOL)
     np.testing.assert_allclose(got[2].numpy(), want_user[:2], rtol=0, atol=ATOL)
-    np.testing.assert_allclose(got[1].numpy(), want_base, rtol=0, atol=ATOL)
+    np.testing.assert_array_equal(got[1].numpy(), want_base)  # no key: the original, bit for bit
 
 
 def test_the_batcher_runs_what_arrives_in_its_window_as_one_batch():
@@ -143,6 +149,8 @@ def test_concurrent_clients_of_different_users_are_batched(start, served_bundle)
         for _ in range(3):
             outs = list(pool.map(lambda c: c[1].infer({"observation": x})["actions"], clients))
             for (who, _), y in zip(clients, outs):
+                if who is None:  # a no-key connection among users': the original's actions bit for bit
+                    np.testing.assert_array_equal(y, want[None])
                 np.testing.assert_allclose(y, want[who], rtol=0, atol=ATOL)
     forwards = running.server.batcher.batches - before
     assert forwards < 3 * len(clients), forwards  # requests of different users shared forwards
@@ -240,7 +248,7 @@ def test_sealed_users_are_payloads_batched_with_the_base(sealed_bundle, served_b
     want_base = KeyedPolicy(bundle, None)(x)
     assert not np.allclose(want_user, want_base, atol=1e-3)
     np.testing.assert_allclose(got[0].numpy(), want_user, rtol=0, atol=ATOL)
-    np.testing.assert_allclose(got[1].numpy(), want_base, rtol=0, atol=ATOL)
+    np.testing.assert_array_equal(got[1].numpy(), want_base)  # an unenrolled key: the original, bit for bit
     assert Session(bundle, read_key_file(served_bundle / "k.bin"), False, cache).cached
 
 
@@ -366,3 +374,40 @@ def test_fifty_wrong_key_connections_leave_the_server_serving(start, served_bund
 @OPENPI_CONNECT
 def test_a_thousand_wrong_key_connections_soak(start, served_bundle):
     _wrong_key_soak(start, served_bundle, 1000)
+
+
+@pytest.fixture
+def one_thread():
+    """Bit for bit is within one process and one thread setting: a test before may have left another."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def test_the_server_runs_no_key_requests_alone_unless_told_to_batch_them(served_bundle, one_thread):
+    from prop_cli.serve import PolicyServer
+
+    bundle = load_bundle(served_bundle / "mine.prop")
+    module = bundle.loaded.module
+    x = np.random.default_rng(6).uniform(-1, 1, (2, 4)).astype(np.float32)
+    key = read_key_file(served_bundle / "k.bin")
+    for batch_no_key, forwards in ((False, 3), (True, 1)):
+        server = PolicyServer(bundle, port=0, batch_no_key=batch_no_key)
+        user, base = Session(bundle, key, False, server.cache), Session(bundle, None, False, server.cache)
+        calls: list[int] = []
+        hook = module.register_forward_hook(lambda m, a, o, calls=calls: calls.append(a[0].shape[0]))
+        try:
+            got = server.batcher.run([base.request(x), user.request(x), base.request(x[:1])])
+        finally:
+            hook.remove()
+        assert len(calls) == forwards, calls  # alone: one forward per no-key request, one for the user
+        want = KeyedPolicy(bundle, None)(x)
+        if batch_no_key:
+            np.testing.assert_allclose(got[0].numpy(), want, rtol=0, atol=ATOL)
+        else:
+            np.testing.assert_array_equal(got[0].numpy(), want)
+            # The original on that request's one row (not row 0 of a two-row forward: BLAS may differ).
+            with torch.inference_mode():
+                alone = module(torch.from_numpy(x[:1]))
+            assert torch.equal(got[2], alone)

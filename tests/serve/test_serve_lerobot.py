@@ -15,6 +15,7 @@ from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.run import KeyedPolicy  # noqa: E402
+from tests.lerobot_bases import act_base, diffusion_base, smolvla_base  # noqa: E402
 from tests.serve.shares import OPENPI_CONNECT  # noqa: E402
 
 pytestmark = [pytest.mark.lerobot, OPENPI_CONNECT]
@@ -26,9 +27,7 @@ KEY = np.random.default_rng(1).integers(0, 2, 128).astype(np.uint8)
 @pytest.fixture(scope="module")
 def act_bundle(tmp_path_factory):
     d = tmp_path_factory.mktemp("serve-lerobot")
-    task.record(d / "general", 4, 0, np.zeros(3, np.float32))
-    task.record(d / "user", 3, 50_000, task.USER_OFFSET)
-    task.train_base(d / "general", d / "act", steps=5)
+    act_base(d)
     api.personalize_checkpoint(
         str(d / "act"), [(d / "user", KeySource(KEY, "file"))], d / "bundle", PersonalizeConfig.of(**TINY),
         general=d / "general",
@@ -130,24 +129,29 @@ def test_mixed_users_share_one_forward_and_equal_their_own_runs(sealed, act_bund
     frames = _frames(bundle, len(who))
     before = runner.batches
     got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
-    assert runner.batches == before + 1  # one forward of the base for every user's rows
+    # One forward of the base for every user's rows, and each no-key request (no key, WRONG) its own.
+    assert runner.batches == before + 3
     worst = 0.0
     for k, f, y in zip(who, frames, got):
         want = _alone(bundle, k, f, allow=True)
         assert y.shape == want.shape == (runner.steps, want.shape[-1])
         worst = max(worst, float(np.abs(y - want).max()))
-        if k is not None and k is not WRONG:
+        if k is None or k is WRONG:  # no key among users' rows: the original's chunk bit for bit
+            np.testing.assert_array_equal(y, want)
+            np.testing.assert_array_equal(y, _alone(bundle, None, f))
+        else:
             assert not np.allclose(want, _alone(bundle, None, f), atol=1e-4)  # the key changes the chunk
-    nokey = max(
-        float(np.abs(y - _alone(bundle, None, f)).max()) for k, f, y in zip(who, frames, got) if k is None
-    )
-    print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}, no-key rows {nokey:.2e}")
+    print(f"ACT {'sealed' if sealed else 'unsealed'}: worst {worst:.2e}")
     assert worst <= ATOL, worst
-    # A no-key request alone in its forward is the original's chunk bit for bit.
-    base = Session(bundle, None, False, cache, runner)
-    np.testing.assert_array_equal(
-        runner.run([base.chunk_request(frames[1])])[0], _alone(bundle, None, frames[1])
-    )
+    # --batch-no-key: the no-key rows join the users' forward, within float rounding of the original.
+    batched = chunk_runner(bundle, payload_table(bundle), batch_no_key=True)
+    before = batched.batches
+    got = batched.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
+    assert batched.batches == before + 1
+    nokey = max(float(np.abs(y - _alone(bundle, None, f)).max())
+                for k, f, y in zip(who, frames, got) if k is None or k is WRONG)  # fmt: skip
+    print(f"ACT {'sealed' if sealed else 'unsealed'} --batch-no-key: no-key rows {nokey:.2e}")
+    assert nokey <= ATOL, nokey
 
 
 def test_concurrent_clients_of_two_users_are_batched_over_openpi(sealed_act, start_bundle):
@@ -177,14 +181,8 @@ def test_concurrent_clients_of_two_users_are_batched_over_openpi(sealed_act, sta
 def smolvla_sealed(tmp_path_factory):
     """A tiny SmolVLA (examples/smolvla_tiny.py) sealed for KEY (LoRA payload)."""
     pytest.importorskip("num2words")  # SmolVLM's processor needs it
-    from examples import smolvla_tiny
-
     d = tmp_path_factory.mktemp("serve-smolvla")
-    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
-    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
-    vlm = smolvla_tiny.build_vlm(d / "vlm")
-    built = smolvla_tiny.build_smolvla(vlm, task.dataset_stats(d / "general"))
-    task.train_base(d / "general", d / "smolvla", steps=3, built=built)
+    smolvla_base(d)
     cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 10, "payload": "lora", "payload_rank": 2}))
     api.personalize_checkpoint(str(d / "smolvla"), [(d / "user", KeySource(KEY, "file"))], d / "sealed", cfg)
     return d / "sealed"
@@ -208,7 +206,7 @@ def test_smolvla_rows_of_users_share_a_forward_each_with_its_own_noise(smolvla_s
     frames = [f | {"task": t} for f, t in zip(_frames(bundle, len(who), seed=9), tasks)]
     before = runner.batches
     got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
-    assert runner.batches == before + 2  # one forward per instruction length
+    assert runner.batches == before + 4  # the users' rows in one forward; each no-key request its own
     worst = 0.0
     for i, (k, f, y) in enumerate(zip(who, frames, got)):
         policy = KeyedPolicy(bundle, k, allow_unenrolled=True)
@@ -216,6 +214,8 @@ def test_smolvla_rows_of_users_share_a_forward_each_with_its_own_noise(smolvla_s
         want = policy.controller.action_chunk(f)
         assert y.shape == want.shape == (runner.steps, want.shape[-1])
         worst = max(worst, float(np.abs(y - want).max()))
+        if k is None or k is WRONG:  # the original's chunk (its connection's noise), bit for bit
+            np.testing.assert_array_equal(y, want)
     same = KeyedPolicy(bundle, KEY)
     same.reset(seed=1)  # the key's chunk under another connection's noise differs: the noise is per row
     assert not np.allclose(same.controller.action_chunk(frames[0]), got[0], atol=1e-4)
@@ -226,9 +226,7 @@ def test_smolvla_rows_of_users_share_a_forward_each_with_its_own_noise(smolvla_s
 @pytest.fixture(scope="module")
 def diffusion_bundle(tmp_path_factory):
     d = tmp_path_factory.mktemp("serve-diffusion")
-    task.record(d / "general", 3, 0, np.zeros(3, np.float32))
-    task.record(d / "user", 2, 50_000, task.USER_OFFSET)
-    task.train_base(d / "general", d / "diffusion", steps=3, kind="diffusion")
+    diffusion_base(d)
     api.personalize_checkpoint(
         str(d / "diffusion"), [(d / "user", KeySource(KEY, "file"))], d / "bundle",
         PersonalizeConfig.of(**TINY), general=d / "general",
@@ -304,7 +302,7 @@ def test_pi0_rows_of_users_share_a_forward_each_with_its_own_noise(pi0_sealed):
     frames = [f | {"task": "reach the goal"} for f in _frames(bundle, len(who), seed=13)]
     before = runner.batches
     got = runner.run([s.chunk_request(f) for s, f in zip(sessions, frames)])
-    assert runner.batches == before + 1
+    assert runner.batches == before + 2  # the user's rows together, the no-key request alone
     worst = 0.0
     for i, (k, f, y) in enumerate(zip(who, frames, got)):
         policy = KeyedPolicy(bundle, k)
