@@ -163,10 +163,13 @@ def safetensors_dtypes(path: Path) -> dict[str, torch.dtype]:
     return {n: _ST_DTYPES[d] for n, d in named.items() if d in _ST_DTYPES}
 
 
-def load_into(module: torch.nn.Module, path: Path) -> None:
+def load_into(module: torch.nn.Module, path: Path, as_held: bool = False) -> None:
     """``module.load_state_dict`` (strict) from a safetensors file, one tensor at a time: memory stays
     the module's plus one tensor, not the module's plus the whole file's (a 450 M-parameter policy: 1.8
-    GB less at its peak). Names and shapes must match exactly, as for ``load_state_dict(strict=True)``."""
+    GB less at its peak). Names and shapes must match exactly, as for ``load_state_dict(strict=True)``.
+    ``as_held``: each tensor takes the file's tensor as it is, in the file's dtype, instead of a copy
+    in the module's (a bf16 file into a module built fp32 never holds an fp32 copy: the module's own
+    storage, allocated but never written, is freed)."""
     from safetensors import SafetensorError, safe_open
 
     targets = module.state_dict(keep_vars=True)
@@ -189,7 +192,10 @@ def load_into(module: torch.nn.Module, path: Path) -> None:
                             f"{tuple(targets[name].shape)}",
                             "check that the checkpoint and its config belong together",
                         )
-                    targets[name].copy_(f.get_tensor(name))
+                    if as_held:
+                        targets[name].data = f.get_tensor(name)
+                    else:
+                        targets[name].copy_(f.get_tensor(name))
     except (SafetensorError, OSError, ValueError, KeyError, json.JSONDecodeError) as e:
         raise PropError(
             f"checkpoint {path} is not a readable safetensors file ({e})",

@@ -41,7 +41,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
-from .frozen import frozen_in_bf16
+from .frozen import frozen_in_bf16, held_autocast, trained_in_fp32
 from .hardening import far_codes
 from .loop import Optimiser, mixed_precision, run_steps
 from .objective import check_user_keys, delta_pull
@@ -239,6 +239,7 @@ class PolicyTrainer:
         if cfg.freeze_base:
             module.requires_grad_(False)
         self.original = frozen_twin(module)
+        trained_in_fp32(module)  # after the twin: the original's copy stays as the checkpoint holds it
         self.original_policy = policy.on(self.original)
         # The fallback term's rows and the original's output on each, computed as steps draw them (the
         # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
@@ -254,9 +255,11 @@ class PolicyTrainer:
         features = [in_width(mods[n]) for n in names]
         encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
         self.km = KeyedModel(module, encoder, names).to(dev)
-        self.km.batch_axis = probe_batch_axes(
-            module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
-        )
+        with held_autocast(module, dev):
+            self.km.batch_axis = probe_batch_axes(
+                module, names, lambda b: policy.chunk(policy.example(b, self.fb)),
+                f"the policy {loaded.source}",
+            )  # fmt: skip
         # What the policy trains by default (SmolVLA: the action expert and its projections; LeRobot's
         # own freezing, kept as loaded) is what trains here, unless --freeze-base froze it all.
         base = [p for p in module.parameters() if p.requires_grad]
@@ -521,12 +524,13 @@ class PolicyRecipe(Recipe[UnsealedConfig]):
             losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)
             t.finish()
             budget = report_budget(tc, t.module)
-            reports = [  # by the process that writes the bundle (the others trained the same model)
-                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
-                             eval_rng(tc.seed, i), budget, t.per_forward,
-                             say=lambda what, i=i: job.say(f"report of user {i + 1}: {what}"))
-                for i, (u, (_, val)) in enumerate(zip(users, t.splits))
-            ] if job.ranks.is_main else []  # fmt: skip
+            with held_autocast(t.original, dev):  # a base held bf16 (keep_dtypes): as the steps compute
+                reports = [  # by the process that writes the bundle (the others trained the same model)
+                    chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
+                                 eval_rng(tc.seed, i), budget, t.per_forward,
+                                 say=lambda what, i=i: job.say(f"report of user {i + 1}: {what}"))
+                    for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+                ] if job.ranks.is_main else []  # fmt: skip
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
