@@ -87,15 +87,23 @@ def test_keep_dtypes_loads_each_weight_as_the_checkpoint_holds_it_and_fp32_stays
 def test_load_into_as_held_takes_the_files_tensors_in_their_dtype(tmp_path):
     from safetensors.torch import save_file
 
-    lin = torch.nn.Linear(3, 2)
-    weights = {"weight": torch.randn(2, 3).to(torch.bfloat16), "bias": torch.randn(2)}
+    module = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.LayerNorm(4))
+    module[1].register_buffer("flag", torch.zeros(2, dtype=torch.bool))
+    weights = {
+        "0.weight": torch.randn(4, 3).to(torch.bfloat16), "0.bias": torch.randn(4),
+        "1.weight": torch.randn(4).half(), "1.bias": torch.randn(4).double(),
+        "1.flag": torch.tensor([True, False]),
+    }  # fmt: skip
     save_file(weights, str(tmp_path / "w.safetensors"))
-    load_into(lin, tmp_path / "w.safetensors", as_held=True)
-    assert lin.weight.dtype == torch.bfloat16 and lin.bias.dtype == torch.float32
-    assert torch.equal(lin.weight, weights["weight"]) and torch.equal(lin.bias, weights["bias"])
-    copied = torch.nn.Linear(3, 2)
-    load_into(copied, tmp_path / "w.safetensors")  # the default: copied into the module's fp32
-    assert copied.weight.dtype == torch.float32 and torch.equal(copied.weight, weights["weight"].float())
+    load_into(module, tmp_path / "w.safetensors", as_held=True)
+    state = module.state_dict()
+    assert all(state[k].dtype == v.dtype and torch.equal(state[k], v) for k, v in weights.items())
+    (tmp_path / "w.safetensors").write_bytes(b"")  # read into memory of its own: the file is not kept
+    assert torch.equal(module[0].weight, weights["0.weight"])
+    copied = torch.nn.Linear(3, 4)
+    save_file({k[2:]: weights[k] for k in ("0.weight", "0.bias")}, str(tmp_path / "l.safetensors"))
+    load_into(copied, tmp_path / "l.safetensors")  # the default: copied into the module's fp32
+    assert copied.weight.dtype == torch.float32 and torch.equal(copied.weight, weights["0.weight"].float())
 
 
 def _watch(monkeypatch, seal: bool) -> dict[str, list]:
