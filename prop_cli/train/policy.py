@@ -255,11 +255,9 @@ class PolicyTrainer:
         features = [in_width(mods[n]) for n in names]
         encoder = KeyEncoder(len(users[0].key_bits), features, cfg.encoder_hidden, cfg.delta_scale)
         self.km = KeyedModel(module, encoder, names).to(dev)
-        with held_autocast(module, dev):
-            self.km.batch_axis = probe_batch_axes(
-                module, names, lambda b: policy.chunk(policy.example(b, self.fb)),
-                f"the policy {loaded.source}",
-            )  # fmt: skip
+        self.km.batch_axis = probe_batch_axes(
+            module, names, lambda b: policy.chunk(policy.example(b, self.fb)), f"the policy {loaded.source}"
+        )
         # What the policy trains by default (SmolVLA: the action expert and its projections; LeRobot's
         # own freezing, kept as loaded) is what trains here, unless --freeze-base froze it all.
         base = [p for p in module.parameters() if p.requires_grad]
@@ -518,19 +516,19 @@ class PolicyRecipe(Recipe[UnsealedConfig]):
         (the bundle is written, and runs, there)."""
         loaded, tc, cfg = job.loaded, job.train, job.mode
         dev = resolve_device(job.device)
-        with loaded.policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+        # held_autocast: a base held bf16 (keep_dtypes) computes under the steps' autocast throughout.
+        with loaded.policy.memo(), held_autocast(loaded.module, dev):  # memo: once for every key (SmolVLA)
             job.say(f"setting up: the users' frames, the fallback samples and keys, per-row noise on {dev}")
             t = PolicyTrainer(loaded, users, tc, cfg, general, dev, job.ranks)
             losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)
             t.finish()
             budget = report_budget(tc, t.module)
-            with held_autocast(t.original, dev):  # a base held bf16 (keep_dtypes): as the steps compute
-                reports = [  # by the process that writes the bundle (the others trained the same model)
-                    chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
-                                 eval_rng(tc.seed, i), budget, t.per_forward,
-                                 say=lambda what, i=i: job.say(f"report of user {i + 1}: {what}"))
-                    for i, (u, (_, val)) in enumerate(zip(users, t.splits))
-                ] if job.ranks.is_main else []  # fmt: skip
+            reports = [  # by the process that writes the bundle (the others trained the same model)
+                chunk_report(t.km, t.policy, t.original_policy, val, u.key_bits, cfg, tc.eval_random_keys,
+                             eval_rng(tc.seed, i), budget, t.per_forward,
+                             say=lambda what, i=i: job.say(f"report of user {i + 1}: {what}"))
+                for i, (u, (_, val)) in enumerate(zip(users, t.splits))
+            ] if job.ranks.is_main else []  # fmt: skip
         for part in (t.km, t.module, t.original):
             part.cpu()
         shape = {k: list(v) for k, v in loaded.policy.input_features.items()}
