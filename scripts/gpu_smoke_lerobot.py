@@ -170,7 +170,7 @@ def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_
         env["BENCH_REAL_SIZE_TINY"] = "1"
     t0 = time.perf_counter()
     for policy, runs, more in REAL_SIZE_RUNS:
-        what = f"{policy} {runs}" + (f" ({more})" if more else "")
+        what = policy + (f" {runs} ({more})" if more else "")
         left = budget - (time.perf_counter() - t0)
         if left < 60:
             print(f"gpu-smoke-lerobot: real-size {what}: not run ({budget:.0f} s budget spent)")
