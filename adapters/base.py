@@ -31,6 +31,9 @@ class CheckpointOptions:
     arch_kwargs: dict | None = None
     activation: str | None = None
     trust_remote_code: bool = False  # not a format option: every adapter takes it
+    # Not a format option either (personalize sets it under --precision bf16): each weight held in the
+    # dtype the checkpoint stores it in, not fp32, from the load on (a LeRobot policy; the others ignore it).
+    keep_dtypes: bool = False
 
     FLAGS: ClassVar[dict[str, str]] = {
         "arch": "--arch",
@@ -47,7 +50,7 @@ class CheckpointOptions:
 class LoadedModel:
     """A checkpoint turned into a module whose state-dict names are the checkpoint's names."""
 
-    module: torch.nn.Module  # built, weights loaded, eval mode, float32
+    module: torch.nn.Module  # built, weights loaded, eval mode, float32 (``keep_dtypes``: the checkpoint's)
     spec: dict  # JSON-serialisable; spec["adapter"] names the adapter; rebuilds the module
     dtypes: dict[str, torch.dtype]  # original dtype of every checkpoint tensor, by name
     input_shape: tuple[int, ...] | None  # per-sample input shape if known, e.g. (4,)
@@ -291,9 +294,17 @@ class Adapter(ABC):
         return info
 
 
-def finish(module: torch.nn.Module) -> torch.nn.Module:
-    """Common last step of every adapter: float32, eval mode, no autograd surprises."""
-    return module.float().eval()
+def finish(module: torch.nn.Module, held: dict[str, torch.dtype] | None = None) -> torch.nn.Module:
+    """Common last step of every adapter: float32, eval mode, no autograd surprises. ``held`` (the
+    dtype the checkpoint stores each tensor in, by state-dict name; ``keep_dtypes``): each float tensor
+    in its checkpoint's dtype instead, those the checkpoint does not hold float32."""
+    if held is None:
+        return module.float().eval()
+    for name, t in (*module.named_parameters(), *module.named_buffers()):
+        want = held.get(name, torch.float32)
+        if t.is_floating_point() and t.dtype != want:
+            t.data = t.data.to(want)
+    return module.eval()
 
 
 TRUST_FLAG = "--trust-remote-code"

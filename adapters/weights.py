@@ -7,6 +7,7 @@ import json
 import pickle
 import re
 import struct
+import sys
 import zipfile
 import zlib
 from pathlib import Path
@@ -163,15 +164,19 @@ def safetensors_dtypes(path: Path) -> dict[str, torch.dtype]:
     return {n: _ST_DTYPES[d] for n, d in named.items() if d in _ST_DTYPES}
 
 
-def load_into(module: torch.nn.Module, path: Path) -> None:
+def load_into(module: torch.nn.Module, path: Path, as_held: bool = False) -> None:
     """``module.load_state_dict`` (strict) from a safetensors file, one tensor at a time: memory stays
     the module's plus one tensor, not the module's plus the whole file's (a 450 M-parameter policy: 1.8
-    GB less at its peak). Names and shapes must match exactly, as for ``load_state_dict(strict=True)``."""
+    GB less at its peak). Names and shapes must match exactly, as for ``load_state_dict(strict=True)``.
+    ``as_held``: each tensor takes the file's values in the file's dtype instead of a copy in the
+    module's (a bf16 file into a module built fp32 never holds an fp32 copy: the module's own storage,
+    allocated but never written, is freed), read straight into memory of its own (``_Held``)."""
     from safetensors import SafetensorError, safe_open
 
     targets = module.state_dict(keep_vars=True)
     try:
-        with safe_open(str(path), framework="pt", device="cpu") as f:
+        with safe_open(str(path), framework="pt", device="cpu") as f, open(path, "rb") as raw:
+            held = _Held(raw) if as_held else None
             names = set(f.keys())
             if names != set(targets):
                 name = sorted(names ^ set(targets))[0]
@@ -189,12 +194,47 @@ def load_into(module: torch.nn.Module, path: Path) -> None:
                             f"{tuple(targets[name].shape)}",
                             "check that the checkpoint and its config belong together",
                         )
-                    targets[name].copy_(f.get_tensor(name))
+                    if held is not None:
+                        targets[name].data = held.read(name, f)
+                    else:
+                        targets[name].copy_(f.get_tensor(name))
     except (SafetensorError, OSError, ValueError, KeyError, json.JSONDecodeError) as e:
         raise PropError(
             f"checkpoint {path} is not a readable safetensors file ({e})",
             "re-export it with safetensors.torch.save_file",
         ) from None
+
+
+class _Held:
+    """A safetensors file's tensors read one at a time into memory of their own, in the file's dtype
+    (``load_into``'s ``as_held``). safetensors' own ``get_tensor`` maps the file: the pages read stay
+    in the process's resident memory while the file is open, beside a copy (a real-size SmolVLA's bf16
+    load: 2.55 GiB at its peak against 1.71 GiB so, docs/speed.md), and a tensor not copied would
+    change if the file did."""
+
+    def __init__(self, raw) -> None:
+        size = int.from_bytes(raw.read(8), "little")
+        self.raw, self.base = raw, 8 + size
+        self.header = json.loads(raw.read(size))  # safe_open has checked it (offsets inside the file)
+
+    def read(self, name: str, f) -> torch.Tensor:
+        """Tensor ``name``; one of a dtype this reader does not know, a copy of ``f.get_tensor``'s."""
+        entry = self.header[name]
+        if entry["dtype"] not in _ST_DTYPES or entry["dtype"] == "BOOL" or sys.byteorder != "little":
+            return f.get_tensor(name).clone()
+        start, end = entry["data_offsets"]
+        t = torch.empty(entry["shape"], dtype=_ST_DTYPES[entry["dtype"]])
+        view = memoryview(t.reshape(-1).view(torch.uint8).numpy())
+        if len(view) != end - start:
+            raise ValueError(f"tensor {name!r}: {end - start} bytes in the file for {len(view)}")
+        self.raw.seek(self.base + start)
+        done = 0
+        while done < len(view):
+            n = self.raw.readinto(view[done:])
+            if not n:
+                raise ValueError(f"tensor {name!r} ends after the file")
+            done += n
+        return t
 
 
 def _corrupt(path: Path, e: Exception) -> PropError:

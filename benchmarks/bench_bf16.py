@@ -14,6 +14,10 @@ The unsealed run (bench_real_size's ``prop``) takes ``--freeze-base``: LeRobot's
 weight by default, so without it nothing is frozen and there is nothing to hold bf16 (SmolVLA's own
 ``train_expert_only`` freezes its VLM either way).
 
+``--load-only``: the load alone, each its own process: the checkpoint loaded as ``prop personalize``
+loads it at fp32 (every weight fp32) and at ``--precision bf16`` (each weight in the checkpoint's own
+dtype, ``CheckpointOptions.keep_dtypes``), its peak resident memory and the weights' bytes.
+
 Printed per policy and run: peak resident memory, the largest sampled in the steps, the median step,
 the bundle's base file beside the checkpoint's and beside the fp32 base prop wrote before issue 40
 (4 bytes per float value, computed from the checkpoint's header), then bf16 / fp32 ratios. The
@@ -23,6 +27,7 @@ command line comes first.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shlex
@@ -31,7 +36,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from benchmarks.bench_real_size import TINY_ENV, build, median
+from benchmarks.bench_real_size import TINY_ENV, build, median, tiny_pi
 
 MIB = 2**20
 TINY_IMAGE = {"pi0": 32, "smolvla": 64}  # the tiny builds' camera frames (pi0: pi_tiny.IMAGE)
@@ -66,8 +71,49 @@ def to_bf16(path: Path) -> None:
     save_file(tensors, str(path), metadata=meta)
 
 
+def load_worker(folder: str, precision: str) -> None:
+    """Load ``folder`` as personalize does at ``precision``; print its figures as one JSON line."""
+    import resource
+    import time
+
+    from prop_adapters import CheckpointOptions, load_checkpoint
+
+    t = time.perf_counter()
+    with tiny_pi() if os.environ.get(TINY_ENV) else contextlib.nullcontext():  # the tiny pi0's sizes
+        loaded = load_checkpoint(folder, CheckpointOptions(keep_dtypes=precision == "bf16"))
+    params = list(loaded.module.parameters())
+    print(json.dumps({
+        "load_s": time.perf_counter() - t,
+        "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "weights_gib": sum(p.numel() * p.element_size() for p in params) / 2**30,
+        "dtypes": sorted({str(p.dtype).removeprefix("torch.") for p in params}),
+    }))  # fmt: skip
+
+
+def load_only(policies: list[str], work: Path, real_size: bool, env: dict) -> None:
+    print("| policy | precision | peak memory | weights | dtypes | load |")
+    print("|---|---|---|---|---|---|")
+    peaks = {}
+    for policy in policies:
+        folder = work / policy / (f"{policy}-tiny" if not real_size else policy)
+        for precision in ("fp32", "bf16"):
+            cmd = [sys.executable, "-m", "benchmarks.bench_bf16", "worker-load", str(folder), precision]
+            done = subprocess.run(cmd, check=True, env=env, capture_output=True, text=True)
+            r = json.loads(done.stdout.strip().splitlines()[-1])
+            peaks[policy, precision] = r["rss_gib"]
+            print(f"| {policy} | {precision} | {r['rss_gib']:.2f} GiB | {r['weights_gib']:.2f} GiB | "
+                  f"{', '.join(r['dtypes'])} | {r['load_s']:.0f} s |")  # fmt: skip
+    print()
+    for policy in policies:
+        print(f"{policy}: the load's peak memory, bf16 / fp32: "
+              f"{peaks[policy, 'bf16'] / peaks[policy, 'fp32']:.2f}x")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["worker-load"]:
+        load_worker(*argv[1:3])
+        return
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--policies", default="pi0,smolvla")
     ap.add_argument("--steps", type=int, default=3)
@@ -75,6 +121,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--real-size", action="store_true", help="the published sizes, not the tiny builds")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--bench-args", default="", help="more bench_real_size flags, quoted")
+    ap.add_argument("--load-only", action="store_true", help="the load's peak alone, fp32 against bf16")
     ap.add_argument(
         "--prop-args",
         default="--report-budget 25",
@@ -85,7 +132,8 @@ def main(argv: list[str] | None = None) -> None:
     work = args.work or Path(tempfile.mkdtemp(prefix="prop-bf16-"))
     env = os.environ | ({} if args.real_size else {TINY_ENV: "1"})
     rows = []
-    for policy in [p.strip() for p in args.policies.split(",") if p.strip()]:
+    policies = [p.strip() for p in args.policies.split(",") if p.strip()]
+    for policy in policies:
         pw = work / policy
         folder = pw / (f"{policy}-tiny" if not args.real_size else policy)
         base = [sys.executable, "-m", "benchmarks.bench_real_size", "--policy", policy, "--work", str(pw),
@@ -99,6 +147,8 @@ def main(argv: list[str] | None = None) -> None:
                 to_bf16(folder / "model.safetensors")
                 (folder / ".bf16").touch()
         ckpt = folder / "model.safetensors"
+        if args.load_only:  # pi0's folder is built by a run (bench_real_size's build_pi0) before
+            continue
         for precision in ("fp32", "bf16"):
             for run in [r.strip() for r in args.runs.split(",") if r.strip()]:
                 flags = f"--precision {precision} {args.prop_args}" + (
@@ -112,6 +162,9 @@ def main(argv: list[str] | None = None) -> None:
                                  rss=r["rss_gb"], steps_rss=r.get("steps_rss_gib", float("nan")),
                                  step=median(r.get("steps_s", [])), base=bundle.stat().st_size / MIB,
                                  ckpt=ckpt.stat().st_size / MIB, before=fp32_size(ckpt) / MIB))  # fmt: skip
+    if args.load_only:
+        load_only(policies, work, args.real_size, env)
+        return
     print(
         "| policy | run | precision | peak memory | in the steps | step (median) | bundle base | "
         "checkpoint | fp32 base (before) |"

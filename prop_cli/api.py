@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -210,7 +210,10 @@ def personalize_checkpoint(
     check_output(out, force)  # before hours of training, not after
     ranks = ranks_from_env(device)  # one process, or those `accelerate launch` started
     say = status if status is not None and ranks.is_main else (lambda _: None)
-    loaded = _load(checkpoint, opts)
+    # --precision bf16: each weight held as the checkpoint stores it from the load on (a bf16 checkpoint
+    # never in fp32: prop_cli.train.frozen); fp32: the model in fp32, as every other command loads it.
+    bf16 = cfg.train.precision == "bf16"
+    loaded = _load(checkpoint, replace(opts or CheckpointOptions(), keep_dtypes=bf16))
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None

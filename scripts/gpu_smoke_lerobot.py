@@ -3,7 +3,8 @@ and bf16, then run each bundle on the CPU with and without the key, and check th
 finite and the key changes them. Then sealed ACT and SmolVLA (``--seal``) on CUDA at fp32 and bf16: the
 bundle's base must be the original's weights bit for bit, a wrong key must run on the CPU exactly what
 no key runs (the original), and the user's key must change the actions. Then real size
-(``real_size``): SmolVLA (unsealed and ``--seal``) and pi0 (``--seal``) at their published sizes, built
+(``real_size``): SmolVLA (unsealed and ``--seal``) and pi0 (``--seal``, and unsealed under ``--precision
+bf16 --freeze-base``: loaded, trained and reported in its checkpoint's bf16) at their published sizes, built
 by benchmarks/bench_real_size.py (random weights, nothing downloaded), personalized for a few steps on
 CUDA beside LeRobot's own PEFT LoRA run of the same policy: peak GPU memory
 (``torch.cuda.max_memory_allocated``) and step time, within ``REAL_SIZE_BUDGET_S``. Skips cleanly
@@ -31,8 +32,13 @@ from pathlib import Path
 import numpy as np
 
 REAL_SIZE_BUDGET_S = 480  # the real-size part's wall-clock limit (the rest of the check fits in the 10 min)
-# Each run: LeRobot's PEFT LoRA of the policy, then prop's (unsealed, sealed), 3 steps of batch 2.
-REAL_SIZE_RUNS = (("smolvla", "peft,sealed,prop"), ("pi0", "peft,sealed"))
+# Each run: LeRobot's PEFT LoRA of the policy, then prop's (unsealed, sealed), 3 steps of batch 2, with
+# more `prop personalize` flags; pi0 unsealed in bf16 (issue 40: its frozen base never held fp32).
+REAL_SIZE_RUNS = (
+    ("smolvla", "peft,sealed,prop", ""),
+    ("pi0", "peft,sealed", ""),
+    ("pi0", "prop", "--precision bf16 --freeze-base"),
+)
 
 
 def prop(*args: object) -> str:
@@ -163,16 +169,17 @@ def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_
     if tiny:
         env["BENCH_REAL_SIZE_TINY"] = "1"
     t0 = time.perf_counter()
-    for policy, runs in REAL_SIZE_RUNS:
+    for policy, runs, more in REAL_SIZE_RUNS:
+        what = policy + (f" {runs} ({more})" if more else "")
         left = budget - (time.perf_counter() - t0)
         if left < 60:
-            print(f"gpu-smoke-lerobot: real-size {policy}: not run ({budget:.0f} s budget spent)")
+            print(f"gpu-smoke-lerobot: real-size {what}: not run ({budget:.0f} s budget spent)")
             continue
         cmd = [
             sys.executable, "-m", "benchmarks.bench_real_size", "--policy", policy, "--runs", runs,
             "--device", device, "--steps", "3", "--batch", "2", "--episodes", "2", "--frames", "6",
             "--key-bits", "32", "--threads", str(min(8, os.cpu_count() or 1)), "--work", str(root / policy),
-            "--prop-args", "--report-budget 4", *(["--image", "32"] if tiny else []),
+            "--prop-args", f"--report-budget 4 {more}".strip(), *(["--image", "32"] if tiny else []),
         ]  # fmt: skip
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                                 start_new_session=True)  # fmt: skip
@@ -181,15 +188,15 @@ def real_size(device: str, tiny: bool = False, budget: float = REAL_SIZE_BUDGET_
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)  # the benchmark and the run it started
             proc.communicate()
-            print(f"gpu-smoke-lerobot: real-size {policy}: stopped at the {budget:.0f} s budget")
+            print(f"gpu-smoke-lerobot: real-size {what}: stopped at the {budget:.0f} s budget")
             continue
         if proc.returncode:
-            sys.exit(f"gpu-smoke-lerobot: real-size {policy} failed:\n{(stderr or stdout)[-3000:]}")
+            sys.exit(f"gpu-smoke-lerobot: real-size {what} failed:\n{(stderr or stdout)[-3000:]}")
         results = json.loads((root / policy / "results.json").read_text())
         for run, r in results.items():
             assert r.get("steps_s"), f"real-size {policy} {run}: no step ran"
             assert device != "cuda" or r.get("cuda_peak_gib", 0) > 0, f"real-size {policy} {run}: no GPU peak"
-        print(f"gpu-smoke-lerobot: real-size {policy} on {device} ({time.perf_counter() - t0:.0f} s so far):")
+        print(f"gpu-smoke-lerobot: real-size {what} on {device} ({time.perf_counter() - t0:.0f} s so far):")
         for line in stdout.splitlines():
             if line.strip():
                 print(f"gpu-smoke-lerobot:   {line}")

@@ -153,11 +153,12 @@ def _check_type(config: dict, where: str) -> str:
 
 def _load(
     folder: Path, weights: dict[str, torch.Tensor] | None, where: str, contained: bool = False,
-    made_with: str | None = None,
+    made_with: str | None = None, as_held: bool = False,
 ):  # fmt: skip
     """LeRobot's policy and processors from ``folder``. ``contained``: the folder is a bundle's, and
     nothing outside it is read (SmolVLA's VLM files included). ``made_with``: the lerobot version the
-    bundle was made under (its manifest)."""
+    bundle was made under (its manifest). ``as_held``: the weights file's tensors taken in its dtypes
+    (``CheckpointOptions.keep_dtypes``)."""
     version, get_policy_class, make_pre_post_processors = _lerobot()
     kind = _check_type(read_config(folder), where)
     state_files(folder, where)
@@ -165,8 +166,9 @@ def _load(
         # LeRobot prints progress (stdout is for results); nothing it calls may ask at the terminal.
         with contextlib.redirect_stdout(sys.stderr), no_prompt():
             built = POLICIES[kind].build(
-                get_policy_class(kind), folder, weights, where, contained=contained, made_with=made_with
-            )
+                get_policy_class(kind), folder, weights, where, contained=contained, made_with=made_with,
+                as_held=as_held,
+            )  # fmt: skip
             pre, post = make_pre_post_processors(
                 built.policy.config, pretrained_path=str(folder), preprocessor_overrides=built.overrides
             )
@@ -206,9 +208,9 @@ class LeRobotAdapter(Adapter):
                 f"{path}: the normalisation statistics are inside model.safetensors (LeRobot < 0.4 layout)",
                 "migrate it with lerobot's processor/migrate_policy_normalization.py",
             )
-        version, policy, pre, post, files = _load(path, None, str(path))
+        version, policy, pre, post, files = _load(path, None, str(path), as_held=options.keep_dtypes)
         held = safetensors_dtypes(path / WEIGHTS) if sniff(path / WEIGHTS) == "safetensors" else {}
-        return self._loaded(policy, pre, post, version, str(path), files, held)
+        return self._loaded(policy, pre, post, version, str(path), files, held, options.keep_dtypes)
 
     def rebuild(self, spec: dict, weights: dict[str, torch.Tensor], source: str) -> LoadedModel:
         folder, contained = Path(source) / FOLDER_IN_BUNDLE, True
@@ -224,11 +226,12 @@ class LeRobotAdapter(Adapter):
 
     def _loaded(
         self, policy, pre, post, version: str, source: str, files: dict[str, bytes],
-        held: dict[str, torch.dtype],
+        held: dict[str, torch.dtype], keep: bool = False,
     ) -> LoadedModel:  # fmt: skip
-        """``held``: the dtype the checkpoint holds each tensor in (the module computes in fp32, ``finish``);
-        the bundle's base is written back in it (a bf16 pi0 gives a bf16 base, not one of twice its size)."""
-        module = finish(policy)
+        """``held``: the dtype the checkpoint holds each tensor in (the module computes in fp32, ``finish``;
+        ``keep``: in ``held``, as ``--precision bf16`` loads it); the bundle's base is written back in it
+        (a bf16 pi0 gives a bf16 base, not one of twice its size)."""
+        module = finish(policy, held if keep else None)
         spec = {"adapter": self.name, "type": policy.config.type, "lerobot_version": version}
         return LoadedModel(
             module=module,

@@ -210,7 +210,7 @@ def _file_names_fit(policy_class, config, path: Path) -> bool:
 
 def build_paligemma(
     cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-    contained: bool = False, made_with: str | None = None,
+    contained: bool = False, made_with: str | None = None, as_held: bool = False,
 ) -> Built:  # fmt: skip
     """Built from its config and the weights, the tokenizer's files read from a local folder
     (``tokenizer_folder``; a bundle's own ``tokenizer/`` where ``contained``) and carried in the
@@ -226,7 +226,7 @@ def build_paligemma(
         shapes = safetensors_shapes(folder / WEIGHTS)
         check_sizes(policy_class, config, shapes, where, cls.label)
         policy = construct(meta_ready(policy_class), config, shapes, where)
-        load_into(policy, folder / WEIGHTS)
+        load_into(policy, folder / WEIGHTS, as_held)
     else:
         if weights is None:
             weights = lerobot_keys(policy_class, config, read_weights(folder / WEIGHTS)[0])

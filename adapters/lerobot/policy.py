@@ -225,12 +225,14 @@ class LeRobotProtocol(PolicyProtocol):
     @classmethod
     def build(
         cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-        contained: bool = False, made_with: str | None = None,
+        contained: bool = False, made_with: str | None = None, as_held: bool = False,
     ) -> Built:  # fmt: skip
         """LeRobot's ``policy_class`` from ``folder``: its own weights (``from_pretrained``), or
         ``weights`` (a bundle's base) into the policy its config describes. ``contained``: the folder
         is a bundle's, and the policy reads nothing outside it. ``made_with``: the lerobot version a
-        bundle was made under, where a policy runs differently under today's (``smolvla``)."""
+        bundle was made under, where a policy runs differently under today's (``smolvla``).
+        ``as_held``: the folder's weights taken in the file's dtypes (``load_into``) where the policy
+        loads them tensor by tensor (SmolVLA, pi0, pi0.5; the small ones are cast after, ``finish``)."""
         if weights is None:
             with lerobot_quiet():
                 return Built(policy_class.from_pretrained(str(folder)))

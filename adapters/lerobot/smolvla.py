@@ -357,7 +357,7 @@ class SmolVLAProtocol(LeRobotProtocol):
     @classmethod
     def build(
         cls, policy_class, folder: Path, weights: dict[str, torch.Tensor] | None, where: str, *,
-        contained: bool = False, made_with: str | None = None,
+        contained: bool = False, made_with: str | None = None, as_held: bool = False,
     ) -> Built:  # fmt: skip
         """Built from its config and the weights (``load_vlm_weights=False``: model.safetensors holds
         every weight), the VLM's files read from a local folder (``vlm_folder``; a bundle's own
@@ -371,7 +371,7 @@ class SmolVLAProtocol(LeRobotProtocol):
         if weights is None:  # the folder's own file, copied in tensor by tensor (load_into)
             path = folder / WEIGHTS
             policy = construct(policy_class, config, safetensors_shapes(path), where)
-            load_into(policy, path)
+            load_into(policy, path, as_held)
         else:
             policy = construct(policy_class, config, weights, where)
             policy.load_state_dict(weights)

@@ -11,10 +11,16 @@ outputs see the original's weights bit for bit:
 - where the checkpoint itself holds them in bf16 (``LoadedModel.dtypes``), casting back is exact;
 - otherwise they are read again from the checkpoint's safetensors file; where that cannot be done (a
   torch file, names that differ from the file's), nothing is cast.
+
+Under ``--precision bf16`` personalize loads a LeRobot policy with each weight in the dtype its checkpoint
+stores it in (``CheckpointOptions.keep_dtypes``): a bf16 checkpoint is never held in fp32, not at the
+load, not in the report. Its weights that train are made fp32 (``trained_in_fp32``), and what runs the
+policy outside the steps (the layer probe, the report) runs under the steps' autocast (``held_autocast``).
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +29,24 @@ import torch
 from prop_adapters import LoadedModel
 from prop_adapters.folder import WEIGHTS
 from prop_adapters.weights import safetensors_shapes, sniff
+
+from .loop import mixed_precision
+
+
+def trained_in_fp32(module: torch.nn.Module) -> None:
+    """``module``'s parameters that train made fp32 where the checkpoint held them in a lower precision
+    (``keep_dtypes``): the precision's master weights, as Adam and the gradient clip need them."""
+    for p in module.parameters():
+        if p.requires_grad and p.is_floating_point() and p.dtype != torch.float32:
+            p.data = p.data.float()
+
+
+def held_autocast(module: torch.nn.Module, device: torch.device | str) -> contextlib.AbstractContextManager:
+    """The steps' bf16 autocast where ``module`` holds weights in bf16 (a bf16 checkpoint loaded in its
+    dtype), so a forward outside the steps (a probe, the report) computes as they do; else nothing."""
+    if any(p.dtype == torch.bfloat16 for p in module.parameters()):
+        return mixed_precision("bf16", device)
+    return contextlib.nullcontext()
 
 
 def frozen_in_bf16(

@@ -41,7 +41,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .distributed import Ranks
-from .frozen import frozen_in_bf16
+from .frozen import frozen_in_bf16, held_autocast, trained_in_fp32
 from .hardening import far_codes
 from .loop import Optimiser, mixed_precision, run_steps
 from .objective import check_user_keys, delta_pull
@@ -251,6 +251,7 @@ class PolicyTrainer:
         if cfg.freeze_base:
             module.requires_grad_(False)
         self.original = frozen_twin(module)
+        trained_in_fp32(module)  # after the twin: the original's copy stays as the checkpoint holds it
         self.original_policy = policy.on(self.original)
         # The fallback term's rows and the original's output on each, computed as steps draw them (the
         # policy decides: ACT: the frames and the original's chunks; Diffusion, SmolVLA: noised chunks
@@ -533,7 +534,8 @@ class PolicyRecipe(Recipe[UnsealedConfig]):
         (the bundle is written, and runs, there)."""
         loaded, tc, cfg = job.loaded, job.train, job.mode
         dev = resolve_device(job.device)
-        with loaded.policy.memo():  # what the policy computes once for every key and step (SmolVLA)
+        # held_autocast: a base held bf16 (keep_dtypes) computes under the steps' autocast throughout.
+        with loaded.policy.memo(), held_autocast(loaded.module, dev):  # memo: once for every key (SmolVLA)
             job.say(f"setting up: the users' frames, the fallback samples and keys, per-row noise on {dev}")
             t = PolicyTrainer(loaded, users, tc, cfg, general, dev, job.ranks)
             losses = run_steps(t.step, tc.steps, job.progress, tc.precision, dev)

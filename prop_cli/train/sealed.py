@@ -32,6 +32,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.errors import PropError
 
 from .data import targets_tensor
+from .frozen import held_autocast
 from .recipe import Job, SealedRecipe, SealedUser, Trained, User, Written
 from .report import eval_rng, outputs_report
 
@@ -156,7 +157,8 @@ class SealedResult(Trained):
         def manifest_metrics(state: SealedState) -> None:
             # The reports are printed for the user; none of a user's figures goes in the clear manifest.
             policy = self.loaded.policy
-            with policy.memo() if policy is not None else contextlib.nullcontext():
+            memo = policy.memo() if policy is not None else contextlib.nullcontext()
+            with memo, held_autocast(self.view, "cpu"):  # a base held bf16 (keep_dtypes): as in the steps
                 for i, u in enumerate(self.users):
                     reports.append(user_report(state, self.view, u, self.task, self.tc, i, self.per_forward))
 

@@ -26,7 +26,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_chunks
 
 from .distributed import Ranks
-from .frozen import frozen_in_bf16
+from .frozen import frozen_in_bf16, held_autocast
 from .loop import Optimiser, mixed_precision, run_steps
 from .policy import (
     CLIP,
@@ -132,10 +132,11 @@ class SealedPolicyRecipe(SealedRecipeBase):
         dev = resolve_device(job.device)
         policy, module = loaded.policy, loaded.module
         names = [x["name"] for x in spec.layers]
-        axes = probe_batch_axes(
-            module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])),
-            f"the policy {loaded.source}",
-        )  # fmt: skip
+        with held_autocast(module, dev):  # a base held bf16 (keep_dtypes) computes as in the steps
+            axes = probe_batch_axes(
+                module, names, lambda b: policy.chunk(policy.example(b, splits[0][0])),
+                f"the policy {loaded.source}",
+            )  # fmt: skip
         module.requires_grad_(False)
         out = []
         budget = report_budget(tc, module)
@@ -163,10 +164,12 @@ class SealedPolicyRecipe(SealedRecipeBase):
                 on_dev = to_device(val, dev)
                 folded = policy.on(payload.fold(module))
                 started, runs = time.perf_counter(), f * RUNS_PER_FRAME
-                b = chunks(policy, on_dev, per)
+                with held_autocast(module, dev):
+                    b = chunks(policy, on_dev, per)
                 job.say(f"report of user {i + 1}: {f} of {runs} sampler runs done (the original's chunks); "
                         f"{time_left(started, f, runs)}")  # fmt: skip
-                o = chunks(folded, on_dev, per)
+                with held_autocast(module, dev):
+                    o = chunks(folded, on_dev, per)
                 left = time_left(started, 2 * f, runs)
                 job.say(f"report of user {i + 1}: {2 * f} of {runs} sampler runs done (your payload's "
                         f"chunks; then every key through the records); {left}")  # fmt: skip

@@ -625,8 +625,8 @@ def test_the_device_check_skips_in_one_line_without_a_gpu():
 @pytest.mark.slow
 def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size(tmp_path):
     """scripts/gpu_smoke_lerobot.py's real-size part (bench_real_size's builders and runs: SmolVLA
-    unsealed and sealed, pi0 sealed, beside LeRobot's PEFT run) on the CPU with the tiny policies: the
-    code a GPU machine runs, with every run's table printed."""
+    unsealed and sealed, pi0 sealed and unsealed in bf16, beside LeRobot's PEFT run) on the CPU with the
+    tiny policies: the code a GPU machine runs, with every run's table printed."""
     import os
     import subprocess
     import sys
@@ -637,7 +637,8 @@ def test_the_device_checks_real_size_part_runs_on_the_cpu_at_tiny_size(tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
     assert "real-size smolvla on cpu" in out and "real-size pi0 on cpu" in out and out.endswith("passed\n")
-    assert out.count("| peft |") == 2 and out.count("| sealed |") == 2 and out.count("| prop |") == 1
+    assert "real-size pi0 prop (--precision bf16 --freeze-base) on cpu" in out
+    assert out.count("| peft |") == 2 and out.count("| sealed |") == 2 and out.count("| prop |") == 2
 
 
 def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_null_key(work):
