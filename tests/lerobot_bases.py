@@ -43,3 +43,16 @@ def smolvla_base(d: Path, steps: int = 3) -> Path:
     built = smolvla_tiny.build_smolvla(vlm, task.dataset_stats(d / "general"))
     task.train_base(d / "general", d / "smolvla", steps=steps, built=built)
     return d / "smolvla"
+
+
+def originals(folder: Path, data) -> np.ndarray:
+    """The checkpoint at ``folder`` as prop loads it, run on every row of ``data``: the actions a bundle's
+    no-key output must equal bit for bit."""
+    import torch
+
+    from prop_adapters import load_checkpoint
+
+    orig = load_checkpoint(folder).policy
+    batch = orig.batches(data, "--data")
+    with torch.no_grad():
+        return orig.post(orig.chunk({k: batch[k] for k in orig.row_shapes})).numpy()

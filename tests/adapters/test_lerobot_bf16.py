@@ -14,7 +14,6 @@ pytest.importorskip("lerobot")
 pytestmark = pytest.mark.lerobot
 
 from examples import lerobot_reach_task as task  # noqa: E402
-from prop_adapters import load_checkpoint  # noqa: E402
 from prop_cli import api  # noqa: E402
 from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import PersonalizeConfig  # noqa: E402
@@ -22,6 +21,7 @@ from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.train import policy as unsealed_recipe  # noqa: E402
 from prop_cli.train import sealed_policy as sealed_recipe  # noqa: E402
+from tests.lerobot_bases import originals  # noqa: E402
 
 TINY = dict(steps=6, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
             eval_random_keys=2, null_weight=2.0, base_lr_scale=0.1)  # fmt: skip
@@ -45,13 +45,6 @@ def work(tmp_path_factory):
     half = {k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in weights.items()}
     save_file(half, str(d / "act16" / "model.safetensors"))
     return d
-
-
-def _originals(folder, data) -> np.ndarray:
-    orig = load_checkpoint(folder).policy
-    batch = orig.batches(data, "--data")
-    with torch.no_grad():
-        return orig.post(orig.chunk({k: batch[k] for k in orig.input_features})).numpy()
 
 
 def _watch(monkeypatch, recipe) -> list[set[torch.dtype]]:
@@ -98,7 +91,7 @@ def test_a_bf16_checkpoint_trains_on_a_bf16_base_and_gives_a_bf16_bundle_base(
     data = load_data(work / "user")
     b = load_bundle(out)
     assert all(p.dtype == torch.float32 for p in b.loaded.module.parameters())  # loads as before: fp32
-    expected = _originals(work / "act16", data)
+    expected = originals(work / "act16", data)
     assert np.array_equal(run_policy(b, data, None), expected)
     assert not np.allclose(run_policy(b, data, key()), expected, atol=1e-4)  # the key still personalizes
 

@@ -25,6 +25,7 @@ from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.datasources import load_data  # noqa: E402
 from prop_cli.train import policy as unsealed_recipe  # noqa: E402
 from prop_cli.train import sealed_policy as sealed_recipe  # noqa: E402
+from tests.lerobot_bases import originals, reach_data  # noqa: E402
 
 TINY = dict(steps=2, user_rows=4, null_rows=2, neighbour_keys=1, random_keys=1, samples_per_key=1,
             eval_random_keys=1, null_weight=2.0, base_lr_scale=0.1, report_budget=6)  # fmt: skip
@@ -54,8 +55,7 @@ def _tiny():
 def work(tmp_path_factory):
     """The camera task's data; a tiny SmolVLA stored bf16 (``smolvla``) and a tiny pi0 (``pi0``)."""
     d = tmp_path_factory.mktemp("bf16-load")
-    task.record(d / "general", 2, 0, np.zeros(3, np.float32), camera=True)
-    task.record(d / "user", 2, 50_000, task.USER_OFFSET, camera=True)
+    reach_data(d, 2, 2, camera=True)
     stats = task.dataset_stats(d / "general")
     built = smolvla_tiny.build_smolvla(smolvla_tiny.build_vlm(d / "vlm"), stats)
     task.train_base(d / "general", d / "smolvla", steps=2, built=built)
@@ -147,13 +147,6 @@ def _watch(monkeypatch, seal: bool) -> dict[str, list]:
     return seen
 
 
-def _originals(folder, data) -> np.ndarray:
-    orig = load_checkpoint(folder).policy
-    batch = orig.batches(data, "--data")
-    with torch.no_grad():
-        return orig.post(orig.chunk({k: batch[k] for k in orig.row_shapes})).numpy()
-
-
 @pytest.mark.parametrize("seal", [True, False], ids=["sealed", "unsealed"])
 @pytest.mark.parametrize("kind", POLICIES)
 def test_bf16_personalize_holds_the_checkpoints_dtypes_from_load_to_report(
@@ -185,7 +178,7 @@ def test_bf16_personalize_holds_the_checkpoints_dtypes_from_load_to_report(
     if seal:  # the sealed base is the checkpoint's tensors; unsealed, the trained ones changed
         assert all(torch.equal(written[k], original[k]) for k in written)
         data = load_data(work / "user")
-        assert np.array_equal(run_policy(load_bundle(out), data, None), _originals(folder, data))
+        assert np.array_equal(run_policy(load_bundle(out), data, None), originals(folder, data))
 
 
 def test_unsealed_bf16_with_a_frozen_base_keeps_the_base_bytes_and_the_no_key_outputs(work, tmp_path):
@@ -205,6 +198,6 @@ def test_unsealed_bf16_with_a_frozen_base_keeps_the_base_bytes_and_the_no_key_ou
     )
     data = load_data(work / "user")
     b = load_bundle(out)
-    expected = _originals(folder, data)
+    expected = originals(folder, data)
     assert np.array_equal(run_policy(b, data, None), expected)
     assert not np.allclose(run_policy(b, data, key()), expected, atol=1e-4)  # the key still personalizes
