@@ -6,7 +6,7 @@ from typing import Annotated
 from prop_cli.config import EvalSettings
 from prop_cli.errors import plural
 
-from .common import err, out, print_json, read_passphrase
+from .common import err, out, print_json, read_passphrase, warn
 from .options import (
     AllowRollback,
     AllowUnenrolledKey,
@@ -72,6 +72,7 @@ def eval_(
     )  # fmt: skip
     if as_json:
         print_json(report)
+        _warn_drift(report)
         return
     from rich.table import Table
 
@@ -96,3 +97,24 @@ def eval_(
     out.print(table)
     if "video" in report:
         err.print(f"wrote {plural(len(report['video']['files']), 'video')} to {report['video']['folder']}")
+    _warn_drift(report)
+
+
+GROUPS = {"random_keys": "random keys", "neighbour1_keys": "one-bit neighbours"}
+
+
+def _warn_drift(report: dict) -> None:
+    """One stderr line per key group whose keys do systematically worse than the original on the same
+    seeds (a sign test over the keys, p < 0.05; --json: conditions.GROUP.drift), not only a key below
+    a threshold: a small drift every key shares (docs/metrics.md, "Systematic drift")."""
+    for group, words in GROUPS.items():
+        d = report["conditions"].get(group, {}).get("drift")
+        if not d or not d["warn"]:
+            continue
+        eps = d.get("episodes")
+        lost = f"; {eps['lost']} episodes lost, {eps['gained']} gained, p = {eps['p']:.2g}" if eps else ""
+        than = d["against"].replace("_", " ")
+        warn(f"{d['worse']} of {d['keys']} {words} do worse than {than} on {d['by']} on the same seeds "
+             f"(sign test over keys p = {d['p']:.2g}{lost}): a systematic drift; "
+             "personalize again with --delta-pull 100, more --steps or --key-weight (examples/RESULTS.md, "
+             "point-mass Round 2), or --seal")  # fmt: skip

@@ -112,6 +112,7 @@ def personalize(
     for i, m in enumerate(result.metrics, 1):  # after the report, as the audit's decision
         _warn_coverage(i, m.get("coverage"))
         _warn_gate(i, m["gate"])
+        _warn_lean(i, m["random"].get("lean"))
 
 
 def _print_report(result) -> None:
@@ -163,3 +164,16 @@ def _warn_gate(user: int, gate: dict) -> None:
     worst = ", ".join(f"{GROUPS[g]} worst {gate['worst'][g]:.3f}" for g in gate["failing"])
     warn(f"user {user}'s wrong keys leak beyond --max-leak {gate['max_leak']:g} ({worst}); personalize again "
          "with more --steps or --random-keys, or --seal; prop attack audits it")  # fmt: skip
+
+
+def _warn_lean(user: int, lean: dict | None) -> None:
+    """One stderr line when the random keys move systematically to one side of the original along the
+    user's change (a sign test over the keys, p < 0.05), however small each move: a drift that a closed
+    loop's success threshold can turn into lost episodes (docs/metrics.md, "Systematic drift")."""
+    if not lean or not lean["systematic"]:
+        return
+    side, n = ("towards", lean["above"]) if lean["above"] > lean["below"] else ("away from", lean["below"])
+    warn(f"user {user}'s random keys drift systematically {side} your change ({n} of {lean['keys']} keys, "
+         f"sign test p = {lean['p']:.2g}, mean lean {lean['mean']:+.3g}); check them in closed loop with "
+         "prop eval --original; personalize again with --delta-pull 100, more --steps or --key-weight "
+         "(examples/RESULTS.md, point-mass Round 2), or --seal")  # fmt: skip

@@ -93,3 +93,53 @@ def summarize(values: torch.Tensor, worst: str) -> dict:
     half = 1.96 * v.std().item() / math.sqrt(n) if n > 1 else 0.0
     w = v.max().item() if worst == "max" else v.min().item()
     return {"n": n, "mean": mean, "ci95": [mean - half, mean + half], "worst": w}
+
+
+def lean(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
+    """Per key: the signed direction of its move from the original, towards (> 0) or away from (< 0) the
+    user's behaviour; 0 when there is no gap to move along.
+
+    Regression: leakage's projection before the clip,
+    ``mean_i <o_i - b_i, p_i - b_i> / mean_i |p_i - b_i|^2``.
+    Classification: on the samples with ``p != argmax b``, the mean change of the probability of ``p``,
+    ``softmax(o)[p] - softmax(b)[p]``."""
+    if task == "classification":
+        differs = p != b.argmax(-1)
+        if not differs.any():
+            return torch.zeros(o.shape[0])
+        idx = p[differs].long()[:, None]  # (M, 1)
+        po = o[:, differs].softmax(-1).gather(-1, idx.expand(o.shape[0], -1, -1))  # (K, M, 1)
+        pb = b[differs].softmax(-1).gather(-1, idx)  # (M, 1)
+        return (po - pb).squeeze(-1).mean(-1)
+    gap = (p - b).flatten(1) if p.dim() > 1 else (p - b)[:, None]
+    move = (o - b).flatten(2) if o.dim() > 2 else (o - b)[..., None]
+    norm = (gap**2).sum()
+    if norm <= _EPS * gap.shape[0]:
+        return torch.zeros(o.shape[0])
+    return (move * gap).sum((-2, -1)) / norm
+
+
+def sign_test(below: int, above: int) -> float:
+    """Two-sided exact sign test: the chance, with each of ``below + above`` untied keys equally likely on
+    either side, of a split at least as uneven as this one (ties are left out before). 1.0 with none."""
+    n = below + above
+    if n == 0:
+        return 1.0
+    k = min(below, above)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2**n
+    return min(1.0, 2 * tail)
+
+
+# A group's wrong keys drift systematically when a two-sided sign test over its keys rejects "either side
+# equally likely" at this level (docs/metrics.md, "Systematic drift").
+SYSTEMATIC_P = 0.05
+
+
+def sides(values: list[float]) -> dict:
+    """Keys on each side of 0 (``values``: per key, signed, > 0 = the side the caller names ``above``),
+    with the sign test's p and ``systematic``: p < SYSTEMATIC_P."""
+    above = sum(v > 0 for v in values)
+    below = sum(v < 0 for v in values)
+    p = sign_test(below, above)
+    return {"keys": len(values), "below": below, "above": above, "ties": len(values) - below - above,
+            "p": p, "systematic": p < SYSTEMATIC_P}  # fmt: skip

@@ -26,6 +26,7 @@ import numpy as np
 from prop_adapters.sb3.vecnormalize import ObsNormalizer
 from prop_cli.bundle import Bundle
 from prop_cli.config import EvalSettings
+from prop_cli.core import metrics
 from prop_cli.core.key_sampling import one_bit_neighbours, random_keys
 from prop_cli.errors import PropError
 from prop_cli.files import check_writable, staged_dir
@@ -226,6 +227,34 @@ def worst_key(per_key: list[dict]) -> dict:
     return per_key[i] | {"by": field, "index": i}
 
 
+def drift(
+    per_key: list[list[dict]], seeds: list[list[int]], against: str, reference: dict[int, dict]
+) -> dict:
+    """Whether a key group's closed-loop drift is systematic: per key, its mean (success where every
+    episode reports it, else return) on its seeds minus the reference's (the original, else no key) on
+    the same seeds; keys worse / better / tied, with a two-sided sign test over the untied keys
+    (``systematic``: p < metrics.SYSTEMATIC_P) and ``warn``: systematic with most keys worse. With
+    success, also the paired episodes: lost (the reference's success, the key's failure) and gained."""
+    rows = [r for rs in per_key for r in rs] + list(reference.values())
+    field = "success" if all("success" in r for r in rows) else "return"
+    diffs = [
+        float(np.mean([r[field] for r in rs]) - np.mean([reference[s][field] for s in ss]))
+        for rs, ss in zip(per_key, seeds)
+    ]
+    side = metrics.sides(diffs)
+    out = {"against": against, "by": field, "keys": side["keys"], "worse": side["below"],
+           "better": side["above"], "ties": side["ties"], "p": side["p"], "systematic": side["systematic"],
+           "warn": side["systematic"] and side["below"] > side["above"]}  # fmt: skip
+    if field == "success":
+        pairs = [
+            (reference[s]["success"], r["success"]) for rs, ss in zip(per_key, seeds) for r, s in zip(rs, ss)
+        ]
+        lost = sum(ref > mine for ref, mine in pairs)
+        gained = sum(mine > ref for ref, mine in pairs)
+        out["episodes"] = {"lost": lost, "gained": gained, "p": metrics.sign_test(lost, gained)}
+    return out
+
+
 def evaluate_bundle(
     bundle: Bundle,
     env_id: str,
@@ -246,7 +275,8 @@ def evaluate_bundle(
     a new folder that gets one mp4 per condition (its first episode; for key groups, the first key's).
     ``key`` must be enrolled in the bundle (``allow_unenrolled``: its row, ``key_not_enrolled``, runs
     the base). ``probe`` (``probe_key``): one more wrong key, on the ``--episodes`` seeds; each random
-    key and neighbour also gets its own row in ``per_key``, and the group its ``worst_key``."""
+    key and neighbour also gets its own row in ``per_key``, and the group its ``worst_key`` and
+    ``drift`` (``drift``: against the original on the same seeds, else no key)."""
     settings.validate(has_key=key is not None)
     check_video(video)
     # A key enrolled in nothing is refused, and a changed bundle, here, before any rollout; allowed, its
@@ -283,10 +313,13 @@ def evaluate_bundle(
         if progress is not None:
             progress("original")
         ctl = original_ctl
-        cond["original"] = _summary(
-            _episodes(env, ctl, first, features, obs_map, settings, metric, film("original"))
-        )
-    cond["no_key"] = _summary(run("no key", None, first, "no_key"))
+        ref = _episodes(env, ctl, first, features, obs_map, settings, metric, film("original"))
+        cond["original"] = _summary(ref)
+        reference = ("original", dict(zip(first, ref)))
+    no_key = run("no key", None, first, "no_key")
+    cond["no_key"] = _summary(no_key)
+    if original_ctl is None:
+        reference = ("no_key", dict(zip(first, no_key)))
     if key is not None:
         label = "user key" if user_row == "user_key" else "key not enrolled (the bundle's base)"
         cond[user_row] = _summary(run(label, key, first, user_row))
@@ -302,7 +335,7 @@ def evaluate_bundle(
         groups.append(("neighbour1_keys", one_bit_neighbours(key)[flips],
                        [{"flipped_bit": int(i)} for i in flips]))  # fmt: skip
     for label, keys, idents in groups:
-        results, per_key = [], []
+        results, per_key, key_runs, key_seeds = [], [], [], []
         for j, (bits, ident) in enumerate(zip(keys, idents)):
             # The conditions' seeds, in turn: R keys x m episodes cover the same starting states as
             # the user key, no key and the original (paired, not merely as many).
@@ -310,10 +343,13 @@ def evaluate_bundle(
             seeds = [first[(j * m + i) % len(first)] for i in range(m)]
             r = run(f"{label} {j + 1}/{len(keys)}", bits, seeds, label, method=True)
             results += r
+            key_runs.append(r)
+            key_seeds.append(seeds)
             per_key.append({"key": ident, "seeds": seeds} | _summary(r))
         if len(keys):
             cond[label] = _summary(results) | {"keys": len(keys), "per_key": per_key,
-                                               "worst_key": worst_key(per_key)}  # fmt: skip
+                                               "worst_key": worst_key(per_key),
+                                               "drift": drift(key_runs, key_seeds, *reference)}  # fmt: skip
     fps = float(env.metadata.get("render_fps") or 25)
     env.close()
     if video is not None:

@@ -22,9 +22,13 @@ def eval_rng(seed: int, user: int) -> np.random.Generator:
 
 def key_group(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> dict:
     worst_fid = "min" if task == "classification" else "max"
+    lean = metrics.lean(o, p, b, task)
     return {
         "leakage": metrics.summarize(metrics.leakage(o, p, b, task), "max"),
         "fidelity": metrics.summarize(metrics.fidelity(o, b, task), worst_fid),
+        # Which side of the original the keys' moves point, along the user's change (above: towards it),
+        # with a sign test over the keys: a drift every key shares, however small (docs/metrics.md).
+        "lean": metrics.sides(lean.tolist()) | {"mean": lean.double().mean().item()},
     }
 
 

@@ -363,3 +363,59 @@ def test_a_bad_key_to_rerun_is_one_line(pendulum, cli, extra, message):
     (pendulum / "k.bin").chmod(0o600)  # no permission warning: the error is stderr's one line
     r = cli("eval", "b", "--env", "Pendulum-v1", *extra)
     assert r.code == 2 and message in r.err and len(r.err.strip().splitlines()) == 1, r.err
+
+
+def _scored_outcomes(monkeypatch, worse_key) -> None:
+    """Real rollouts whose success is set by who drove: no key and the user key always succeed; random
+    key j (in the order eval runs them) fails when ``worse_key(j)`` and ties otherwise."""
+    from prop_cli.run import rollout
+
+    made = []
+    real_controller, real_episodes = rollout.controller, rollout._episodes
+
+    def controller(*args, method=False, **kwargs):
+        ctl = real_controller(*args, method=method, **kwargs)
+        ctl._wrong_key = len(made) if method else None
+        made.append(method)
+        return ctl
+
+    def episodes(env, ctl, seeds, *args, **kwargs):
+        results = real_episodes(env, ctl, seeds, *args, **kwargs)
+        j = getattr(ctl, "_wrong_key", None)
+        wrong = sum(made[: j + 1]) - 1 if j is not None else None  # the j-th random key
+        for r in results:
+            r["success"] = 0.0 if wrong is not None and worse_key(wrong) else 1.0
+        return results
+
+    monkeypatch.setattr(rollout, "controller", controller)
+    monkeypatch.setattr(rollout, "_episodes", episodes)
+
+
+DRIFT = ["--episodes", "6", "--max-steps", "2", "--random-keys", "6", "--neighbours", "0",
+         "--episodes-per-key", "1"]  # fmt: skip
+
+
+def test_eval_warns_when_every_wrong_key_does_worse(pendulum, cli, monkeypatch):
+    _scored_outcomes(monkeypatch, lambda j: True)
+    r = cli("eval", "b", "--env", "Pendulum-v1", *DRIFT, "--json")
+    assert r.code == 0, r.err
+    d = json.loads(r.out)["conditions"]["random_keys"]["drift"]
+    assert d["against"] == "no_key" and d["by"] == "success"
+    assert (d["worse"], d["better"], d["ties"]) == (6, 0, 0)
+    assert d["p"] == pytest.approx(2 / 64) and d["systematic"] and d["warn"]
+    assert d["episodes"] == {"lost": 6, "gained": 0, "p": pytest.approx(2 / 64)}
+    lines = [x for x in r.err.splitlines() if x.startswith("prop: warning:")]
+    assert len(lines) == 1 and "6 of 6 random keys do worse than no key on success" in lines[0]
+    assert "p = 0.031" in lines[0] and "--delta-pull" in lines[0]
+    table = cli("eval", "b", "--env", "Pendulum-v1", *DRIFT)  # the table prints the same line
+    assert table.code == 0 and lines[0] in table.err
+
+
+def test_eval_is_quiet_when_the_wrong_keys_split(pendulum, cli, monkeypatch):
+    _scored_outcomes(monkeypatch, lambda j: j % 3 == 0)  # 2 of 6 keys worse, 4 tie
+    r = cli("eval", "b", "--env", "Pendulum-v1", *DRIFT, "--json")
+    assert r.code == 0, r.err
+    d = json.loads(r.out)["conditions"]["random_keys"]["drift"]
+    assert (d["worse"], d["better"], d["ties"]) == (2, 0, 4)
+    assert d["p"] == pytest.approx(0.5) and not d["systematic"] and not d["warn"]
+    assert "warning" not in r.err
