@@ -36,12 +36,7 @@ def leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> tor
         if not differs.any():
             return torch.zeros(o.shape[0])
         return ((o.argmax(-1) == p) & differs).float().sum(-1) / differs.sum()
-    gap = (p - b).flatten(1) if p.dim() > 1 else (p - b)[:, None]
-    move = (o - b).flatten(2) if o.dim() > 2 else (o - b)[..., None]
-    norm = (gap**2).sum()
-    if norm <= _EPS * gap.shape[0]:
-        return torch.zeros(o.shape[0])
-    return ((move * gap).sum((-2, -1)) / norm).clamp(0, 1)
+    return lean(o, p, b, task).clamp(0, 1)
 
 
 def bounded_leakage(o: torch.Tensor, p: torch.Tensor, b: torch.Tensor, task: str) -> torch.Tensor:
