@@ -112,7 +112,7 @@ def personalize(
     for i, m in enumerate(result.metrics, 1):  # after the report, as the audit's decision
         _warn_coverage(i, m.get("coverage"))
         _warn_gate(i, m["gate"])
-        _warn_lean(i, m["random"].get("lean"))
+        _warn_lean(i, m)
 
 
 def _print_report(result) -> None:
@@ -166,14 +166,16 @@ def _warn_gate(user: int, gate: dict) -> None:
          "with more --steps or --random-keys, or --seal; prop attack audits it")  # fmt: skip
 
 
-def _warn_lean(user: int, lean: dict | None) -> None:
-    """One stderr line when the random keys move systematically to one side of the original along the
-    user's change (a sign test over the keys, p < 0.05), however small each move: a drift that a closed
-    loop's success threshold can turn into lost episodes (docs/metrics.md, "Systematic drift")."""
-    if not lean or not lean["systematic"]:
-        return
-    side, n = ("towards", lean["above"]) if lean["above"] > lean["below"] else ("away from", lean["below"])
-    warn(f"user {user}'s random keys drift systematically {side} your change ({n} of {lean['keys']} keys, "
-         f"sign test p = {lean['p']:.2g}, mean lean {lean['mean']:+.3g}); check them in closed loop with "
-         "prop eval --original; personalize again with --delta-pull 100, more --steps or --key-weight "
-         "(examples/RESULTS.md, point-mass Round 2), or --seal")  # fmt: skip
+def _warn_lean(user: int, m: dict) -> None:
+    """One stderr line when a group's wrong keys move systematically towards the user's change (a sign
+    test over the keys, p < 0.05), however small each move: the user's behaviour carried to every wrong
+    key, which per-key leakage (clipped at 0) cannot show and a closed loop's success threshold can turn
+    into lost episodes (docs/metrics.md, "Systematic drift"). A lean away is in --json only."""
+    for group, words in GROUPS.items():
+        lean = m.get(group, {}).get("lean")
+        if not lean or not lean["systematic"] or lean["above"] <= lean["below"]:
+            continue
+        warn(f"user {user}'s {words} drift systematically towards your change ({lean['above']} of "
+             f"{lean['keys']} keys, sign test p = {lean['p']:.2g}, mean lean {lean['mean']:+.3g}); "
+             "check them in closed loop with prop eval --original; personalize again with --delta-pull 100, "
+             "more --steps or --key-weight (examples/RESULTS.md, point-mass Round 2), or --seal")  # fmt: skip

@@ -28,20 +28,28 @@ def test_exact_sign_test_matches_the_binomial():
 
 def test_every_key_leaning_towards_the_user_is_systematic_and_warned(capsys):
     o, p, b = _outputs(0.02)  # a small drift every key shares
-    lean = key_group(o, p, b, "regression")["lean"]
+    group = key_group(o, p, b, "regression")
+    lean = group["lean"]
     assert (lean["above"], lean["below"]) == (16, 0) and lean["systematic"]
     assert lean["p"] == pytest.approx(2 / 2**16) and lean["mean"] == pytest.approx(0.02, abs=0.005)
-    _warn_lean(1, lean)
+    _warn_lean(1, {"random": group, "hamming1": key_group(*_outputs(0.0, seed=1), "regression")})
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("prop: warning: user 1's random keys drift systematically")
     assert "towards your change (16 of 16 keys" in err[0] and "--delta-pull" in err[0]
 
 
+def test_a_systematic_lean_away_from_the_user_is_reported_not_warned(capsys):
+    group = key_group(*_outputs(-0.02), "regression")
+    assert group["lean"]["below"] == 16 and group["lean"]["systematic"]
+    _warn_lean(1, {"random": group, "hamming1": group})
+    assert capsys.readouterr().err == ""
+
+
 def test_keys_scattering_around_the_original_are_quiet(capsys):
     o, p, b = _outputs(0.0)
-    lean = key_group(o, p, b, "regression")["lean"]
-    assert lean["above"] + lean["below"] == 16 and not lean["systematic"]
-    _warn_lean(1, lean)
+    group = key_group(o, p, b, "regression")
+    assert group["lean"]["above"] + group["lean"]["below"] == 16 and not group["lean"]["systematic"]
+    _warn_lean(1, {"random": group, "hamming1": group})
     assert capsys.readouterr().err == ""
 
 
