@@ -220,6 +220,14 @@ class _Held:
     def read(self, name: str, f) -> torch.Tensor:
         """Tensor ``name``; one of a dtype this reader does not know, a copy of ``f.get_tensor``'s."""
         entry = self.header[name]
+        # This header was read from a second open of the path: it must say what safe_open checked (a file
+        # swapped in between would otherwise size the allocation below).
+        checked = f.get_slice(name)
+        if (
+            list(entry.get("shape", ())) != list(checked.get_shape())
+            or entry.get("dtype") != checked.get_dtype()
+        ):
+            raise ValueError(f"tensor {name!r} changed while the file was read")
         if entry["dtype"] not in _ST_DTYPES or entry["dtype"] == "BOOL" or sys.byteorder != "little":
             return f.get_tensor(name).clone()
         start, end = entry["data_offsets"]

@@ -444,3 +444,25 @@ def test_weights_load_into_a_module_tensor_by_tensor_and_refuse_a_mismatch(tmp_p
         load_into(torch.nn.Linear(4, 2), path)
     with pytest.raises(PropError, match="'0.bias' is missing"):
         load_into(torch.nn.Sequential(torch.nn.Linear(3, 2)), path)
+
+
+def test_load_into_as_held_refuses_a_file_swapped_after_safe_open_checked_it(tmp_path, monkeypatch):
+    """``as_held`` reads the header a second time, by path: a file swapped in between whose header claims a
+    huge tensor is refused in one line before anything is allocated (it would size torch.empty)."""
+    from prop_adapters import weights
+
+    src = torch.nn.Linear(3, 2).to(torch.bfloat16)
+    path = tmp_path / "w.safetensors"
+    save_file(src.state_dict(), str(path))
+    header = {"bias": {"dtype": "BF16", "shape": [2], "data_offsets": [0, 4]},
+              "weight": {"dtype": "BF16", "shape": [2**40, 3], "data_offsets": [4, 16]}}  # fmt: skip
+    head = json.dumps(header).encode()
+    swapped = tmp_path / "swapped.safetensors"
+    swapped.write_bytes(len(head).to_bytes(8, "little") + head + bytes(16))
+    monkeypatch.setattr(weights, "open", lambda p, mode: open(swapped, mode), raising=False)
+    with pytest.raises(PropError, match="changed while the file was read"):
+        weights.load_into(torch.nn.Linear(3, 2), path, as_held=True)
+    monkeypatch.undo()
+    dst = torch.nn.Linear(3, 2)
+    weights.load_into(dst, path, as_held=True)
+    assert dst.weight.dtype == torch.bfloat16 and torch.equal(dst.weight, src.weight)
