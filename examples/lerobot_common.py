@@ -38,3 +38,13 @@ def original_controller(path: Path):
     policy = get_policy_class(cfg.type).from_pretrained(path, config=cfg)
     pre, post = make_pre_post_processors(cfg, pretrained_path=str(path))
     return Controller(policy, pre, post, {k: tuple(f.shape) for k, f in cfg.input_features.items()})
+
+
+def lerobot_train_args(repo_id: str, root: Path, policy: list[str], output_dir: Path, job: str) -> list[str]:
+    """``lerobot-train``'s arguments for a local dataset on the CPU, one checkpoint at the last step, no
+    hub and no wandb, as both examples run it (``policy``: the policy's own flags, ``--steps=N`` in them)."""
+    steps = int(next(a for a in policy if a.startswith("--steps=")).split("=")[1])
+    return [f"--dataset.repo_id={repo_id}", f"--dataset.root={root}", *policy,
+            "--policy.device=cpu", "--policy.push_to_hub=false", "--num_workers=0",
+            f"--save_freq={steps}", "--log_freq=100", "--wandb.enable=false",
+            f"--output_dir={output_dir}", f"--job_name={job}", "--seed=0"]  # fmt: skip

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, original_controller
+from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, lerobot_train_args, original_controller
 from examples.metaworld import task as mw
 
 BIN = Path(sys.executable).parent
@@ -72,28 +72,11 @@ def step_train(out: Path, tasks: list[str], policies: list[str]) -> None:
                 continue
             train = out / t / p / "train"
             shutil.rmtree(train, ignore_errors=True)
-            steps = int(next(a for a in TRAIN[p] if a.startswith("--steps=")).split("=")[1])
             t0 = time.perf_counter()
-            run(
-                [
-                    BIN / "lerobot-train",
-                    f"--dataset.repo_id=local/{t}-base",
-                    f"--dataset.root={out / t / 'base'}",
-                    "--dataset.video_backend=pyav",
-                    *TRAIN[p],
-                    "--policy.device=cpu",
-                    "--policy.push_to_hub=false",
-                    *BACKBONE[p],
-                    "--num_workers=0",
-                    f"--save_freq={steps}",
-                    "--log_freq=100",
-                    "--wandb.enable=false",
-                    f"--output_dir={train}",
-                    f"--job_name=metaworld-{t}-{p}",
-                    "--seed=0",
-                ],
-                log=out / t / p / "train.log",
-            )
+            policy = ["--dataset.video_backend=pyav", *TRAIN[p], *BACKBONE[p]]
+            job = f"metaworld-{t}-{p}"
+            args = lerobot_train_args(f"local/{t}-base", out / t / "base", policy, train, job)
+            run([BIN / "lerobot-train", *args], log=out / t / p / "train.log")
             (out / t / p / "train.json").write_text(
                 json.dumps({"seconds": round(time.perf_counter() - t0, 1)})
             )

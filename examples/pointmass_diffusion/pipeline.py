@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, original_controller
+from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, lerobot_train_args, original_controller
 from examples.pointmass_diffusion import task as pm
 
 BIN = Path(sys.executable).parent
@@ -72,27 +72,10 @@ def step_train(out: Path) -> None:
     if (policy_dir(out) / "model.safetensors").is_file():
         print(f"train: {policy_dir(out)} done")
         return
-    steps = int(next(a for a in TRAIN if a.startswith("--steps=")).split("=")[1])
     shutil.rmtree(out / "train", ignore_errors=True)
     t0 = time.perf_counter()
-    run(
-        [
-            BIN / "lerobot-train",
-            "--dataset.repo_id=local/base",
-            f"--dataset.root={out / 'base'}",
-            *TRAIN,
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--num_workers=0",
-            f"--save_freq={steps}",
-            "--log_freq=100",
-            "--wandb.enable=false",
-            f"--output_dir={out / 'train'}",
-            "--job_name=pointmass-diffusion",
-            "--seed=0",
-        ],
-        out / "train.log",
-    )
+    args = lerobot_train_args("local/base", out / "base", TRAIN, out / "train", "pointmass-diffusion")
+    run([BIN / "lerobot-train", *args], out / "train.log")
     (out / "train.json").write_text(json.dumps({"seconds": round(time.perf_counter() - t0, 1)}))
     print(f"train: {time.perf_counter() - t0:.0f} s", flush=True)
 
