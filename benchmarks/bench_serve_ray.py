@@ -4,7 +4,7 @@ throughput and p50/p99 latency with 1 and 8 concurrent clients, (a) all one user
 not; and how often a user's later connections land on a replica that holds it (Ray Serve's multiplexing).
 
     OMP_NUM_THREADS=1 python -m benchmarks.bench_serve_ray [--seconds 3] [--replicas 2]
-    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_serve_ray --policy act   # PROP_LEROBOT_RAY=1
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_serve_ray --policy act
 
 Needs the `ray` extra. The bundle: bench_serve's tiny MLP (8-64-64-4), sealed with a LoRA payload (rank 4),
 8 users (the first by personalize, 7 by add-user); ``--policy act``: a tiny LeRobot ACT

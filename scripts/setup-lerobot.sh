@@ -19,10 +19,11 @@
 #
 # PROP_LEROBOT_RAY=1 adds prop's `ray` extra (Ray Serve, for `prop serve-ray` with a LeRobot policy and
 # its tests, tests/serve/test_ray_lerobot.py): ray's manylinux wheels for cp312 and their dependencies,
-# resolved together with lerobot's pins, nothing compiled (+~70 s and ~330 MB, docs/speed.md). .ci/run asks
-# for it; without it, those tests are skipped with the reason.
+# resolved together with lerobot's pins, nothing compiled (+~25 s and ~0.3 GB on an existing environment,
+# measured: docs/serving.md). .ci/run asks for it; without it, those tests are skipped with the reason.
 #
-# Usage: [PROP_LEROBOT_RAY=1] scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the repository root)
+# Usage: [PROP_LEROBOT_RAY=1] scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the
+# repository root)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
@@ -81,7 +82,7 @@ if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
   drop_mujoco_4
-  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s; with [ray] the first time: ~70 s more)"
+  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s; with [ray] the first time: ~25 s more)"
   pip_install "$VENV/bin/pip" -e ".[$EXTRAS]" "${LEROBOT_PINS[@]}"
   say "setup-lerobot: updating the LeRobot policy plugin lerobot_policy_prop (~5 s)"
   pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop

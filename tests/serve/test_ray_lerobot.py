@@ -1,10 +1,10 @@
-"""prop serve-ray with a LeRobot ACT bundle on a local Ray instance on the loopback, openpi-client
+"""prop serve-ray with LeRobot ACT and SmolVLA bundles on a local Ray instance on the loopback, openpi-client
 connecting unchanged: the replicas serve the policy as `prop serve` does (``chunks.ChunkRunner``), each
 user routed to a replica that holds it, each connection's episode state kept by the gateway.
 
 Needs lerobot, ray and openpi-client together: .venv-lerobot built with PROP_LEROBOT_RAY=1
 (scripts/setup-lerobot.sh; .ci/run does); skipped with the reason otherwise. Slow: a tiny ACT trained and
-personalized, and a local Ray instance started twice (~1.5-2 min on 2 busy cores)."""
+personalized, a tiny SmolVLA too, and a local Ray instance started twice (~3 min on 2 busy cores)."""
 
 from __future__ import annotations
 
@@ -20,9 +20,7 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 
 pytest.importorskip("lerobot", reason="prop serve-ray with a LeRobot policy needs lerobot (.venv-lerobot)")
-pytest.importorskip(
-    "ray.serve", reason="prop serve-ray needs ray in .venv-lerobot (PROP_LEROBOT_RAY=1 scripts/setup-lerobot.sh)"
-)
+pytest.importorskip("ray.serve", reason="serve-ray needs ray: PROP_LEROBOT_RAY=1 scripts/setup-lerobot.sh")
 client_policy = pytest.importorskip("openpi_client.websocket_client_policy")
 
 from examples import lerobot_reach_task as task  # noqa: E402
@@ -31,7 +29,7 @@ from prop_cli.bundle import load_bundle  # noqa: E402
 from prop_cli.config import PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.run import KeyedPolicy  # noqa: E402
-from tests.lerobot_bases import act_base  # noqa: E402
+from tests.lerobot_bases import act_base, smolvla_base  # noqa: E402
 from tests.serve.shares import OPENPI_CONNECT  # noqa: E402
 
 pytestmark = [pytest.mark.lerobot, pytest.mark.slow, OPENPI_CONNECT]
@@ -260,4 +258,59 @@ def test_a_reset_starts_that_connections_episode_only(ray_served):
     for c in (one, two):  # both go on, each in its own episode
         np.testing.assert_allclose(c.infer(frame)["actions"], _alone(bundle, KEY, frame), rtol=0, atol=ATOL)
     for c in (one, two):
+        c._ws.close()
+
+
+@pytest.fixture(scope="module")
+def smolvla_sealed(tmp_path_factory):
+    """A tiny SmolVLA (examples/smolvla_tiny.py) sealed for KEY (LoRA payload), as test_serve_lerobot.py's."""
+    pytest.importorskip("num2words", reason="SmolVLM's processor needs num2words")
+    d = tmp_path_factory.mktemp("ray-smolvla")
+    smolvla_base(d)
+    cfg = PersonalizeConfig.of(**(TINY | {"seal": True, "steps": 10, "payload": "lora", "payload_rank": 2}))
+    api.personalize_checkpoint(str(d / "smolvla"), [(d / "user", KeySource(KEY, "file"))], d / "sealed", cfg)
+    return d / "sealed"
+
+
+SMOLVLA_ATOL = 1e-4  # test_serve_lerobot.py's SmolVLA tolerance (its LoRA rows against the folded weights)
+
+
+def test_smolvla_episodes_are_each_connections_own(ray_served, smolvla_sealed):
+    """A sampling policy shows the episode state: each call of an episode draws its own noise, so two
+    connections of one user each get call 1's chunk, then call 2's; a reset with a seed starts that
+    connection's new episode and leaves the other where it was. Runs last: it replaces the module's
+    ACT application with the SmolVLA one (2 replicas, the same Ray instance)."""
+    from ray import serve
+
+    from prop_cli.serve.ray_app import APP_NAME, application
+
+    _, port = ray_served
+    serve.run(application(smolvla_sealed, replicas=2, users_per_replica=1, replica_cpus=0.5), name=APP_NAME,
+              route_prefix="/")  # fmt: skip
+    bundle = load_bundle(smolvla_sealed)
+    frame = _frames(bundle, 1, seed=9)[0] | {"task": "reach the goal"}
+
+    def episode(key, seed: int, calls: int) -> list[np.ndarray]:
+        policy = KeyedPolicy(bundle, key)
+        policy.reset(seed=seed)
+        return [policy.controller.action_chunk(frame) for _ in range(calls)]
+
+    user, base, new = episode(KEY, 0, 2), episode(None, 0, 2), episode(KEY, 3, 1)[0]
+    assert not np.allclose(user[0], user[1], atol=1e-3)  # each call draws its own noise
+    assert not np.allclose(new, user[0], atol=1e-3)  # and each episode
+    one, two, nokey = _client(port, KEY), _client(port, KEY), _client(port, None)
+    assert one.get_server_metadata()["kind"] == "lerobot"
+
+    def close(client, want) -> None:
+        np.testing.assert_allclose(client.infer(frame)["actions"], want, rtol=0, atol=SMOLVLA_ATOL)
+
+    close(one, user[0])
+    close(two, user[0])
+    close(one, user[1])
+    assert one.infer({"reset": True, "seed": 3}) == {"reset": True}
+    close(one, new)  # one: its new episode's first call
+    close(two, user[1])  # two: its own episode's second call, untouched by one's reset
+    for want in base:  # no key: the original's chunks, each call's noise, bit for bit
+        np.testing.assert_array_equal(nokey.infer(frame)["actions"], want)
+    for c in (one, two, nokey):
         c._ws.close()
