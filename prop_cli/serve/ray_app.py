@@ -91,7 +91,7 @@ def check_servable(bundle: Bundle) -> None:
     if bundle.loaded.policy is not None and not batchable(bundle):
         kind = getattr(bundle.loaded.policy.config, "type", "LeRobot")
         raise PropError(
-            f"{bundle.path} is a {kind} policy that keeps state on its module between calls (an observation "
+            f"the {kind} policy in {bundle.path} keeps state on its module between calls (an observation "
             "history, or one action at a time); prop serve-ray serves those whose chunk needs the frame "
             "alone (ACT, SmolVLA, pi0)",
             "serve it with prop serve",

@@ -119,6 +119,26 @@ def test_prop_serve_ray_serves_an_unsealed_act_bundle_until_sigterm(act_dir):
     assert _hex(KEY) not in err
 
 
+def test_a_policy_with_state_on_its_module_is_refused_before_ray_starts(act_dir):
+    """ACT with temporal ensembling answers one action at a time from its module's own queue: a connection
+    would have to stay on one replica. application() refuses it in one line, before anything is deployed."""
+    from prop_cli.errors import PropError
+    from prop_cli.serve.ray_app import application
+
+    bundle = load_bundle(act_dir / "unsealed")
+    application(act_dir / "unsealed", bundle=bundle)  # plain ACT: servable (nothing deployed yet)
+    from lerobot.policies.act.modeling_act import ACTTemporalEnsembler
+
+    module = bundle.loaded.module  # made as ACTPolicy makes it with temporal_ensemble_coeff set
+    module.config.temporal_ensemble_coeff = 0.01
+    module.temporal_ensembler = ACTTemporalEnsembler(0.01, module.config.chunk_size)
+    with pytest.raises(PropError) as e:
+        application(act_dir / "unsealed", bundle=bundle)
+    what = e.value.what
+    assert "the act policy in" in what and "keeps state on its module" in what and "\n" not in str(e.value)
+    assert e.value.fix == "serve it with prop serve"
+
+
 @pytest.fixture(scope="module")
 def ray_served(act_dir):
     """The sealed two-user ACT deployed on a local Ray instance on a free loopback port: 2 replicas, each
