@@ -165,7 +165,7 @@ def server_metadata(bundle: Bundle, session: Session) -> dict:
 
 
 def check_reset(obs) -> int | None:
-    """A ``{"reset": True[, "seed": int]}`` message's seed checked; anything else is not a reset."""
+    """The seed of a reset message, ``{"reset": True[, "seed": int]}``, checked (None: none given)."""
     seed = obs.get("seed")
     if seed is not None and not isinstance(seed, int):
         raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
