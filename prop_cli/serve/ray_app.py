@@ -56,7 +56,6 @@ from prop_cli.errors import PropError, brief
 
 from .batcher import Batcher
 from .cache import BehaviourCache
-from .chunks import batchable
 from .route import NO_KEY, route_salt, routing_id
 from .rows import run_requests
 from .server import (
@@ -70,7 +69,7 @@ from .server import (
     check_reset,
     server_metadata,
 )
-from .sessions import Session, chunk_runner, payload_table
+from .sessions import Session, any_replica_answers, chunk_runner, payload_table
 from .wire import WireError, packb, unpackb
 
 LOG = logging.getLogger("prop.serve")
@@ -88,7 +87,7 @@ def check_servable(bundle: Bundle) -> None:
     """An array model, or a LeRobot policy whose chunk needs the frame alone: its episode state is then
     the gateway's (``Episode``), so any replica can answer a connection. A policy with state on its module
     between calls would need each connection pinned to one replica's module: refused."""
-    if bundle.loaded.policy is not None and not batchable(bundle):
+    if not any_replica_answers(bundle):
         kind = getattr(bundle.loaded.policy.config, "type", "LeRobot")
         raise PropError(
             f"the {kind} policy in {bundle.path} keeps state on its module between calls (an observation "
