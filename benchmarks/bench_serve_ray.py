@@ -4,9 +4,13 @@ throughput and p50/p99 latency with 1 and 8 concurrent clients, (a) all one user
 not; and how often a user's later connections land on a replica that holds it (Ray Serve's multiplexing).
 
     OMP_NUM_THREADS=1 python -m benchmarks.bench_serve_ray [--seconds 3] [--replicas 2]
+    OMP_NUM_THREADS=1 .venv-lerobot/bin/python -m benchmarks.bench_serve_ray --policy act
 
 Needs the `ray` extra. The bundle: bench_serve's tiny MLP (8-64-64-4), sealed with a LoRA payload (rank 4),
-8 users (the first by personalize, 7 by add-user). Ray runs as a local instance on this machine
+8 users (the first by personalize, 7 by add-user); ``--policy act``: a tiny LeRobot ACT
+(examples/lerobot_reach_task.py) sealed with LoRA payloads (rank 4) for 8 users in one personalize, each
+request one frame answered with the whole chunk (needs lerobot and ray in one environment:
+``PROP_LEROBOT_RAY=1 scripts/setup-lerobot.sh``). Ray runs as a local instance on this machine
 (``--num-cpus`` = the machine's CPUs); `prop serve` in this process; the clients in a subprocess
 (bench_serve's, one request at a time each: openpi's protocol).
 """
@@ -45,8 +49,29 @@ def add_users(bundle: Path, d: Path, n: int) -> list[Path]:
     return keys
 
 
-def load(url: str, keys: list[str | None], seconds: float) -> dict:
-    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", url, json.dumps(keys), str(seconds)]
+def make_act_users(d: Path, n: int) -> tuple[Path, list[str]]:
+    """A tiny ACT sealed (LoRA rank 4) for ``n`` users in one personalize: (bundle, the keys as hex)."""
+    from examples import lerobot_reach_task as task
+    from prop_cli import api
+    from prop_cli.config import PersonalizeConfig
+    from prop_cli.core.key_files import KeySource
+
+    task.record(d / "general", 4, 0, np.zeros(3, np.float32))
+    users = []
+    for i in range(n):  # each user's goal moved its own way
+        offset = task.USER_OFFSET * np.float32(1 + i / n) * (1 if i % 2 == 0 else -1)
+        task.record(d / f"user{i}", 2, 50_000 + 1000 * i, offset.astype(np.float32))
+        users.append((d / f"user{i}", KeySource(np.random.default_rng(i).integers(0, 2, 128).astype(np.uint8),
+                                                 "file")))  # fmt: skip
+    task.train_base(d / "general", d / "act", steps=5)
+    cfg = PersonalizeConfig.of(seal=True, payload="lora", payload_rank=4, steps=10, user_rows=8)
+    api.personalize_checkpoint(str(d / "act"), users, d / "b.prop", cfg)
+    return d / "b.prop", [np.packbits(k.bits).tobytes().hex() for _, k in users]
+
+
+def load(url: str, keys: list[str | None], seconds: float, features: dict) -> dict:
+    cmd = [sys.executable, "-m", "benchmarks.bench_serve", "--client", url, json.dumps(keys), str(seconds),
+           json.dumps(features)]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=180 + seconds)
     if done.returncode:
         raise SystemExit(done.stderr[-2000:])
@@ -75,6 +100,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--replicas", type=int, default=2)
+    ap.add_argument("--policy", choices=("mlp", "act"), default="mlp",
+                    help="act: a tiny LeRobot ACT (lerobot and ray in one environment)")  # fmt: skip
     args = ap.parse_args()
     torch.set_num_threads(1)
     import ray
@@ -86,20 +113,28 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
-        bundle_path, first = make_bundle(d)
-        keys = [k.read_bytes().hex() for k in [first, *add_users(bundle_path, d, USERS - 1)]]
+        if args.policy == "act":
+            bundle_path, keys = make_act_users(d, USERS)
+        else:
+            bundle_path, first = make_bundle(d)
+            keys = [k.read_bytes().hex() for k in [first, *add_users(bundle_path, d, USERS - 1)]]
+        bundle = load_bundle(bundle_path)
+        policy = bundle.loaded.policy
+        features = {k: list(s) for k, s in policy.input_features.items()} if policy is not None else {}
+        model = ("tiny ACT (examples/lerobot_reach_task.py), one frame per request, its chunk per reply"
+                 if policy is not None else f"tiny MLP {'-'.join(map(str, SIZES))}")  # fmt: skip
         modes = {n: (("(a) one user", [keys[0]] * n), (f"(b) {USERS} users", (keys * n)[:n]),
                      ("(c) no key", [None] * n)) for n in (1, 8)}  # fmt: skip
         load_avg = f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"
         print(f"prop serve-ray ({args.replicas} replicas, local Ray {ray.__version__}) against prop serve, "
-              f"tiny MLP {'-'.join(map(str, SIZES))} sealed (LoRA r=4), {USERS} users, loopback, "
+              f"{model} sealed (LoRA r=4), {USERS} users, loopback, "
               f"{args.seconds:g} s per run, {load_avg}")  # fmt: skip
         results: dict = {}
-        running = start_in_thread(PolicyServer(load_bundle(bundle_path), port=0, max_connections=64))
+        running = start_in_thread(PolicyServer(bundle, port=0, max_connections=64))
         try:
             for n, runs in modes.items():
                 for mode, ks in runs:
-                    results[("prop serve", n, mode)] = load(running.url, ks, args.seconds)
+                    results[("prop serve", n, mode)] = load(running.url, ks, args.seconds, features)
         finally:
             running.stop()
         port = free_port()
@@ -122,7 +157,7 @@ def main() -> None:
                     held.append(bool(meta["held"]))
             for n, runs in modes.items():
                 for mode, ks in runs:
-                    results[("serve-ray", n, mode)] = load(url, ks, args.seconds)
+                    results[("serve-ray", n, mode)] = load(url, ks, args.seconds, features)
         finally:
             serve.shutdown()
             ray.shutdown()

@@ -17,7 +17,13 @@
 # with MUJOCO_GL=egl unless MUJOCO_GL is set (Mesa's EGL renders on the CPU through llvmpipe; osmesa is
 # the other CPU choice). If it cannot, the set-up fails in one line naming the Debian packages to install.
 #
-# Usage: scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the repository root)
+# PROP_LEROBOT_RAY=1 adds prop's `ray` extra (Ray Serve, for `prop serve-ray` with a LeRobot policy and
+# its tests, tests/serve/test_ray_lerobot.py): ray's manylinux wheels for cp312 and their dependencies,
+# resolved together with lerobot's pins, nothing compiled (+~25 s and ~0.3 GB on an existing environment,
+# measured: docs/serving.md). .ci/run asks for it; without it, those tests are skipped with the reason.
+#
+# Usage: [PROP_LEROBOT_RAY=1] scripts/setup-lerobot.sh [VENV_DIR]   (default: .venv-lerobot in the
+# repository root)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV="${1:-.venv-lerobot}"
@@ -47,6 +53,13 @@ drop_draccus_tests() {
 # resolver first fetches the newest torch that prop's own range allows (555 MB, measured on a cold cache)
 # before lerobot's metadata sends it back to 2.11.
 LEROBOT_PINS=("torch>=2.7,<2.12" "numpy>=2,<2.3" "transformers>=5.4,<5.6")
+EXTRAS="lerobot,lerobot-test"
+if [ "${PROP_LEROBOT_RAY:-0}" = 1 ]; then EXTRAS="$EXTRAS,ray"; fi
+check_ray() {  # fail here, not in the tests
+  if [ "${PROP_LEROBOT_RAY:-0}" = 1 ]; then
+    "$VENV/bin/python" -c "import ray.serve, prop_cli.serve.ray_app, lerobot"
+  fi
+}
 drop_mujoco_4() {
   # mujoco 4 comes as three distributions (mujoco, mujoco-core, mujoco-studio); pinning mujoco back to 3.x
   # leaves the other two, and then `import mujoco` fails ("libmujoco.so.4.0.0: cannot open").
@@ -69,12 +82,13 @@ if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c "
 import sys, lerobot, peft, prop_cli, onnxruntime
 assert sys.version_info >= (3, 12) and lerobot.__version__.startswith('0.6')" 2>/dev/null; then
   drop_mujoco_4
-  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s)"
-  pip_install "$VENV/bin/pip" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
+  say "setup-lerobot: $VENV has lerobot 0.6; updating prop in it (~30 s; with [ray] the first time: ~25 s more)"
+  pip_install "$VENV/bin/pip" -e ".[$EXTRAS]" "${LEROBOT_PINS[@]}"
   say "setup-lerobot: updating the LeRobot policy plugin lerobot_policy_prop (~5 s)"
   pip_install "$VENV/bin/pip" --no-deps -e plugins/lerobot_policy_prop
   install_openpi_client
   drop_draccus_tests
+  check_ray
   check_rendering
   exit 0
 fi
@@ -93,7 +107,7 @@ pip_install "$PIP" --upgrade "pip>=24"
 # log a 60-line traceback per dataset); `lerobot-test` adds the simulators (MuJoCo, MetaWorld) and the
 # test tools.
 say "setup-lerobot: installing prop, lerobot 0.6 and torch 2.11 (about 6 GB: ~2 min with pip's cache warm, longer cold: docs/speed.md)"
-pip_install "$PIP" -e ".[lerobot,lerobot-test]" "${LEROBOT_PINS[@]}"
+pip_install "$PIP" -e ".[$EXTRAS]" "${LEROBOT_PINS[@]}"
 # The LeRobot policy plugin (--policy.type=prop in lerobot-eval, lerobot-record, lerobot-rollout): a
 # distribution of its own, since LeRobot imports every one named lerobot_policy_*; its dependencies are
 # the two just installed.
@@ -113,5 +127,6 @@ import lerobot_policy_prop  # noqa: F401 - registers --policy.type=prop
 print(f"ok: torch {torch.__version__}, torchvision {torchvision.__version__}, lerobot {lerobot.__version__}, "
       f"transformers {transformers.__version__}, numpy {numpy.__version__}")
 PYEOF
+check_ray
 say "setup-lerobot: $VENV takes $(du -sh "$VENV" | cut -f1) (lerobot 0.6 on $("$VENV/bin/python" -V))"
 check_rendering

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Build (or reuse) .venv-lerobot and run the LeRobot tests: pytest -m lerobot. .ci/run runs it after the
-# default suite.
+# default suite, with PROP_LEROBOT_RAY=1 (scripts/setup-lerobot.sh then adds the `ray` extra, and
+# tests/serve/test_ray_lerobot.py, `prop serve-ray` with a LeRobot ACT, runs instead of being skipped).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . scripts/common.sh  # say, timed

@@ -32,9 +32,10 @@ def serve_ray(
     max_batch: MaxBatch = SERVE_MAX_BATCH, trust_remote_code: TrustRemoteCode = False,
     arch: BundleArch = None, allow_rollback: AllowRollback = False, as_json: JsonLines = False,
 ) -> None:  # fmt: skip
-    """Serve BUNDLE (an array model) to openpi-client on Ray Serve until Ctrl-C or SIGTERM: each
-    connection's key (Authorization: Api-Key <key hex>) is routed to a replica that already holds that
-    user (Ray Serve's model multiplexing, by an id derived from the key); no key, the base."""
+    """Serve BUNDLE (an array model, or a LeRobot ACT, SmolVLA or pi0 policy) to openpi-client on Ray
+    Serve until Ctrl-C or SIGTERM: each connection's key (Authorization: Api-Key <key hex>) is routed to a
+    replica that already holds that user (Ray Serve's model multiplexing, by an id derived from the key);
+    no key, the base."""
     from prop_cli.api import serve_ray as run
 
     def ready(url: str) -> None:

@@ -16,8 +16,19 @@ Two deployments (docs/serving.md, "Past one machine"):
   the base (``batcher``, ``rows``), as in `prop serve`.
 
 The key crosses from the gateway to a replica inside each request (Ray's RPC between the two actors);
-see docs/serving.md for what that means on a cluster. Array models only: a LeRobot policy keeps its
-action queues per connection in one process (`prop serve`).
+see docs/serving.md for what that means on a cluster.
+
+A LeRobot policy whose chunk needs the frame alone (ACT, SmolVLA, pi0: ``chunks.batchable``) is served as
+`prop serve` serves it (``ChunkRunner``: users' frames share forwards, a no-key frame runs alone, the
+original's chunk bit for bit). Its episode state per connection is two numbers: the episode's seed and the
+calls made in it, which seed each call's noise (``Controller.call_noise_seed``); the client takes the
+whole chunk per infer (openpi's ActionChunkBroker), so the replica's action queues are never used. The
+gateway keeps them with the connection and sends them with each request; the replica answers with them
+advanced (a chunk: one call more; ``{"reset": True, "seed": s}``: ``(s, 0)``). So a connection's requests
+may land on any replica (a user evicted and reloaded elsewhere, a replica lost) and its episode goes on,
+and one connection's reset touches no other's. A policy that keeps state on its module between calls
+(Diffusion's observation history, ACT with temporal ensembling) would have to pin each connection to one
+replica: refused, `prop serve` serves it.
 
 Imported only by `prop serve-ray` and Ray (``serve run prop_cli.serve.ray_app:build bundle=...``): the
 default install does not need ray (the ``ray`` extra).
@@ -47,8 +58,18 @@ from .batcher import Batcher
 from .cache import BehaviourCache
 from .route import NO_KEY, route_salt, routing_id
 from .rows import run_requests
-from .server import CLOSE_ERROR, CLOSE_POLICY, RESET, SCHEME, Backoff, bundle_stamp, check_batching
-from .sessions import OBSERVATION, Session
+from .server import (
+    CLOSE_ERROR,
+    CLOSE_POLICY,
+    RESET,
+    SCHEME,
+    Backoff,
+    bundle_stamp,
+    check_batching,
+    check_reset,
+    server_metadata,
+)
+from .sessions import Session, any_replica_answers, chunk_runner, payload_table
 from .wire import WireError, packb, unpackb
 
 LOG = logging.getLogger("prop.serve")
@@ -57,15 +78,21 @@ CLOSE_TOO_BIG = 1009  # RFC 6455: message too big
 USERS_PER_REPLICA = 64  # decrypted users a replica keeps (Ray Serve's max_num_models_per_replica)
 # Any one user's slot holds one behaviour: no cap of its own (the replica's cap is in users).
 _SLOT_BYTES = 2**62
+# A connection's episode state, kept by the gateway: (the episode's seed, the calls made in it).
+Episode = tuple[int, int]
+NEW_EPISODE: Episode = (0, 0)
 
 
 def check_servable(bundle: Bundle) -> None:
-    """A LeRobot policy's episode state is per connection in one process: Ray replicas do not share it
-    (``Session`` tells the two kinds apart: a policy's session has a controller)."""
-    if Session(bundle, None, False).controller is not None:
+    """An array model, or a LeRobot policy whose chunk needs the frame alone: its episode state is then
+    the gateway's (``Episode``), so any replica can answer a connection. A policy with state on its module
+    between calls would need each connection pinned to one replica's module: refused."""
+    if not any_replica_answers(bundle):
+        kind = getattr(bundle.loaded.policy.config, "type", "LeRobot")
         raise PropError(
-            f"{bundle.path} is a LeRobot policy; prop serve-ray serves array models (a policy's action "
-            "queues live per connection in one process)",
+            f"the {kind} policy in {bundle.path} keeps state on its module between calls (an observation "
+            "history, or one action at a time); prop serve-ray serves those whose chunk needs the frame "
+            "alone (ACT, SmolVLA, pi0)",
             "serve it with prop serve",
         )
 
@@ -93,9 +120,13 @@ class PolicyReplica:
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prop-serve-ray")
         module, keyed = self.bundle.loaded.module.eval(), self.bundle.mode.keyed
         window = float(options.get("batch_window_ms", C.SERVE_BATCH_WINDOW_MS)) / 1000
-        self.batcher = Batcher(lambda requests: run_requests(module, keyed, requests), self.pool, window,
-                               int(options.get("max_batch", C.SERVE_MAX_BATCH)))  # fmt: skip
-        self.base = Session(self.bundle, None, False)
+        # A LeRobot policy: `prop serve`'s runner (users' frames in one forward, a no-key frame alone).
+        self.runner = chunk_runner(self.bundle, payload_table(self.bundle))
+        run = self.runner.run if self.runner is not None else (
+            lambda requests: run_requests(module, keyed, requests)
+        )  # fmt: skip
+        self.batcher = Batcher(run, self.pool, window, int(options.get("max_batch", C.SERVE_MAX_BATCH)))
+        self.base = Session(self.bundle, None, False, None, self.runner)
         self.decrypted = 0  # behaviours checked and made here (a figure for tests)
 
         async def slot(route: str) -> BehaviourCache:  # what this replica holds for one routing id
@@ -121,7 +152,7 @@ class PolicyReplica:
         if not held:
             self._unchanged()  # a key is checked only against the bundle this replica loaded
             self.decrypted += 1
-        return Session(self.bundle, bits, self.allow, cache), held
+        return Session(self.bundle, bits, self.allow, cache, self.runner), held
 
     async def open(self, key_text: str | None) -> tuple[dict | None, str | None]:
         """A connection's key checked: (openpi's server metadata, None), or (None, the refusal's line).
@@ -131,31 +162,35 @@ class PolicyReplica:
             session, held = await self._session(key_text)
         except PropError as e:
             return None, e.what.replace(str(self.path), self.path.name)
-        return {
-            "server": "prop", "bundle": self.path.name, "kind": "array", "observation": OBSERVATION,
-            "input_shape": list(session.input_shape), "keyed": bool(session.keyed), "action_horizon": 1,
-            "replica": self.replica, "held": held,
-        }, None  # fmt: skip
+        return server_metadata(self.bundle, session) | {"replica": self.replica, "held": held}, None
 
-    async def infer(self, key_text: str | None, message: bytes) -> bytes | str:
-        """One openpi message -> msgpack-numpy reply bytes, or a one-line error as text."""
+    async def infer(
+        self, key_text: str | None, message: bytes, episode: Episode = NEW_EPISODE
+    ) -> tuple[bytes | str, Episode]:
+        """One openpi message of a connection at ``episode`` -> (msgpack-numpy reply bytes, or a one-line
+        error as text; the connection's episode after it)."""
         try:
             obs = unpackb(message)
-            if isinstance(obs, dict) and obs.get(RESET) is True:  # an array model has nothing to reset
-                seed = obs.get("seed")
-                if seed is not None and not isinstance(seed, int):
-                    raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
-                return packb({RESET: True})
+            if isinstance(obs, dict) and obs.get(RESET) is True:  # {"reset": True[, "seed": int]}
+                seed = check_reset(obs)  # an array model has nothing to reset; a policy a new episode
+                return packb({RESET: True}), (int(seed or 0), 0)
             session, _ = await self._session(key_text)
+            if self.runner is not None:  # a LeRobot chunk, batched with other users'
+                controller = session.controller
+                controller.episode, controller.calls = int(episode[0]), int(episode[1])
+                request = session.chunk_request(obs)  # checked; this call's noise seed counted
+                episode = (controller.episode, controller.calls)
+                chunk = await self.batcher.submit(request)
+                return packb({"actions": chunk.astype("float32")}), episode
             x, single = session.observation(obs)
-            return packb(session.answer(await self.batcher.submit(session.request(x)), single))
+            return packb(session.answer(await self.batcher.submit(session.request(x)), single)), episode
         except (WireError, PropError) as e:
-            return f"prop serve: error: {e}"
+            return f"prop serve: error: {e}", episode
         except Exception as e:  # a bug or a model failure: one line, the replica goes on
             LOG.error("inference failed: %s", brief(e))
             if os.environ.get(C.ENV_DEBUG):
                 LOG.exception("traceback")
-            return f"prop serve: error: inference failed ({type(e).__name__})"
+            return f"prop serve: error: inference failed ({type(e).__name__})", episode
 
     def stats(self) -> dict:
         return {"replica": self.replica, "decrypted": self.decrypted, "batches": self.batcher.batches}
@@ -209,6 +244,7 @@ class Gateway:
         if key_text is not None:
             self.backoff.opened(host)
         await ws.send_bytes(packb(metadata))
+        episode = NEW_EPISODE  # this connection's episode state (a LeRobot policy's noise seeds)
         try:
             while True:
                 message = await ws.receive()
@@ -222,7 +258,7 @@ class Gateway:
                 if len(data) > self.max_message_bytes:
                     await ws.close(CLOSE_TOO_BIG, f"message over {self.max_message_bytes} bytes")
                     return
-                reply = await handle.infer.remote(key_text, data)
+                reply, episode = await handle.infer.remote(key_text, data, episode)
                 await (ws.send_bytes(reply) if isinstance(reply, bytes) else ws.send_text(reply))
         except WebSocketDisconnect:
             return

@@ -148,6 +148,30 @@ def check_batching(batch_window_ms: float, max_batch: int) -> None:
         raise PropError(f"--max-batch {max_batch}", "pass 1 or more observations")
 
 
+def server_metadata(bundle: Bundle, session: Session) -> dict:
+    """What the server sends first (openpi's server metadata), for `prop serve` and `prop serve-ray` alike:
+    nothing of the key, only whether it opened a behaviour."""
+    policy = bundle.loaded.policy
+    return {
+        "server": "prop", "bundle": Path(str(bundle.path)).name,
+        "kind": "lerobot" if policy is not None else "array",
+        "observation": list(policy.input_features) if policy is not None else OBSERVATION,
+        "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
+        # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers its
+        # chunk (n_action_steps; ACT with temporal ensembling one step from its own queues); an
+        # array model one action per observation.
+        "action_horizon": session.chunk_steps or 1,
+    }  # fmt: skip
+
+
+def check_reset(obs) -> int | None:
+    """The seed of a reset message, ``{"reset": True[, "seed": int]}``, checked (None: none given)."""
+    seed = obs.get("seed")
+    if seed is not None and not isinstance(seed, int):
+        raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
+    return seed
+
+
 class PolicyServer:
     """``bundle`` served on ``host:port`` (0: a free port). ``max_connections``: more are closed at once
     (1013, try again later); ``max_message_bytes``: a bigger message closes its connection (1009).
@@ -196,19 +220,7 @@ class PolicyServer:
         return "wss" if self.ssl is not None else "ws"
 
     def metadata(self, session: Session) -> dict:
-        """What the server sends first (openpi's server metadata): nothing of the key, only whether it
-        opened a behaviour."""
-        policy = self.bundle.loaded.policy
-        return {
-            "server": "prop", "bundle": Path(str(self.bundle.path)).name,
-            "kind": "lerobot" if policy is not None else "array",
-            "observation": list(policy.input_features) if policy is not None else OBSERVATION,
-            "input_shape": list(session.input_shape), "keyed": bool(session.keyed),
-            # Steps per infer (openpi's ActionChunkBroker action_horizon): a LeRobot policy answers its
-            # chunk (n_action_steps; ACT with temporal ensembling one step from its own queues); an
-            # array model one action per observation.
-            "action_horizon": session.chunk_steps or 1,
-        }  # fmt: skip
+        return server_metadata(self.bundle, session)
 
     def _key(self, ws: ServerConnection):
         """The key bits the connection's Authorization header carries; None without the header."""
@@ -296,9 +308,7 @@ class PolicyServer:
         try:
             obs = unpackb(message)
             if isinstance(obs, dict) and obs.get(RESET) is True:  # {"reset": True[, "seed": int]}
-                seed = obs.get("seed")
-                if seed is not None and not isinstance(seed, int):
-                    raise PropError(f"a reset's seed is an int, not {type(seed).__name__}", "send an int")
+                seed = check_reset(obs)
                 await loop.run_in_executor(self._pool, session.reset, seed)
                 return packb({RESET: True})
             if session.runner is not None:  # a LeRobot chunk, batched with other connections'

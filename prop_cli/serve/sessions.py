@@ -43,6 +43,13 @@ def chunk_runner(
     return ChunkRunner(bundle, table, batch_no_key)
 
 
+def any_replica_answers(bundle: Bundle) -> bool:
+    """Whether a connection's requests can be answered by any copy of the policy, its state between calls
+    being no more than its episode's seed and call count (an array model; a LeRobot policy whose chunk
+    needs the frame alone, ``chunks.batchable``): what `prop serve-ray`'s replicas need."""
+    return bundle.loaded.policy is None or batchable(bundle)
+
+
 # An array model's observation entry (openpi's observations are dicts; a LeRobot policy's are its features).
 OBSERVATION = "observation"
 
