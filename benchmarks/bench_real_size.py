@@ -76,16 +76,18 @@ STATE, CAMERA, ACTION = "observation.state", "observation.images.front", "action
 DIMS = 6  # state and action values
 TASK_TEXT = "pick up the red block"
 RUNS = ("lerobot", "prop", "peft", "sealed", "gc")
-POLICIES = ("smolvla", "pi0")
+POLICIES = ("smolvla", "pi0", "pi05")
+PI = ("pi0", "pi05")  # built by build_pi0 (PaliGemma and its action expert)
 TINY_ENV = "BENCH_REAL_SIZE_TINY"  # set: the tiny SmolVLA / pi0 instead (tests; pi0 under pi_tiny.tiny())
 PHASES = ("setup", "precompute", "steps", "targets", "report")
 MARK = "BENCH-REAL-SIZE "  # the line a worker prints its figures on (stderr)
 
 
 # ---------------------------------------------------------------------------------------------- build
-def build_data(data_dir: Path, image: int, episodes: int, frames: int, seed: int = 0) -> dict:
+def build_data(data_dir: Path, image: int, episodes: int, frames: int, seed: int = 0, *,
+               quantiles: bool = False) -> dict:  # fmt: skip
     """The LeRobotDataset at ``data_dir`` (kept if already there) and its statistics as the policies'
-    processors take them."""
+    processors take them (``quantiles``: with q01 ... q99, which pi0.5's QUANTILES normalization reads)."""
     import numpy as np
     import torch
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
@@ -115,7 +117,7 @@ def build_data(data_dir: Path, image: int, episodes: int, frames: int, seed: int
     meta = LeRobotDatasetMetadata("local/real-size", root=data_dir)
     return {
         k: {s: torch.as_tensor(np.asarray(v), dtype=torch.float32) for s, v in meta.stats[k].items()
-            if s in ("mean", "std", "min", "max")}
+            if s in ("mean", "std", "min", "max") or (quantiles and s.startswith("q"))}
         for k in (STATE, ACTION, CAMERA)
     }  # fmt: skip
 
@@ -166,38 +168,43 @@ PI0_IMAGE = 224
 CHUNK = 2**25  # values generated at once when writing random weights (128 MB as fp32)
 
 
-def build_pi0(work: Path, stats: dict, seed: int = 0, *, tiny: bool = False, **overrides) -> Path:
-    """A pi0 policy folder under ``work`` (kept if already there): its config, processors (the tokenizer
-    step reading examples/pi_tiny.py's word-level tokenizer, written to ``work/tokenizer``; the embedding
-    keeps PaliGemma's 257,152 rows) and random weights. The model is built on the meta device (shapes
-    and dtypes only) and its weights written one tensor at a time (``write_random_safetensors``): 3.5 B
-    parameters in 7 GB, never the whole model in memory. ``tiny``: pi_tiny's sizes (loads only under
-    ``pi_tiny.tiny()``; tests)."""
+def build_pi0(work: Path, stats: dict, seed: int = 0, *, tiny: bool = False, kind: str = "pi0",
+              **overrides) -> Path:  # fmt: skip
+    """A pi0 (``kind`` pi05: pi0.5, its PI05Config defaults: the same PaliGemma and expert, quantile
+    normalization, the state as discretized text) policy folder under ``work`` (kept if already there):
+    its config, processors (the tokenizer step reading examples/pi_tiny.py's word-level tokenizer,
+    written to ``work/tokenizer``; the embedding keeps PaliGemma's 257,152 rows) and random weights. The
+    model is built on the meta device (shapes and dtypes only) and its weights written one tensor at a
+    time (``write_random_safetensors``): 3.5 B parameters in 7 GB, never the whole model in memory.
+    ``tiny``: pi_tiny's sizes (loads only under ``pi_tiny.tiny()``; tests)."""
     import contextlib
     import copy
+    import importlib
 
     import torch
-    from lerobot.policies.pi0.configuration_pi0 import PI0Config
-    from lerobot.policies.pi0.modeling_pi0 import PI0Policy
 
     from examples import pi_tiny
 
-    policy_dir = work / ("pi0-tiny" if tiny else "pi0")
+    package, config_name, policy_name = pi_tiny.KINDS[kind]
+    lerobot = f"lerobot.policies.{package}"
+    config_class = getattr(importlib.import_module(f"{lerobot}.configuration_{package}"), config_name)
+    policy_class = getattr(importlib.import_module(f"{lerobot}.modeling_{package}"), policy_name)
+    policy_dir = work / (f"{kind}-tiny" if tiny else kind)
     if (policy_dir / "model.safetensors").is_file():
         return policy_dir
     tok = pi_tiny.build_tokenizer(work / "tokenizer")
     sizes = dict(chunk_size=10, n_action_steps=5, max_state_dim=8, max_action_dim=8, tokenizer_max_length=16,
                  image_resolution=(pi_tiny.IMAGE, pi_tiny.IMAGE)) if tiny else {}  # fmt: skip
     image = pi_tiny.IMAGE if tiny else PI0_IMAGE
-    cfg = PI0Config(**features(image), device="cpu", dtype="bfloat16", **(sizes | overrides))
+    cfg = config_class(**features(image), device="cpu", dtype="bfloat16", **(sizes | overrides))
     on_meta = copy.copy(cfg)
     on_meta.device = "meta"  # PI0Policy moves its model to config.device
     with pi_tiny.tiny() if tiny else contextlib.nullcontext(), torch.device("meta"):
-        policy = PI0Policy(on_meta)
+        policy = policy_class(on_meta)
     policy_dir.mkdir(parents=True, exist_ok=True)
     write_random_safetensors(policy, policy_dir / "model.safetensors", seed)
     cfg.save_pretrained(policy_dir)
-    for part in pi_tiny.local_processors("pi0", cfg, tok, stats):
+    for part in pi_tiny.local_processors(kind, cfg, tok, stats):
         part.save_pretrained(policy_dir)
     return policy_dir
 
@@ -609,16 +616,16 @@ def _main(argv: list[str]) -> None:
     work.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     tiny = bool(os.environ.get(TINY_ENV))
-    if args.policy == "pi0":
+    if args.policy in PI:
         args.image = args.image or PI0_IMAGE
-        data_dir = work / "data-pi0"
-        stats = build_data(data_dir, args.image, args.episodes, args.frames)
-        policy_dir = build_pi0(work, stats, tiny=tiny)
+        data_dir = work / "data-pi0"  # the same data for both
+        stats = build_data(data_dir, args.image, args.episodes, args.frames, quantiles=args.policy == "pi05")
+        policy_dir = build_pi0(work, stats, tiny=tiny, kind=args.policy)
     else:
         args.image = args.image or 512
         policy_dir, data_dir = build(work, args.image, args.episodes, args.frames, tiny=tiny)
     if args.gradient_checkpointing:
-        if args.policy != "pi0":
+        if args.policy not in PI:
             raise SystemExit("--gradient-checkpointing: SmolVLA's config offers no gradient checkpointing")
         args.set.append(f"gradient_checkpointing={json.dumps(args.gradient_checkpointing == 'on')}")
     if args.set:  # the policy's config.json, as LeRobot's runs and prop's read it
