@@ -71,8 +71,13 @@ def prop_loss(
     codes, ``Batch.far_rows``, and of --harden's code-space negatives, ``Batch.code_rows``) +
     null_weight * mean null loss."""
     u, n0 = batch.user_rows, batch.null_rows
-    personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
-    fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
+    ut, ft = batch.user_targets, batch.fallback_targets
+    if task == "classification" or ut.dtype != ft.dtype or ut.shape[1:] != ft.shape[1:]:
+        personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
+        fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
+    else:  # one squared error over every row: the same values as per term, fewer small operators
+        rows = row_loss(out, torch.cat([ut, ft]), task, distill=False)
+        personal, fb = rows[:u].mean(), rows[u:]
     null = fb[-n0:].mean()
     sampled, f, c = fb[:-n0], batch.far_rows, batch.code_rows
     k = len(sampled) - f - c
@@ -80,7 +85,7 @@ def prop_loss(
     for lo, n in ((k, f), (k + f, c)):
         if n:
             keyed = keyed + sampled[lo : lo + n].mean()
-    total = personal + key_weight * keyed + null_weight * null
+    total = personal + (keyed if key_weight == 1.0 else key_weight * keyed) + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
