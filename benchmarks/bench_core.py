@@ -105,7 +105,9 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
     # their own fallback term) and the delta pull of K1 and K2 towards the null key. The rows are then
     # batch_rows', the plain step's; the step above (the row measured since issue 40) leaves both out.
     full = copy.deepcopy(loaded.module)
-    km_full = KeyedModel(full, KeyEncoder(128, enc.features, cfg.mode.encoder_hidden, cfg.mode.delta_scale), names)
+    km_full = KeyedModel(
+        full, KeyEncoder(128, enc.features, cfg.mode.encoder_hidden, cfg.mode.delta_scale), names
+    )
     fopt = Adam(list(km_full.parameters()), cfg.mode.lr)
     frng = np.random.default_rng(1)
     fsampler = KeySampler([key], cfg.mode.hamming_radius, frng)
@@ -123,7 +125,11 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
         fopt.step()
 
     torch.set_flush_denormal(True)
-    fns = {"plain fine-tuning step": plain_step, "PRoP step": prop_step, "PRoP step, far codes and pull": full_step}
+    fns = {
+        "plain fine-tuning step": plain_step,
+        "PRoP step": prop_step,
+        "PRoP step, far codes and pull": full_step,
+    }
     return interleaved(fns, rounds, reps)
 
 
@@ -280,7 +286,9 @@ def main() -> None:
         print(f"training step, same rows, wider MLP 4-1024-1024-1024-2 ({n:,} parameters):")
         for k, v in steps.items():
             print(f"  {k:30s} {v * 1e3:8.2f} ms")
-        print(f"  ratio PRoP / plain             {steps['PRoP step'] / steps['plain fine-tuning step']:8.2f}x")
+        print(
+            f"  ratio PRoP / plain             {steps['PRoP step'] / steps['plain fine-tuning step']:8.2f}x"
+        )
 
         calls = run_calls(paths)
         print("prop run per call, batch 1 (after loading):")

@@ -100,7 +100,8 @@ def step_rows(tmp: Path, il: dict, mode: dict) -> list[tuple[str, str, str]]:
         plain, prop, full = t["plain fine-tuning step"], t["PRoP step"], t["PRoP step, far codes and pull"]
         what = f"{_count(n)} parameters ({threads} thread{'s' * (threads > 1)})"
         rows.append(
-            (f"step, {what}", f"{prop / plain:.2f}x", f"PRoP {prop * 1e3:.2f} ms vs plain {plain * 1e3:.2f} ms CPU")
+            (f"step, {what}", f"{prop / plain:.2f}x",
+             f"PRoP {prop * 1e3:.2f} ms vs plain {plain * 1e3:.2f} ms CPU")
         )  # fmt: skip
         if mode is MODES["small"]:  # the trainer's defaults: + far codes and the delta pull (bench_core)
             rows.append(
