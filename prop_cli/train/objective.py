@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from prop_cli.core.keyed_model import JoinedDeltas
 from prop_cli.errors import PropError
 
 
@@ -133,9 +134,12 @@ def delta_pull(deltas: list[torch.Tensor], keys: slice, of: int | None = None) -
     the weight it had when the far codes were pulled with it. Handed the far codes' share instead, the
     pull on each wrong key tripled on the LeRobot examples (8 sampled keys, 16 far codes) and LeRobot
     Diffusion's user key lost 7.5% of its personalization (2 seeds), against +0.7% keeping the weight."""
-    parts = [d[keys] for d in deltas]
-    if not parts or parts[0].shape[0] == 0:
+    if isinstance(deltas, JoinedDeltas):  # every layer's block side by side already: no cat
+        sq = deltas.joined[keys]
+    else:
+        sq = torch.cat([d[keys] for d in deltas], 1)
+    if sq.shape[0] == 0:
         return deltas[0].new_zeros(())
-    sq = torch.cat(parts, 1).float().sub(1).pow(2)
+    sq = sq.float().sub(1).pow(2)
     return sq.sum() / ((of or sq.shape[0]) * sq.shape[1])
 

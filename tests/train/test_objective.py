@@ -179,3 +179,18 @@ def test_an_all_noisy_fallback_draw_takes_no_given_rows_and_leaves_the_stream_as
     bank = FallbackPool(x, original, noise=1.0, sigma=0.5)._noisy(8, twin)
     assert torch.equal(xs, bank[0]) and torch.equal(ts, bank[1])
     assert rng.integers(0, 2**62) == twin.integers(0, 2**62)
+
+
+def test_delta_pull_on_joined_deltas_is_the_per_layer_pull_bit_for_bit():
+    from prop_cli.core.keyed_model import JoinedDeltas
+
+    torch.manual_seed(1)
+    joined = (1 + torch.randn(7, 5)).requires_grad_()
+    split = JoinedDeltas(joined, [2, 3])
+    as_list = [d.clone() for d in split]
+    for keys, of in ((slice(1, 4), 6), (slice(2, 2), None)):
+        got, want = delta_pull(split, keys, of), delta_pull(as_list, keys, of)
+        assert torch.equal(got, want)
+    (grad,) = torch.autograd.grad(delta_pull(split, slice(1, 4), 6), joined)
+    (want_grad,) = torch.autograd.grad(delta_pull(list(split), slice(1, 4), 6), joined)
+    assert torch.equal(grad, want_grad) and grad[1:4].abs().sum() > 0 and grad[4:].abs().sum() == 0
