@@ -200,18 +200,19 @@ def step_profile(paths: dict, steps: int = 1000) -> dict[str, float]:
     out = {k: v / steps for k, v in parts.items()}
     # The matrix products alone (torch's profiler: self CPU time of aten::mm and aten::addmm), what no
     # trimming of small operators removes: the floor of the ratio at this size.
-    # Under the profiler both steps run slower (each operator recorded), so only the products' ratio
-    # and their share of each profiled step are reported, both from the same profiled runs.
+    # Under the profiler both steps run slower (each operator recorded, the small ones most), so only the
+    # products' ratio and their share of each profiled step are reported, both from the same profiled
+    # runs; the shares are then low, and the floor below a low estimate.
     mm = {"PRoP": 0.0, "plain": 0.0}
     whole = {"PRoP": 0.0, "plain": 0.0}
     products = ("aten::mm", "aten::addmm")
     for _ in range(3):
         for name, fn in (("PRoP", step), ("plain", plain_step)):
-            t = clock()
             with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+                t = clock()  # the steps only, not the profiler's start and stop
                 for _ in range(steps // 10):
                     fn()
-            whole[name] += clock() - t
+                whole[name] += clock() - t
             mm[name] += sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in products) * 1e-6
     parts.clear()
     out["matrix products, PRoP / plain"] = mm["PRoP"] / mm["plain"]
