@@ -82,11 +82,27 @@ class KeyEncoder(nn.Module):
         self.net = nn.Sequential(*layers, last)
 
     def forward(self, codes: torch.Tensor) -> list[torch.Tensor]:
-        return list((1.0 + self.scale * torch.tanh(self.net(codes))).split(self.features, dim=1))
+        return list(self.joined(codes).split(self.features, dim=1))
+
+    def joined(self, codes: torch.Tensor) -> torch.Tensor:
+        """Every layer's delta side by side, (K, sum(features)): what ``forward`` splits."""
+        return 1.0 + self.scale * torch.tanh(self.net(codes))
 
     def latent(self, codes: torch.Tensor) -> torch.Tensor:
         """All layers' delta concatenated, (K, sum(features))."""
         return torch.cat(self(codes), dim=1)
+
+
+class JoinedDeltas(list):
+    """Per-layer deltas (a list, as everywhere) that are column blocks of one (K, sum(features)) tensor,
+    ``joined``: ``KeyedModel.run_rows`` then picks every layer's rows with one gather instead of one per
+    layer (the 38k MLP's step: docs/speed.md, "The small-model step"). The blocks are ``split`` views
+    of ``joined``, so gradients through either reach the encoder."""
+
+    def __init__(self, joined: torch.Tensor, features: list[int]) -> None:
+        super().__init__(joined.split(features, dim=1))
+        self.joined = joined
+        self.features = list(features)
 
 
 # (key, sample) rows per forward when evaluating many keys: activations stay in cache (best on the IL MLP).
@@ -248,9 +264,14 @@ class KeyedModel(nn.Module):
 
     def layer_deltas(self, codes: torch.Tensor | None, null: int = 0) -> list[torch.Tensor]:
         """delta per layer for K codes, then ``null`` rows of ones (the null key, delta = 1)."""
-        parts = [] if codes is None or len(codes) == 0 else self.encoder(codes)
-        if not parts:
+        if codes is None or len(codes) == 0:
             return [torch.ones(null, f, device=self._device()) for f in self.encoder.features]
+        if null and type(self.encoder) is KeyEncoder:
+            # One tensor for all layers, the null rows appended once (the same values as below).
+            joined = self.encoder.joined(codes)
+            joined = torch.cat([joined, joined.new_ones(null, joined.shape[1])])
+            return JoinedDeltas(joined, self.encoder.features)
+        parts = self.encoder(codes)
         if null:
             return [torch.cat([p, p.new_ones(null, p.shape[1])]) for p in parts]
         return parts
@@ -266,7 +287,10 @@ class KeyedModel(nn.Module):
         sample_index: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Output for rows (sample_index[r], key_index[r]); key_index picks a row of each delta."""
-        row_deltas = [d.index_select(0, key_index) for d in deltas]
+        if isinstance(deltas, JoinedDeltas):
+            row_deltas = list(deltas.joined.index_select(0, key_index).split(deltas.features, dim=1))
+        else:
+            row_deltas = [d.index_select(0, key_index) for d in deltas]
         if sample_index is not None and not self._sharing_ok(x, deltas):
             x, sample_index = x.index_select(0, sample_index), None
         self._rows = _Rows(row_deltas, sample_index)

@@ -68,6 +68,8 @@ class FallbackPool:
 
     def draw(self, n: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         k = int(round(self.noise * n))
+        if k == n:  # all noisy (the default): no given rows to gather (drawing none leaves rng as it was)
+            return self._noisy(k, rng)
         idx = torch.from_numpy(rng.integers(0, len(self.x), n - k)).to(self.x.device)
         x, t = self.x[idx], self.targets[idx]
         if k:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from prop_cli.core.keyed_model import JoinedDeltas
 from prop_cli.errors import PropError
 
 
@@ -71,8 +72,13 @@ def prop_loss(
     codes, ``Batch.far_rows``, and of --harden's code-space negatives, ``Batch.code_rows``) +
     null_weight * mean null loss."""
     u, n0 = batch.user_rows, batch.null_rows
-    personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
-    fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
+    ut, ft = batch.user_targets, batch.fallback_targets
+    if task == "classification" or ut.dtype != ft.dtype or ut.shape[1:] != ft.shape[1:]:
+        personal = row_loss(out[:u], batch.user_targets, task, distill=False).mean()
+        fb = row_loss(out[u:], batch.fallback_targets, task, distill=True)
+    else:  # one squared error over every row: the same values as per term, fewer small operators
+        rows = row_loss(out, torch.cat([ut, ft]), task, distill=False)
+        personal, fb = rows[:u].mean(), rows[u:]
     null = fb[-n0:].mean()
     sampled, f, c = fb[:-n0], batch.far_rows, batch.code_rows
     k = len(sampled) - f - c
@@ -80,7 +86,7 @@ def prop_loss(
     for lo, n in ((k, f), (k + f, c)):
         if n:
             keyed = keyed + sampled[lo : lo + n].mean()
-    total = personal + key_weight * keyed + null_weight * null
+    total = personal + (keyed if key_weight == 1.0 else key_weight * keyed) + null_weight * null
     return total, {"personal": personal.item(), "fallback": keyed.item(), "null": null.item()}
 
 
@@ -128,9 +134,12 @@ def delta_pull(deltas: list[torch.Tensor], keys: slice, of: int | None = None) -
     the weight it had when the far codes were pulled with it. Handed the far codes' share instead, the
     pull on each wrong key tripled on the LeRobot examples (8 sampled keys, 16 far codes) and LeRobot
     Diffusion's user key lost 7.5% of its personalization (2 seeds), against +0.7% keeping the weight."""
-    parts = [d[keys] for d in deltas]
-    if not parts or parts[0].shape[0] == 0:
+    if isinstance(deltas, JoinedDeltas):  # every layer's block side by side already: no cat
+        sq = deltas.joined[keys]
+    else:
+        sq = torch.cat([d[keys] for d in deltas], 1)
+    if sq.shape[0] == 0:
         return deltas[0].new_zeros(())
-    sq = torch.cat(parts, 1).float().sub(1).pow(2)
+    sq = sq.float().sub(1).pow(2)
     return sq.sum() / ((of or sq.shape[0]) * sq.shape[1])
 

@@ -178,3 +178,37 @@ def test_hashed_codes_are_shake256_of_the_domain_and_key():
         want = np.unpackbits(np.frombuffer(digest, np.uint8)).astype(np.float32) * 2 - 1
         assert np.array_equal(code.numpy(), want)
     assert torch.equal(key_codes(bits[0], "hashed"), got[:1])
+
+
+def test_joined_deltas_give_the_per_layer_paths_outputs_and_gradients_bit_for_bit():
+    """layer_deltas(null=1) returns every layer's delta as blocks of one tensor, and run_rows gathers them
+    at once (the small-model step); outputs and every gradient, a term on the deltas themselves included,
+    are those of one gather per layer of separately built deltas."""
+    from prop_cli.core.keyed_model import JoinedDeltas
+
+    module = _mlp()
+    km = _keyed(module, ["2", "4"])
+    codes = _codes(5)
+    x = torch.randn(6, 4)
+    key_index = torch.tensor([0, 0, 1, 2, 3, 4, 5, 5, 5])
+    sample_index = torch.tensor([0, 1, 2, 3, 4, 5, 0, 2, 4])
+
+    def run(joined: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        km.zero_grad(set_to_none=True)
+        if joined:
+            deltas = km.layer_deltas(codes, null=1)
+            assert isinstance(deltas, JoinedDeltas) and [d.shape for d in deltas] == [(6, 8), (6, 8)]
+        else:
+            deltas = [torch.cat([p, p.new_ones(1, p.shape[1])]) for p in km.encoder(codes)]
+        out = km.run_rows(x, deltas, key_index, sample_index)
+        pull = sum((d[1:3] - 1).pow(2).sum() for d in deltas)  # a second path into the same deltas
+        (out.pow(2).sum() + pull).backward()
+        return out.detach(), [p.grad.clone() for p in km.parameters()]
+
+    out_joined, grads_joined = run(True)
+    out_layers, grads_layers = run(False)
+    assert torch.equal(out_joined, out_layers)
+    assert all(torch.equal(a, b) for a, b in zip(grads_joined, grads_layers))
+    assert all(g.abs().sum() > 0 for g in grads_joined[: len(list(km.encoder.parameters()))])
+    ref = _reference(module, ["2", "4"], km.layer_deltas(codes, null=1), x)  # and still Eq. 5
+    torch.testing.assert_close(out_joined, ref[key_index, sample_index])

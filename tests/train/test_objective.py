@@ -140,3 +140,57 @@ def test_users_with_close_keys_are_refused():
     check_user_keys([a, b], radius=2)  # 5 bits apart, radius 2: K1 sets do not overlap
     with pytest.raises(PropError, match="5 bits apart"):
         check_user_keys([a, b], radius=3)
+
+
+def test_prop_loss_on_every_row_at_once_is_the_per_term_loss_bit_for_bit():
+    """Regression: one squared error over all rows (fewer small operators a step), sliced into Eq. 8's
+    terms, gives each term and the gradient exactly as a row_loss per term does; float64 user targets
+    (not the fallback's dtype) take the per-term path."""
+    torch.manual_seed(0)
+    batch, _ = _batch(user=5, keyed=9, null=4, d=3)
+    batch.far_rows = 3
+    batch.user_targets, batch.fallback_targets = torch.randn(5, 3), torch.randn(13, 3)
+    out = torch.randn(18, 3, requires_grad=True)
+
+    def by_term(out: torch.Tensor) -> torch.Tensor:
+        personal = row_loss(out[:5], batch.user_targets, "regression", distill=False).mean()
+        fb = row_loss(out[5:], batch.fallback_targets, "regression", distill=False)
+        keyed = fb[:6].mean() + fb[6:9].mean()
+        return personal + keyed + 10.0 * fb[-4:].mean()
+
+    total, parts = prop_loss(out, batch, "regression", null_weight=10.0)
+    (grad,) = torch.autograd.grad(total, out)
+    want = by_term(out)
+    (want_grad,) = torch.autograd.grad(want, out)
+    assert torch.equal(total, want) and torch.equal(grad, want_grad)
+    assert parts["null"] == row_loss(out[-4:], batch.fallback_targets[-4:], "regression", False).mean().item()
+    batch.user_targets = batch.user_targets.double()
+    total64, _ = prop_loss(out, batch, "regression", null_weight=10.0)
+    assert torch.equal(total64, by_term(out))
+
+
+def test_an_all_noisy_fallback_draw_takes_no_given_rows_and_leaves_the_stream_as_drawing_none_did():
+    x = torch.randn(40, 3)
+    original = torch.nn.Linear(3, 2)
+    rng, twin = np.random.default_rng(5), np.random.default_rng(5)
+    xs, ts = FallbackPool(x, original, noise=1.0, sigma=0.5).draw(8, rng)
+    assert not any((xs[i] == x).all(1).any() for i in range(8))
+    twin.integers(0, len(x), 0)  # what the draw did before: no given rows, drawn all the same
+    bank = FallbackPool(x, original, noise=1.0, sigma=0.5)._noisy(8, twin)
+    assert torch.equal(xs, bank[0]) and torch.equal(ts, bank[1])
+    assert rng.integers(0, 2**62) == twin.integers(0, 2**62)
+
+
+def test_delta_pull_on_joined_deltas_is_the_per_layer_pull_bit_for_bit():
+    from prop_cli.core.keyed_model import JoinedDeltas
+
+    torch.manual_seed(1)
+    joined = (1 + torch.randn(7, 5)).requires_grad_()
+    split = JoinedDeltas(joined, [2, 3])
+    as_list = [d.clone() for d in split]
+    for keys, of in ((slice(1, 4), 6), (slice(2, 2), None)):
+        got, want = delta_pull(split, keys, of), delta_pull(as_list, keys, of)
+        assert torch.equal(got, want)
+    (grad,) = torch.autograd.grad(delta_pull(split, slice(1, 4), 6), joined)
+    (want_grad,) = torch.autograd.grad(delta_pull(list(split), slice(1, 4), 6), joined)
+    assert torch.equal(grad, want_grad) and grad[1:4].abs().sum() > 0 and grad[4:].abs().sum() == 0
