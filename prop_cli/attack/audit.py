@@ -279,6 +279,9 @@ def audit(
                 found = probe.run(here)
                 rows = [_row(g, probe, task) for g in found]
                 _controls(probe, here, found, rows, models, task)
+                said = [line for p, line in ctx.shortcuts if p == name]  # the work done once, not repeated
+                for row in rows:
+                    row["shortcuts"] = said
                 timing[name] = time.perf_counter() - t0
                 warnings += [g.note for g in found if g.note]
                 groups += rows
