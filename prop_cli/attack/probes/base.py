@@ -458,6 +458,9 @@ class Probe:
     needs: str | None = None
     default: bool = True  # part of the default audit
     white_box: bool = False  # reads the bundle's weights (not only runs keys): left out by --search
+    # Whether its answer is already in hand in this audit (a search another probe ran on the same model),
+    # so that it still runs, at no cost, once the budget is spent
+    known: Callable[[ProbeContext], bool] | None = None
 
     def __post_init__(self) -> None:
         if self.threat not in THREATS or self.kind not in KINDS:

@@ -198,5 +198,5 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
 PROBE = Probe(
     "fewshot", "T3", "search",
     "the code and the delta fitted to k = 1..64 of your samples; control: the same on the original",
-    run, control=control, needs="key",
+    run, control=control, needs="key", known=lambda ctx: not _ks(ctx),  # no rows outside the sample: no fit
 )  # fmt: skip

@@ -45,6 +45,16 @@ def run(ctx: ProbeContext) -> list[Group]:
     return [group]
 
 
+def known(ctx: ProbeContext) -> bool:
+    """Whether this search, and its control's, would reuse a search that already ran (``run``)."""
+    done = ctx.kept.get(_same_search(ctx))
+    return (
+        done is not None
+        and (done[2] or ctx.shared_searches)
+        and (ctx.original is None or ctx.kept.get(_same_search(ctx.on(ctx.original))) is done)
+    )
+
+
 def _search(ctx: ProbeContext) -> list[Group]:
     s = ctx.settings
     scale = ctx.km.encoder.scale
@@ -64,5 +74,5 @@ def _search(ctx: ProbeContext) -> list[Group]:
 
 PROBE = Probe(
     "latent", "T2", "search", "each keyed layer's delta optimised directly, skipping the encoder", run,
-    control=on_original(run),
+    control=on_original(run), known=known,
 )  # fmt: skip
