@@ -153,3 +153,36 @@ def test_a_blank_encoder_is_told_from_a_trained_one():
         enc.net[-1].bias.zero_()
         enc.net[0].weight[0, 0] = float("inf")  # 0 x inf is not 0: not blank
     assert not enc.blank()
+
+
+def test_a_search_the_budget_cuts_short_is_still_run_once_for_the_row_and_its_controls(sealed, monkeypatch):
+    """Under a budget the search on the base is cut short; it is one computation for relaxed's control,
+    latent's row and latent's control, so it runs once and the row equals its control (beyond 0), where
+    before each ran its own share (and the last ran on nothing)."""
+    import prop_cli.attack.probes.base as base
+    from prop_cli.attack.probes import latent
+
+    calls = []
+    real = latent._search
+    monkeypatch.setattr(latent, "_search", lambda ctx: calls.append(1) or real(ctx))
+
+    def budgeted(shared: bool) -> dict:
+        clock = iter(range(10**7))  # every look at the clock moves it a second
+        with monkeypatch.context() as m:
+            m.setattr(base.time, "perf_counter", lambda: float(next(clock)))
+            m.setattr(audit_mod.time, "perf_counter", lambda: float(next(clock)))
+            if not shared:
+                _without_shortcuts(m)
+            bundle = load_bundle(sealed / "sealed.prop")
+            data = load_data(sealed / "mine.npz")
+            s = AuditSettings(**(SMALL | {"probes": ["relaxed", "latent"], "budget": 40.0}))
+            return audit_mod.audit(bundle, data, [read_key_file(sealed / "k.bin", bundle.key_bits)], s)
+
+    cut = budgeted(True)
+    assert "latent" in cut["coverage"]["cut_short"] and cut["coverage"]["not_tried"] == []
+    assert len(calls) == 1
+    row = next(g for g in cut["groups"] if g["name"] == "latent")
+    assert row["control"]["leakage"] == row["leakage"] and row["beyond"] == 0
+    calls.clear()
+    budgeted(False)
+    assert len(calls) >= 2  # before: relaxed's control and latent's row each ran the search
