@@ -63,13 +63,14 @@ def build(kind: str, root: Path) -> dict[str, Path]:
     return out
 
 
-def audit(paths: dict[str, Path], mode: str, max_leak: float) -> dict:
+def audit(paths: dict[str, Path], mode: str, max_leak: float, samples: int | None) -> dict:
     from prop_cli import api
     from prop_cli.attack.verdict import apply_max_leak
     from prop_cli.config import AuditSettings
 
     t = time.perf_counter()
-    report = api.audit_bundle(paths[mode], paths["user"], AuditSettings(), key_files=[paths["key"]],
+    settings = AuditSettings() if samples is None else AuditSettings(samples=samples)
+    report = api.audit_bundle(paths[mode], paths["user"], settings, key_files=[paths["key"]],
                               original=str(paths["policy"]))  # fmt: skip
     apply_max_leak(report, max_leak)
     report["process_seconds"] = time.perf_counter() - t
@@ -83,6 +84,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--modes", default="unsealed,sealed")
     ap.add_argument("--work", type=Path, default=None, help="build here (reused when it holds a build)")
     ap.add_argument("--max-leak", type=float, default=0.05)
+    ap.add_argument("--samples", type=int, default=None, help="the audit's --samples (default: its own)")
     args = ap.parse_args(argv)
     print("command:", shlex.join([Path(sys.executable).name, "-m", "benchmarks.bench_audit_pi", *argv]))
     from examples import pi_tiny
@@ -94,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
             (work / kind).mkdir(parents=True, exist_ok=True)
             paths = build(kind, work / kind)
             for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
-                r = audit(paths, mode, args.max_leak)
+                r = audit(paths, mode, args.max_leak, args.samples)
                 rows.append((kind, mode, r))
                 (work / f"{kind}-{mode}.json").write_text(json.dumps(r, indent=1, default=str))
     probes = []
