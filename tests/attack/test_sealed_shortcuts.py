@@ -186,3 +186,18 @@ def test_a_search_the_budget_cuts_short_is_still_run_once_for_the_row_and_its_co
     calls.clear()
     budgeted(False)
     assert len(calls) >= 2  # before: relaxed's control and latent's row each ran the search
+
+
+def test_max_leak_is_no_pass_when_the_budget_left_every_probe_untried(sealed, cli, monkeypatch):
+    """A real-size policy's reference and key can spend the whole budget: no row, so no decision, exit 1."""
+    import prop_cli.attack.probes.base as base
+
+    clock = iter(range(10**7))  # every look at the clock moves it a second: past a 1 s budget at once
+    monkeypatch.setattr(base.time, "perf_counter", lambda: float(next(clock)))
+    monkeypatch.setattr(audit_mod.time, "perf_counter", lambda: float(next(clock)))
+    d = sealed
+    r = cli("attack", d / "sealed.prop", "--data", d / "mine.npz", "--key-file", d / "k.bin", "--probes",
+            "relaxed", "--budget", "1", "--max-leak", "0.05")  # fmt: skip
+    assert r.code == 1, r.out
+    assert r.out.splitlines()[0].startswith("NO DECISION at --max-leak 0.05: no probe ran")
+    assert r.err.strip().splitlines()[-1].startswith("prop: leak check not done at --max-leak 0.05")
