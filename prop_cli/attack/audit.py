@@ -267,7 +267,10 @@ def audit(
             chosen = [n for n in s.probes if probes.probe_named(n).needs != "other-keys" or len(keys) > 1]
             for i, name in enumerate(chosen):
                 probe = probes.probe_named(name)
-                cheap = target.cheap_when_late(bundle, probe)
+                here = replace(ctx, probe=name)
+                cheap = target.cheap_when_late(bundle, probe) or (
+                    probe.known is not None and probe.known(here)
+                )
                 if ctx.out_of_time() and not cheap:
                     not_tried.append(name)
                     continue
@@ -279,6 +282,9 @@ def audit(
                 found = probe.run(here)
                 rows = [_row(g, probe, task) for g in found]
                 _controls(probe, here, found, rows, models, task)
+                said = [line for p, line in ctx.shortcuts if p == name]  # the work done once, not repeated
+                for row in rows:
+                    row["shortcuts"] = said
                 timing[name] = time.perf_counter() - t0
                 warnings += [g.note for g in found if g.note]
                 groups += rows

@@ -34,7 +34,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_dataset
 
 from .probes.base import ProbeContext
-from .probes.sealed_context import SealedContext, blank_keyed
+from .probes.sealed_context import SealedContext, blank_keyed, same_tensors
 
 
 def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bundle, Dataset, AuditSettings]:
@@ -172,10 +172,13 @@ def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, 
 
 
 def probe_context(bundle: Bundle, ctx: ProbeContext) -> ProbeContext:
-    """``ctx`` for this bundle: a sealed bundle's keys are tried on its records, as prop run does."""
+    """``ctx`` for this bundle: a sealed bundle's keys are tried on its records, as prop run does, a key
+    that opens none runs what prop run runs for it (the base), and its searches are their controls'."""
     if not bundle.is_sealed:
         return ctx
-    return SealedContext(**{f.name: getattr(ctx, f.name) for f in fields(ctx)}, records=bundle.records)
+    shared = ctx.original is not None and same_tensors(ctx.original.module, ctx.km.module)
+    given = {f.name: getattr(ctx, f.name) for f in fields(ctx)} | {"shared_searches": shared}
+    return SealedContext(**given, records=bundle.records, base=bundle.loaded.module)
 
 
 def controls_can_saturate(bundle: Bundle) -> bool:

@@ -44,6 +44,7 @@ FINDINGS = {
     "cross-user-shared": "another user's key shows your behaviour, and with users sharing one encoder the "
     "audit cannot tell how much of it is their own",
 }
+NOTHING_RAN = "no probe ran (the report's coverage says which were not tried): not a pass"
 CEILING_FINDING = (
     "the same attack gets your behaviour from the original too (control at the ceiling), so the audit "
     "cannot tell what the bundle adds"
@@ -111,8 +112,10 @@ def headline(report: dict, threshold: float | None = None) -> str | None:
     """The decision in one line: pass or fail at ``threshold`` and the main reason (without a
     threshold: the row that leaks most beyond its control). None without the user's key."""
     rows = [g for g in report["groups"] if g["gate"] is not None]
-    if report["user"] is None or not rows:
+    if report["user"] is None:
         return None
+    if not rows:  # e.g. a budget the reference and your key spent (a real-size policy): nothing to decide on
+        return None if threshold is None else f"NO DECISION at --max-leak {threshold:g}: {NOTHING_RAN}"
     top = severity(rows)[0]
     value, what = top["gate"]["value"], _what(top)
     if threshold is None:
@@ -142,9 +145,10 @@ def apply_max_leak(report: dict, threshold: float) -> list[tuple[str, float]]:
         raise PropError(f"--max-leak {threshold} is out of range", "use a leakage in [0, 1], e.g. 0.02")
     failing = leak_failures(report, threshold)
     rows = {g["name"]: g for g in report["groups"]}
+    ran = any(g["gate"] is not None for g in report["groups"])
     report["max_leak"] = {
         "threshold": threshold,
-        "passed": not failing,
+        "passed": ran and not failing,  # no row ran: no pass
         "verdict": headline(report, threshold),
         "reason": reason(report, rows[failing[0][0]]) if failing else None,
         "failing": [n for n, _ in failing],

@@ -47,17 +47,13 @@ SETTINGS = {
 
 
 Data = Annotated[Path, opt("--data", "The audited user's data (x, y); x alone without a key.")]
-KeyFiles = Annotated[
-    list[Path] | None, opt("--key-file", "The audited user's key; repeat for others' keys.")
-]
+KeyFiles = Annotated[list[Path] | None, opt("--key-file", "The audited user's key; repeat for others' keys.")]
 UserPassphrase = Annotated[bool, opt("--passphrase", "The audited user's key from a passphrase.")]
 CommaList = str | None
 Probes = Annotated[CommaList, opt("--probes", "Probes to run, comma-separated, or none (default: all).")]
 Search = Annotated[CommaList, opt("--search", "Older form of --probes: key probes + these searches.")]
 Hamming = Annotated[CommaList, opt("--hamming", "Hamming distances: 1..8, 1,2,4 or 3 (default 1..8).")]
-Original = Annotated[
-    str | None, opt("--original", "Original checkpoint: reference output, controls' model.")
-]
+Original = Annotated[str | None, opt("--original", "Original checkpoint: reference output, controls' model.")]
 JsonReport = Annotated[Path | None, opt("--json", f"Write the report ({AUDIT_SCHEMA}); - = stdout.")]
 Plot = Annotated[Path | None, opt("--plot", "Write a PNG of leakage/fidelity vs distance.")]
 MaxLeak = Annotated[
@@ -151,6 +147,10 @@ def attack(
             f"{row['min_core_years']:g}",
             file=sys.stderr,
         )
+        raise typer.Exit(1)
+    if max_leak is not None and not failing and not report["max_leak"]["passed"]:
+        print(f"prop: leak check not done at --max-leak {max_leak}: no probe ran; a larger --budget, or "
+              "fewer --samples, runs them", file=sys.stderr)  # fmt: skip
         raise typer.Exit(1)
     if failing:
         more = f" (and {plural(len(failing) - 1, 'more row')})" if len(failing) > 1 else ""

@@ -88,6 +88,16 @@ class KeyEncoder(nn.Module):
         """Every layer's delta side by side, (K, sum(features)): what ``forward`` splits."""
         return 1.0 + self.scale * torch.tanh(self.net(codes))
 
+    def blank(self) -> bool:
+        """Whether every code gives delta = 1 exactly: the head (last layer) is all zero and every weight
+        before it finite, so the head's output is 0 for any finite code (a fresh encoder; the attacker's
+        blank one over a sealed bundle's base)."""
+        last = self.net[-1]
+        with torch.no_grad():
+            return not (last.weight.any() or last.bias.any()) and all(
+                bool(p.isfinite().all()) for p in self.net[:-1].parameters()
+            )
+
     def latent(self, codes: torch.Tensor) -> torch.Tensor:
         """All layers' delta concatenated, (K, sum(features))."""
         return torch.cat(self(codes), dim=1)

@@ -117,6 +117,12 @@ class ProbeContext:
     cut: list[str] = field(default_factory=list)
     kept: dict = field(default_factory=dict)  # outputs computed once (the plain model's, per model)
     notes: list[str] = field(default_factory=list)  # lines for the report's warnings (shared, like cut)
+    # The attacked model is the searches' control model (a sealed bundle's base, keyed at the same layers
+    # and range): a search and its control are one computation, so one run serves both, cut short or not.
+    shared_searches: bool = False
+    # (probe, line): the work a probe did not repeat because its answer was known, said in its rows
+    # (shared, like notes).
+    shortcuts: list[tuple[str, str]] = field(default_factory=list)
 
     def affordable(self, rows: int, stage: str, passes: float = 3.0) -> bool:
         """Whether ``rows`` (key, sample) rows, each ``passes`` forwards' cost (3: a forward and its
@@ -175,6 +181,11 @@ class ProbeContext:
         if held is None or held[2] != versions:
             held = self.kept[key] = (km.module, x, versions, chain_keys(km, x))  # held: ids stay theirs
         return held[3]
+
+    def shortcut(self, line: str) -> None:
+        """Say in the running probe's rows that ``line``'s work was done once, not repeated."""
+        if (self.probe, line) not in self.shortcuts:
+            self.shortcuts.append((self.probe, line))
 
     @property
     def has_key(self) -> bool:
@@ -254,6 +265,8 @@ class ProbeContext:
         bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
         per = self.keys_per_chunk()
         rows = len(bits) + null
+        if self.km.encoder.blank():
+            return self._blank(rows, stage, outputs)
         return self._probe(
             rows,
             lambda i, j: self.key_deltas(bits[i : min(j, len(bits))], max(0, j - max(i, len(bits)))),
@@ -266,9 +279,29 @@ class ProbeContext:
     def probe_codes(self, codes: torch.Tensor, stage: str) -> dict[str, torch.Tensor]:
         """Score every encoder code (K, n) on every sample, all codes of a chunk in one forward."""
         per = self.keys_per_chunk()
+        if self.km.encoder.blank() and bool(codes.isfinite().all()):
+            return self._blank(len(codes), stage)
         return self._probe(
             len(codes), lambda i, j: self.km.layer_deltas(codes[i:j].to(self.ref.x.device)), per, stage
         )
+
+    def _blank(self, rows: int, stage: str, outputs: bool = False) -> dict[str, torch.Tensor]:
+        """``rows`` keys or codes through an encoder whose head is zero (``KeyEncoder.blank``): each one's
+        delta is 1 exactly, so each runs the plain model; its outputs (computed once) scored once."""
+        t0 = time.perf_counter()
+        base = self.plain()
+        one = self.scores(base[None])
+        values = {k: v.detach().cpu().expand(rows, *v.shape[1:]).clone() for k, v in one.items()}
+        if outputs:
+            values["outputs"] = base.expand(rows, *base.shape)
+        self.shortcut(
+            "every key's delta is 1 (the encoder's head is zero): the plain model, its outputs computed once"
+        )
+        self.counter.evals += rows * self.ref.x.shape[0]
+        self.counter.seconds += time.perf_counter() - t0
+        if self.progress:
+            self.progress(stage, rows, rows)
+        return values
 
     def _probe(
         self, rows: int, deltas_of: Callable, per: int, stage: str, outputs: bool = False
@@ -313,6 +346,15 @@ class ProbeContext:
         return self._probe(rows, lambda i, j: [d[i:j] for d in deltas], self.keys_per_chunk(), stage)
 
 
+def model_key(km: KeyedModel) -> tuple:
+    """What decides a keyed model's outputs for given deltas: its module's class and tensors (by identity
+    and version: a sealed bundle's attacked model and its control share the base's), its keyed layers,
+    their batch axes and its encoder's range and widths."""
+    tensors = tuple((id(t), t._version) for t in (*km.module.parameters(), *km.module.buffers()))
+    return (type(km.module), tensors, tuple(km.layer_names), tuple(sorted(km.batch_axis.items())),
+            float(km.encoder.scale), tuple(km.encoder.features))  # fmt: skip
+
+
 def cat_scores(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     return {k: torch.cat([p[k].detach().cpu() for p in parts]) for k in parts[0]}
 
@@ -331,8 +373,9 @@ def maximise_divergence(
     """Adam on all restarts at once (each restart is one key row); maximise each one's divergence."""
     s = ctx.settings
     first = make_deltas()
-    if not moves(params, first):
-        return  # no delta depends on the parameters: every gradient is 0 and Adam leaves them as they are
+    if not moves(params, first):  # no delta depends on the parameters: every gradient is 0 and Adam
+        ctx.shortcut(NOT_STEPPED)  # leaves them as they are
+        return
     opt = torch.optim.Adam(params, lr=s.search_lr)
     n = len(ctx.ref.x)
     x, b = ctx.ref.x, ctx.ref.b
@@ -350,6 +393,11 @@ def maximise_divergence(
         opt.step()
         if ctx.progress and (step % 10 == 9 or step == s.search_steps - 1):
             ctx.progress(stage, step + 1, s.search_steps)
+
+
+NOT_STEPPED = (
+    "the search's deltas do not depend on what it optimises (a blank encoder's zero head): not stepped"
+)
 
 
 def moves(params: list[torch.Tensor], deltas: list[torch.Tensor]) -> bool:
@@ -410,6 +458,9 @@ class Probe:
     needs: str | None = None
     default: bool = True  # part of the default audit
     white_box: bool = False  # reads the bundle's weights (not only runs keys): left out by --search
+    # Whether its answer is already in hand in this audit (a search another probe ran on the same model),
+    # so that it still runs, at no cost, once the budget is spent
+    known: Callable[[ProbeContext], bool] | None = None
 
     def __post_init__(self) -> None:
         if self.threat not in THREATS or self.kind not in KINDS:

@@ -18,11 +18,12 @@ The k samples are rows of ``--data`` outside the audit sample. The code fit's bu
 from __future__ import annotations
 
 import copy
+import zlib
 
 import torch
 import torch.nn.functional as F
 
-from .base import Group, Probe, ProbeContext, Reference, codes_unenrolled, moves
+from .base import NOT_STEPPED, Group, Probe, ProbeContext, Reference, codes_unenrolled, model_key, moves
 
 SHOTS = (1, 4, 16, 64)
 RESTARTS, STEPS, LR = 8, 100, 0.1  # the delta fit's budget (its control runs the same)
@@ -67,6 +68,8 @@ def fit_codes(
 
     if moves([theta], km.layer_deltas(torch.tanh(theta / 2))):  # else every gradient is 0: nothing moves
         _fit([theta], loss, steps, ctx=ctx, stage=f"fewshot k={len(shots.x)}", rows=restarts * len(shots.x))
+    else:
+        ctx.shortcut(NOT_STEPPED)
     with torch.no_grad():
         return torch.tanh(theta / 2), loss()
 
@@ -77,7 +80,26 @@ def _fit_code(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> torc
     return codes[int(torch.argmin(losses))][None]
 
 
+SHARED = "same model as control: the delta fit measured once, for this row and its control"
+
+
 def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> list[torch.Tensor]:
+    """The delta fit, or its result where the attacked model is its control's (a sealed bundle's base,
+    ``ProbeContext.shared_searches``) and the same fit already ran: the row and its control are then one
+    computation (``latent._same_search``'s model key, the same shots and generator state)."""
+    if not ctx.shared_searches:
+        return _fit_delta_run(ctx, shots, gen)
+    key = ("fewshot delta", model_key(ctx.km), id(ctx.shots.x), len(shots.x), ctx.probe,
+           zlib.crc32(gen.get_state().numpy().tobytes()))  # fmt: skip
+    ctx.shortcut(SHARED)
+    done = ctx.kept.get(key)
+    if done is None:
+        fitted = _fit_delta_run(ctx, shots, gen)
+        done = ctx.kept[key] = (fitted, ctx.km.module, ctx.shots.x)  # held: their ids stay theirs
+    return done[0]
+
+
+def _fit_delta_run(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> list[torch.Tensor]:
     km, scale = ctx.km, ctx.km.encoder.scale
     phis = []
     for f in km.encoder.features:
@@ -95,6 +117,18 @@ def _fit_delta(ctx: ProbeContext, shots: Reference, gen: torch.Generator) -> lis
     with torch.no_grad():
         i = int(torch.argmin(loss()))
         return [d[i : i + 1].detach() for d in deltas()]
+
+
+def _score_deltas(ctx: ProbeContext, deltas: list[torch.Tensor], stage: str) -> dict[str, torch.Tensor]:
+    """``probe_deltas``, scored once where the row and its control are one computation (the same fitted
+    deltas on the same model: ``ProbeContext.shared_searches``)."""
+    if not ctx.shared_searches:
+        return ctx.probe_deltas(deltas, stage)
+    key = ("fewshot scores", model_key(ctx.km), id(deltas[0]), id(ctx.ref.x))
+    done = ctx.kept.get(key)
+    if done is None:
+        done = ctx.kept[key] = (ctx.probe_deltas(deltas, stage), ctx.km.module, deltas, ctx.ref.x)
+    return done[0]
 
 
 def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
@@ -138,7 +172,7 @@ def run(ctx: ProbeContext) -> list[Group]:
         code = _fit_code(ctx, shots, ctx.generator())
         rounded = torch.where(code >= 0, 1.0, -1.0)
         parts = [ctx.probe_codes(code, f"fewshot k={k}"),
-                 ctx.probe_deltas(_fit_delta(ctx, shots, ctx.generator()), f"fewshot k={k}")]  # fmt: skip
+                 _score_deltas(ctx, _fit_delta(ctx, shots, ctx.generator()), f"fewshot k={k}")]  # fmt: skip
         groups.append(_group(k, parts, ["code (relaxed)", "delta"]))
         key = _group(k, [ctx.probe_codes(rounded, f"fewshot k={k}")], ["code (rounded)"])
         key.name, key.codes, key.kind = f"fewshot k={k} rounded", rounded, "key"
@@ -156,7 +190,7 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
     for k in _ks(ctx):
         shots = shots_of(ctx, k)
         fitted = _fit_delta(orig, shots, ctx.generator())
-        parts = [orig.probe_deltas(fitted, f"fewshot k={k} control"), _finetune(orig, shots)]
+        parts = [_score_deltas(orig, fitted, f"fewshot k={k} control"), _finetune(orig, shots)]
         groups.append(_group(k, parts, ["delta", "fine-tune keyed layers"]))
     return groups
 
@@ -164,5 +198,5 @@ def control(ctx: ProbeContext, found: list[Group]) -> list[Group]:
 PROBE = Probe(
     "fewshot", "T3", "search",
     "the code and the delta fitted to k = 1..64 of your samples; control: the same on the original",
-    run, control=control, needs="key",
+    run, control=control, needs="key", known=lambda ctx: not _ks(ctx),  # no rows outside the sample: no fit
 )  # fmt: skip

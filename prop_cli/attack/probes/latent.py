@@ -22,18 +22,37 @@ def _same_search(ctx: ProbeContext) -> tuple:
             s.seed, s.restarts, s.search_steps, s.search_lr, s.search_batch)  # fmt: skip
 
 
+SHARED = "same model as control: the search measured once, for this row and its control"
+
+
 def run(ctx: ProbeContext) -> list[Group]:
-    """The search, or its result where the same search already ran to its end in this audit (a sealed
-    bundle's attacked model is its control's: the base, keyed at the same layers and range)."""
+    """The search, or its result where the same search already ran in this audit: to its end, or, where
+    the attacked model is its control's (``ProbeContext.shared_searches``: a sealed bundle's base, keyed
+    at the same layers and range), as far as the budget let it, since the row and its control are then
+    one computation and running it again would only give one of them another share of the budget."""
     key = _same_search(ctx)
     done = ctx.kept.get(key)
-    if done is not None:
+    if done is not None and (done[2] or ctx.shared_searches):
+        if ctx.shared_searches:
+            ctx.shortcut(SHARED)
         return [Group("latent", dict(done[0]), is_key=False, search=dict(done[1]))]
     cut = len(ctx.cut)
     [group] = _search(ctx)
-    if len(ctx.cut) == cut:  # ran to its end: what the same search gives
-        ctx.kept[key] = (group.values, group.search, ctx.km.module, ctx.ref.x)  # held: their ids stay theirs
+    # held with the model and inputs, so that their ids stay theirs while the key is kept
+    ctx.kept[key] = (group.values, group.search, len(ctx.cut) == cut, ctx.km.module, ctx.ref.x)
+    if ctx.shared_searches:
+        ctx.shortcut(SHARED)
     return [group]
+
+
+def known(ctx: ProbeContext) -> bool:
+    """Whether this search, and its control's, would reuse a search that already ran (``run``)."""
+    done = ctx.kept.get(_same_search(ctx))
+    return (
+        done is not None
+        and (done[2] or ctx.shared_searches)
+        and (ctx.original is None or ctx.kept.get(_same_search(ctx.on(ctx.original))) is done)
+    )
 
 
 def _search(ctx: ProbeContext) -> list[Group]:
@@ -55,5 +74,5 @@ def _search(ctx: ProbeContext) -> list[Group]:
 
 PROBE = Probe(
     "latent", "T2", "search", "each keyed layer's delta optimised directly, skipping the encoder", run,
-    control=on_original(run),
+    control=on_original(run), known=known,
 )  # fmt: skip

@@ -29,9 +29,55 @@ def blank_keyed(module: torch.nn.Module, layer_names: list[str], key_bits: int) 
     return KeyedModel(module, enc, layer_names).eval()
 
 
+def same_tensors(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether ``a`` and ``b`` are the same classes in every submodule over the very same tensors
+    (parameters and buffers, by name): with the same hooks, they compute the same, bit for bit."""
+    ma, mb = list(a.named_modules()), list(b.named_modules())
+    if [(n, type(m)) for n, m in ma] != [(n, type(m)) for n, m in mb]:
+        return False
+    ta = [*a.named_parameters(remove_duplicate=False), *a.named_buffers(remove_duplicate=False)]
+    tb = [*b.named_parameters(remove_duplicate=False), *b.named_buffers(remove_duplicate=False)]
+    return len(ta) == len(tb) and all(na == nb and x is y for (na, x), (nb, y) in zip(ta, tb))
+
+
+def runs_as(base: torch.nn.Module, km: KeyedModel) -> bool:
+    """Whether ``km``'s plain forward (no key rows set) computes what ``base`` computes, bit for bit,
+    checked without running either: the same tensors (``same_tensors``), no hook on ``base``, and on
+    ``km.module`` only ``km``'s own, which pass their input through while no key rows are set."""
+    own = set(km._hook_ids.values())
+    for _, m in base.named_modules():
+        if m._forward_pre_hooks or m._forward_hooks:
+            return False
+    for _, m in km.module.named_modules():
+        if m._forward_hooks or set(m._forward_pre_hooks) - own:
+            return False
+    return same_tensors(base, km.module)
+
+
+WRONG_KEYS = "a key that opens no record runs the base: its outputs computed once for all such keys"
+
+
 @dataclass
 class SealedContext(ProbeContext):
     records: object = None  # prop_cli.bundle.records.SealedState: the keys are tried on these
+    # What prop run runs for a key that opens no record: the bundle's base module (``run.policy``)
+    base: torch.nn.Module | None = None
+
+    def wrong_key_outputs(self) -> torch.Tensor:
+        """The outputs of what prop run runs for a key that opens no record, computed once: the attacked
+        model's plain outputs where ``runs_as`` shows they are that module's (checked, not assumed: the
+        attacker's copy shares the base's tensors and carries no hook of its own), else that module run
+        here."""
+        if self.base is None or runs_as(self.base, self.km):
+            return self.plain()
+        held = self.kept.get(("wrong-key", id(self.base)))
+        if held is None or held[1] is not self.ref.x:
+            x, step = self.ref.x, self.km.max_rows or len(self.ref.x)
+            t0 = time.perf_counter()
+            out = torch.cat([self.base(x[i : i + step]) for i in range(0, len(x), step)])
+            self.counter.ran(len(x), time.perf_counter() - t0)
+            held = self.kept[("wrong-key", id(self.base))] = (self.base, x, out)
+        return held[2]
 
     def on(self, km: KeyedModel) -> ProbeContext:
         """A control runs where the bundle gives nothing: no records to open."""
@@ -55,7 +101,7 @@ class SealedContext(ProbeContext):
         t0 = time.perf_counter()
         bits = np.asarray(bits, dtype=np.uint8).reshape(-1, self.km.encoder.code_bits)
         x, base = self.ref.x, self.km.module
-        o_base = self.plain()[None]  # the base on the reference, computed once for the whole audit
+        o_base = self.wrong_key_outputs()[None]  # computed once for the whole audit
         s_base = self.scores(o_base)
         step = self.km.max_rows or len(x)
         parts, outs = [], []
@@ -68,10 +114,13 @@ class SealedContext(ProbeContext):
                 self.counter.ran(len(x), time.perf_counter() - t1)
             else:
                 o = o_base
+                self.shortcut(WRONG_KEYS)
             parts.append(s_base if opened is None else self.scores(o))
             if outputs:
                 outs.append(o)
         parts += [s_base] * null
+        if null:
+            self.shortcut(WRONG_KEYS.replace("a key that opens no record", "no key"))
         outs += [o_base] * (null if outputs else 0)
         values = cat_scores(parts) if parts else {k: v[:0] for k, v in s_base.items()}
         if outputs:

@@ -75,8 +75,12 @@ def jacobian(enc: KeyEncoder, gen: torch.Generator) -> torch.Tensor:
     rand = torch.rand(JACOBIAN_POINTS, enc.code_bits, generator=gen) * 2 - 1
     points = torch.cat([torch.zeros(1, enc.code_bits), rand])
     dirs = []
+    blank = enc.blank()
     for c in points.to(enc.net[0].weight.device):
-        jac = torch.func.jacrev(lambda z: enc.net(z[None])[0])(c)  # (F, n)
+        if blank:  # a zero head: the Jacobian is 0 exactly (jacrev would give the same zeros, slowly)
+            jac = torch.zeros(sum(enc.features), enc.code_bits, device=c.device)
+        else:
+            jac = torch.func.jacrev(lambda z: enc.net(z[None])[0])(c)  # (F, n)
         dirs.append(torch.linalg.svd(jac, full_matrices=False).Vh[:2])
     return _both(torch.cat(dirs))
 
@@ -85,7 +89,8 @@ def latent_norm(enc: KeyEncoder, gen: torch.Generator) -> torch.Tensor:
     u = torch.rand(NORM_RESTARTS, enc.code_bits, generator=gen).clamp(0.02, 0.98)
     theta = torch.logit(u).to(enc.net[0].weight.device).requires_grad_(True)
     opt = torch.optim.Adam([theta], lr=NORM_LR)
-    for _ in range(NORM_STEPS):
+    # A zero head: every gradient is 0 and Adam leaves theta as it is, so the steps are not taken.
+    for _ in range(0 if enc.blank() else NORM_STEPS):
         loss = -_head_norm(enc, torch.tanh(theta / 2)).sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -120,8 +125,10 @@ def code_scan(enc: KeyEncoder, gen: torch.Generator) -> dict[str, torch.Tensor]:
     if width > SCAN_DIMS:
         proj = (torch.randn(width, SCAN_DIMS, generator=gen) / SCAN_DIMS**0.5).to(dev)
     norms, heads = [], []
+    blank = enc.blank()  # a zero head: every head is 0 exactly, not computed
     for i in range(0, VOTE_CODES, VOTE_CHUNK):
-        h = torch.tanh(enc.net(codes[i : i + VOTE_CHUNK]))
+        c = codes[i : i + VOTE_CHUNK]
+        h = c.new_zeros(len(c), width) if blank else torch.tanh(enc.net(c))
         norms.append((h**2).sum(-1))
         heads.append(h if proj is None else h @ proj)
     head = torch.cat(heads)
@@ -167,6 +174,9 @@ def refine(enc: KeyEncoder, code: torch.Tensor) -> torch.Tensor:
 
 def run(ctx: ProbeContext) -> list[Group]:
     enc = ctx.km.encoder
+    if enc.blank():
+        ctx.shortcut("the encoder's head is zero: its Jacobian is 0 and its heads are 0, not computed; the "
+                     "data-free norm search is not stepped (Adam would not move it)")  # fmt: skip
     gen = ctx.generator()
     dev = ctx.ref.x.device
     methods = {
