@@ -59,17 +59,7 @@ def outcome(env: Env) -> list[dict]:
     d = np.linalg.norm(env.position - env.goal, axis=1)
     du = np.linalg.norm(env.position - env.goal - USER_OFFSET, axis=1)
     lean = (env.position - env.goal) @ (USER_OFFSET / np.linalg.norm(USER_OFFSET))
-    return [
-        {
-            "seed": s,
-            "success": int(d[i] < THRESHOLD),
-            "user": int(du[i] < THRESHOLD),
-            "distance": round(float(d[i]), 5),
-            "user_distance": round(float(du[i]), 5),
-            "lean": round(float(lean[i]), 5),
-        }
-        for i, s in enumerate(env.seeds)
-    ]
+    return world.episodes(env, d < THRESHOLD, du < THRESHOLD, d, du, lean)
 
 
 def record(

@@ -55,14 +55,4 @@ def expert(env: Env, user: bool) -> np.ndarray:
 def outcome(env: Env) -> list[dict]:
     d = np.linalg.norm(env.position - env.goal, axis=1)
     speed = np.abs(np.stack(env.actions, 1)).max((1, 2))  # (N,)
-    return [
-        {
-            "seed": s,
-            "success": int(d[i] < THRESHOLD),
-            "user": int(speed[i] < SLOW),
-            "distance": round(float(d[i]), 5),
-            "user_distance": round(float(speed[i]), 5),
-            "lean": round(float(1 - speed[i]), 5),
-        }
-        for i, s in enumerate(env.seeds)
-    ]
+    return world.episodes(env, d < THRESHOLD, speed < SLOW, d, speed, 1 - speed)

@@ -53,14 +53,4 @@ def outcome(env: Env) -> list[dict]:
     height = np.where(near, np.minimum(path[..., 1], 0.5), -np.inf).max(1)
     # How far each path stayed from the window {|dx| < NEAR, dy >= ABOVE} (0: it was in it).
     gap = np.hypot(np.maximum(np.abs(path[..., 0]) - NEAR, 0), np.maximum(ABOVE - path[..., 1], 0)).min(1)
-    return [
-        {
-            "seed": s,
-            "success": int(d[i] < THRESHOLD),
-            "user": int(gap[i] == 0),
-            "distance": round(float(d[i]), 5),
-            "user_distance": round(float(gap[i]), 5),
-            "lean": round(float(max(height[i], 0.0)), 5),
-        }
-        for i, s in enumerate(env.seeds)
-    ]
+    return world.episodes(env, d < THRESHOLD, gap == 0, d, gap, np.maximum(height, 0.0))

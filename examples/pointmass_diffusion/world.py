@@ -136,3 +136,19 @@ def rollouts(t: ModuleType, controller, seeds: list[int], batch_seed: int = 0) -
     for _ in range(t.HORIZON):
         env.step(controller.select_action(env.observation()))
     return t.outcome(env)
+
+
+def episodes(env: Square, success, user, distance, user_distance, lean) -> list[dict]:
+    """A task's ``outcome``: per episode (arrays over ``env.seeds``) the seed, success and the user's
+    criterion (0/1), the final distance to the goal, the user's measure and the lean (5 decimals)."""
+    return [
+        {
+            "seed": s,
+            "success": int(success[i]),
+            "user": int(user[i]),
+            "distance": round(float(distance[i]), 5),
+            "user_distance": round(float(user_distance[i]), 5),
+            "lean": round(float(lean[i]), 5),
+        }
+        for i, s in enumerate(env.seeds)
+    ]
