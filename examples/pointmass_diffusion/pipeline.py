@@ -483,6 +483,19 @@ def success_table(out: Path, v: str, threshold: float, t=pm) -> None:
             f"p {p['episodes_p']:.3g}), mean extra distance {p['extra_distance']:+.4f}"
         )
     print(f"the bar on this bundle (random and neighbour keys): {'met' if s['bar'] else 'NOT met'}")
+    by = {r["name"]: r for r in s["rows"]}
+    cells = [t.NAME, _name("bundle", v), f"{threshold:g}", _ci(by["original"]["k"], by["original"]["n"])]
+    cells.append(f"{by['no_key']['k']}/{by['no_key']['n']}" if "no_key" in by else "")
+    for p in (s["pooled"], s["neighbours"]):
+        if p is None:
+            cells.append("not judged")
+            continue
+        ratio = f"{p['k']}/{p['n']} = {p['ratio']:.2f}x, {p['lost']} / {p['gained']} (p {p['p']:.2g})"
+        cells.append(f"{ratio}, worst {p['worst']:.2f}, {p['below_0.9']} below 0.9x")
+    user = by.get("user_key")
+    cells.append(f"{user['user']}/{user['n']}, lean {user['lean']:+.3f}" if user else "")
+    cells.append("met" if s["bar"] else "NOT met")
+    print("overview: | " + " | ".join(cells) + " |")
 
 
 def drift_table(d: dict, name: str) -> None:
