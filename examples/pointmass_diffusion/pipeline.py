@@ -444,8 +444,9 @@ def _ci(k: int, n: int) -> str:
 def step_table(out: Path, thresholds: list[float] | None = None, t=pm) -> None:
     variants = [""] + sorted(p.name[len("judge-") :] for p in out.glob("judge-*") if p.is_dir())
     for v in variants:
-        if not (out / _name("judge", v)).is_dir() or not (out / "judge" / "original.json").is_file():
-            continue
+        judged = {p.stem for p in (out / _name("judge", v)).glob("*.json")} - {"original"}
+        if not judged or not (out / "judge" / "original.json").is_file():
+            continue  # nothing judged but the original (judge/ of a task personalized as a variant only)
         for threshold in thresholds or [t.THRESHOLD]:
             success_table(out, v, threshold, t)
     for v in variants:
