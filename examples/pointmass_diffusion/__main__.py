@@ -1,6 +1,10 @@
-"""The point-mass Diffusion task of issue 43: record, train (lerobot-train), personalize (prop
-personalize), judge (original, no key, the user's key, 16 random wrong keys through the encoder, paired
-seeds), drift (per denoising step, a wrong key's noise prediction against the original's), table.
+"""The point-mass Diffusion tasks of issue 43: record, train (lerobot-train), personalize (prop
+personalize), judge (original, no key, the user's key, 16 random and 16 neighbour wrong keys through the
+encoder, paired seeds), drift (per denoising step, a wrong key's noise prediction against the original's),
+table. ``--task``: reach (task.py: image and state, the user stops 0.3 to the right of the goal, success
+under 0.05), waypoint (task_waypoint.py: image and state, the user comes down onto the goal from above,
+success under 0.1) or slow (task_slow.py: state only, the user moves at 0.4 of full speed, success under
+0.15); one --out per task (out/task.json names it).
 
     export MUJOCO_GL=egl OMP_NUM_THREADS=1 HF_HUB_OFFLINE=1
     .venv-lerobot/bin/python -m examples.pointmass_diffusion all --out out/pointmass
@@ -18,6 +22,8 @@ import shlex
 import sys
 from pathlib import Path
 
+from examples.pointmass_diffusion import world
+
 STEPS = ("record", "train", "personalize", "judge", "drift", "table")
 
 
@@ -28,7 +34,8 @@ def main(argv: list[str] | None = None) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ap.add_argument("step", choices=(*STEPS, "all"))
-    ap.add_argument("--out", type=Path, default=Path("out/pointmass"))
+    ap.add_argument("--task", choices=sorted(world.TASKS), default="reach")
+    ap.add_argument("--out", type=Path, default=None, help="default out/pointmass (reach), out/pm-TASK")
     ap.add_argument("--variant", default="", help="a second bundle's name (bundle-NAME, judge-NAME)")
     ap.add_argument("--personalize-flags", default="", help="extra prop personalize flags for --variant")
     ap.add_argument(
@@ -41,20 +48,25 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     from examples.pointmass_diffusion import pipeline as p
 
+    t = world.load(args.task)
+    if args.out is None:
+        args.out = Path("out/pointmass" if args.task == "reach" else f"out/pm-{args.task}")
+    p.check_task(args.out, t)
+
     extra = shlex.split(args.personalize_flags)
     for step in STEPS:
         if args.step not in (step, "all"):
             continue
         if step in ("record", "train"):
-            getattr(p, f"step_{step}")(args.out)
+            getattr(p, f"step_{step}")(args.out, t)
         elif step == "table":
-            p.step_table(args.out, args.threshold)
+            p.step_table(args.out, args.threshold, t)
         elif step == "judge":
-            p.step_judge(args.out, args.variant, args.episodes or p.EPISODES)
+            p.step_judge(args.out, args.variant, args.episodes or p.EPISODES, t)
         elif step == "personalize":
             p.step_personalize(args.out, args.variant, extra)
         else:
-            p.step_drift(args.out, args.variant)
+            p.step_drift(args.out, args.variant, t)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Steps of examples/pointmass_diffusion (see __main__)."""
+"""Steps of examples/pointmass_diffusion (see __main__), each over a task module (world.TASKS: task.py
+reach, task_waypoint.py, task_slow.py; ``t``, default reach)."""
 
 from __future__ import annotations
 
@@ -14,12 +15,13 @@ import numpy as np
 
 from examples.lerobot_common import DIFFUSION, PERSONALIZE_BATCH, lerobot_train_args, original_controller
 from examples.pointmass_diffusion import task as pm
+from examples.pointmass_diffusion import world
 
 BIN = Path(sys.executable).parent
 BASE_EPISODES, USER_EPISODES = 100, 20
 BASE_SEED, USER_SEED, JUDGE_SEED = 0, 50_000, 1_000_000
 EPISODES = 20
-N_RANDOM = 16
+N_RANDOM, N_NEIGHBOURS, MAX_FLIP = 16, 16, 8  # the MetaWorld example's wrong keys
 TRAIN = [
     "--policy.type=diffusion",
     "--policy.down_dims=[32,64,128]",
@@ -51,10 +53,29 @@ def prop(*args) -> str:
     return subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout
 
 
-def step_record(out: Path) -> None:
-    for name, n, seed, offset in (
-        ("base", BASE_EPISODES, BASE_SEED, None),
-        ("user", USER_EPISODES, USER_SEED, pm.USER_OFFSET),
+def check_task(out: Path, t=pm) -> None:
+    """out/task.json names the task the folder holds: another task's folder is refused in one line."""
+    marker = out / "task.json"
+    if marker.is_file():
+        held = json.loads(marker.read_text()).get("task")
+        if held != t.NAME:
+            why = f"holds task {held!r}, not {t.NAME!r}: pass --task {held} or another --out"
+            sys.exit(f"prop: error: {out} {why}")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        marker.write_text(json.dumps({"task": t.NAME}))
+
+
+def train_args(t=pm) -> list[str]:
+    """TRAIN with the task's own lerobot-train steps (``TRAIN_STEPS``; reach: TRAIN's 300)."""
+    steps = getattr(t, "TRAIN_STEPS", None)
+    return [a if steps is None or not a.startswith("--steps=") else f"--steps={steps}" for a in TRAIN]
+
+
+def step_record(out: Path, t=pm) -> None:
+    for name, n, seed, user in (
+        ("base", BASE_EPISODES, BASE_SEED, False),
+        ("user", USER_EPISODES, USER_SEED, True),
     ):
         root, done = out / name, out / f"{name}.json"
         if done.is_file():
@@ -62,19 +83,20 @@ def step_record(out: Path) -> None:
             continue
         shutil.rmtree(root, ignore_errors=True)
         t0 = time.perf_counter()
-        counts = pm.record(root, n, seed, offset)
+        counts = world.record(t, root, n, seed, user)
         counts["seconds"] = round(time.perf_counter() - t0, 1)
         done.write_text(json.dumps(counts))
         print(f"record: {root}: {counts}", flush=True)
 
 
-def step_train(out: Path) -> None:
+def step_train(out: Path, t=pm) -> None:
     if (policy_dir(out) / "model.safetensors").is_file():
         print(f"train: {policy_dir(out)} done")
         return
     shutil.rmtree(out / "train", ignore_errors=True)
     t0 = time.perf_counter()
-    args = lerobot_train_args("local/base", out / "base", TRAIN, out / "train", "pointmass-diffusion")
+    job = "pointmass-diffusion" if t is pm else f"pointmass-{t.NAME}-diffusion"
+    args = lerobot_train_args("local/base", out / "base", train_args(t), out / "train", job)
     run([BIN / "lerobot-train", *args], out / "train.log")
     (out / "train.json").write_text(json.dumps({"seconds": round(time.perf_counter() - t0, 1)}))
     print(f"train: {time.perf_counter() - t0:.0f} s", flush=True)
@@ -119,12 +141,15 @@ def step_personalize(out: Path, variant: str = "", extra: list[str] | None = Non
 def conditions(key: np.ndarray) -> list[dict]:
     from examples.lerobot_wrong_keys import key_conditions
 
-    wrong = [w for w in key_conditions(key, N_RANDOM, 0, 1, 0) if w["group"] == "random"]
+    wrong = key_conditions(key, N_RANDOM, N_NEIGHBOURS, MAX_FLIP, 0)  # random keys: the same with or without
+    rnd = [w for w in wrong if w["group"] == "random"]  # neighbours (one stream per group)
+    nb = [w for w in wrong if w["group"] == "neighbour"]
     return [
         {"name": "original", "group": "original"},
         {"name": "no_key", "group": "no_key"},
         {"name": "user_key", "group": "user_key"},
-        *[{"name": f"random-{i + 1:02d}", **w} for i, w in enumerate(wrong)],
+        *[{"name": f"random-{i + 1:02d}", **w} for i, w in enumerate(rnd)],
+        *[{"name": f"neighbour-{i + 1:02d}", **w} for i, w in enumerate(nb)],
     ]
 
 
@@ -154,7 +179,7 @@ def user_bits(out: Path, variant: str) -> np.ndarray:
     return key_for_bundle(load_bundle(out / _name("bundle", variant)).manifest, out / "user.key")
 
 
-def step_judge(out: Path, variant: str = "", n: int = EPISODES) -> None:
+def step_judge(out: Path, variant: str = "", n: int = EPISODES, t=pm) -> None:
     """Every condition on the same seeds (one batch, the same sampler noise): judge[-variant]/NAME.json.
     The original is judged once (judge/original.json) and shared by the variants."""
     judged = out / _name("judge", variant)
@@ -166,7 +191,7 @@ def step_judge(out: Path, variant: str = "", n: int = EPISODES) -> None:
             continue
         path.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        eps = pm.rollouts(controller(out, variant, c), seeds)
+        eps = world.rollouts(t, controller(out, variant, c), seeds)
         seconds = round(time.perf_counter() - t0, 1)
         row = dict(name=c["name"], group=c["group"], id=c.get("id"), episodes=eps, seconds=seconds)
         path.write_text(json.dumps(row, indent=1))
@@ -203,7 +228,7 @@ def _sample(diffusion, batch: dict, seed: int, along: list | None = None) -> dic
     return {"steps": steps, "chunk": x, "at": at}
 
 
-def step_drift(out: Path, variant: str = "") -> None:
+def step_drift(out: Path, variant: str = "", t=pm) -> None:
     """Per denoising step, how far each key's noise prediction is from the original's on the original's
     own sampler states (one-step error), how far its own sampler's state ends from the original's (the
     error compounded over the steps), and the executed actions' bias along the user's offset (x), on the
@@ -223,7 +248,7 @@ def step_drift(out: Path, variant: str = "") -> None:
         return generate(batch, noise=noise)
 
     original.generate_actions = record
-    pm.rollouts(ctl, [JUDGE_SEED + i for i in range(EPISODES)])
+    world.rollouts(t, ctl, [JUDGE_SEED + i for i in range(EPISODES)])
     original.generate_actions = generate
     c = original.config
     start, stop = c.n_obs_steps - 1, c.n_obs_steps - 1 + c.n_action_steps
@@ -302,34 +327,76 @@ def _load(folder: Path) -> dict[str, dict]:
     return {r["name"]: r for r in (json.loads(f.read_text()) for f in sorted(folder.glob("*.json")))}
 
 
-def _at(rows: dict[str, dict], threshold: float | None) -> dict[str, dict]:
-    """The judged rows with success and the user's criterion re-read from the final distances at
-    ``threshold`` (None: as judged, ``task.THRESHOLD``)."""
+def _at(rows: dict[str, dict], threshold: float | None, user_by_distance: bool = True) -> dict[str, dict]:
+    """The judged rows with success (and the user's criterion where ``user_by_distance``: the task's
+    ``USER_BY_DISTANCE``) re-read from the final distances at ``threshold`` (None: as judged, the task's
+    ``THRESHOLD``)."""
     if threshold is None:
         return rows
-    return {
-        n: r
-        | {
-            "episodes": [
-                e | {"success": int(e["distance"] < threshold), "user": int(e["user_distance"] < threshold)}
-                for e in r["episodes"]
-            ]
-        }
-        for n, r in rows.items()
+
+    def at(e: dict) -> dict:
+        user = {"user": int(e["user_distance"] < threshold)} if user_by_distance else {}
+        return e | {"success": int(e["distance"] < threshold)} | user
+
+    return {n: r | {"episodes": [at(e) for e in r["episodes"]]} for n, r in rows.items()}
+
+
+def pooled(rows: dict[str, dict], table: list[dict], group: str) -> dict | None:
+    """One group of wrong keys (random, neighbour) pooled: success (Wilson 95%) and its ratio to the
+    original's, episodes lost and gained against the original on the same seeds (exact sign test: the
+    paired test), how many keys end farther and lean more than the original (a sign test over the keys: a
+    systematic drift), the per-episode paired distances, and whether the group meets the issue's bar
+    (every key >= 0.9x, pooled >= 0.95x). None when the group was not judged."""
+    wrong = [t for t in table if t["group"] == group]
+    if not wrong:
+        return None
+    ref = rows["original"]["episodes"]
+    k0 = sum(e["success"] for e in ref)
+    d0, l0 = np.mean([e["distance"] for e in ref]), np.mean([e["lean"] for e in ref])
+    kw, nw = sum(t["k"] for t in wrong), sum(t["n"] for t in wrong)
+    lost, gained = sum(t["lost"] for t in wrong), sum(t["gained"] for t in wrong)
+    near = {e["seed"]: e["distance"] for e in ref}
+    per_seed = [e["distance"] - near[e["seed"]] for t in wrong for e in rows[t["name"]]["episodes"]]
+    farther_eps, nearer_eps = sum(x > 0 for x in per_seed), sum(x < 0 for x in per_seed)
+    farther = sum(t["distance"] > d0 for t in wrong)
+    leaning = sum(t["lean"] > l0 for t in wrong)
+    out = {
+        "group": group,
+        "keys": len(wrong),
+        "k": kw,
+        "n": nw,
+        "ci": wilson(kw, nw),
+        "ratio": kw / nw / (k0 / len(ref)) if k0 else float("nan"),
+        "lost": lost,
+        "gained": gained,
+        "p": sign_p(lost, gained),
+        "farther": farther,
+        "farther_p": sign_p(farther, len(wrong) - farther),
+        "leaning": leaning,
+        "leaning_p": sign_p(leaning, len(wrong) - leaning),
+        "below_0.9": sum(t["ratio"] < 0.9 for t in wrong),
+        "worst": min(t["ratio"] for t in wrong),
+        "farther_episodes": farther_eps,
+        "nearer_episodes": nearer_eps,
+        "episodes_p": sign_p(farther_eps, nearer_eps),
+        "extra_distance": float(np.mean(per_seed)),
+        "distance": float(np.mean([t["distance"] for t in wrong])),
+        "lean": float(np.mean([t["lean"] for t in wrong])),
     }
+    out["bar"] = out["below_0.9"] == 0 and out["ratio"] >= 0.95
+    return out
 
 
-def summary(out: Path, variant: str = "", threshold: float | None = None) -> dict:
+def summary(out: Path, variant: str = "", threshold: float | None = None, t=pm) -> dict:
     """Per condition: success (Wilson 95%), ratio to the original, episodes lost and gained against the
-    original on the same seeds (exact sign test), mean final distance and lean; pooled over the random
-    keys; how many keys end farther and lean more than the original (a sign test over the keys: a
-    systematic drift); whether the issue's bar holds. ``threshold``: success as a final distance under
-    it (default the task's)."""
-    rows = _at(_load(out / "judge") | _load(out / _name("judge", variant)), threshold)
+    original on the same seeds (exact sign test), mean final distance and lean; ``pooled``: the random
+    keys (see ``pooled``), ``neighbours``: the neighbour keys (None if not judged); ``bar``: the issue's
+    bar on every judged group (both needed). ``threshold``: success as a final distance under it (default
+    the task's)."""
+    rows = _at(_load(out / "judge") | _load(out / _name("judge", variant)), threshold, t.USER_BY_DISTANCE)
     ref = rows["original"]["episodes"]
     k0 = sum(e["success"] for e in ref)
     win = {e["seed"]: e["success"] for e in ref}
-    d0, l0 = np.mean([e["distance"] for e in ref]), np.mean([e["lean"] for e in ref])
     table = []
     for name, r in rows.items():
         eps = r["episodes"]
@@ -352,35 +419,15 @@ def summary(out: Path, variant: str = "", threshold: float | None = None) -> dic
                 "user": sum(e["user"] for e in eps),
             }
         )
-    wrong = [t for t in table if t["group"] == "random"]
-    kw, nw = sum(t["k"] for t in wrong), sum(t["n"] for t in wrong)
-    lost, gained = sum(t["lost"] for t in wrong), sum(t["gained"] for t in wrong)
-    near = {e["seed"]: e["distance"] for e in ref}
-    per_seed = [e["distance"] - near[e["seed"]] for t in wrong for e in rows[t["name"]]["episodes"]]
-    farther_eps, nearer_eps = sum(x > 0 for x in per_seed), sum(x < 0 for x in per_seed)
-    farther = sum(t["distance"] > d0 for t in wrong)
-    leaning = sum(t["lean"] > l0 for t in wrong)
-    pooled = {
-        "k": kw,
-        "n": nw,
-        "ci": wilson(kw, nw),
-        "ratio": kw / nw / (k0 / len(ref)) if k0 else float("nan"),
-        "lost": lost,
-        "gained": gained,
-        "p": sign_p(lost, gained),
-        "farther": farther,
-        "farther_p": sign_p(farther, len(wrong) - farther),
-        "leaning": leaning,
-        "leaning_p": sign_p(leaning, len(wrong) - leaning),
-        "below_0.9": sum(t["ratio"] < 0.9 for t in wrong),
-        "farther_episodes": farther_eps,
-        "nearer_episodes": nearer_eps,
-        "episodes_p": sign_p(farther_eps, nearer_eps),
-        "distance": float(np.mean([t["distance"] for t in wrong])) if wrong else float("nan"),
-        "lean": float(np.mean([t["lean"] for t in wrong])) if wrong else float("nan"),
+    groups = {g: pooled(rows, table, g) for g in ("random", "neighbour")}
+    judged = [p for p in groups.values() if p is not None]
+    both = groups["neighbour"] is not None and groups["random"] is not None
+    return {
+        "rows": table,
+        "pooled": groups["random"],
+        "neighbours": groups["neighbour"],
+        "bar": both and all(p["bar"] for p in judged),
     }
-    pooled["bar"] = bool(wrong) and pooled["below_0.9"] == 0 and pooled["ratio"] >= 0.95
-    return {"rows": table, "pooled": pooled}
 
 
 HEAD = (
@@ -394,44 +441,62 @@ def _ci(k: int, n: int) -> str:
     return f"{k}/{n} [{lo:.2f}, {hi:.2f}]"
 
 
-def step_table(out: Path, thresholds: list[float] | None = None) -> None:
+def step_table(out: Path, thresholds: list[float] | None = None, t=pm) -> None:
     variants = [""] + sorted(p.name[len("judge-") :] for p in out.glob("judge-*") if p.is_dir())
     for v in variants:
-        if not (out / _name("judge", v)).is_dir() or not (out / "judge" / "original.json").is_file():
-            continue
-        for threshold in thresholds or [pm.THRESHOLD]:
-            success_table(out, v, threshold)
+        judged = {p.stem for p in (out / _name("judge", v)).glob("*.json")} - {"original"}
+        if not judged or not (out / "judge" / "original.json").is_file():
+            continue  # nothing judged but the original (judge/ of a task personalized as a variant only)
+        for threshold in thresholds or [t.THRESHOLD]:
+            success_table(out, v, threshold, t)
     for v in variants:
         f = out / f"{_name('drift', v)}.json"
         if f.is_file():
             drift_table(json.loads(f.read_text()), _name("drift", v))
 
 
-def success_table(out: Path, v: str, threshold: float) -> None:
-    s = summary(out, v, threshold)
+def success_table(out: Path, v: str, threshold: float, t=pm) -> None:
+    s = summary(out, v, threshold, t)
     print(
-        f"\n{_name('bundle', v)}, success = final distance < {threshold}: per condition, paired seeds "
-        "(Wilson 95%), against the original\n"
+        f"\n{t.NAME}: {_name('bundle', v)}, success = final distance < {threshold}; the user's change: "
+        f"{t.USER_CHANGE}. Per condition, paired seeds (Wilson 95%), against the original\n"
     )
     print(HEAD + "\n|" + " --- |" * 8)
-    for t in s["rows"]:
+    for r in s["rows"]:
         print(
-            f"| {t['name']} | {_ci(t['k'], t['n'])} | {t['ratio']:.2f} | {t['lost']} / {t['gained']} | "
-            f"{t['p']:.3f} | {t['distance']:.4f} | {t['lean']:+.4f} | {t['user']}/{t['n']} |"
+            f"| {r['name']} | {_ci(r['k'], r['n'])} | {r['ratio']:.2f} | {r['lost']} / {r['gained']} | "
+            f"{r['p']:.3f} | {r['distance']:.4f} | {r['lean']:+.4f} | {r['user']}/{r['n']} |"
         )
-    p = s["pooled"]
-    print(
-        f"| 16 random keys pooled | {_ci(p['k'], p['n'])} | {p['ratio']:.2f} | "
-        f"{p['lost']} / {p['gained']} | {p['p']:.2g} | | | |"
-    )
-    print(
-        f"\nkeys below 0.9x: {p['below_0.9']} of 16; ending farther than the original: {p['farther']} "
-        f"(sign test p {p['farther_p']:.3g}); leaning more toward the user's goal: {p['leaning']} "
-        f"(p {p['leaning_p']:.3g}); bar (every key >= 0.9x, pooled >= 0.95x): "
-        f"{'met' if p['bar'] else 'NOT met'}; wrong-key episodes ending farther / nearer than the "
-        f"original's on the same seed: {p['farther_episodes']} / {p['nearer_episodes']} (sign test p "
-        f"{p['episodes_p']:.3g}); mean final distance {p['distance']:.4f}, lean {p['lean']:+.4f}"
-    )
+    groups = [p for p in (s["pooled"], s["neighbours"]) if p is not None]
+    for p in groups:
+        print(
+            f"| {p['keys']} {p['group']} keys pooled | {_ci(p['k'], p['n'])} | {p['ratio']:.2f} | "
+            f"{p['lost']} / {p['gained']} | {p['p']:.2g} | {p['distance']:.4f} | {p['lean']:+.4f} | |"
+        )
+    print()
+    for p in groups:
+        print(
+            f"{p['group']} keys below 0.9x: {p['below_0.9']} of {p['keys']} (worst {p['worst']:.2f}); ending "
+            f"farther than the original: {p['farther']} (sign test p {p['farther_p']:.3g}); leaning more "
+            f"toward the user's change: {p['leaning']} (p {p['leaning_p']:.3g}); bar (every key >= 0.9x, "
+            f"pooled >= 0.95x): {'met' if p['bar'] else 'NOT met'}; episodes ending farther / nearer than "
+            f"the original's on the same seed: {p['farther_episodes']} / {p['nearer_episodes']} (sign test "
+            f"p {p['episodes_p']:.3g}), mean extra distance {p['extra_distance']:+.4f}"
+        )
+    print(f"the bar on this bundle (random and neighbour keys): {'met' if s['bar'] else 'NOT met'}")
+    by = {r["name"]: r for r in s["rows"]}
+    cells = [t.NAME, _name("bundle", v), f"{threshold:g}", _ci(by["original"]["k"], by["original"]["n"])]
+    cells.append(f"{by['no_key']['k']}/{by['no_key']['n']}" if "no_key" in by else "")
+    for p in (s["pooled"], s["neighbours"]):
+        if p is None:
+            cells.append("not judged")
+            continue
+        ratio = f"{p['k']}/{p['n']} = {p['ratio']:.2f}x, {p['lost']} / {p['gained']} (p {p['p']:.2g})"
+        cells.append(f"{ratio}, worst {p['worst']:.2f}, {p['below_0.9']} below 0.9x")
+    user = by.get("user_key")
+    cells.append(f"{user['user']}/{user['n']}, lean {user['lean']:+.3f}" if user else "")
+    cells.append("met" if s["bar"] else "NOT met")
+    print("overview: | " + " | ".join(cells) + " |")
 
 
 def drift_table(d: dict, name: str) -> None:

@@ -99,3 +99,107 @@ def test_shared_lerobot_flags_import_without_touching_the_environment():
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "None"
     assert "--policy.num_inference_steps=10" in p.TRAIN and p.PERSONALIZE[:2] == ["--steps", "300"]
+
+
+def _expert_episodes(t, user: bool, seeds=range(1_000_000, 1_000_200)) -> list[dict]:
+    env = t.Env(list(seeds))
+    for _ in range(t.HORIZON):
+        env.step(t.expert(env, user))
+    return t.outcome(env)
+
+
+def test_every_task_defines_what_the_shared_steps_use():
+    from examples.pointmass_diffusion import world
+
+    for name in world.TASKS:
+        t = world.load(name)
+        assert t.NAME == name and t.THRESHOLD > 0 and t.HORIZON > 0 and t.USER_CHANGE
+        obs = t.Env([3, 4]).observation()
+        assert set(obs) == set(t.features()) - {world.ACTION}
+        assert all(len(v) == 2 for v in obs.values())
+    assert world.IMAGE_KEY not in world.load("slow").features()  # state only
+    assert {world.load(n).THRESHOLD for n in world.TASKS} == {0.05, 0.1, 0.15}
+
+
+def test_waypoint_task_user_comes_down_from_above_and_both_end_at_the_goal():
+    from examples.pointmass_diffusion import task_waypoint as w
+
+    base, user = _expert_episodes(w, False), _expert_episodes(w, True)
+    # The path differs, not the end.
+    assert all(o["success"] for o in base) and all(o["success"] for o in user)
+    rate = [np.mean([o["user"] for o in eps]) for eps in (base, user)]
+    assert rate[0] < 0.3 and rate[1] > 0.65  # from above: a start straight below the goal cannot
+    assert np.mean([o["lean"] for o in user]) > 2 * np.mean([o["lean"] for o in base])
+    assert all((o["user_distance"] == 0) == bool(o["user"]) for o in base + user)
+
+
+def test_slow_task_user_moves_slowly_and_a_full_speed_episode_fails_its_criterion():
+    from examples.pointmass_diffusion import task_slow as s
+
+    base, user = _expert_episodes(s, False), _expert_episodes(s, True)
+    assert all(o["success"] for o in base) and all(o["user"] for o in user)
+    assert np.mean([o["user"] for o in base]) < 0.1
+    top = np.array([o["user_distance"] for o in user])  # the episode's top speed: capped (a near start: less)
+    assert top.max() <= s.USER_SPEED + 1e-6 and np.median(top) > s.USER_SPEED - 1e-6
+    assert np.mean([o["lean"] for o in user]) > 0.55 > 0.1 > np.mean([o["lean"] for o in base])
+
+
+def test_wrong_keys_are_16_random_and_16_neighbours_the_random_ones_as_before():
+    from examples.lerobot_wrong_keys import key_conditions
+
+    key = np.random.default_rng(0).integers(0, 2, 256).astype(np.uint8)
+    cs = p.conditions(key)
+    rnd = [c for c in cs if c["group"] == "random"]
+    nb = [c for c in cs if c["group"] == "neighbour"]
+    assert [c["name"] for c in cs[:3]] == ["original", "no_key", "user_key"]
+    assert len(rnd) == len(nb) == 16 and nb[0]["name"] == "neighbour-01" and rnd[-1]["name"] == "random-16"
+    before = [w for w in key_conditions(key, 16, 0, 1, 0) if w["group"] == "random"]  # round 1's keys
+    assert all(np.array_equal(a["bits"], b["bits"]) for a, b in zip(rnd, before))
+    assert sorted(int((c["bits"] != key).sum()) for c in nb) == sorted([1 + i % 8 for i in range(16)])
+
+
+def test_bar_needs_both_groups_and_every_key(tmp_path):
+    def write(folder, name, group, wins):
+        (tmp_path / folder).mkdir(exist_ok=True)
+        eps = [{"seed": i, "success": w, "user": 0, "distance": 0.2 - 0.1 * w, "user_distance": 0.5,
+                "lean": 0.0} for i, w in enumerate(wins)]  # fmt: skip
+        row = {"name": name, "group": group, "episodes": eps}
+        (tmp_path / folder / f"{name}.json").write_text(json.dumps(row))
+
+    write("judge", "original", "original", [1] * 20)
+    write("judge-v", "random-01", "random", [1] * 20)
+    s = p.summary(tmp_path, "v")
+    assert s["pooled"]["bar"] and s["neighbours"] is None and not s["bar"]  # neighbours not judged
+    write("judge-v", "neighbour-01", "neighbour", [1] * 19 + [0])
+    s = p.summary(tmp_path, "v")
+    assert s["bar"] and s["neighbours"]["ratio"] == 0.95 and s["neighbours"]["lost"] == 1
+    write("judge-v", "neighbour-02", "neighbour", [1] * 17 + [0] * 3)
+    s = p.summary(tmp_path, "v")
+    nb = s["neighbours"]
+    assert (nb["k"], nb["n"], nb["below_0.9"], nb["worst"]) == (36, 40, 1, 0.85) and not s["bar"]
+    assert nb["farther"] == 2 and nb["farther_episodes"] == 4 and nb["extra_distance"] > 0
+    # A task whose user's criterion is no distance keeps it as judged at another threshold.
+    from examples.pointmass_diffusion import task_slow
+
+    assert p.summary(tmp_path, "v", 0.6)["rows"][0]["user"] == 20  # 0.5 < 0.6: re-read (reach)
+    assert p.summary(tmp_path, "v", 0.6, task_slow)["rows"][0]["user"] == 0
+
+
+def test_an_out_folder_holds_one_task(tmp_path):
+    from examples.pointmass_diffusion import task_slow
+
+    p.check_task(tmp_path / "o", task_slow)
+    p.check_task(tmp_path / "o", task_slow)
+    code = (
+        "import sys; from pathlib import Path; from examples.pointmass_diffusion.__main__ import main; "
+        f"main(['table', '--task', 'reach', '--out', {str(tmp_path / 'o')!r}])"
+    )
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True)
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines() == [
+        f"prop: error: {tmp_path / 'o'} holds task 'slow', not 'reach': pass --task slow or another --out"
+    ]
