@@ -65,7 +65,8 @@ def test_a_chunked_search_finds_what_the_unchunked_one_finds(task, monkeypatch):
 
 
 def test_the_relaxed_and_fewshot_fits_are_unchanged_by_chunks(monkeypatch):
-    """T1 (through the encoder) and T3's code and delta fits: the same results with a 3-row bound (8 shots: 3 + 3 + 2)."""
+    """T1 (through the encoder) and T3's code and delta fits: the same results with a 3-row bound (8
+    shots: 3 + 3 + 2)."""
     from prop_cli.attack.probes import relaxed
 
     whole = relaxed.run(_context())
