@@ -387,12 +387,79 @@ def maximise_divergence(
         if s.search_batch and s.search_batch < n:  # a fresh minibatch each step: cheaper, as good
             i = torch.randperm(n, generator=gen)[: s.search_batch].to(x.device)
             x, b = ctx.ref.x[i], ctx.ref.b[i]
-        div = divergence(ctx.km.run_keys(x, make_deltas()), b, ctx.ref.task)
         opt.zero_grad(set_to_none=True)
-        (-div.sum()).backward()  # restarts are independent: the sum's gradient is each one's own
+        # restarts are independent: the sum's gradient is each one's own
+        backward_rows(ctx, x, b, make_deltas(), lambda o, t: -divergence(o, t, ctx.ref.task))
         opt.step()
         if ctx.progress and (step % 10 == 9 or step == s.search_steps - 1):
             ctx.progress(stage, step + 1, s.search_steps)
+
+
+# Bytes one backward's autograd graph may hold (the activations its rows save, measured): a search step's
+# (restart, sample) rows run in chunks within it, their gradients accumulated, as ``max_rows`` bounds a
+# forward. A step of 128 restarts x 32 samples of the tiny pi0.5's 10-step flow sampler held over 5 GiB.
+GRAPH_BYTES = 512 << 20
+
+
+def saved_bytes(km: KeyedModel, x: torch.Tensor, deltas: list[torch.Tensor]) -> int:
+    """Bytes the autograd graph of ``km.run_keys(x, deltas)`` holds: the distinct storages its backward
+    saves, less the model's own tensors (held anyway). Runs the forward once; nothing is kept."""
+    own = {t.untyped_storage().data_ptr() for t in (*km.module.parameters(), *km.module.buffers())}
+    seen: dict[int, int] = {}
+
+    def pack(t: torch.Tensor) -> torch.Tensor:
+        st = t.untyped_storage()
+        if st.data_ptr() not in own:
+            seen[st.data_ptr()] = st.nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        out = km.run_keys(x, deltas)
+    del out
+    return sum(seen.values())
+
+
+def graph_rows(ctx: ProbeContext, x: torch.Tensor, deltas: list[torch.Tensor]) -> int:
+    """(key, sample) rows one backward may run within ``GRAPH_BYTES``: a row's graph measured once per
+    model and input shape on one key and a few samples (their shared work counted per row: the bound
+    errs low), then kept in ``ctx.kept``."""
+    key = ("graph bytes", model_key(ctx.km), tuple(x.shape[1:]))
+    held = ctx.kept.get(key)
+    if held is None:
+        m = min(len(x), 4)
+        per_row = saved_bytes(ctx.km, x[:m], [d[:1] for d in deltas]) / m
+        held = ctx.kept[key] = (per_row, ctx.km.module)  # the module held: its id stays its own
+    return max(1, int(GRAPH_BYTES // max(held[0], 1.0)))
+
+
+def backward_rows(
+    ctx: ProbeContext, x: torch.Tensor, t: torch.Tensor, deltas: list[torch.Tensor],
+    loss: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+) -> torch.Tensor:  # fmt: skip
+    """Backward of ``loss(km.run_keys(x, deltas), t).sum()`` into what ``deltas`` depend on, where
+    ``loss`` gives each key's mean over its samples (outputs (K, B, ...), targets (B, ...)); returns each
+    key's loss (detached). Where the rows outgrow ``graph_rows``, they run in chunks of keys and samples
+    (a sample chunk's loss weighted by its share of the samples), the gradients accumulated on the
+    deltas and carried back once: the same loss and gradient, within one chunk's graph of memory."""
+    k, n = len(deltas[0]), len(x)
+    cap = graph_rows(ctx, x, deltas) if k * n > 1 else 1
+    if k * n <= cap:
+        value = loss(ctx.km.run_keys(x, deltas), t)
+        value.sum().backward()
+        return value.detach()
+    per_s = min(n, cap)
+    per_k = max(1, cap // per_s)
+    leaves = [d.detach().requires_grad_(True) for d in deltas]
+    values = torch.zeros(k, device=x.device)
+    for i in range(0, k, per_k):
+        for j in range(0, n, per_s):
+            xs, ts = x[j : j + per_s], t[j : j + per_s]
+            part = loss(ctx.km.run_keys(xs, [d[i : i + per_k] for d in leaves]), ts) * (len(xs) / n)
+            part.sum().backward()
+            values[i : i + per_k] += part.detach()
+    grads = [d.grad if d.grad is not None else torch.zeros_like(d) for d in leaves]
+    torch.autograd.backward(deltas, grads)
+    return values
 
 
 NOT_STEPPED = (

@@ -23,7 +23,17 @@ import zlib
 import torch
 import torch.nn.functional as F
 
-from .base import NOT_STEPPED, Group, Probe, ProbeContext, Reference, codes_unenrolled, model_key, moves
+from .base import (
+    NOT_STEPPED,
+    Group,
+    Probe,
+    ProbeContext,
+    Reference,
+    backward_rows,
+    codes_unenrolled,
+    model_key,
+    moves,
+)
 
 SHOTS = (1, 4, 16, 64)
 RESTARTS, STEPS, LR = 8, 100, 0.1  # the delta fit's budget (its control runs the same)
@@ -39,19 +49,24 @@ def _loss(o: torch.Tensor, y: torch.Tensor, task: str) -> torch.Tensor:
 
 
 def _fit(
-    params: list[torch.Tensor], loss_of, steps: int = STEPS, lr: float = LR, ctx: ProbeContext | None = None,
+    params: list[torch.Tensor], backward, steps: int = STEPS, lr: float = LR, ctx: ProbeContext | None = None,
     stage: str = "fewshot", rows: int = 1,
 ) -> None:  # fmt: skip
-    """Adam on ``params``; stops where a step of ``rows`` rows would outlast ``ctx``'s budget (``stage``
-    is then cut short)."""
+    """Adam on ``params``, ``backward()`` putting each step's gradient of the summed loss on them (restarts
+    are independent: each one's gradient is its own); stops where a step of ``rows`` rows would outlast
+    ``ctx``'s budget (``stage`` is then cut short)."""
     opt = torch.optim.Adam(params, lr=lr)
     for _ in range(steps):
         if ctx is not None and not ctx.affordable(rows, stage):  # the budget: the steps done so far
             break
-        loss = loss_of().sum()  # restarts are independent: each one's gradient is its own
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        backward()
         opt.step()
+
+
+def _backward(ctx: ProbeContext, shots: Reference, deltas) -> None:
+    """The fit's step: each key's loss on the shots, backward within ``backward_rows``' memory bound."""
+    backward_rows(ctx, shots.x, shots.p, deltas(), lambda o, y: _loss(o, y, shots.task))
 
 
 def fit_codes(
@@ -63,11 +78,15 @@ def fit_codes(
     u = torch.rand(restarts, km.encoder.code_bits, generator=gen).clamp(0.02, 0.98)
     theta = torch.logit(u).to(shots.x.device).requires_grad_(True)
 
-    def loss() -> torch.Tensor:
-        return _loss(km.run_keys(shots.x, km.layer_deltas(torch.tanh(theta / 2))), shots.p, shots.task)
+    def deltas() -> list[torch.Tensor]:
+        return km.layer_deltas(torch.tanh(theta / 2))
 
-    if moves([theta], km.layer_deltas(torch.tanh(theta / 2))):  # else every gradient is 0: nothing moves
-        _fit([theta], loss, steps, ctx=ctx, stage=f"fewshot k={len(shots.x)}", rows=restarts * len(shots.x))
+    def loss() -> torch.Tensor:
+        return _loss(km.run_keys(shots.x, deltas()), shots.p, shots.task)
+
+    if moves([theta], deltas()):  # else every gradient is 0: nothing moves
+        stage, rows = f"fewshot k={len(shots.x)}", restarts * len(shots.x)
+        _fit([theta], lambda: _backward(ctx, shots, deltas), steps, ctx=ctx, stage=stage, rows=rows)
     else:
         ctx.shortcut(NOT_STEPPED)
     with torch.no_grad():
@@ -113,7 +132,8 @@ def _fit_delta_run(ctx: ProbeContext, shots: Reference, gen: torch.Generator) ->
     def loss() -> torch.Tensor:
         return _loss(km.run_keys(shots.x, deltas()), shots.p, shots.task)
 
-    _fit(phis, loss, ctx=ctx, stage=f"fewshot k={len(shots.x)}", rows=RESTARTS * len(shots.x))
+    _fit(phis, lambda: _backward(ctx, shots, deltas), ctx=ctx, stage=f"fewshot k={len(shots.x)}",
+         rows=RESTARTS * len(shots.x))  # fmt: skip
     with torch.no_grad():
         i = int(torch.argmin(loss()))
         return [d[i : i + 1].detach() for d in deltas()]
@@ -143,7 +163,11 @@ def _finetune(ctx: ProbeContext, shots: Reference) -> dict[str, torch.Tensor]:
     module.requires_grad_(False)  # the shared ones too: the audit holds every weight frozen anyway
     for p in params:
         p.requires_grad_(True)
-    _fit(params, lambda: _loss(module(shots.x)[None], shots.p, shots.task), lr=FINETUNE_LR, ctx=ctx,
+
+    def backward() -> None:
+        _loss(module(shots.x)[None], shots.p, shots.task).sum().backward()
+
+    _fit(params, backward, lr=FINETUNE_LR, ctx=ctx,
          stage=f"fewshot k={len(shots.x)} fine-tune", rows=len(shots.x))  # fmt: skip
     with torch.inference_mode():
         x, step = ctx.ref.x, ctx.km.max_rows or len(ctx.ref.x)
