@@ -201,3 +201,33 @@ def test_max_leak_is_no_pass_when_the_budget_left_every_probe_untried(sealed, cl
     assert r.code == 1, r.out
     assert r.out.splitlines()[0].startswith("NO DECISION at --max-leak 0.05: no probe ran")
     assert r.err.strip().splitlines()[-1].startswith("prop: leak check not done at --max-leak 0.05")
+
+
+def test_an_original_equal_to_the_sealed_base_shares_its_searches_a_changed_one_not(sealed, monkeypatch):
+    """--original loaded apart from a sealed bundle's base (prop wrote the base from it): tensor for tensor
+    equal, so T2's search runs once for its row and controls, as without --original (before: once on each
+    copy, each on its own share of the budget, and a cut-short pair could differ into a false "leak").
+    A checkpoint that differs in one value is a different original: its control runs on its own."""
+    from prop_cli.attack.probes import latent
+
+    bundle = load_bundle(sealed / "sealed.prop")
+    data = load_data(sealed / "mine.npz")
+    bits = [read_key_file(sealed / "k.bin", bundle.key_bits)]
+    s = AuditSettings(**(SMALL | {"probes": ["relaxed", "latent"]}))
+    calls = []
+    real = latent._search
+    monkeypatch.setattr(latent, "_search", lambda ctx: calls.append(1) or real(ctx))
+    same = target.load_original(bundle, str(sealed / "model.safetensors"))
+    report = audit_mod.audit(bundle, data, bits, s, original=same)
+    assert len(calls) == 1
+    row = next(g for g in report["groups"] if g["name"] == "latent")
+    assert any("same model as control" in line for line in row["shortcuts"])
+    assert "equal to the sealed base" in report["control_model"]
+
+    calls.clear()
+    changed = target.load_original(bundle, str(sealed / "model.safetensors"))
+    with torch.no_grad():
+        next(changed.parameters()).view(-1)[0] += 1e-3
+    report = audit_mod.audit(bundle, data, bits, s, original=changed)
+    assert len(calls) == 2  # the row on the base, the control on the other checkpoint
+    assert report["control_model"] == "the original checkpoint (--original)"

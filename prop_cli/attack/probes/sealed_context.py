@@ -40,6 +40,24 @@ def same_tensors(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     return len(ta) == len(tb) and all(na == nb and x is y for (na, x), (nb, y) in zip(ta, tb))
 
 
+def equal_values(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether ``a`` and ``b`` are the same classes in every submodule over tensors of the same names,
+    dtypes, shapes and values (an --original loaded apart from a sealed bundle's base, which prop writes
+    from it): on the same inputs they compute the same."""
+
+    def kinds(m: torch.nn.Module) -> list:  # by name: LeRobot's pi layers are classes made per model
+        return [(n, type(s).__module__, type(s).__qualname__) for n, s in m.named_modules()]
+
+    if kinds(a) != kinds(b):
+        return False
+    ta = dict([*a.named_parameters(remove_duplicate=False), *a.named_buffers(remove_duplicate=False)])
+    tb = dict([*b.named_parameters(remove_duplicate=False), *b.named_buffers(remove_duplicate=False)])
+    return ta.keys() == tb.keys() and all(  # by name: a rebuilt policy may register them in another order
+        x.dtype == tb[n].dtype and x.shape == tb[n].shape and (x is tb[n] or torch.equal(x, tb[n]))
+        for n, x in ta.items()
+    )
+
+
 def runs_as(base: torch.nn.Module, km: KeyedModel) -> bool:
     """Whether ``km``'s plain forward (no key rows set) computes what ``base`` computes, bit for bit,
     checked without running either: the same tensors (``same_tensors``), no hook on ``base``, and on
