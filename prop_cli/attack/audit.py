@@ -29,7 +29,6 @@ from prop_cli.fit import prepare
 
 from . import probes, target, verdict
 from .probes.base import Counter, Group, ProbeContext, Progress, Reference
-from .probes.sealed_context import equal_values
 from .verdict import apply_max_leak, leak_failures
 
 __all__ = ["apply_max_leak", "audit", "leak_failures"]
@@ -77,9 +76,7 @@ def _control_model(
 ) -> tuple[KeyedModel | None, str]:
     """The searches' control model: the original checkpoint keyed at the bundle's layers (the bundle's
     encoder shape, never its weights: the searches use only its layers and range), or why there is none."""
-    if original is not None and bundle.is_sealed and equal_values(original, km.module):
-        # The sealed base is the original tensor for tensor: the searches' rows and controls then run on
-        # one module, so each search runs once for both (not twice, each on its own share of the budget).
+    if original is not None and target.is_the_base(bundle, km, original):
         original, where = km.module, "the original checkpoint (--original), equal to the sealed base"
     elif original is not None:
         where = "the original checkpoint (--original)"

@@ -34,7 +34,7 @@ from prop_cli.datasources import Dataset
 from prop_cli.fit import flat_dataset
 
 from .probes.base import ProbeContext
-from .probes.sealed_context import SealedContext, blank_keyed, same_tensors
+from .probes.sealed_context import SealedContext, blank_keyed, equal_values, same_tensors
 
 
 def as_array(bundle: Bundle, data: Dataset, settings: AuditSettings) -> tuple[Bundle, Dataset, AuditSettings]:
@@ -169,6 +169,13 @@ def default_original(bundle: Bundle, km: KeyedModel) -> tuple[nn.Module | None, 
     if bundle.manifest.get(C.M_CONFIG, {}).get("freeze_base"):
         return km.module, "the bundle's base (trained with --freeze-base: written with the original's)"
     return None, "no original checkpoint: pass --original (the bundle's base was trained with the key)"
+
+
+def is_the_base(bundle: Bundle, km: KeyedModel, original: nn.Module) -> bool:
+    """Whether ``original`` (--original) is a sealed bundle's base tensor for tensor (prop writes the base
+    from it): the searches' rows and controls then run on one module, so each search runs once for both,
+    not twice on two copies, each on its own share of the budget."""
+    return bundle.is_sealed and equal_values(original, km.module)
 
 
 def probe_context(bundle: Bundle, ctx: ProbeContext) -> ProbeContext:
