@@ -10,7 +10,6 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from prop_cli.core.key_files import key_text, read_key_file
 from prop_cli.run import KeyedPolicy
 from prop_cli.serve.route import NO_KEY, route_salt, routing_id
 from tests.conftest import write_keys
-from tests.serve.shares import OPENPI_CONNECT, personalize_here
+from tests.serve.shares import OPENPI_CONNECT, personalize_here, routed_rounds, start_serve_ray
 
 X = np.random.default_rng(7).uniform(-1, 1, (5, 4)).astype(np.float32)
 ATOL = 1e-5  # a batched row against the folded weights: float rounding (docs/serving.md)
@@ -148,25 +147,8 @@ def test_a_wrong_key_is_refused_in_one_line_and_others_are_served(ray_served):
 def test_the_same_user_lands_on_the_replica_that_holds_it(ray_served):
     wd, port = ray_served
     users = ("k.bin", "k2.bin")
-
-    def round_() -> dict:
-        seen = {}
-        for name in users:
-            client = _client(port, key_text(wd / name))
-            client.infer({"observation": X})
-            meta = client.get_server_metadata()
-            seen[name] = (meta["replica"], meta["held"])
-            client._ws.close()
-            time.sleep(0.3)  # a replica tells the routers what it holds every 0.1 s
-        return seen
-
-    # Settle: a new user goes to the replica holding the fewest, and a router learns what a replica holds
-    # only every 0.1 s, later on a loaded machine, so a user can be sent once to the other replica (which
-    # then evicts the user it held: one per replica here). Bounded: at most 10 rounds.
-    for _ in range(10):
-        if all(held for _, held in round_().values()):
-            break
-    rounds = [round_() for _ in range(3)]
+    keys = {n: key_text(wd / n) for n in users}
+    rounds = routed_rounds(lambda key: _client(port, key), keys, {"observation": X})
     for name in users:
         assert {r[name] for r in rounds} == {(rounds[0][name][0], True)}, (name, rounds)
     # One user a replica (each holds one at most): a random pick would miss half the time.
@@ -213,13 +195,8 @@ def test_prop_serve_ray_serves_until_sigterm(needs_ray, two_users):
     import signal
 
     wd, port = two_users, _free_port()
-    args = ["serve-ray", wd / "ray.prop", "--port", port, "--num-cpus", "2", "--replicas", "1",
-            "--replica-cpus", "0.5", "--json"]  # fmt: skip
-    code = "from prop_cli.cli.main import main; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc, line = start_serve_ray(wd / "ray.prop", port)
     try:
-        line = proc.stdout.readline()  # once deployed (Ray starts: tens of seconds on a busy machine)
         assert json.loads(line)["url"] == f"ws://127.0.0.1:{port}", (line, proc.stderr.read())
         client = _client(port, key_text(wd / "k.bin"))
         want = KeyedPolicy(load_bundle(wd / "ray.prop"), read_key_file(wd / "k.bin")).predict(X)[0]

@@ -11,9 +11,6 @@ from __future__ import annotations
 import json
 import signal
 import socket
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -30,7 +27,7 @@ from prop_cli.config import PersonalizeConfig  # noqa: E402
 from prop_cli.core.key_files import KeySource  # noqa: E402
 from prop_cli.run import KeyedPolicy  # noqa: E402
 from tests.lerobot_bases import act_base, smolvla_base  # noqa: E402
-from tests.serve.shares import OPENPI_CONNECT  # noqa: E402
+from tests.serve.shares import OPENPI_CONNECT, routed_rounds, start_serve_ray  # noqa: E402
 
 pytestmark = [pytest.mark.lerobot, pytest.mark.slow, OPENPI_CONNECT]
 TINY = dict(steps=15, user_rows=8, null_rows=4, neighbour_keys=2, random_keys=2, samples_per_key=1,
@@ -95,13 +92,8 @@ def test_prop_serve_ray_serves_an_unsealed_act_bundle_until_sigterm(act_dir):
     want = {"user": _alone(bundle, KEY, frame), "base": _alone(bundle, None, frame)}
     assert not np.allclose(want["user"], want["base"], atol=1e-4)  # the key changes the chunk
     port = _free_port()
-    args = ["serve-ray", act_dir / "unsealed", "--port", port, "--num-cpus", "2", "--replicas", "1",
-            "--replica-cpus", "0.5", "--json"]  # fmt: skip
-    code = "from prop_cli.cli.main import main; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    proc, line = start_serve_ray(act_dir / "unsealed", port)
     try:
-        line = proc.stdout.readline()  # once deployed (Ray starts: tens of seconds on a busy machine)
         assert json.loads(line)["url"] == f"ws://127.0.0.1:{port}", (line, proc.stderr.read())
         user, base = _client(port, KEY), _client(port, None)
         meta = user.get_server_metadata()
@@ -222,24 +214,7 @@ def test_the_same_user_lands_on_the_replica_that_holds_it(ray_served):
     path, port = ray_served
     frame = _frames(load_bundle(path), 1)[0]
     users = {"a": KEY, "b": KEY2}
-
-    def round_() -> dict:
-        seen = {}
-        for name, key in users.items():
-            client = _client(port, key)
-            client.infer(frame)
-            meta = client.get_server_metadata()
-            seen[name] = (meta["replica"], meta["held"])
-            client._ws.close()
-            time.sleep(0.3)  # a replica tells the routers what it holds every 0.1 s
-        return seen
-
-    # Settle as tests/serve/test_ray.py does (a router learns what a replica holds every 0.1 s, later on a
-    # loaded machine); bounded: at most 10 rounds.
-    for _ in range(10):
-        if all(held for _, held in round_().values()):
-            break
-    rounds = [round_() for _ in range(3)]
+    rounds = routed_rounds(lambda key: _client(port, key), users, frame)
     for name in users:
         assert {r[name] for r in rounds} == {(rounds[0][name][0], True)}, (name, rounds)
     assert rounds[0]["a"][0] != rounds[0]["b"][0]  # one user a replica (each holds one at most)
