@@ -117,7 +117,8 @@ def train_steps(paths: dict, data: Path | None = None, rounds: int = 7, reps: in
         far = far_codes(ucodes, n_far, frng)
         batch = make_batch(cfg.mode, cfg.train.user_rows, frng, fsampler, ucodes, users, pool, far, far=n_far)
         deltas = km_full.layer_deltas(batch.codes, null=1)
-        pull = cfg.mode.delta_pull * delta_pull(deltas, slice(1, 1 + n_keys), of=n_keys + n_far)
+        weight = cfg.mode.for_kind("array").delta_pull
+        pull = weight * delta_pull(deltas, slice(1, 1 + n_keys), of=n_keys + n_far)
         out = km_full.run_rows(batch.x, deltas, batch.key_index, batch.sample_index)
         loss, _ = prop_loss(out, batch, "regression", cfg.mode.null_weight, cfg.mode.key_weight)
         fopt.zero_grad()

@@ -60,7 +60,7 @@ from prop_cli.run.inputs import load_inputs
 from prop_cli.run.policy import require_array_model, require_enrolled, seed_noise
 from prop_cli.threads import check as check_threads
 from prop_cli.threads import configure as configure_threads
-from prop_cli.train import User, personalize
+from prop_cli.train import User, personalize, settled
 from prop_cli.train.added_user import added_user_config, train_added_user
 from prop_cli.train.distributed import ranks_from_env
 from prop_cli.train.report import sweep_gate
@@ -214,6 +214,7 @@ def personalize_checkpoint(
     # never in fp32: prop_cli.train.frozen); fp32: the model in fp32, as every other command loads it.
     bf16 = cfg.train.precision == "bf16"
     loaded = _load(checkpoint, replace(opts or CheckpointOptions(), keep_dtypes=bf16))
+    cfg = settled(loaded, cfg)  # a default by the model's kind (--delta-pull) as the manifest records it
     configure_threads(_parameters(loaded.module), threads)
     datasets = [load_data(p) for p, _ in users]
     general_ds = load_data(general, require_y=False, flag="--general-data") if general is not None else None

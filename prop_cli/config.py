@@ -183,6 +183,14 @@ PLAIN = Hardening()
 HARDENED = Hardening(encoder_init="os", code_negatives=64, antipode_codes=16)
 
 
+# --delta-pull's default by the model's kind (train.choose.settled applies it). Array models: 10 (SB3 SAC
+# Pendulum, issue 32: keys below 0.9x the original's return 6.3% -> 0). LeRobot policies: 100 (issue 43:
+# a denoising policy's wrong keys drifted systematically away from the goal at 10, in closed loop through
+# the encoder on two tasks of three; examples/RESULTS.md, "Point mass", round 3). Per kind, not one value:
+# the array tables (the paper's, SB3) were measured at 10 and are kept.
+DELTA_PULL = {"array": 10.0, "policy": 100.0}
+
+
 @dataclass(frozen=True)
 class UnsealedConfig(_Settings):
     """The paper's PRoP (and --harden): base weights and a key encoder in the clear, trained with the
@@ -210,9 +218,12 @@ class UnsealedConfig(_Settings):
     # Weight of the sampled keys' delta pulled towards 1, the null key's (objective.delta_pull): a wrong
     # key's model is then nearly the no-key model, not only close to the original on the training
     # inputs; the no-key model is what holds in closed loop (docs/privacy.md, "Wrong keys in closed
-    # loop": SAC Pendulum, keys below 0.9x the original's return 6.3% -> 0). 0: bundles before issue 32.
-    delta_pull: float = setting(
-        10.0, "Weight pulling wrong keys' layer scales to the no-key model's (0 = off)."
+    # loop"). 0: bundles before issue 32. None: by the model's kind (DELTA_PULL, train.choose.settled),
+    # and the manifest records the value used.
+    delta_pull: float | None = setting(
+        None,
+        "Weight pulling wrong keys' layer scales to the no-key model's (default: 10 for array models, "
+        "100 for LeRobot policies; 0 = off).",
     )
     # ±1 codes 40-56 bits (of 128) from the user's code per step, a fallback term of their own, not pulled
     # (train.hardening.far_codes, objective.delta_pull): the nearest codes real keys reach. 0: none.
@@ -258,7 +269,9 @@ class UnsealedConfig(_Settings):
 
     def __post_init__(self) -> None:
         self.at_least(null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1, hamming_radius=1,
-                      null_weight=0, key_weight=0, delta_pull=0, far_codes=0, hard_negatives=0)  # fmt: skip
+                      null_weight=0, key_weight=0, far_codes=0, hard_negatives=0)  # fmt: skip
+        if self.delta_pull is not None:
+            self.at_least(delta_pull=0)
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale")
         self.need(0 <= self.fallback_noise <= 1, "fallback_noise", "in [0, 1]")
         self.need(self.key_encoding in KEY_ENCODINGS, "key_encoding", " or ".join(KEY_ENCODINGS))
@@ -266,6 +279,11 @@ class UnsealedConfig(_Settings):
         self.need(all(h >= 1 for h in self.encoder_hidden), "encoder_hidden", "positive sizes")
         if self.hard_negatives:
             self.at_least(hard_pool=1, hard_every=1)
+
+    def for_kind(self, kind: str) -> UnsealedConfig:
+        """These settings with the defaults that depend on the model's kind ("array" or "policy") filled
+        in (--delta-pull: DELTA_PULL); what is set stays. Each trainer settles its own."""
+        return self if self.delta_pull is not None else replace(self, delta_pull=DELTA_PULL[kind])
 
     def check_key_bits(self, key_bits: int) -> None:
         """What depends on the key size (known once the keys are)."""

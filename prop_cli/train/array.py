@@ -179,7 +179,7 @@ def divergence(
 
 def personalize(job: Job[UnsealedConfig], users: list[User], general: Dataset | None = None) -> Personalized:
     """Train the keyed model of Eq. 5 with the objective of Eq. 8; the loaded module is updated in place."""
-    loaded, tc, cfg = job.loaded, job.train, job.mode
+    loaded, tc, cfg = job.loaded, job.train, job.mode.for_kind("array")  # --delta-pull's array default
     cfg.check_key_bits(len(users[0].key_bits))
     check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
     datasets, task = prepare_users(loaded, [u.data for u in users], general, tc.task)

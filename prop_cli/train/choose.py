@@ -13,6 +13,14 @@ from .distributed import Ranks
 from .recipe import Job, Progress, Recipe, SealedRecipe, Status, Trained, User
 
 
+def settled(loaded: LoadedModel, cfg: PersonalizeConfig) -> PersonalizeConfig:
+    """``cfg`` with the settings whose default depends on the model's kind filled in: what trains, and
+    what the manifest records (so a bundle names the value it was trained with, not "the default")."""
+    if not isinstance(cfg.mode, UnsealedConfig):
+        return cfg
+    return PersonalizeConfig(cfg.train, cfg.mode.for_kind("array" if loaded.policy is None else "policy"))
+
+
 def sealed_recipe(loaded: LoadedModel) -> SealedRecipe:
     return sealed_policy.RECIPE if loaded.policy is not None else sealed_array.RECIPE
 
@@ -52,6 +60,7 @@ def personalize(
     launch` started (``distributed``), every recipe data parallel."""
     if not users:
         raise PropError("no user data given", "pass --data and --key-file (or --passphrase)")
+    cfg = settled(loaded, cfg)
     recipe = choose(loaded, cfg.mode)
     job = Job(loaded, cfg.train, cfg.mode, device, progress, ranks or Ranks(), status)
     return recipe.personalize(job, users, general)

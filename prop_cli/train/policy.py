@@ -228,6 +228,7 @@ class PolicyTrainer:
     ) -> None:  # fmt: skip
         policy = self.policy = loaded.policy
         ranks = self.ranks = ranks or Ranks()
+        cfg = cfg.for_kind("policy")  # --delta-pull's policy default where none was given
         cfg.check_key_bits(len(users[0].key_bits))
         check_user_keys([u.key_bits for u in users], cfg.hamming_radius)
         self.tc, self.cfg, self.users = tc, cfg, users

@@ -53,6 +53,11 @@ def bundle(work):
     return out
 
 
+def test_a_policy_bundle_records_the_policy_delta_pull_default(bundle):
+    """--delta-pull's default for a policy (config.DELTA_PULL, issue 43) is what the manifest records."""
+    assert json.loads((bundle / "manifest.json").read_text())["config"]["delta_pull"] == 100.0
+
+
 def test_folder_loads_through_lerobot_with_act_default_layers(work):
     info = api.inspect_checkpoint(str(work / "act"))
     assert info["adapter"] == "lerobot" and info["model"]["type"] == "act"

@@ -13,6 +13,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from prop_cli import constants as C
+from prop_cli.config import DELTA_PULL
 from tests.cli.shares import assert_clean_error, personalize, refused_before_training
 from tests.conftest import FAST, make_mlp_checkpoint
 
@@ -34,6 +35,7 @@ def test_personalize_run_roundtrip(cli, workdir):
     assert text == json.dumps(manifest, sort_keys=True, indent=2) + "\n"
     assert manifest[C.M_FORMAT] == C.FORMAT_VERSION
     assert manifest[C.M_CONFIG]["steps"] == 40
+    assert manifest[C.M_CONFIG]["delta_pull"] == DELTA_PULL["array"]  # the value trained, not "default"
 
     r1 = cli(
         "run",

@@ -98,7 +98,7 @@ def test_shared_lerobot_flags_import_without_touching_the_environment():
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "None"
-    assert "--policy.num_inference_steps=10" in p.TRAIN and p.PERSONALIZE[:2] == ["--steps", "300"]
+    assert "--policy.num_inference_steps=10" in p.TRAIN and p.PERSONALIZE[:2] == ["--steps", "900"]
 
 
 def _expert_episodes(t, user: bool, seeds=range(1_000_000, 1_000_200)) -> list[dict]:

@@ -159,3 +159,30 @@ def test_delta_pull_takes_wrong_keys_towards_the_null_key_and_hard_negatives_are
     (loose, p_loose), (pulled, p_pulled) = spread(0.0), spread(10.0)
     assert pulled < loose / 2
     assert p_pulled > 0.75 * p_loose  # the user's key keeps most of its behaviour (150 steps)
+
+
+def test_delta_pull_default_is_the_model_kinds_and_a_given_value_stays(setup):
+    """--delta-pull's default by kind (config.DELTA_PULL, train.choose.settled): 10 for array models, 100
+    for policies; a value given stays, sealed settings have none; an array model trains the same weights
+    with the default as with 10 given."""
+    from types import SimpleNamespace
+
+    from prop_cli.config import DELTA_PULL
+    from prop_cli.train import settled
+
+    array_model, policy = SimpleNamespace(policy=None), SimpleNamespace(policy=object())
+    assert DELTA_PULL == {"array": 10.0, "policy": 100.0}
+    assert settled(array_model, PersonalizeConfig.of()).mode.delta_pull == 10.0
+    assert settled(policy, PersonalizeConfig.of()).mode.delta_pull == 100.0
+    assert settled(policy, PersonalizeConfig.of(delta_pull=0.0)).mode.delta_pull == 0.0
+    sealed = PersonalizeConfig.of(seal=True)
+    assert settled(policy, sealed) == sealed
+    assert PersonalizeConfig.of().to_dict()["delta_pull"] is None  # not settled until the kind is known
+
+    loaded, user = setup
+    weights = []
+    for cfg in (PersonalizeConfig.of(steps=30), PersonalizeConfig.of(steps=30, delta_pull=10.0)):
+        res = personalize(copy.deepcopy(loaded), [user], cfg)
+        weights.append({k: v.clone() for k, v in res.keyed.state_dict().items()})
+    assert any("encoder" in k for k in weights[0])
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
