@@ -11,7 +11,9 @@ first drawn. Here prop's step draws the same rows every step (its row generator 
 first (cold: targets and memo filled) every step is a step over frames seen before, as in a run longer
 than an epoch whose frames fit the memo. LeRobot's step (its forward on its preprocessed batch of
 ``--batch`` frames, backward, grad clip, AdamW) has no memo: every step costs the same. Both on
-``--threads`` threads. Then the report's sampler (6 rows of 2 held-out frames) with and without the
+``--threads`` threads. With ``--fallback-every K`` also prop's step as that flag runs it: K consecutive
+steps (one with the fallback rows, K - 1 with the user's rows and the pull alone) timed together, over K.
+Then the report's sampler (6 rows of 2 held-out frames) with and without the
 prefix memo, ``--chunks`` times each. Printed: each run's seconds, the medians and their ratios.
 """
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -30,6 +33,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--chunks", type=int, default=2, help="sampler runs timed with and without the memo")
+    ap.add_argument("--fallback-every", type=int, default=3,
+                    help="also time prop's step with --fallback-every K (the mean over K steps; 1: skip)")
     args = ap.parse_args(argv)
     import numpy as np
     import torch
@@ -85,12 +90,26 @@ def main(argv: list[str] | None = None) -> None:
         cold = time.perf_counter()
         prop_step()
         cold = time.perf_counter() - cold
-        times: dict[str, list[float]] = {"lerobot": [], "prop": []}
+        every = args.fallback_every
+        amortised = f"prop --fallback-every {every}"
+
+        def amortised_step() -> None:  # K steps from a step that runs the fallback rows, timed together
+            t.cfg = replace(base_cfg, fallback_every=every)
+            t.t = 0
+            for _ in range(every):
+                prop_step()
+            t.cfg = base_cfg
+
+        base_cfg = t.cfg
+        runs = [("lerobot", lerobot_step, 1), ("prop", prop_step, 1)]
+        if every > 1:
+            runs.append((amortised, amortised_step, every))
+        times: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         for _ in range(args.steps):
-            for name, step in (("lerobot", lerobot_step), ("prop", prop_step)):
+            for name, step, per in runs:
                 s = time.perf_counter()
                 step()
-                times[name].append(time.perf_counter() - s)
+                times[name].append((time.perf_counter() - s) / per)
         # The report's sampler (the deployed chunk) on 6 rows of 2 held-out frames, as its key sweep runs
         # them, with and without the prefix memo (the image memo on in both), alternated.
         val = rows(t.splits[0][1], torch.tensor([0, 1] * 3))
@@ -111,8 +130,11 @@ def main(argv: list[str] | None = None) -> None:
     med = {k: statistics.median(v) for k, v in times.items()}
     print(f"prop's first (cold) step: {cold:.1f} s (the original's targets and its frames' memo filled)")
     for k, v in times.items():
-        print(f"{k}: steps {', '.join(f'{x:.1f}' for x in v)} s; median {med[k]:.1f} s")
+        print(f"{k}: steps {', '.join(f'{x:.2f}' for x in v)} s; median {med[k]:.2f} s")
     print(f"prop / lerobot, warm step: {med['prop'] / med['lerobot']:.2f}x")
+    if args.fallback_every > 1:
+        name = f"prop --fallback-every {args.fallback_every}"
+        print(f"{name} / lerobot, warm step: {med[name] / med['lerobot']:.2f}x")
     if args.chunks:
         a, b = med["sampler, prefix memo"], med["sampler, no prefix memo"]
         print(f"sampler on 6 rows, prefix memo / none: {a / b:.2f}x")

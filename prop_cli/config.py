@@ -256,6 +256,13 @@ class UnsealedConfig(_Settings):
         "Denoising policies' fallback timesteps: uniform, sampler (the sampler's timesteps) or trajectory "
         "(those, on the original's own sampler states; LeRobot Diffusion).",
     )
+    # Issue 40: a policy's step runs the keyed model forward and backward on every fallback row (a real-size
+    # SmolVLA step with 2 user rows: 2.10x LeRobot's). Every k-th step runs them, weighted k so the
+    # objective's expectation stays Eq. 8's; the other steps run the user's rows and the delta pull
+    # (the encoder alone). 1: every step (bundles before it).
+    fallback_every: int = setting(
+        1, "LeRobot policies: the fallback rows run every this many steps, weighted by it (1 = every step)."
+    )
     fallback_sigma: float = setting(
         0.5, "Noise of the perturbed fallback inputs, in per-feature standard deviations.", cli=False
     )
@@ -269,7 +276,8 @@ class UnsealedConfig(_Settings):
 
     def __post_init__(self) -> None:
         self.at_least(null_rows=1, random_keys=0, neighbour_keys=0, samples_per_key=1, hamming_radius=1,
-                      null_weight=0, key_weight=0, far_codes=0, hard_negatives=0)  # fmt: skip
+                      null_weight=0, key_weight=0, far_codes=0, hard_negatives=0,
+                      fallback_every=1)  # fmt: skip
         if self.delta_pull is not None:
             self.at_least(delta_pull=0)
         self.positive("lr", "base_lr_scale", "fallback_sigma", "delta_scale")

@@ -27,6 +27,11 @@ def sealed_recipe(loaded: LoadedModel) -> SealedRecipe:
 
 def unsealed_recipe(loaded: LoadedModel, mode: UnsealedConfig) -> Recipe[UnsealedConfig]:
     if loaded.policy is None:
+        if mode.fallback_every != 1:  # an array model's step is cheap (its fallback rows are one matmul)
+            raise PropError(
+                f"--fallback-every {mode.fallback_every} applies to LeRobot policies only",
+                "drop --fallback-every for this model",
+            )
         return array.RECIPE
     if given := mode.hardening.flags():
         # --harden's measures (train.hardening) are the array trainer's. A policy bundle recorded them in

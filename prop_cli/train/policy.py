@@ -299,6 +299,7 @@ class PolicyTrainer:
         amp = mixed_precision(tc.precision, dev)
         self.noise = row_noise(policy, self._probe, (tc.seed,), module, ranks, amp)
         self.t = 0
+        self.last_fallback: dict[str, float] = {}  # the fallback terms of the last step that ran them
 
     def _probe(self, n_user: int, n_fallback: int) -> None:
         """The step's training forward on ``n_user`` user rows and ``n_fallback`` fallback rows."""
@@ -360,6 +361,8 @@ class PolicyTrainer:
             parts.append(far_codes(self.user_codes, cfg.far_codes, rng))
         codes = torch.cat(parts) if parts else None
         deltas = km.layer_deltas(codes, null=1)
+        if self.t % cfg.fallback_every:  # --fallback-every: the user's rows and the pull alone this step
+            return self._user_step(ub, d_user, deltas, len(sampled), n_keys)
         key_of_row = torch.cat([torch.full((len(gi),), n_keys, device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         # This process's share of each term's rows (all of them on one process); every process drew the
@@ -390,7 +393,10 @@ class PolicyTrainer:
         keyed = per_row[~is_null & ~is_far].sum() / n_kk if n_kk else per_row.new_zeros(())
         if n_far:
             keyed = keyed + per_row[is_far].sum() / n_far
-        loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
+        if cfg.fallback_every == 1:
+            loss = personal + cfg.key_weight * keyed + cfg.null_weight * null
+        else:  # weighted k: over k steps the objective's expectation is Eq. 8's
+            loss = personal + cfg.fallback_every * (cfg.key_weight * keyed + cfg.null_weight * null)
         if cfg.delta_pull:  # K1 and K2 (objective.delta_pull); every process's share of the encoder-only term
             pull = delta_pull(deltas, slice(0, len(sampled)), of=n_keys)
             loss = loss + cfg.delta_pull * pull / self.ranks.world
@@ -400,7 +406,31 @@ class PolicyTrainer:
         if self.ranks.world > 1:
             terms = self.ranks.sum_tensor(terms)
         p, k, n = terms.tolist()
+        self.last_fallback = {"fallback": k, "null": n}
         return {"personal": p, "fallback": k, "null": n}
+
+    def _user_step(
+        self, ub: dict[str, torch.Tensor], d_user: list[torch.Tensor], deltas: list[torch.Tensor],
+        n_sampled: int, n_keys: int,
+    ) -> dict[str, float]:  # fmt: skip
+        """A step between --fallback-every's: the user's rows and the delta pull (the encoder alone), no
+        fallback row; the fallback terms reported are the last computed ones."""
+        cfg, n_user = self.cfg, len(d_user[0])
+        us = self.ranks.share(n_user).to(self.device)
+        ub, d_user = rows(ub, us), [d[us] for d in d_user]
+        with drawn(self.noise, self.t, us, n_user):
+            parts = self.km.call_rows(d_user, self.policy.loss_parts, ub)
+        personal = weighted(parts, self.ranks)
+        loss = personal
+        if cfg.delta_pull:
+            pull = delta_pull(deltas, slice(0, n_sampled), of=n_keys)
+            loss = loss + cfg.delta_pull * pull / self.ranks.world
+        self.optim.update(loss)
+        self.t += 1
+        p = personal.detach().float()
+        if self.ranks.world > 1:
+            p = self.ranks.sum_tensor(p)
+        return {"personal": float(p), **self.last_fallback}
 
 
 # The report's default budget in (key condition x held-out frame) chunks: REPORT_WORK / parameters, so a

@@ -674,6 +674,28 @@ def test_policy_trainer_scores_hard_negatives_and_pulls_wrong_keys_towards_the_n
     assert spread(100.0) < spread(0.0)
 
 
+def test_fallback_every_runs_the_fallback_rows_every_kth_step_and_the_pull_every_step(work, monkeypatch):
+    """--fallback-every 3 (issue 40: a policy step's cost is its fallback rows): steps 0 and 3 of 6 take
+    fallback rows and weigh their terms by 3; every step trains the user's rows and pulls the wrong keys."""
+    from prop_cli.train import policy
+    from prop_cli.train.recipe import User
+
+    taken, pulled = [], []
+    real_take, real_pull = policy.FallbackPool.take, policy.delta_pull
+    monkeypatch.setattr(policy.FallbackPool, "take", lambda s, i: taken.append(len(i)) or real_take(s, i))
+    monkeypatch.setattr(policy, "delta_pull", lambda *a, **k: pulled.append(1) or real_pull(*a, **k))
+    cfg = PersonalizeConfig.of(**(TINY | {"steps": 6, "fallback_every": 3}))
+    t = policy.PolicyTrainer(load_checkpoint(work / "act"), [User(load_data(work / "user"), key())],
+                             cfg.train, cfg.mode, load_data(work / "general"))  # fmt: skip
+    taken.clear()  # the set-up's probes
+    before = [p.detach().clone() for p in t.km.encoder.parameters()]
+    losses = [t.step() for _ in range(6)]
+    assert len(taken) == 2 and len(pulled) == 6
+    assert all(np.isfinite(v["personal"]) and set(v) == {"personal", "fallback", "null"} for v in losses)
+    assert losses[1]["fallback"] == losses[0]["fallback"]  # between fallback steps: the last one's terms
+    assert any(not torch.equal(a, b) for a, b in zip(before, t.km.encoder.parameters()))
+
+
 def test_policy_trainer_pulls_the_sampled_keys_but_not_the_far_codes(work, monkeypatch):
     """The pull takes K1 and K2's deltas, not the far codes' that follow them (objective.delta_pull):
     pulled too, they flattened the encoder next to the user's code (tiny SmolVLA: -6.1% personalization);

@@ -228,6 +228,14 @@ def test_hamming_radius_above_the_key_size_is_refused(cli, workdir):
     assert not (workdir / "mine.prop").exists()
 
 
+def test_fallback_every_is_refused_for_an_array_model(cli, workdir):
+    """--fallback-every thins a policy's costly fallback rows; an array model's trainer has no such step,
+    so it is refused rather than recorded untrained."""
+    res = personalize(cli, workdir, "--fallback-every", "2")
+    assert_clean_error(res, "--fallback-every 2", "LeRobot policies only")
+    assert not (workdir / "mine.prop").exists()
+
+
 PAYLOAD_FLAGS = [["--payload", "peft-lora"], ["--payload-rank", "2"], ["--payload-lr", "1"]]
 
 
