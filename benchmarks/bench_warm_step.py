@@ -14,7 +14,7 @@ than an epoch whose frames fit the memo. LeRobot's step (its forward on its prep
 ``--threads`` threads. With ``--fallback-every K`` also prop's step as that flag runs it: K consecutive
 steps (one with the fallback rows, K - 1 with the user's rows and the pull alone) timed together, over K.
 Then the report's sampler (6 rows of 2 held-out frames) with and without the
-prefix memo, ``--chunks`` times each. Printed: each run's seconds, the medians and their ratios.
+prefix memo, ``--chunks`` times each. Printed: each run's wall and CPU seconds, the medians and their ratios.
 """
 
 from __future__ import annotations
@@ -105,11 +105,13 @@ def main(argv: list[str] | None = None) -> None:
         if every > 1:
             runs.append((amortised, amortised_step, every))
         times: dict[str, list[float]] = {name: [] for name, _, _ in runs}
+        cpu: dict[str, list[float]] = {name: [] for name, _, _ in runs}
         for _ in range(args.steps):
             for name, step, per in runs:
-                s = time.perf_counter()
+                s, c = time.perf_counter(), time.process_time()
                 step()
                 times[name].append((time.perf_counter() - s) / per)
+                cpu[name].append((time.process_time() - c) / per)
         # The report's sampler (the deployed chunk) on 6 rows of 2 held-out frames, as its key sweep runs
         # them, with and without the prefix memo (the image memo on in both), alternated.
         val = rows(t.splits[0][1], torch.tensor([0, 1] * 3))
@@ -131,10 +133,15 @@ def main(argv: list[str] | None = None) -> None:
     print(f"prop's first (cold) step: {cold:.1f} s (the original's targets and its frames' memo filled)")
     for k, v in times.items():
         print(f"{k}: steps {', '.join(f'{x:.2f}' for x in v)} s; median {med[k]:.2f} s")
-    print(f"prop / lerobot, warm step: {med['prop'] / med['lerobot']:.2f}x")
-    if args.fallback_every > 1:
-        name = f"prop --fallback-every {args.fallback_every}"
-        print(f"{name} / lerobot, warm step: {med[name] / med['lerobot']:.2f}x")
+    # CPU seconds as well: on a shared machine a step's wall time is mostly its wait for a core (with
+    # --threads 1 its CPU time is its compute).
+    cpu_med = {k: statistics.median(v) for k, v in cpu.items()}
+    for k, v in cpu.items():
+        print(f"{k}: CPU {', '.join(f'{x:.2f}' for x in v)} s; median {cpu_med[k]:.2f} s")
+    names = ["prop"] + ([f"prop --fallback-every {args.fallback_every}"] if args.fallback_every > 1 else [])
+    for name in names:
+        print(f"{name} / lerobot, warm step: {med[name] / med['lerobot']:.2f}x wall, "
+              f"{cpu_med[name] / cpu_med['lerobot']:.2f}x CPU")
     if args.chunks:
         a, b = med["sampler, prefix memo"], med["sampler, no prefix memo"]
         print(f"sampler on 6 rows, prefix memo / none: {a / b:.2f}x")
