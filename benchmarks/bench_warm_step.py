@@ -32,6 +32,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=4, help="timed steps of each, after one cold step")
     ap.add_argument("--batch", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--null-rows", type=int, default=None, help="prop's no-key rows (default: --batch)")
     ap.add_argument("--chunks", type=int, default=2, help="sampler runs timed with and without the memo")
     ap.add_argument("--fallback-every", type=int, default=3,
                     help="also time prop's step with --fallback-every K (the mean over K steps; 1: skip)")
@@ -77,8 +78,9 @@ def main(argv: list[str] | None = None) -> None:
     # neighbour, one random key and one far code row), within the policy's memo as personalize runs it.
     loaded = load_checkpoint(folder)
     key = np.random.default_rng(0).integers(0, 2, 128).astype(np.uint8)
-    cfg = PersonalizeConfig.of(steps=args.steps + 1, user_rows=args.batch, null_rows=args.batch,
-                            neighbour_keys=1, random_keys=1, far_codes=1, samples_per_key=1)  # fmt: skip
+    null = args.null_rows or args.batch
+    cfg = PersonalizeConfig.of(steps=args.steps + 1, user_rows=args.batch, null_rows=null, neighbour_keys=1,
+                               random_keys=1, far_codes=1, samples_per_key=1)  # fmt: skip
     with loaded.policy.memo():
         t = PolicyTrainer(loaded, [User(load_data(data), key)], cfg.train, cfg.mode, None)
         state = t.rng.bit_generator.state
