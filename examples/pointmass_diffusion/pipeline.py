@@ -319,6 +319,72 @@ def step_drift(out: Path, variant: str = "", t=pm) -> None:
     dest.write_text(json.dumps(report, indent=1))
 
 
+def code_distances(out: Path, variant: str = "") -> dict[str, int]:
+    """Per wrong key (``conditions``), how many bits of its encoder input differ from the user's: the
+    bundle's key encoding applied to both (hashed, the default: their SHAKE-256 codes; raw: the bits)."""
+    from prop_cli import constants as C
+    from prop_cli.bundle.read import read_manifest
+    from prop_cli.core.key_files import key_for_bundle
+    from prop_cli.core.keyed_model import key_codes
+
+    manifest = read_manifest(out / _name("bundle", variant))  # the manifest only: no LeRobot needed
+    encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
+    user = key_for_bundle(manifest, out / "user.key")
+    mine = key_codes(user, encoding)[0]
+    wrong = conditions(user)[3:]
+    codes = key_codes(np.stack([c["bits"] for c in wrong]), encoding)
+    return {c["name"]: int((code != mine).sum()) for c, code in zip(wrong, codes)}
+
+
+def spearman(x, y, permutations: int = 20_000, seed: int = 0) -> tuple[float, float]:
+    """Spearman's rank correlation of ``x`` and ``y`` (average ranks for ties) and its two-sided
+    permutation p (``permutations`` shuffles of ``y``, seeded; at least 1 / (permutations + 1))."""
+
+    def ranks(v) -> np.ndarray:
+        v = np.asarray(v, dtype=float)
+        order = v.argsort(kind="stable")
+        r = np.empty(len(v))
+        r[order] = np.arange(len(v), dtype=float)
+        for value in np.unique(v):  # ties: their mean rank
+            r[v == value] = r[v == value].mean()
+        return (r - r.mean()) / (np.linalg.norm(r - r.mean()) or 1.0)
+
+    rx, ry = ranks(x), ranks(y)
+    rho = float(rx @ ry)
+    shuffled = np.random.default_rng(seed).permuted(np.tile(ry, (permutations, 1)), axis=1)
+    beyond = int((np.abs(shuffled @ rx) >= abs(rho) - 1e-12).sum())
+    return rho, (beyond + 1) / (permutations + 1)
+
+
+def code_table(out: Path, v: str, t=pm, offsets: list[int] | None = None) -> None:
+    """The wrong keys' mean final distance and lean against their code distance to the user's code
+    (``code_distances``, Spearman over the keys), and the keys by code distance."""
+    if not (out / _name("bundle", v) / "manifest.json").is_file() or not (out / "user.key").is_file():
+        return
+    codes = code_distances(out, v)
+    table = summary(out, v, None, t, offsets)["rows"]
+    rows = {r["name"]: r for r in table if r["name"] in codes}
+    if len(rows) < 3:
+        return
+    names = sorted(rows, key=lambda n: (codes[n], n))
+    d = [codes[n] for n in names]
+    ref = next(r["distance"] for r in table if r["name"] == "original")
+    far, near = [n for n in names if codes[n] >= 69], [n for n in names if codes[n] <= 60]
+
+    def extra(keys: list[str]) -> str:
+        return f"{np.mean([rows[n]['distance'] for n in keys]) - ref:+.4f}" if keys else "none"
+
+    (rd, pd), (rl, pl) = (spearman(d, [rows[n][k] for n in names]) for k in ("distance", "lean"))
+    judged = seeds_label(offsets, rows[names[0]]["n"])
+    print(
+        f"\n{t.NAME}: {_name('bundle', v)}, {len(names)} wrong keys ({judged}): code distance to the user's "
+        f"code (bits) against the mean final distance, Spearman {rd:+.2f} (permutation p {pd:.2g}), against "
+        f"the lean {rl:+.2f} (p {pl:.2g}); extra final distance against the original: keys at >= 69 bits "
+        f"({len(far)}) {extra(far)}, at <= 60 bits ({len(near)}) {extra(near)}"
+    )
+    print("keys by code distance: " + ", ".join(f"{n} {codes[n]}" for n in names))
+
+
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """The Wilson score interval of k successes in n (95% at z = 1.96)."""
     if n == 0:
@@ -497,6 +563,7 @@ def step_table(
             continue
         for threshold in thresholds or [t.THRESHOLD]:
             success_table(out, v, threshold, t, offsets)
+        code_table(out, v, t, offsets)
     for v in variants:
         f = out / f"{_name('drift', v)}.json"
         if f.is_file():

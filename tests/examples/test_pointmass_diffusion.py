@@ -317,3 +317,45 @@ def test_seed_offset_flag_refuses_bad_blocks_in_one_line(tmp_path, capsys):
         assert e.value.code == 2 and len(err) == 1 and err[0].startswith("prop: error: --seed-offset")
         assert why in err[0]
     assert not (tmp_path / "o").exists()
+
+
+def test_spearman_ranks_ties_and_its_permutation_p():
+    rho, pv = p.spearman([1, 1, 2, 3], [1, 2, 3, 4])
+    assert abs(rho - 4.5 / np.sqrt(22.5)) < 1e-12  # average ranks of the tie: scipy's value
+    rho, pv = p.spearman(range(12), [5 - x for x in range(12)], permutations=2000)
+    assert abs(rho + 1) < 1e-12 and pv == 1 / 2001
+    rho, pv = p.spearman(range(12), [3, 9, 0, 11, 5, 1, 7, 10, 2, 8, 4, 6], permutations=2000)
+    assert abs(rho) < 0.3 and pv > 0.3
+
+
+def test_code_distances_follow_the_bundles_key_encoding(cli, workdir, capsys):
+    """A raw-encoded bundle's neighbour keys are as many code bits from the user's as key bits; hashed,
+    as far as random keys. The table relates the wrong keys' final distances to them."""
+    import shutil
+
+    from tests.cli.shares import personalize
+
+    (workdir / "user.key").write_bytes((workdir / "k.bin").read_bytes())
+    (workdir / "user.key").chmod(0o600)
+    assert personalize(cli, workdir, "--key-encoding", "raw", out="bundle-raw").code == 0
+    assert personalize(cli, workdir, out="bundle-hashed").code == 0
+    raw, hashed = p.code_distances(workdir, "raw"), p.code_distances(workdir, "hashed")
+    assert len(raw) == len(hashed) == 32
+    user = p.user_bits(workdir, "raw")
+    nb = {c["name"]: int((c["bits"] != user).sum()) for c in p.conditions(user) if c["group"] == "neighbour"}
+    assert len(nb) == 16 and all(raw[n] == d for n, d in nb.items())
+    assert min(hashed[n] for n in nb) > 20 and 50 < np.mean(list(hashed.values())) < 78
+    # The table: wrong keys ending farther the farther their code (Spearman +1).
+    capsys.readouterr()
+    _write_block(workdir / "judge", "original", "original", [1] * 4)
+    for n, d in raw.items():
+        _write_block(workdir / "judge-raw", n, n.split("-")[0], [1] * 4)
+        row = json.loads((workdir / "judge-raw" / f"{n}.json").read_text())
+        row["episodes"] = [e | {"distance": d / 1000} for e in row["episodes"]]
+        (workdir / "judge-raw" / f"{n}.json").write_text(json.dumps(row))
+    p.code_table(workdir, "raw")
+    out = capsys.readouterr().out
+    assert "32 wrong keys (seed offset 0: 4 episodes)" in out and "mean final distance, Spearman +1.00" in out
+    shutil.rmtree(workdir / "bundle-hashed")
+    p.code_table(workdir, "hashed")  # no bundle, nothing judged: nothing printed
+    assert capsys.readouterr().out == ""
