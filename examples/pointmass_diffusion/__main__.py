@@ -12,7 +12,9 @@ success under 0.1) or slow (task_slow.py: state only, the user moves at 0.4 of f
 
 Each step skips what --out already holds (a dataset, the checkpoint, a bundle, a judged condition), so a
 stopped run continues where it stopped. ``--variant NAME --personalize-flags '...'`` personalizes and
-judges a second bundle (out/bundle-NAME, out/judge-NAME) from the same checkpoint.
+judges a second bundle (out/bundle-NAME, out/judge-NAME) from the same checkpoint. ``judge --seed-offset N
+--episodes M`` judges every condition on M further seeds (JUDGE_SEED + N ...; out/judge[-NAME]/offset-N);
+``table --seed-offset 0 --seed-offset N`` pools blocks of seeds (default: the first block alone).
 """
 
 from __future__ import annotations
@@ -45,7 +47,21 @@ def main(argv: list[str] | None = None) -> None:
         help="table: success as final distance under this (repeatable)",
     )
     ap.add_argument("--episodes", type=int, default=None, help="episodes per condition (default 20)")
+    ap.add_argument(
+        "--seed-offset",
+        type=int,
+        action="append",
+        help="judge: the first seed's offset from the judge's first (default 0); table: a block of judged "
+        "seeds to read (repeatable: pooled; default 0)",
+    )
     args = ap.parse_args(argv)
+    offsets = args.seed_offset or [0]
+    if any(o < 0 for o in offsets):
+        ap.exit(2, f"prop: error: --seed-offset {min(offsets)}: an offset is 0 or more\n")
+    if args.step in ("judge", "all") and len(offsets) > 1:
+        ap.exit(2, "prop: error: --seed-offset: judge takes one block of seeds; pass --seed-offset once\n")
+    if len(set(offsets)) < len(offsets):
+        ap.exit(2, "prop: error: --seed-offset: a block named twice; pass each offset once\n")
     from examples.pointmass_diffusion import pipeline as p
 
     t = world.load(args.task)
@@ -60,9 +76,9 @@ def main(argv: list[str] | None = None) -> None:
         if step in ("record", "train"):
             getattr(p, f"step_{step}")(args.out, t)
         elif step == "table":
-            p.step_table(args.out, args.threshold, t)
+            p.step_table(args.out, args.threshold, t, offsets)
         elif step == "judge":
-            p.step_judge(args.out, args.variant, args.episodes or p.EPISODES, t)
+            p.step_judge(args.out, args.variant, args.episodes or p.EPISODES, t, offsets[0])
         elif step == "personalize":
             p.step_personalize(args.out, args.variant, extra)
         else:

@@ -180,19 +180,31 @@ def user_bits(out: Path, variant: str) -> np.ndarray:
     return key_for_bundle(load_bundle(out / _name("bundle", variant)).manifest, out / "user.key")
 
 
-def step_judge(out: Path, variant: str = "", n: int = EPISODES, t=pm) -> None:
-    """Every condition on the same seeds (one batch, the same sampler noise): judge[-variant]/NAME.json.
-    The original is judged once (judge/original.json) and shared by the variants."""
-    judged = out / _name("judge", variant)
+def judge_dir(out: Path, variant: str = "", offset: int = 0) -> Path:
+    """Where the judged conditions of a block of seeds lie: judge[-variant]/ for the seeds from
+    ``JUDGE_SEED`` (offset 0), judge[-variant]/offset-N/ for those from ``JUDGE_SEED + N``."""
+    folder = out / _name("judge", variant)
+    return folder / f"offset-{offset}" if offset else folder
+
+
+def step_judge(out: Path, variant: str = "", n: int = EPISODES, t=pm, offset: int = 0) -> None:
+    """Every condition on the same seeds ``JUDGE_SEED + offset`` ... ``+ offset + n - 1`` (one batch, the
+    same sampler noise, drawn from ``offset``): judge_dir(out, variant, offset)/NAME.json. The original
+    is judged once per block (judge_dir(out, "", offset)/original.json) and shared by the variants."""
+    judged = judge_dir(out, variant, offset)
     judged.mkdir(parents=True, exist_ok=True)
-    seeds = [JUDGE_SEED + i for i in range(n)]
+    seeds = [JUDGE_SEED + offset + i for i in range(n)]
     for c in conditions(user_bits(out, variant)):
-        path = (out / "judge" if c["group"] == "original" else judged) / f"{c['name']}.json"
+        path = (judge_dir(out, "", offset) if c["group"] == "original" else judged) / f"{c['name']}.json"
         if path.is_file():
+            done = [e["seed"] for e in json.loads(path.read_text())["episodes"]]
+            if done != seeds:
+                why = f"holds seeds {done[0]}..{done[-1]} ({len(done)}), not {seeds[0]}..{seeds[-1]} ({n})"
+                sys.exit(f"prop: error: {path} {why}: pass --episodes {len(done)} or another --seed-offset")
             continue
         path.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        eps = world.rollouts(t, controller(out, variant, c), seeds)
+        eps = world.rollouts(t, controller(out, variant, c), seeds, batch_seed=offset)
         seconds = round(time.perf_counter() - t0, 1)
         row = dict(name=c["name"], group=c["group"], id=c.get("id"), episodes=eps, seconds=seconds)
         path.write_text(json.dumps(row, indent=1))
@@ -307,6 +319,72 @@ def step_drift(out: Path, variant: str = "", t=pm) -> None:
     dest.write_text(json.dumps(report, indent=1))
 
 
+def code_distances(out: Path, variant: str = "") -> dict[str, int]:
+    """Per wrong key (``conditions``), how many bits of its encoder input differ from the user's: the
+    bundle's key encoding applied to both (hashed, the default: their SHAKE-256 codes; raw: the bits)."""
+    from prop_cli import constants as C
+    from prop_cli.bundle.read import read_manifest
+    from prop_cli.core.key_files import key_for_bundle
+    from prop_cli.core.keyed_model import key_codes
+
+    manifest = read_manifest(out / _name("bundle", variant))  # the manifest only: no LeRobot needed
+    encoding = manifest[C.M_KEY].get("encoding", C.KEY_ENCODINGS[0])
+    user = key_for_bundle(manifest, out / "user.key")
+    mine = key_codes(user, encoding)[0]
+    wrong = conditions(user)[3:]
+    codes = key_codes(np.stack([c["bits"] for c in wrong]), encoding)
+    return {c["name"]: int((code != mine).sum()) for c, code in zip(wrong, codes)}
+
+
+def spearman(x, y, permutations: int = 20_000, seed: int = 0) -> tuple[float, float]:
+    """Spearman's rank correlation of ``x`` and ``y`` (average ranks for ties) and its two-sided
+    permutation p (``permutations`` shuffles of ``y``, seeded; at least 1 / (permutations + 1))."""
+
+    def ranks(v) -> np.ndarray:
+        v = np.asarray(v, dtype=float)
+        order = v.argsort(kind="stable")
+        r = np.empty(len(v))
+        r[order] = np.arange(len(v), dtype=float)
+        for value in np.unique(v):  # ties: their mean rank
+            r[v == value] = r[v == value].mean()
+        return (r - r.mean()) / (np.linalg.norm(r - r.mean()) or 1.0)
+
+    rx, ry = ranks(x), ranks(y)
+    rho = float(rx @ ry)
+    shuffled = np.random.default_rng(seed).permuted(np.tile(ry, (permutations, 1)), axis=1)
+    beyond = int((np.abs(shuffled @ rx) >= abs(rho) - 1e-12).sum())
+    return rho, (beyond + 1) / (permutations + 1)
+
+
+def code_table(out: Path, v: str, t=pm, offsets: list[int] | None = None) -> None:
+    """The wrong keys' mean final distance and lean against their code distance to the user's code
+    (``code_distances``, Spearman over the keys), and the keys by code distance."""
+    if not (out / _name("bundle", v) / "manifest.json").is_file() or not (out / "user.key").is_file():
+        return
+    codes = code_distances(out, v)
+    table = summary(out, v, None, t, offsets)["rows"]
+    rows = {r["name"]: r for r in table if r["name"] in codes}
+    if len(rows) < 3:
+        return
+    names = sorted(rows, key=lambda n: (codes[n], n))
+    d = [codes[n] for n in names]
+    ref = next(r["distance"] for r in table if r["name"] == "original")
+    far, near = [n for n in names if codes[n] >= 69], [n for n in names if codes[n] <= 60]
+
+    def extra(keys: list[str]) -> str:
+        return f"{np.mean([rows[n]['distance'] for n in keys]) - ref:+.4f}" if keys else "none"
+
+    (rd, pd), (rl, pl) = (spearman(d, [rows[n][k] for n in names]) for k in ("distance", "lean"))
+    judged = seeds_label(offsets, rows[names[0]]["n"])
+    print(
+        f"\n{t.NAME}: {_name('bundle', v)}, {len(names)} wrong keys ({judged}): code distance to the user's "
+        f"code (bits) against the mean final distance, Spearman {rd:+.2f} (permutation p {pd:.2g}), against "
+        f"the lean {rl:+.2f} (p {pl:.2g}); extra final distance against the original: keys at >= 69 bits "
+        f"({len(far)}) {extra(far)}, at <= 60 bits ({len(near)}) {extra(near)}"
+    )
+    print("keys by code distance: " + ", ".join(f"{n} {codes[n]}" for n in names))
+
+
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """The Wilson score interval of k successes in n (95% at z = 1.96)."""
     if n == 0:
@@ -328,6 +406,22 @@ def _load(folder: Path) -> dict[str, dict]:
     return {r["name"]: r for r in (json.loads(f.read_text()) for f in sorted(folder.glob("*.json")))}
 
 
+def judged(out: Path, variant: str = "", offsets: list[int] | None = None) -> tuple[dict, list[str]]:
+    """The original and the variant's conditions judged on every block of seeds in ``offsets`` (default
+    [0]), each condition's episodes the blocks' in order; a condition missing from a block is left out
+    and named in the second value returned. Blocks that share a seed are refused in one line."""
+    offsets = offsets or [0]
+    blocks = [_load(judge_dir(out, "", o)) | _load(judge_dir(out, variant, o)) for o in offsets]
+    names = [n for n in blocks[0] if all(n in b for b in blocks[1:])]
+    rows = {n: blocks[0][n] | {"episodes": [e for b in blocks for e in b[n]["episodes"]]} for n in names}
+    for n, r in rows.items():
+        seeds = [e["seed"] for e in r["episodes"]]
+        if len(set(seeds)) < len(seeds):
+            flags = " ".join(f"--seed-offset {o}" for o in offsets)
+            sys.exit(f"prop: error: {flags}: {n}'s blocks share seeds; pass blocks that do not overlap")
+    return rows, sorted({n for b in blocks for n in b} - set(names))
+
+
 def _at(rows: dict[str, dict], threshold: float | None, user_by_distance: bool = True) -> dict[str, dict]:
     """The judged rows with success (and the user's criterion where ``user_by_distance``: the task's
     ``USER_BY_DISTANCE``) re-read from the final distances at ``threshold`` (None: as judged, the task's
@@ -342,12 +436,13 @@ def _at(rows: dict[str, dict], threshold: float | None, user_by_distance: bool =
     return {n: r | {"episodes": [at(e) for e in r["episodes"]]} for n, r in rows.items()}
 
 
-def pooled(rows: dict[str, dict], table: list[dict], group: str) -> dict | None:
+def pooled(rows: dict[str, dict], table: list[dict], group: str, alpha: float = 0.05) -> dict | None:
     """One group of wrong keys (random, neighbour) pooled: success (Wilson 95%) and its ratio to the
     original's, episodes lost and gained against the original on the same seeds (exact sign test: the
     paired test), how many keys end farther and lean more than the original (a sign test over the keys: a
-    systematic drift), the per-episode paired distances, and whether the group meets the issue's bar
-    (every key >= 0.9x, pooled >= 0.95x). None when the group was not judged."""
+    systematic drift), the per-episode paired distances, whether the group meets the issue's bar (every
+    key >= 0.9x, pooled >= 0.95x), and the keys whose own paired sign test has p < ``alpha`` (``worse``:
+    more episodes lost than gained, ``better``: the other way). None when the group was not judged."""
     wrong = [t for t in table if t["group"] == group]
     if not wrong:
         return None
@@ -377,24 +472,33 @@ def pooled(rows: dict[str, dict], table: list[dict], group: str) -> dict | None:
         "leaning_p": sign_p(leaning, len(wrong) - leaning),
         "below_0.9": sum(t["ratio"] < 0.9 for t in wrong),
         "worst": min(t["ratio"] for t in wrong),
+        "worst_key": min(wrong, key=lambda t: t["ratio"])["name"],
         "farther_episodes": farther_eps,
         "nearer_episodes": nearer_eps,
         "episodes_p": sign_p(farther_eps, nearer_eps),
         "extra_distance": float(np.mean(per_seed)),
         "distance": float(np.mean([t["distance"] for t in wrong])),
         "lean": float(np.mean([t["lean"] for t in wrong])),
+        "alpha": alpha,
+        "worse": [t["name"] for t in wrong if t["p"] < alpha and t["lost"] > t["gained"]],
+        "better": [t["name"] for t in wrong if t["p"] < alpha and t["gained"] > t["lost"]],
     }
     out["bar"] = out["below_0.9"] == 0 and out["ratio"] >= 0.95
     return out
 
 
-def summary(out: Path, variant: str = "", threshold: float | None = None, t=pm) -> dict:
+def summary(
+    out: Path, variant: str = "", threshold: float | None = None, t=pm, offsets: list[int] | None = None
+) -> dict:
     """Per condition: success (Wilson 95%), ratio to the original, episodes lost and gained against the
     original on the same seeds (exact sign test), mean final distance and lean; ``pooled``: the random
-    keys (see ``pooled``), ``neighbours``: the neighbour keys (None if not judged); ``bar``: the issue's
-    bar on every judged group (both needed). ``threshold``: success as a final distance under it (default
-    the task's)."""
-    rows = _at(_load(out / "judge") | _load(out / _name("judge", variant)), threshold, t.USER_BY_DISTANCE)
+    keys (see ``pooled``), ``neighbours``: the neighbour keys (None if not judged), each with the keys its
+    paired sign test separates from the original at 0.05 over the number of wrong keys (Bonferroni);
+    ``bar``: the issue's bar on every judged group (both needed). ``threshold``: success as a final
+    distance under it (default the task's); ``offsets``: the blocks of seeds pooled (``judged``; default
+    [0]), ``left_out``: the conditions not judged on every one of them."""
+    found, left = judged(out, variant, offsets)
+    rows = _at(found, threshold, t.USER_BY_DISTANCE)
     ref = rows["original"]["episodes"]
     k0 = sum(e["success"] for e in ref)
     win = {e["seed"]: e["success"] for e in ref}
@@ -420,14 +524,16 @@ def summary(out: Path, variant: str = "", threshold: float | None = None, t=pm) 
                 "user": sum(e["user"] for e in eps),
             }
         )
-    groups = {g: pooled(rows, table, g) for g in ("random", "neighbour")}
-    judged = [p for p in groups.values() if p is not None]
+    alpha = 0.05 / max(1, sum(r["group"] in ("random", "neighbour") for r in table))
+    groups = {g: pooled(rows, table, g, alpha) for g in ("random", "neighbour")}
+    present = [p for p in groups.values() if p is not None]
     both = groups["neighbour"] is not None and groups["random"] is not None
     return {
         "rows": table,
         "pooled": groups["random"],
         "neighbours": groups["neighbour"],
-        "bar": both and all(p["bar"] for p in judged),
+        "bar": both and all(p["bar"] for p in present),
+        "left_out": left,
     }
 
 
@@ -442,26 +548,44 @@ def _ci(k: int, n: int) -> str:
     return f"{k}/{n} [{lo:.2f}, {hi:.2f}]"
 
 
-def step_table(out: Path, thresholds: list[float] | None = None, t=pm) -> None:
+def step_table(
+    out: Path, thresholds: list[float] | None = None, t=pm, offsets: list[int] | None = None
+) -> None:
+    """Per variant judged on every block of seeds in ``offsets`` (default [0]; several: pooled) and per
+    threshold, the success table; then the drift tables."""
     variants = [""] + sorted(p.name[len("judge-") :] for p in out.glob("judge-*") if p.is_dir())
     for v in variants:
-        judged = {p.stem for p in (out / _name("judge", v)).glob("*.json")} - {"original"}
-        if not judged or not (out / "judge" / "original.json").is_file():
-            continue  # nothing judged but the original (judge/ of a task personalized as a variant only)
+        blocks = [judge_dir(out, v, o) for o in offsets or [0]]
+        originals = [judge_dir(out, "", o) / "original.json" for o in offsets or [0]]
+        if not all({p.stem for p in b.glob("*.json")} - {"original"} for b in blocks):
+            continue  # nothing judged but the original on some block (judge/ of a task judged as variants)
+        if not all(p.is_file() for p in originals):
+            continue
         for threshold in thresholds or [t.THRESHOLD]:
-            success_table(out, v, threshold, t)
+            success_table(out, v, threshold, t, offsets)
+        code_table(out, v, t, offsets)
     for v in variants:
         f = out / f"{_name('drift', v)}.json"
         if f.is_file():
             drift_table(json.loads(f.read_text()), _name("drift", v))
 
 
-def success_table(out: Path, v: str, threshold: float, t=pm) -> None:
-    s = summary(out, v, threshold, t)
+def seeds_label(offsets: list[int] | None, n: int) -> str:
+    """The judged seeds in words: their offsets from ``JUDGE_SEED`` and the episodes per condition."""
+    offsets = offsets or [0]
+    return f"seed offset{'s' if len(offsets) > 1 else ''} {', '.join(map(str, offsets))}: {n} episodes"
+
+
+def success_table(out: Path, v: str, threshold: float, t=pm, offsets: list[int] | None = None) -> None:
+    s = summary(out, v, threshold, t, offsets)
+    n = s["rows"][0]["n"]
     print(
         f"\n{t.NAME}: {_name('bundle', v)}, success = final distance < {threshold}; the user's change: "
-        f"{t.USER_CHANGE}. Per condition, paired seeds (Wilson 95%), against the original\n"
+        f"{t.USER_CHANGE}. Per condition, paired seeds ({seeds_label(offsets, n)}; Wilson 95%), against "
+        f"the original\n"
     )
+    if s["left_out"]:
+        print(f"left out (not judged on every block of seeds): {', '.join(s['left_out'])}\n")
     print(HEAD + "\n|" + " --- |" * 8)
     for r in s["rows"]:
         print(
@@ -482,18 +606,29 @@ def success_table(out: Path, v: str, threshold: float, t=pm) -> None:
             f"toward the user's change: {p['leaning']} (p {p['leaning_p']:.3g}); bar (every key >= 0.9x, "
             f"pooled >= 0.95x): {'met' if p['bar'] else 'NOT met'}; episodes ending farther / nearer than "
             f"the original's on the same seed: {p['farther_episodes']} / {p['nearer_episodes']} (sign test "
-            f"p {p['episodes_p']:.3g}), mean extra distance {p['extra_distance']:+.4f}"
+            f"p {p['episodes_p']:.3g}), mean extra distance {p['extra_distance']:+.4f}; keys the paired sign "
+            f"test separates from the original at p < {p['alpha']:.2g} (0.05 / keys, Bonferroni): worse "
+            f"{', '.join(p['worse']) or 'none'}, better {', '.join(p['better']) or 'none'}"
         )
     print(f"the bar on this bundle (random and neighbour keys): {'met' if s['bar'] else 'NOT met'}")
     by = {r["name"]: r for r in s["rows"]}
-    cells = [t.NAME, _name("bundle", v), f"{threshold:g}", _ci(by["original"]["k"], by["original"]["n"])]
+    cells = [
+        t.NAME,
+        _name("bundle", v),
+        f"{threshold:g}",
+        f"{n}",
+        _ci(by["original"]["k"], by["original"]["n"]),
+    ]
     cells.append(f"{by['no_key']['k']}/{by['no_key']['n']}" if "no_key" in by else "")
     for p in (s["pooled"], s["neighbours"]):
         if p is None:
             cells.append("not judged")
             continue
         ratio = f"{p['k']}/{p['n']} = {p['ratio']:.2f}x, {p['lost']} / {p['gained']} (p {p['p']:.2g})"
-        cells.append(f"{ratio}, worst {p['worst']:.2f}, {p['below_0.9']} below 0.9x")
+        worse = f"{len(p['worse'])} worse at p < {p['alpha']:.2g}"
+        cells.append(
+            f"{ratio}, worst {p['worst']:.2f} ({p['worst_key']}), {p['below_0.9']} below 0.9x, {worse}"
+        )
     user = by.get("user_key")
     cells.append(f"{user['user']}/{user['n']}, lean {user['lean']:+.3f}" if user else "")
     cells.append("met" if s["bar"] else "NOT met")

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -203,3 +204,158 @@ def test_an_out_folder_holds_one_task(tmp_path):
     assert out.stderr.strip().splitlines() == [
         f"prop: error: {tmp_path / 'o'} holds task 'slow', not 'reach': pass --task slow or another --out"
     ]
+
+
+def _write_block(folder: Path, name: str, group: str, wins: list[int], first_seed: int = 0) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    eps = [{"seed": first_seed + i, "success": w, "user": 0, "distance": 0.2 - 0.1 * w, "user_distance": 0.5,
+            "lean": 0.0} for i, w in enumerate(wins)]  # fmt: skip
+    (folder / f"{name}.json").write_text(json.dumps({"name": name, "group": group, "episodes": eps}))
+
+
+def test_blocks_of_seeds_read_alone_or_pooled_and_overlapping_blocks_are_refused(tmp_path):
+    """judge --seed-offset N writes judge[-v]/offset-N; the table reads the first block by default (the
+    100-episode tables as before), another block alone, or several pooled on their seeds."""
+    assert p.judge_dir(tmp_path, "v") == tmp_path / "judge-v"
+    assert p.judge_dir(tmp_path, "v", 10) == tmp_path / "judge-v" / "offset-10"
+    assert p.judge_dir(tmp_path, "", 10) == tmp_path / "judge" / "offset-10"
+    _write_block(tmp_path / "judge", "original", "original", [1] * 10)
+    _write_block(tmp_path / "judge" / "offset-10", "original", "original", [1] * 10, 10)
+    _write_block(tmp_path / "judge-v", "random-01", "random", [1] * 10)
+    _write_block(tmp_path / "judge-v" / "offset-10", "random-01", "random", [1] * 5 + [0] * 5, 10)
+    _write_block(tmp_path / "judge-v", "neighbour-01", "neighbour", [1] * 10)  # first block only
+    first = p.summary(tmp_path, "v")
+    assert (first["pooled"]["k"], first["pooled"]["n"], first["left_out"]) == (10, 10, [])
+    assert first["pooled"]["bar"] and first["bar"]
+    fresh = p.summary(tmp_path, "v", offsets=[10])
+    assert (fresh["pooled"]["k"], fresh["pooled"]["lost"], fresh["neighbours"]) == (5, 5, None)
+    both = p.summary(tmp_path, "v", offsets=[0, 10])
+    r = both["pooled"]
+    assert (r["k"], r["n"], r["lost"], r["gained"], r["below_0.9"]) == (15, 20, 5, 0, 1) and not both["bar"]
+    assert both["left_out"] == ["neighbour-01"] and both["neighbours"] is None
+    assert abs(r["ratio"] - 0.75) < 1e-12 and abs(r["p"] - p.sign_p(5, 0)) < 1e-12
+    _write_block(tmp_path / "judge" / "offset-5", "original", "original", [1] * 10, 5)
+    _write_block(tmp_path / "judge-v" / "offset-5", "random-01", "random", [1] * 10, 5)
+    with pytest.raises(SystemExit) as e:
+        p.summary(tmp_path, "v", offsets=[0, 5])
+    assert str(e.value).startswith("prop: error: --seed-offset 0 --seed-offset 5: original's blocks share")
+
+
+def test_keys_the_paired_test_separates_after_bonferroni(tmp_path):
+    """A key that loses 10 of 10 episodes (two-sided sign p = 2/1024) is separated from the original over
+    2 keys (p < 0.025) and not over 32 (p < 0.0016)."""
+    _write_block(tmp_path / "judge", "original", "original", [1] * 10 + [0] * 10)
+    _write_block(tmp_path / "judge-v", "random-01", "random", [0] * 20)
+    _write_block(tmp_path / "judge-v", "neighbour-01", "neighbour", [1] * 20)
+    s = p.summary(tmp_path, "v")
+    assert s["pooled"]["alpha"] == 0.025 and s["pooled"]["worse"] == ["random-01"]
+    assert s["neighbours"]["better"] == ["neighbour-01"] and s["neighbours"]["worse"] == []
+    for i in range(2, 17):
+        _write_block(tmp_path / "judge-v", f"random-{i:02d}", "random", [1] * 10 + [0] * 10)
+        _write_block(tmp_path / "judge-v", f"neighbour-{i:02d}", "neighbour", [1] * 10 + [0] * 10)
+    s = p.summary(tmp_path, "v")
+    assert (
+        s["pooled"]["alpha"] == 0.05 / 32 and s["pooled"]["worse"] == [] and s["neighbours"]["better"] == []
+    )
+    assert s["pooled"]["worst_key"] == "random-01"
+
+
+class _Still:
+    """A controller that never moves the point, remembering the noise seeds it was reset with."""
+
+    def __init__(self, resets: list) -> None:
+        self.resets = resets
+
+    def reset(self, seed=None) -> None:
+        self.resets.append(seed)
+
+    def select_action(self, obs) -> np.ndarray:
+        return np.zeros((len(obs[world_state()]), 2))
+
+
+def world_state() -> str:
+    from examples.pointmass_diffusion import world
+
+    return world.STATE
+
+
+def test_judge_takes_a_block_of_fresh_seeds_and_keeps_the_first_block_as_it_was(tmp_path, monkeypatch):
+    resets: list = []
+    names = [("original", "original"), ("no_key", "no_key"), ("random-01", "random")]
+    monkeypatch.setattr(p, "conditions", lambda key: [{"name": n, "group": g} for n, g in names])
+    monkeypatch.setattr(p, "user_bits", lambda out, variant: np.zeros(8, np.uint8))
+    monkeypatch.setattr(p, "controller", lambda out, variant, c: _Still(resets))
+    p.step_judge(tmp_path, "v", 3)
+    p.step_judge(tmp_path, "v", 4, offset=3)
+    first = json.loads((tmp_path / "judge-v" / "random-01.json").read_text())["episodes"]
+    fresh = json.loads((tmp_path / "judge-v" / "offset-3" / "random-01.json").read_text())["episodes"]
+    assert [e["seed"] for e in first] == [p.JUDGE_SEED + i for i in range(3)]
+    assert [e["seed"] for e in fresh] == [p.JUDGE_SEED + 3 + i for i in range(4)]
+    assert (tmp_path / "judge" / "offset-3" / "original.json").is_file()
+    assert resets == [0, 0, 0, 3, 3, 3]  # the sampler's noise: the first block's as before, then fresh
+    # Still where it started: the same seed ends at the same distance in either block's batch.
+    assert fresh[0]["distance"] == pm.outcome(pm.Env([p.JUDGE_SEED + 3]))[0]["distance"]
+    p.step_judge(tmp_path, "v", 4, offset=3)  # judged: nothing re-run
+    assert len(resets) == 6
+    with pytest.raises(SystemExit) as e:
+        p.step_judge(tmp_path, "v", 5)
+    assert str(e.value).startswith(f"prop: error: {tmp_path / 'judge' / 'original.json'} holds seeds ")
+    assert str(e.value).endswith("pass --episodes 3 or another --seed-offset")
+
+
+def test_seed_offset_flag_refuses_bad_blocks_in_one_line(tmp_path, capsys):
+    from examples.pointmass_diffusion.__main__ import main
+
+    for argv, why in (
+        (["judge", "--seed-offset", "0", "--seed-offset", "100"], "judge takes one block of seeds"),
+        (["table", "--seed-offset", "-1"], "--seed-offset -1: an offset is 0 or more"),
+        (["table", "--seed-offset", "100", "--seed-offset", "100"], "a block named twice"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            main([*argv, "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and len(err) == 1 and err[0].startswith("prop: error: --seed-offset")
+        assert why in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_spearman_ranks_ties_and_its_permutation_p():
+    rho, pv = p.spearman([1, 1, 2, 3], [1, 2, 3, 4])
+    assert abs(rho - 4.5 / np.sqrt(22.5)) < 1e-12  # average ranks of the tie: scipy's value
+    rho, pv = p.spearman(range(12), [5 - x for x in range(12)], permutations=2000)
+    assert abs(rho + 1) < 1e-12 and pv == 1 / 2001
+    rho, pv = p.spearman(range(12), [3, 9, 0, 11, 5, 1, 7, 10, 2, 8, 4, 6], permutations=2000)
+    assert abs(rho) < 0.3 and pv > 0.3
+
+
+def test_code_distances_follow_the_bundles_key_encoding(cli, workdir, capsys):
+    """A raw-encoded bundle's neighbour keys are as many code bits from the user's as key bits; hashed,
+    as far as random keys. The table relates the wrong keys' final distances to them."""
+    import shutil
+
+    from tests.cli.shares import personalize
+
+    (workdir / "user.key").write_bytes((workdir / "k.bin").read_bytes())
+    (workdir / "user.key").chmod(0o600)
+    assert personalize(cli, workdir, "--key-encoding", "raw", out="bundle-raw").code == 0
+    assert personalize(cli, workdir, out="bundle-hashed").code == 0
+    raw, hashed = p.code_distances(workdir, "raw"), p.code_distances(workdir, "hashed")
+    assert len(raw) == len(hashed) == 32
+    user = p.user_bits(workdir, "raw")
+    nb = {c["name"]: int((c["bits"] != user).sum()) for c in p.conditions(user) if c["group"] == "neighbour"}
+    assert len(nb) == 16 and all(raw[n] == d for n, d in nb.items())
+    assert min(hashed[n] for n in nb) > 20 and 50 < np.mean(list(hashed.values())) < 78
+    # The table: wrong keys ending farther the farther their code (Spearman +1).
+    capsys.readouterr()
+    _write_block(workdir / "judge", "original", "original", [1] * 4)
+    for n, d in raw.items():
+        _write_block(workdir / "judge-raw", n, n.split("-")[0], [1] * 4)
+        row = json.loads((workdir / "judge-raw" / f"{n}.json").read_text())
+        row["episodes"] = [e | {"distance": d / 1000} for e in row["episodes"]]
+        (workdir / "judge-raw" / f"{n}.json").write_text(json.dumps(row))
+    p.code_table(workdir, "raw")
+    out = capsys.readouterr().out
+    assert "32 wrong keys (seed offset 0: 4 episodes)" in out and "mean final distance, Spearman +1.00" in out
+    shutil.rmtree(workdir / "bundle-hashed")
+    p.code_table(workdir, "hashed")  # no bundle, nothing judged: nothing printed
+    assert capsys.readouterr().out == ""
