@@ -33,9 +33,10 @@ def unsealed_recipe(loaded: LoadedModel, mode: UnsealedConfig) -> Recipe[Unseale
                 "drop --fallback-every for this model",
             )
         return array.RECIPE
-    if given := mode.hardening.flags():
-        # --harden's measures (train.hardening) are the array trainer's. A policy bundle recorded them in
-        # its manifest without having trained any of them, so a policy refuses them instead.
+    if given := [f for f in mode.hardening.flags() if not f.startswith("--antipode-codes")]:
+        # --harden's measures (train.hardening) are the array trainer's, but for --antipode-codes (issue
+        # 43: the wrong keys farthest from the user's code were the ones that drifted). A policy bundle
+        # recorded them in its manifest without having trained any of them, so a policy refuses them.
         raise PropError(
             f"{', '.join(given)}: the LeRobot policy trainer does not train --harden's measures yet (a "
             "policy bundle would record them without having them)",

@@ -42,7 +42,7 @@ from prop_cli.errors import PropError
 
 from .distributed import Ranks
 from .frozen import frozen_in_bf16, held_autocast, trained_in_fp32
-from .hardening import far_codes
+from .hardening import antipode_codes, far_codes
 from .loop import Optimiser, mixed_precision, run_steps
 from .objective import check_user_keys, delta_pull
 from .recipe import Job, Recipe, User
@@ -294,7 +294,8 @@ class PolicyTrainer:
         )  # fmt: skip
         self.hard_rng = np.random.default_rng((tc.seed, HARD_STREAM))
         self.per_user = max(1, tc.user_rows // len(users))
-        sampled = (cfg.neighbour_keys + cfg.random_keys + cfg.far_codes) * cfg.samples_per_key
+        n_placed = cfg.far_codes + cfg.hardening.antipode_codes
+        sampled = (cfg.neighbour_keys + cfg.random_keys + n_placed) * cfg.samples_per_key
         ranks.check_rows({"--user-rows": self.per_user * len(users), "--null-rows": cfg.null_rows + sampled})
         amp = mixed_precision(tc.precision, dev)
         self.noise = row_noise(policy, self._probe, (tc.seed,), module, ranks, amp)
@@ -352,17 +353,22 @@ class PolicyTrainer:
         sampled = np.concatenate(
             [self.sampler.neighbours(cfg.neighbour_keys), self.sampler.random(cfg.random_keys)]
         )
-        n_keys = len(sampled) + cfg.far_codes  # the sampled keys, then hardening.far_codes
+        # The sampled keys, then --antipode-codes (72-88 bits from the user's code: pulled, as K1 and K2),
+        # then the far codes (40-56 bits: not pulled); one slice for the pull, as in the array trainer.
+        n_anti = cfg.hardening.antipode_codes
+        n_keys = len(sampled) + n_anti + cfg.far_codes
         gi = torch.from_numpy(rng.integers(0, len(self.fallback), cfg.null_rows)).to(dev)
         k_rows = torch.arange(n_keys, device=dev).repeat_interleave(cfg.samples_per_key)
         idx = torch.cat([gi, gi[torch.from_numpy(rng.integers(0, cfg.null_rows, len(k_rows))).to(dev)]])
         parts = [key_codes(sampled, cfg.key_encoding).to(dev)] if len(sampled) else []
+        if n_anti:
+            parts.append(antipode_codes(self.user_codes, n_anti, rng))
         if cfg.far_codes:
             parts.append(far_codes(self.user_codes, cfg.far_codes, rng))
         codes = torch.cat(parts) if parts else None
         deltas = km.layer_deltas(codes, null=1)
         if self.t % cfg.fallback_every:  # --fallback-every: the user's rows and the pull alone this step
-            return self._user_step(ub, d_user, deltas, len(sampled), n_keys)
+            return self._user_step(ub, d_user, deltas, len(sampled) + n_anti, n_keys)
         key_of_row = torch.cat([torch.full((len(gi),), n_keys, device=dev), k_rows])
         d_fb = [d.index_select(0, key_of_row) for d in deltas]
         # This process's share of each term's rows (all of them on one process); every process drew the
@@ -386,9 +392,9 @@ class PolicyTrainer:
         personal = weighted(parts, self.ranks)
         is_null = fs < n_null
         null = per_row[is_null].sum() / n_null
-        # K1 and K2's rows, then the far codes' (hardening.far_codes): a term each, as in the array trainer.
+        # K1 and K2's rows, then the antipode and far codes' (train.hardening): a term each, as arrays do.
         is_far = fs >= n_null + len(sampled) * cfg.samples_per_key
-        n_far = cfg.far_codes * cfg.samples_per_key
+        n_far = (n_anti + cfg.far_codes) * cfg.samples_per_key
         n_kk = n_fb - n_null - n_far
         keyed = per_row[~is_null & ~is_far].sum() / n_kk if n_kk else per_row.new_zeros(())
         if n_far:
@@ -398,7 +404,7 @@ class PolicyTrainer:
         else:  # weighted k: over k steps the objective's expectation is Eq. 8's
             loss = personal + cfg.fallback_every * (cfg.key_weight * keyed + cfg.null_weight * null)
         if cfg.delta_pull:  # K1 and K2 (objective.delta_pull); every process's share of the encoder-only term
-            pull = delta_pull(deltas, slice(0, len(sampled)), of=n_keys)
+            pull = delta_pull(deltas, slice(0, len(sampled) + n_anti), of=n_keys)
             loss = loss + cfg.delta_pull * pull / self.ranks.world
         self.optim.update(loss)
         self.t += 1

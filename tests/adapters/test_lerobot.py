@@ -227,10 +227,11 @@ def test_layers_that_do_not_run_when_deployed_are_refused(work, tmp_path, layer)
     assert not (tmp_path / "b").exists()
 
 
-@pytest.mark.parametrize("flags", [{"harden": True}, {"antipode_codes": 4}, {"encoder_init": "os"}])
+@pytest.mark.parametrize("flags", [{"harden": True}, {"code_negatives": 4}, {"encoder_init": "os"}])
 def test_harden_is_refused_for_a_policy_not_recorded_untrained(work, tmp_path, flags):
-    """The policy trainer has none of --harden's measures; a bundle recorded harden: true, 64 code-space
-    negatives and 16 antipode codes without having trained them. Refused before anything is written."""
+    """The policy trainer has none of --harden's measures but --antipode-codes; a bundle recorded harden:
+    true, 64 code-space negatives and 16 antipode codes without having trained them. Refused before
+    anything is written."""
     cfg = PersonalizeConfig.of(**(TINY | flags | {"steps": 1}))
     with pytest.raises(PropError, match="does not train --harden's measures") as e:
         api.personalize_checkpoint(
@@ -719,3 +720,16 @@ def test_policy_trainer_pulls_the_sampled_keys_but_not_the_far_codes(work, monke
     (keys, rows, of), k = seen[0], cfg.mode.neighbour_keys + cfg.mode.random_keys
     assert (keys.start, keys.stop) == (0, k) and rows == k + 3 + 1  # K1, K2 | 3 far codes | null
     assert of == k + 3  # each pulled key keeps its weight among the far codes
+    # --antipode-codes (72-88 bits from the user's code) are pulled with K1 and K2, and fall back with
+    # the far codes: codes [K1, K2 | 2 antipode | 3 far | null].
+    seen.clear()
+    more = {"steps": 1, "delta_pull": 10.0, "far_codes": 3, "antipode_codes": 2}
+    cfg = PersonalizeConfig.of(**(TINY | more))
+    t = policy.PolicyTrainer(load_checkpoint(work / "act"), users, cfg.train, cfg.mode, general)
+    bits = []
+    real_anti = policy.antipode_codes
+    monkeypatch.setattr(policy, "antipode_codes",
+                        lambda u, n, rng: bits.append(n) or real_anti(u, n, rng))  # fmt: skip
+    t.step()
+    (keys, rows, of) = seen[0]
+    assert bits == [2] and (keys.start, keys.stop) == (0, k + 2) and rows == k + 2 + 3 + 1 and of == k + 5
