@@ -231,6 +231,8 @@ def gate(rows: list[dict]) -> dict:
         r["lost"], r["gained"] = int(((ref == 1) & (mine == 0)).sum()), int(((ref == 0) & (mine == 1)).sum())
     pooled = {g: float(np.mean([r["success"]["mean"] for r in wrong if r["group"] == g] or [np.nan]))
               for g in ("random", "neighbour")}  # fmt: skip
+    paired = {g: sign_test([r for r in wrong if g == "all" or r["group"] == g])
+              for g in ("random", "neighbour", "all")}  # fmt: skip
     all_wrong = float(np.mean([r["success"]["mean"] for r in wrong])) if wrong else float("nan")
     worst = min(wrong, key=lambda r: r["success"]["mean"]) if wrong else None
     failing = [r["name"] for r in wrong if r["success"]["mean"] < EVERY * base]
@@ -241,8 +243,20 @@ def gate(rows: list[dict]) -> dict:
                                               "ratio": worst["ratio"], "key": worst.get("key")},
         "failing": failing,
         "passes": bool(wrong) and not failing and all_wrong >= POOLED * base,
+        "paired": paired,
         "predicts": predictors(wrong),
     }  # fmt: skip
+
+
+def sign_test(rows: list[dict]) -> dict:
+    """The rows' episodes lost and gained against the original on the same seeds, pooled, and the exact
+    two-sided sign test of the two counts (ties, both reaching or both missing, left out): whether the
+    keys lose more episodes than they gain beyond chance."""
+    from scipy.stats import binomtest
+
+    lost, gained = sum(r["lost"] for r in rows), sum(r["gained"] for r in rows)
+    p = float(binomtest(lost, lost + gained, 0.5).pvalue) if lost + gained else 1.0
+    return {"lost": lost, "gained": gained, "p": p}
 
 
 def predictors(wrong: list[dict]) -> dict:
@@ -290,6 +304,9 @@ def table(report: dict) -> str:
         f"({_x(w['ratio'])}); failing (< {EVERY}x): {', '.join(report['failing']) or 'none'}; gate "
         f"(each >= {EVERY}x, pooled >= {POOLED}x): {'PASS' if report['passes'] else 'FAIL'}"
     )
+    if report["paired"]["all"]["lost"] + report["paired"]["all"]["gained"]:
+        pairs = [f"{g} {s['lost']} / {s['gained']} (p {s['p']:.2g})" for g, s in report["paired"].items()]
+        lines.append("episodes lost / gained against the original, pooled (sign test): " + ", ".join(pairs))
     rho = {k: v for k, v in report["predicts"].items() if v is not None}
     if rho:
         lines.append("Spearman rho with episodes lost, over the wrong keys: "

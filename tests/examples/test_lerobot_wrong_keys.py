@@ -62,6 +62,17 @@ def test_gate_counts_paired_losses_and_ranks_offline_figures_against_them():
     g = wk.gate(rows)
     assert [r["lost"] for r in rows] == [0, 0, 1, 2] and g["failing"] == ["r1", "r2"]
     assert g["predicts"]["fidelity_user"] == pytest.approx(1.0) and g["predicts"]["delta_rms"] is None
+    # pooled over the keys: 3 lost, none gained; the exact sign test: 2 x 0.5^3
+    assert g["paired"]["random"] == g["paired"]["all"] == {"lost": 3, "gained": 0, "p": pytest.approx(0.25)}
+    assert g["paired"]["neighbour"] == {"lost": 0, "gained": 0, "p": 1.0}
+
+
+def test_sign_test_pools_losses_and_gains_and_ties_do_not_count():
+    rows = [{"lost": 9, "gained": 1}, {"lost": 1, "gained": 0}]
+    s = wk.sign_test(rows)
+    # 10 lost / 1 gained of 11 untied pairs: 2 * (1 + 11) / 2^11
+    assert (s["lost"], s["gained"]) == (10, 1) and s["p"] == pytest.approx(24 / 2048)
+    assert wk.sign_test([{"lost": 4, "gained": 4}])["p"] == pytest.approx(1.0)
 
 
 def test_gate_fails_on_one_bad_key_and_on_the_pooled_mean():
