@@ -297,7 +297,10 @@ def table(report: dict) -> str:
             cells += [f"{r[k]:.4f}" if k in r else "" for k in ("fidelity_user", "fidelity_general",
                                                                  "leakage_user")]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
-    p, w = report["pooled"], report["worst"] or {"name": "none", "success": float("nan"), "ratio": None}
+    p, w = report["pooled"], report["worst"]
+    if w is None:  # the user's key, no key and the original only (--random-keys 0 --neighbours 0)
+        lines.append(f"\noriginal {report['original_success']:.2f}; no wrong keys measured: no gate")
+        return "\n".join(lines)
     lines.append(
         f"\noriginal {report['original_success']:.2f}; pooled random {p['random']:.2f}, neighbours "
         f"{p['neighbour']:.2f}, all {p['all']:.2f} ({_x(p['ratio'])}); worst {w['name']} {w['success']:.2f} "

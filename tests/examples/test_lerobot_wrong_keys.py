@@ -65,6 +65,13 @@ def test_gate_counts_paired_losses_and_ranks_offline_figures_against_them():
     # pooled over the keys: 3 lost, none gained; the exact sign test: 2 x 0.5^3
     assert g["paired"]["random"] == g["paired"]["all"] == {"lost": 3, "gained": 0, "p": pytest.approx(0.25)}
     assert g["paired"]["neighbour"] == {"lost": 0, "gained": 0, "p": 1.0}
+    # the user's key and the original only (a bundle's personalization re-measured): no gate to read
+    figures = {"preference": {"mean": 0.0}, "return": {"mean": -2.0}}
+    alone = [_row("original", "original", 1.0, [1, 1, 1, 1], **figures),
+             _row("user key", "user_key", 0.0, [0, 0, 0, 0], **figures)]  # fmt: skip
+    report = {"rows": alone} | wk.gate(alone)
+    assert not report["passes"] and report["worst"] is None
+    assert wk.table(report).endswith("original 1.00; no wrong keys measured: no gate")
 
 
 def test_sign_test_pools_losses_and_gains_and_ties_do_not_count():
