@@ -24,7 +24,8 @@ Per key it prints success (reaching the goal), the user's preference, the return
 success to the original's, and the gate of issue 32: every wrong key >= 0.9x the original's success and
 their pooled mean >= 0.95x. With ``--offline-frames N`` it also gives each key's offline figures on N
 frames of the user's and of the general data (whole chunks in normalised units, docs/metrics.md:
-fidelity mse against the original, leakage towards the user's chunks) and what the encoder makes of
+fidelity mse against the original, leakage towards the user's chunks, personalization on the user's
+frames: 1 - mse(key, user) / mse(original, user)) and what the encoder makes of
 it (the code's Hamming distance to the user's code, the rms of delta - 1 over the keyed features, and
 the cosine of its delta - 1 with the user's), to see what the failing keys have in common.
 """
@@ -127,6 +128,8 @@ class Offline:
             out[f"fidelity_{name}"] = float(metrics.fidelity(o, b, "regression")[0])
             if name == "user":
                 out["leakage_user"] = float(metrics.leakage(o, p, b, "regression")[0])
+                # 1 - mse(key, user) / mse(original, user), personalize's figure, on these frames
+                out["personalization_user"] = metrics.personalization(o[0], p, b, "regression")
         return out
 
 
@@ -286,7 +289,7 @@ def table(report: dict) -> str:
     head = ["key", "success", "ratio", "lost / gained", "preference", "return", "code dist", "delta rms",
             "cos user"]  # fmt: skip
     if offline:
-        head += ["fid user", "fid general", "leak user"]
+        head += ["fid user", "fid general", "leak user", "pers user"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for r in rows:
         ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
@@ -294,8 +297,8 @@ def table(report: dict) -> str:
                  f"{r['preference']['mean']:.2f}", f"{r['return']['mean']:.1f}"]  # fmt: skip
         cells += [f"{r[k]:.3f}" if k in r else "" for k in ("code_distance", "delta_rms", "delta_cos_user")]
         if offline:
-            cells += [f"{r[k]:.4f}" if k in r else "" for k in ("fidelity_user", "fidelity_general",
-                                                                 "leakage_user")]  # fmt: skip
+            offline_figures = ("fidelity_user", "fidelity_general", "leakage_user", "personalization_user")
+            cells += [f"{r[k]:.4f}" if k in r else "" for k in offline_figures]
         lines.append("| " + " | ".join(cells) + " |")
     p, w = report["pooled"], report["worst"]
     if w is None:  # the user's key, no key and the original only (--random-keys 0 --neighbours 0)

@@ -105,6 +105,8 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     assert report["env"] == task.ENV_ID  # the run's datasets name their simulator (MuJoCo's reach)
     # the offline figures are taken against the original itself
     assert rows[0]["fidelity_user"] == rows[0]["fidelity_general"] == rows[0]["leakage_user"] == 0.0
+    assert rows[0]["personalization_user"] == pytest.approx(0.0, abs=1e-6)  # 1 - mse(b, p) / mse(b, p)
+    assert all(r["personalization_user"] <= 1.0 for r in rows)
     assert rows[2]["code_distance"] == 0.0 and rows[2]["delta_cos_user"] == pytest.approx(1.0, abs=1e-5)
     assert all(0.0 < r["code_distance"] < 1.0 for r in rows[3:])
     assert all(r["fidelity_general"] >= 0 and "leakage_user" in r for r in rows[2:])
