@@ -24,7 +24,8 @@ Per key it prints success (reaching the goal), the user's preference, the return
 success to the original's, and the gate of issue 32: every wrong key >= 0.9x the original's success and
 their pooled mean >= 0.95x. With ``--offline-frames N`` it also gives each key's offline figures on N
 frames of the user's and of the general data (whole chunks in normalised units, docs/metrics.md:
-fidelity mse against the original, leakage towards the user's chunks) and what the encoder makes of
+fidelity mse against the original, leakage towards the user's chunks, personalization on the user's
+frames: 1 - mse(key, user) / mse(original, user)) and what the encoder makes of
 it (the code's Hamming distance to the user's code, the rms of delta - 1 over the keyed features, and
 the cosine of its delta - 1 with the user's), to see what the failing keys have in common.
 """
@@ -127,6 +128,8 @@ class Offline:
             out[f"fidelity_{name}"] = float(metrics.fidelity(o, b, "regression")[0])
             if name == "user":
                 out["leakage_user"] = float(metrics.leakage(o, p, b, "regression")[0])
+                # 1 - mse(key, user) / mse(original, user), personalize's figure, on these frames
+                out["personalization_user"] = metrics.personalization(o[0], p, b, "regression")
         return out
 
 
@@ -231,6 +234,8 @@ def gate(rows: list[dict]) -> dict:
         r["lost"], r["gained"] = int(((ref == 1) & (mine == 0)).sum()), int(((ref == 0) & (mine == 1)).sum())
     pooled = {g: float(np.mean([r["success"]["mean"] for r in wrong if r["group"] == g] or [np.nan]))
               for g in ("random", "neighbour")}  # fmt: skip
+    paired = {g: sign_test([r for r in wrong if g == "all" or r["group"] == g])
+              for g in ("random", "neighbour", "all")}  # fmt: skip
     all_wrong = float(np.mean([r["success"]["mean"] for r in wrong])) if wrong else float("nan")
     worst = min(wrong, key=lambda r: r["success"]["mean"]) if wrong else None
     failing = [r["name"] for r in wrong if r["success"]["mean"] < EVERY * base]
@@ -241,8 +246,20 @@ def gate(rows: list[dict]) -> dict:
                                               "ratio": worst["ratio"], "key": worst.get("key")},
         "failing": failing,
         "passes": bool(wrong) and not failing and all_wrong >= POOLED * base,
+        "paired": paired,
         "predicts": predictors(wrong),
     }  # fmt: skip
+
+
+def sign_test(rows: list[dict]) -> dict:
+    """The rows' episodes lost and gained against the original on the same seeds, pooled, and the exact
+    two-sided sign test of the two counts (ties, both reaching or both missing, left out): whether the
+    keys lose more episodes than they gain beyond chance."""
+    from scipy.stats import binomtest
+
+    lost, gained = sum(r["lost"] for r in rows), sum(r["gained"] for r in rows)
+    p = float(binomtest(lost, lost + gained, 0.5).pvalue) if lost + gained else 1.0
+    return {"lost": lost, "gained": gained, "p": p}
 
 
 def predictors(wrong: list[dict]) -> dict:
@@ -272,7 +289,7 @@ def table(report: dict) -> str:
     head = ["key", "success", "ratio", "lost / gained", "preference", "return", "code dist", "delta rms",
             "cos user"]  # fmt: skip
     if offline:
-        head += ["fid user", "fid general", "leak user"]
+        head += ["fid user", "fid general", "leak user", "pers user"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for r in rows:
         ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
@@ -280,16 +297,22 @@ def table(report: dict) -> str:
                  f"{r['preference']['mean']:.2f}", f"{r['return']['mean']:.1f}"]  # fmt: skip
         cells += [f"{r[k]:.3f}" if k in r else "" for k in ("code_distance", "delta_rms", "delta_cos_user")]
         if offline:
-            cells += [f"{r[k]:.4f}" if k in r else "" for k in ("fidelity_user", "fidelity_general",
-                                                                 "leakage_user")]  # fmt: skip
+            offline_figures = ("fidelity_user", "fidelity_general", "leakage_user", "personalization_user")
+            cells += [f"{r[k]:.4f}" if k in r else "" for k in offline_figures]
         lines.append("| " + " | ".join(cells) + " |")
-    p, w = report["pooled"], report["worst"] or {"name": "none", "success": float("nan"), "ratio": None}
+    p, w = report["pooled"], report["worst"]
+    if w is None:  # the user's key, no key and the original only (--random-keys 0 --neighbours 0)
+        lines.append(f"\noriginal {report['original_success']:.2f}; no wrong keys measured: no gate")
+        return "\n".join(lines)
     lines.append(
         f"\noriginal {report['original_success']:.2f}; pooled random {p['random']:.2f}, neighbours "
         f"{p['neighbour']:.2f}, all {p['all']:.2f} ({_x(p['ratio'])}); worst {w['name']} {w['success']:.2f} "
         f"({_x(w['ratio'])}); failing (< {EVERY}x): {', '.join(report['failing']) or 'none'}; gate "
         f"(each >= {EVERY}x, pooled >= {POOLED}x): {'PASS' if report['passes'] else 'FAIL'}"
     )
+    if report["paired"]["all"]["lost"] + report["paired"]["all"]["gained"]:
+        pairs = [f"{g} {s['lost']} / {s['gained']} (p {s['p']:.2g})" for g, s in report["paired"].items()]
+        lines.append("episodes lost / gained against the original, pooled (sign test): " + ", ".join(pairs))
     rho = {k: v for k, v in report["predicts"].items() if v is not None}
     if rho:
         lines.append("Spearman rho with episodes lost, over the wrong keys: "

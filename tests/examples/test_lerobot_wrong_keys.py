@@ -62,6 +62,24 @@ def test_gate_counts_paired_losses_and_ranks_offline_figures_against_them():
     g = wk.gate(rows)
     assert [r["lost"] for r in rows] == [0, 0, 1, 2] and g["failing"] == ["r1", "r2"]
     assert g["predicts"]["fidelity_user"] == pytest.approx(1.0) and g["predicts"]["delta_rms"] is None
+    # pooled over the keys: 3 lost, none gained; the exact sign test: 2 x 0.5^3
+    assert g["paired"]["random"] == g["paired"]["all"] == {"lost": 3, "gained": 0, "p": pytest.approx(0.25)}
+    assert g["paired"]["neighbour"] == {"lost": 0, "gained": 0, "p": 1.0}
+    # the user's key and the original only (a bundle's personalization re-measured): no gate to read
+    figures = {"preference": {"mean": 0.0}, "return": {"mean": -2.0}}
+    alone = [_row("original", "original", 1.0, [1, 1, 1, 1], **figures),
+             _row("user key", "user_key", 0.0, [0, 0, 0, 0], **figures)]  # fmt: skip
+    report = {"rows": alone} | wk.gate(alone)
+    assert not report["passes"] and report["worst"] is None
+    assert wk.table(report).endswith("original 1.00; no wrong keys measured: no gate")
+
+
+def test_sign_test_pools_losses_and_gains_and_ties_do_not_count():
+    rows = [{"lost": 9, "gained": 1}, {"lost": 1, "gained": 0}]
+    s = wk.sign_test(rows)
+    # 10 lost / 1 gained of 11 untied pairs: 2 * (1 + 11) / 2^11
+    assert (s["lost"], s["gained"]) == (10, 1) and s["p"] == pytest.approx(24 / 2048)
+    assert wk.sign_test([{"lost": 4, "gained": 4}])["p"] == pytest.approx(1.0)
 
 
 def test_gate_fails_on_one_bad_key_and_on_the_pooled_mean():
@@ -87,6 +105,8 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     assert report["env"] == task.ENV_ID  # the run's datasets name their simulator (MuJoCo's reach)
     # the offline figures are taken against the original itself
     assert rows[0]["fidelity_user"] == rows[0]["fidelity_general"] == rows[0]["leakage_user"] == 0.0
+    assert rows[0]["personalization_user"] == pytest.approx(0.0, abs=1e-6)  # 1 - mse(b, p) / mse(b, p)
+    assert all(r["personalization_user"] <= 1.0 for r in rows)
     assert rows[2]["code_distance"] == 0.0 and rows[2]["delta_cos_user"] == pytest.approx(1.0, abs=1e-5)
     assert all(0.0 < r["code_distance"] < 1.0 for r in rows[3:])
     assert all(r["fidelity_general"] >= 0 and "leakage_user" in r for r in rows[2:])
