@@ -100,6 +100,11 @@ def warn(message: str) -> None:
     print(f"prop: warning: {message}", file=sys.stderr)
 
 
+# What to try when the wrong keys drift systematically (personalize's lean, eval's drift): --delta-pull is
+# already 100 for policies, and what was left on the point-mass tasks was the keys farthest from yours.
+DRIFT_FIX = ("personalize again with more --steps, a stronger --delta-pull, --antipode-codes 16 (the codes "
+             "farthest from yours; examples/RESULTS.md, point mass), or --seal")  # fmt: skip
+
 PLAIN_EVERY_S = 60.0  # the longest a plain progress display stays silent
 
 

@@ -6,7 +6,7 @@ from typing import Annotated
 from prop_cli.config import EvalSettings
 from prop_cli.errors import plural
 
-from .common import err, out, print_json, read_passphrase, warn
+from .common import DRIFT_FIX, err, out, print_json, read_passphrase, warn
 from .options import (
     AllowRollback,
     AllowUnenrolledKey,
@@ -115,6 +115,4 @@ def _warn_drift(report: dict) -> None:
         lost = f"; {eps['lost']} episodes lost, {eps['gained']} gained, p = {eps['p']:.2g}" if eps else ""
         than = d["against"].replace("_", " ")
         warn(f"{d['worse']} of {d['keys']} {words} do worse than {than} on {d['by']} on the same seeds "
-             f"(sign test over keys p = {d['p']:.2g}{lost}): a systematic drift; "
-             "personalize again with --delta-pull 100, more --steps or --key-weight (examples/RESULTS.md, "
-             "point-mass Round 2), or --seal")  # fmt: skip
+             f"(sign test over keys p = {d['p']:.2g}{lost}): a systematic drift; {DRIFT_FIX}")  # fmt: skip

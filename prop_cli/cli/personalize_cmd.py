@@ -13,6 +13,7 @@ from prop_cli.constants import (
 from prop_cli.errors import plural
 
 from .common import (
+    DRIFT_FIX,
     StatusLines,
     checkpoint_options,
     fail,
@@ -177,5 +178,4 @@ def _warn_lean(user: int, m: dict) -> None:
             continue
         warn(f"user {user}'s {words} drift systematically towards your change ({lean['above']} of "
              f"{lean['keys']} keys, sign test p = {lean['p']:.2g}, mean lean {lean['mean']:+.3g}); "
-             "check them in closed loop with prop eval --original; personalize again with --delta-pull 100, "
-             "more --steps or --key-weight (examples/RESULTS.md, point-mass Round 2), or --seal")  # fmt: skip
+             f"check them in closed loop with prop eval --original; {DRIFT_FIX}")  # fmt: skip
