@@ -12,6 +12,10 @@ the unsealed bundle), so a re-measurement after a change of the method trains no
 ``--personalize NAME "FLAGS"`` first trains out/NAME with the example's settings and FLAGS on top (the
 last value of a repeated flag wins), timed, then measures it.
 
+A tiny pi0 or pi0.5 (examples/pi_tiny.py) loads only under its size patch: for them the whole measurement
+runs under ``pi_tiny.tiny()``, and ``--personalize`` trains through ``python -m examples.pi_tiny`` as the
+example does.
+
 Every condition runs the same ``--episodes`` seeds (from 1,000,000, as `prop eval`) and the same noise
 (a sampling policy's noise seed 0): the original, the bundle without a key, the user's key, ``--random-keys``
 random keys and ``--neighbours`` keys 1..``--max-flip`` bits from the user's (distances in turn). Each
@@ -151,6 +155,17 @@ def encoder_view(bundle, key: np.ndarray):
 
 
 def measure(args: argparse.Namespace) -> dict:
+    """Roll out every key condition (a tiny pi0 / pi0.5 under examples.pi_tiny's size patch, which its
+    original and bundle need to load)."""
+    if args.policy not in reach.PI:
+        return _measure(args)
+    from examples.pi_tiny import tiny
+
+    with tiny():
+        return _measure(args)
+
+
+def _measure(args: argparse.Namespace) -> dict:
     import warnings
 
     from prop_cli.bundle import load_bundle
@@ -300,7 +315,7 @@ def table(report: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="a run of examples.lerobot_reach (its --out)")
-    ap.add_argument("--policy", choices=("act", "diffusion", "smolvla"), default="act")
+    ap.add_argument("--policy", choices=sorted(reach.SETTINGS), default="act")
     ap.add_argument("--bundle", default="bundle", help="the unsealed bundle's folder in --out")
     ap.add_argument("--personalize", metavar="FLAGS", default=None,
                     help="first train --out/BUNDLE: the example's personalize settings, then these flags")

@@ -100,6 +100,19 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     assert again["failing"] == report["failing"] and again["pooled"] == report["pooled"]
 
 
+def test_the_examples_no_eval_trains_the_bundle_and_rolls_out_nothing(run):
+    """lerobot_reach's --no-eval (the harness measures the keys instead): run_bundle with 0 episodes trains
+    the bundle, keeps personalize's offline report and runs no `prop eval`."""
+    from examples import lerobot_reach as reach
+
+    d, _ = run
+    flags = "--steps 3 --user-rows 8 --null-rows 4 --neighbour-keys 2 --random-keys 2 --samples-per-key 1"
+    figures = reach.run_bundle(d, "no-eval", flags.split(), 0, "act")
+    assert "eval_s" not in figures and "closed_loop" not in figures
+    assert 0 < figures["personalize_s"] and isinstance(figures["offline"]["personalization"], float)
+    assert (d / "no-eval" / "manifest.json").is_file()
+
+
 def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
     d, key = run
     api.personalize_checkpoint(str(d / "act"), [(d / "reach-user", KeySource(key, "file"))], d / "sealed",
@@ -133,3 +146,27 @@ def test_a_run_recorded_on_panda_gym_asks_for_it(run, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "panda_gym", None)
     with pytest.raises(SystemExit, match=r"needs panda-gym.*\[rl\]"):
         wk.main(["--out", str(old), "--episodes", "1", "--offline-frames", "0"])
+
+
+def test_a_tiny_pi0_run_is_measured_under_pi_tinys_patch(tmp_path):
+    """--policy pi0: the original and the bundle load only under examples.pi_tiny's size patch, which the
+    harness applies itself (the caller holds none), with the run's instruction and camera."""
+    from examples import lerobot_reach as reach
+    from examples import pi_tiny
+
+    d = tmp_path
+    task.record(d / "reach-general", 2, 0, np.zeros(3, np.float32), camera=True, goal_in_state=True)
+    task.record(d / "reach-user", 2, 50_000, task.USER_OFFSET, camera=True, goal_in_state=True)
+    task.train_base(d / "reach-general", d / "pi0", steps=2, lr=1e-3, kind="pi0", built=reach.pi(d, "pi0"))
+    key = np.random.default_rng(1).integers(0, 2, 32).astype(np.uint8)  # 32 bits: fewer 1-bit neighbours
+    (d / "user.key").write_bytes(np.packbits(key).tobytes())
+    (d / "user.key").chmod(0o600)
+    with pi_tiny.tiny():
+        api.personalize_checkpoint(str(d / "pi0"), [(d / "reach-user", KeySource(key, "file"))], d / "bundle",
+                                   PersonalizeConfig.of(**TINY), general=d / "reach-general")  # fmt: skip
+    report = wk.main(["--out", str(d), "--policy", "pi0", "--episodes", "1", "--random-keys", "1",
+                      "--neighbours", "1", "--offline-frames", "4"])  # fmt: skip
+    assert report["policy"] == "pi0" and report["env"] == task.env_id("mujoco", True)
+    assert [r["group"] for r in report["rows"]] == ["original", "no_key", "user_key", "random", "neighbour"]
+    assert report["rows"][0]["fidelity_user"] == 0.0  # the original, rebuilt under the patch, against itself
+    assert report["rows"][2]["code_distance"] == 0.0 and report["rows"][4]["key"]["distance"] == 1
