@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     ap.add_argument("--no-sealed", action="store_true", help="skip step 6 (the sealed bundle)")
     ap.add_argument("--no-eval", action="store_true",
-                    help="skip step 4's prop eval (examples.lerobot_wrong_keys measures the keys instead)")  # fmt: skip
+                    help="skip step 4 (prop eval; examples.lerobot_wrong_keys measures keys)")  # fmt: skip
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
     (out / "figures.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
-          f"eval {figures.get('eval_s', 'skipped')} s")  # fmt: skip
+          + ("eval skipped" if args.no_eval else f"eval {figures['eval_s']} s"))  # fmt: skip
     if not args.no_attack:
         attack(out, "bundle", kind)
     if not args.no_sealed:
