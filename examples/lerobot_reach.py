@@ -27,7 +27,8 @@
 --reuse keeps the datasets, base ACT and key of an earlier run in --out and redoes steps 3-6;
 --attack-only keeps the bundle too and redoes step 5 (--attack-only sealed: step 6's audit); --sealed-only
 keeps steps 1-5 and redoes step 6; --no-attack skips the audits (run them later with --attack-only),
---no-sealed step 6;
+--no-sealed step 6; --no-eval skips step 4's `prop eval` (examples/lerobot_wrong_keys.py rolls out the
+same kinds of keys, more of them, on the same seeds);
 --datasets DIR copies step 1's datasets from an earlier run's --out (same camera and state) instead.
 --sim mujoco runs it all on the MuJoCo reach (examples/mujoco_reach.py; no panda-gym needed, not the
 paper's task: its figures are not those of examples/RESULTS.md); steps 3-6 take the simulator the
@@ -127,6 +128,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-attack", action="store_true", help="skip the audits (run them with --attack-only)")
     ap.add_argument("--sealed-only", action="store_true", help="keep an earlier run; redo step 6 (sealed)")
     ap.add_argument("--no-sealed", action="store_true", help="skip step 6 (the sealed bundle)")
+    ap.add_argument("--no-eval", action="store_true",
+                    help="skip step 4 (prop eval; examples.lerobot_wrong_keys measures keys)")  # fmt: skip
     args = ap.parse_args(argv)
     kind, conf = args.policy, SETTINGS[args.policy]
     out = args.out or Path("out/lerobot-reach" + ("" if kind == "act" else f"-{kind}"))
@@ -171,11 +174,12 @@ def main(argv: list[str] | None = None) -> None:
     steps = conf["personalize"]
     steps = steps if args.steps is None else [*steps[:1], str(args.steps), *steps[2:]]
     general = ["--general-data", out / "reach-general"]
-    figures |= run_bundle(out, "bundle", [*steps, *general], args.episodes, kind)
+    episodes = 0 if args.no_eval else args.episodes
+    figures |= run_bundle(out, "bundle", [*steps, *general], episodes, kind)
     (out / "figures.json").write_text(json.dumps(figures, indent=1, sort_keys=True))
     print(f"times: record {figures['record_s']} s, base {figures['base_train_s']} s "
           f"({figures['base_ms_per_step']} ms/step), personalize {figures['personalize_s']} s, "
-          f"eval {figures['eval_s']} s")  # fmt: skip
+          + ("eval skipped" if args.no_eval else f"eval {figures['eval_s']} s"))  # fmt: skip
     if not args.no_attack:
         attack(out, "bundle", kind)
     if not args.no_sealed:
@@ -224,7 +228,8 @@ def sealed(out: Path, episodes: int, kind: str, audit: bool = True) -> None:
 
 
 def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str) -> dict:
-    """`prop personalize` into out/NAME, then `prop eval` of every key condition; returns the figures."""
+    """`prop personalize` into out/NAME, then `prop eval` of every key condition (none when ``episodes`` is
+    0); returns the figures."""
     camera = task.CAMERA in json.loads((out / kind / "config.json").read_text())["input_features"]
     sim = task.sim_of(out / "reach-general")
     task.require_sim(sim)
@@ -241,6 +246,8 @@ def run_bundle(out: Path, name: str, personalize: list, episodes: int, kind: str
     ))  # fmt: skip
     figures["personalize_s"] = round(time.perf_counter() - t, 1)
     figures["offline"] = report["metrics"][0]
+    if not episodes:
+        return figures
     t = time.perf_counter()
     closed = json.loads(prop(
         "eval", out / name, "--env", env_id, "--obs-map", obs_map, "--metric", task.METRIC,

@@ -12,6 +12,10 @@ the unsealed bundle), so a re-measurement after a change of the method trains no
 ``--personalize NAME "FLAGS"`` first trains out/NAME with the example's settings and FLAGS on top (the
 last value of a repeated flag wins), timed, then measures it.
 
+A tiny pi0 or pi0.5 (examples/pi_tiny.py) loads only under its size patch: for them the whole measurement
+runs under ``pi_tiny.tiny()``, and ``--personalize`` trains through ``python -m examples.pi_tiny`` as the
+example does.
+
 Every condition runs the same ``--episodes`` seeds (from 1,000,000, as `prop eval`) and the same noise
 (a sampling policy's noise seed 0): the original, the bundle without a key, the user's key, ``--random-keys``
 random keys and ``--neighbours`` keys 1..``--max-flip`` bits from the user's (distances in turn). Each
@@ -19,6 +23,10 @@ wrong key runs every seed: a key is judged on the same starting states as the or
 through the encoder (``KeyedPolicy(..., method=True)``, what `prop eval --random-keys` and the audit
 measure and what an export answers), not through prop's check, which runs the base for a key enrolled
 in nothing.
+
+The report (--json) is rewritten after every condition, marked ``"partial"`` until the last: a run stopped
+early keeps every key measured so far. The wrong keys run interleaved (random 1, neighbour 1, random 2,
+...), so a stopped run has as many of each group.
 
 Per key it prints success (reaching the goal), the user's preference, the return, the ratio of its
 success to the original's, and the gate of issue 32: every wrong key >= 0.9x the original's success and
@@ -35,6 +43,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shlex
 import sys
 import time
@@ -153,7 +162,28 @@ def encoder_view(bundle, key: np.ndarray):
     return view
 
 
-def measure(args: argparse.Namespace) -> dict:
+def measure(args: argparse.Namespace, save=None) -> dict:
+    """Roll out every key condition (a tiny pi0 / pi0.5 under examples.pi_tiny's size patch, which its
+    original and bundle need to load); ``save(report)`` after each, the report so far (``"partial"``)."""
+    if args.policy not in reach.PI:
+        return _measure(args, save)
+    from examples.pi_tiny import tiny
+
+    with tiny():
+        return _measure(args, save)
+
+
+def interleaved(wrong: list[dict]) -> list[dict]:
+    """The wrong keys in the order they are rolled out: random 1, neighbour 1, random 2, ... (each group's
+    own order), so that a run stopped early has measured as many keys of each group."""
+    groups = [[w for w in wrong if w["group"] == g] for g in ("random", "neighbour")]
+    out = []
+    for i in range(max(map(len, groups), default=0)):
+        out += [g[i] for g in groups if i < len(g)]
+    return out
+
+
+def _measure(args: argparse.Namespace, save=None) -> dict:
     import warnings
 
     from prop_cli.bundle import load_bundle
@@ -190,6 +220,7 @@ def measure(args: argparse.Namespace) -> dict:
     view = encoder_view(bundle, key)
     offline = Offline(bundle, original, out, args.offline_frames) if args.offline_frames else None
     rows: list[dict] = []
+    meta = {"bundle": str(out / args.bundle), "policy": kind, "env": env_id, "seeds": [seeds[0], seeds[-1]]}
 
     def run(name: str, group: str, controller, module=None, ident=None, bits=None) -> None:
         t = time.perf_counter()
@@ -202,6 +233,8 @@ def measure(args: argparse.Namespace) -> dict:
         if offline is not None and module is not None:
             row |= offline(module)
         rows.append(row)
+        if save is not None:
+            save(gate(rows) | meta | {"rows": rows, "partial": True})
         print(f"  {name:24s} success {row['success']['mean']:.2f}  preference {row['preference']['mean']:.2f}"
               f"  ({row['seconds']:.1f} s)", file=sys.stderr, flush=True)  # fmt: skip
 
@@ -212,13 +245,14 @@ def measure(args: argparse.Namespace) -> dict:
     run("user key", "user_key", user, user.module, bits=key)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for j, w in enumerate(wrong):
+        n_random = 0
+        for w in interleaved(wrong):
             ctl = KeyedPolicy(bundle, w["bits"], method=True, noise_seed=0, instruction=instruction)
-            name = f"random {j + 1}" if w["group"] == "random" else f"neighbour d={w['id']['distance']}"
+            n_random += w["group"] == "random"
+            name = f"random {n_random}" if w["group"] == "random" else f"neighbour d={w['id']['distance']}"
             run(name, w["group"], ctl, ctl.module, ident=w["id"], bits=w["bits"])
     env.close()
-    return gate(rows) | {"bundle": str(out / args.bundle), "policy": kind, "env": env_id,
-                         "seeds": [seeds[0], seeds[-1]], "rows": rows}  # fmt: skip
+    return gate(rows) | meta | {"rows": rows, "partial": False}
 
 
 def gate(rows: list[dict]) -> dict:
@@ -323,7 +357,7 @@ def table(report: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="a run of examples.lerobot_reach (its --out)")
-    ap.add_argument("--policy", choices=("act", "diffusion", "smolvla"), default="act")
+    ap.add_argument("--policy", choices=sorted(reach.SETTINGS), default="act")
     ap.add_argument("--bundle", default="bundle", help="the unsealed bundle's folder in --out")
     ap.add_argument("--personalize", metavar="FLAGS", default=None,
                     help="first train --out/BUNDLE: the example's personalize settings, then these flags")
@@ -358,13 +392,19 @@ def main(argv: list[str] | None = None) -> dict:
         trained = {"flags": args.personalize, "seconds": round(time.perf_counter() - t, 1),
                    "offline": report["metrics"][0]}  # fmt: skip
     t = time.perf_counter()
-    report = measure(args)
-    report["seconds"] = round(time.perf_counter() - t, 1)
-    if trained is not None:
-        report["personalize"] = trained
-    print(table(report))
     path = args.json or args.out / f"wrong-keys-{args.bundle}.json"
-    path.write_text(json.dumps(report, indent=1))
+
+    def save(report: dict) -> None:  # whole or not at all: a stopped run leaves its last complete report
+        report["seconds"] = round(time.perf_counter() - t, 1)
+        if trained is not None:
+            report["personalize"] = trained
+        part = path.with_name(path.name + ".part")
+        part.write_text(json.dumps(report, indent=1))
+        os.replace(part, path)
+
+    report = measure(args, save)
+    save(report)
+    print(table(report))
     print(f"wrote {path} ({report['seconds']} s)", file=sys.stderr)
     return report
 

@@ -99,8 +99,9 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     report = wk.main(["--out", str(d), "--episodes", "2", "--random-keys", "2", "--neighbours", "2",
                       "--max-flip", "8", "--offline-frames", "8"])  # fmt: skip
     rows = report["rows"]
-    assert [r["group"] for r in rows] == ["original", "no_key", "user_key", "random", "random",
-                                          "neighbour", "neighbour"]  # fmt: skip
+    assert [r["group"] for r in rows] == ["original", "no_key", "user_key", "random", "neighbour",
+                                          "random", "neighbour"]  # fmt: skip  # interleaved
+    assert [r["name"] for r in rows[3:]] == ["random 1", "neighbour d=1", "random 2", "neighbour d=2"]
     assert all(r["episodes"] == 2 for r in rows)
     assert report["env"] == task.ENV_ID  # the run's datasets name their simulator (MuJoCo's reach)
     # the offline figures are taken against the original itself
@@ -111,13 +112,59 @@ def test_harness_rolls_out_every_key_on_the_same_seeds_and_writes_json(run, caps
     assert all(0.0 < r["code_distance"] < 1.0 for r in rows[3:])
     assert all(r["fidelity_general"] >= 0 and "leakage_user" in r for r in rows[2:])
     saved = json.loads((d / "wrong-keys-bundle.json").read_text())
-    assert saved["passes"] == report["passes"] and len(saved["rows"]) == 7
+    assert saved["passes"] == report["passes"] and len(saved["rows"]) == 7 and saved["partial"] is False
+    assert not (d / "wrong-keys-bundle.json.part").exists()
     assert "gate (each >= 0.9x, pooled >= 0.95x)" in capsys.readouterr().out
     # paired on the seeds: a row's episodes lost and gained against the original add up to its difference
     for r in rows:
         assert r["gained"] - r["lost"] == round(2 * (r["success"]["mean"] - rows[0]["success"]["mean"]))
     again = wk.main(["--out", str(d), "--from-json", str(d / "wrong-keys-bundle.json")])
     assert again["failing"] == report["failing"] and again["pooled"] == report["pooled"]
+
+
+def test_a_stopped_run_keeps_every_key_measured_so_far(run, tmp_path, monkeypatch):
+    """The report is rewritten whole after each condition: stopped after the first wrong key, the JSON holds
+    the four conditions measured, marked partial, and no half-written file."""
+    d, _ = run
+    measure = wk.measure
+
+    def stopped(args, save):
+        def save_then_stop(report):
+            save(report)
+            if len(report["rows"]) == 4:
+                raise KeyboardInterrupt
+
+        return measure(args, save_then_stop)
+
+    monkeypatch.setattr(wk, "measure", stopped)
+    path = tmp_path / "report.json"
+    with pytest.raises(KeyboardInterrupt):
+        wk.main(["--out", str(d), "--episodes", "1", "--random-keys", "2", "--neighbours", "2",
+                 "--offline-frames", "0", "--json", str(path)])  # fmt: skip
+    saved = json.loads(path.read_text())
+    assert saved["partial"] is True and not path.with_name("report.json.part").exists()
+    assert [r["group"] for r in saved["rows"]] == ["original", "no_key", "user_key", "random"]
+    assert wk.main(["--out", str(d), "--from-json", str(path)])["failing"] == saved["failing"]
+
+
+def test_wrong_keys_run_interleaved_each_group_in_its_own_order():
+    wrong = [{"group": "random", "i": i} for i in range(3)] + [{"group": "neighbour", "i": 0}]
+    order = [(w["group"][0], w["i"]) for w in wk.interleaved(wrong)]
+    assert order == [("r", 0), ("n", 0), ("r", 1), ("r", 2)]
+    assert wk.interleaved([]) == []
+
+
+def test_the_examples_no_eval_trains_the_bundle_and_rolls_out_nothing(run):
+    """lerobot_reach's --no-eval (the harness measures the keys instead): run_bundle with 0 episodes trains
+    the bundle, keeps personalize's offline report and runs no `prop eval`."""
+    from examples import lerobot_reach as reach
+
+    d, _ = run
+    flags = "--steps 3 --user-rows 8 --null-rows 4 --neighbour-keys 2 --random-keys 2 --samples-per-key 1"
+    figures = reach.run_bundle(d, "no-eval", flags.split(), 0, "act")
+    assert "eval_s" not in figures and "closed_loop" not in figures
+    assert 0 < figures["personalize_s"] and isinstance(figures["offline"]["personalization"], float)
+    assert (d / "no-eval" / "manifest.json").is_file()
 
 
 def test_a_sealed_bundle_is_refused_in_one_line(run, tmp_path):
@@ -153,3 +200,28 @@ def test_a_run_recorded_on_panda_gym_asks_for_it(run, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "panda_gym", None)
     with pytest.raises(SystemExit, match=r"needs panda-gym.*\[rl\]"):
         wk.main(["--out", str(old), "--episodes", "1", "--offline-frames", "0"])
+
+
+def test_a_tiny_pi0_run_is_measured_under_pi_tinys_patch(tmp_path):
+    """--policy pi0: the original and the bundle load only under examples.pi_tiny's size patch, which the
+    harness applies itself (the caller holds none), with the run's instruction and camera."""
+    from examples import lerobot_reach as reach
+    from examples import pi_tiny
+
+    d = tmp_path
+    task.record(d / "reach-general", 2, 0, np.zeros(3, np.float32), camera=True, goal_in_state=True)
+    task.record(d / "reach-user", 2, 50_000, task.USER_OFFSET, camera=True, goal_in_state=True)
+    task.train_base(d / "reach-general", d / "pi0", steps=2, lr=1e-3, kind="pi0", built=reach.pi(d, "pi0"))
+    key = np.random.default_rng(1).integers(0, 2, 32).astype(np.uint8)  # 32 bits: fewer 1-bit neighbours
+    (d / "user.key").write_bytes(np.packbits(key).tobytes())
+    (d / "user.key").chmod(0o600)
+    with pi_tiny.tiny():
+        api.personalize_checkpoint(str(d / "pi0"), [(d / "reach-user", KeySource(key, "file"))], d / "bundle",
+                                   PersonalizeConfig.of(**TINY), general=d / "reach-general")  # fmt: skip
+    report = wk.main(["--out", str(d), "--policy", "pi0", "--episodes", "1", "--random-keys", "1",
+                      "--neighbours", "1", "--offline-frames", "4"])  # fmt: skip
+    assert report["policy"] == "pi0" and report["env"] == task.env_id("mujoco", True)
+    assert [r["group"] for r in report["rows"]] == ["original", "no_key", "user_key", "random", "neighbour"]
+    assert json.loads((d / "wrong-keys-bundle.json").read_text())["partial"] is False
+    assert report["rows"][0]["fidelity_user"] == 0.0  # the original, rebuilt under the patch, against itself
+    assert report["rows"][2]["code_distance"] == 0.0 and report["rows"][4]["key"]["distance"] == 1
